@@ -1,0 +1,3 @@
+from cell.cli import main
+
+main()

@@ -1,0 +1,1 @@
+"""Registration, filtering, merging, error map and report."""

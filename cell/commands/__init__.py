@@ -1,0 +1,1 @@
+"""Sub-commands of ``cell``: each module defines ``register(app: typer.Typer) -> None``."""

@@ -1,0 +1,266 @@
+"""Schemas of the cell config and of recipes, and YAML loading with errors that name file and field.
+
+Field names carry their unit (``_mm``, ``_deg``, ``_ms``, ``_px``) so that a unit mistake shows in review, and
+bounds catch the ones a schema can (a stand-off of 0.394 is metres, not millimetres). Unknown keys are errors:
+a typo must never silently fall back to a default.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal, TypeVar
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from cell.errors import ConfigError
+from cell.geometry import Pose, pose_from_xyz_rpy
+
+PositiveFloat = Annotated[float, Field(gt=0)]
+Fraction = Annotated[float, Field(ge=0, le=1)]
+Vec3 = tuple[float, float, float]
+
+
+class Strict(BaseModel):
+    """Base of every schema: unknown keys are errors, values are validated on assignment too."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+
+class PoseConfig(Strict):
+    """A rigid transform as written by people: translation in mm, fixed-axis roll/pitch/yaw in degrees."""
+
+    xyz_mm: Vec3 = (0.0, 0.0, 0.0)
+    rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+
+    def matrix(self) -> Pose:
+        """The 4x4 float64 matrix (mm, rad inside)."""
+        return pose_from_xyz_rpy(self.xyz_mm, np.deg2rad(self.rpy_deg))
+
+
+class Distortion(Strict):
+    """Brown-Conrady lens distortion coefficients in OpenCV order (k1, k2, p1, p2, k3)."""
+
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.k1, self.k2, self.p1, self.p2, self.k3], dtype=np.float64)
+
+
+class PinholeConfig(Strict):
+    """Pinhole intrinsics shared by camera and projector (pixels; principal point in pixel coordinates)."""
+
+    width_px: Annotated[int, Field(gt=0, le=16384)]
+    height_px: Annotated[int, Field(gt=0, le=16384)]
+    fx_px: PositiveFloat
+    fy_px: PositiveFloat
+    cx_px: float
+    cy_px: float
+    pixel_pitch_um: Annotated[float, Field(gt=0.5, lt=100)]
+    f_number: Annotated[float, Field(gt=0.5, lt=64)]
+    focus_distance_mm: Annotated[float, Field(gt=10, lt=10000)]
+
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix."""
+        return np.array([[self.fx_px, 0, self.cx_px], [0, self.fy_px, self.cy_px], [0, 0, 1.0]])
+
+    @property
+    def focal_length_mm(self) -> float:
+        return self.fx_px * self.pixel_pitch_um * 1e-3
+
+
+class CameraConfig(PinholeConfig):
+    """An area camera: optics, sensor noise model and the driver that talks to it."""
+
+    driver: Literal["sim", "genicam", "replay"] = "sim"
+    name: str = "camera"
+    serial: str = "SIM-CAM-0001"
+    model: str = "simulated"
+    distortion: Distortion = Distortion()
+    bit_depth: Literal[8, 10, 12] = 8
+    full_well_e: Annotated[float, Field(gt=100)]
+    read_noise_e: Annotated[float, Field(ge=0)]
+    dark_offset_dn: Annotated[float, Field(ge=0)] = 0.0
+    exposure_ms: Annotated[float, Field(gt=0, le=10000)]
+    gain_db: Annotated[float, Field(ge=0, le=48)] = 0.0
+    options: dict[str, Any] = Field(default_factory=dict, description="driver-specific settings")
+
+
+class ProjectorConfig(PinholeConfig):
+    """A DLP projector: optics, light output, placement in the camera frame and its control driver."""
+
+    driver: Literal["sim", "serial", "replay"] = "sim"
+    name: str = "projector"
+    T_C_P: PoseConfig = Field(description="projector optical frame in the camera frame {C}")
+    irradiance_e_per_ms: PositiveFloat = Field(
+        description="camera signal (electrons/ms) from a white pixel on an albedo-1 surface facing the "
+        "projector at its focus distance"
+    )
+    black_level: Fraction = Field(0.002, description="light leaked by a black pixel: 1 / contrast ratio")
+    gamma: Annotated[float, Field(gt=0.2, lt=5)] = 1.0
+    options: dict[str, Any] = Field(default_factory=dict, description="driver-specific settings")
+
+
+class SensorConfig(Strict):
+    """The structured-light area sensor on the robot flange: camera + projector, and its hand-eye pose."""
+
+    T_T_C: PoseConfig = Field(description="camera optical frame {C} in the tool flange frame {T}")
+    standoff_mm: Annotated[float, Field(gt=50, lt=5000)]
+    depth_of_field_mm: Annotated[float, Field(gt=0, lt=2000)]
+    camera: CameraConfig
+    projector: ProjectorConfig
+
+
+class RobotConfig(Strict):
+    """The arm: placement in the world, workspace envelope and motion limits the cell never exceeds."""
+
+    driver: Literal["sim", "ur_rtde", "replay"] = "sim"
+    name: str = "robot"
+    model: Literal["ur5e"] = "ur5e"
+    host: str = "127.0.0.1"
+    T_W_B: PoseConfig = PoseConfig()
+    envelope_min_mm: Vec3
+    envelope_max_mm: Vec3
+    max_tcp_speed_mm_s: Annotated[float, Field(gt=0, le=1000)]
+    max_tcp_accel_mm_s2: Annotated[float, Field(gt=0, le=5000)]
+    max_joint_speed_rad_s: Annotated[float, Field(gt=0, le=math.pi)]
+    max_joint_accel_rad_s2: Annotated[float, Field(gt=0, le=40)]
+    home_joints_deg: tuple[float, float, float, float, float, float]
+
+    @model_validator(mode="after")
+    def _envelope_ordered(self) -> "RobotConfig":
+        if any(lo >= hi for lo, hi in zip(self.envelope_min_mm, self.envelope_max_mm)):
+            raise ValueError("envelope_min_mm must be below envelope_max_mm on every axis")
+        return self
+
+
+class MaterialConfig(Strict):
+    """Surface reflectance for the simulator: ambient + Lambert + Phong specular."""
+
+    albedo: Fraction = 0.6
+    specular: Annotated[float, Field(ge=0, le=50)] = 0.0
+    shininess: Annotated[float, Field(ge=1, le=10000)] = 20.0
+
+
+class SimConfig(Strict):
+    """Everything only the simulator reads: scene lighting, table and part materials, the noise seed."""
+
+    ambient_e_per_ms: Annotated[float, Field(ge=0)] = 5.0
+    table_size_mm: Annotated[float, Field(gt=0)] = 3000.0
+    table_material: MaterialConfig = MaterialConfig(albedo=0.3)
+    part_material: MaterialConfig = MaterialConfig()
+    seed: int = 0
+    noise: bool = True
+
+
+class CellConfig(Strict):
+    """A whole cell: one robot carrying one area sensor; the simulator section is used by sim devices."""
+
+    name: str
+    description: str = ""
+    robot: RobotConfig
+    sensor: SensorConfig
+    sim: SimConfig = SimConfig()
+
+
+# --------------------------------------------------------------------------------------------- recipes
+class ToleranceConfig(Strict):
+    """Allowed signed deviation from the nominal surface, mm (negative = into the material)."""
+
+    lower: float = Field(lt=0)
+    upper: float = Field(gt=0)
+
+    @field_validator("lower", "upper")
+    @classmethod
+    def _plausible(cls, v: float) -> float:
+        if abs(v) > 50:
+            raise ValueError(f"{v} mm is not a plausible tolerance (units are mm)")
+        return v
+
+
+class PartConfig(Strict):
+    """The part to inspect. Paths are relative to the recipe file."""
+
+    cad: Path
+    actual: Path | None = Field(None, description="simulation only: the mesh rendered as the made part")
+    T_W_P: PoseConfig = PoseConfig()
+    material: MaterialConfig | None = None
+
+
+class Recipe(Strict):
+    """An inspection recipe: the nominal part and its tolerance; everything else has defaults."""
+
+    name: str = ""
+    part: PartConfig
+    tolerance: ToleranceConfig
+
+
+# --------------------------------------------------------------------------------------------- loading
+M = TypeVar("M", bound=BaseModel)
+
+
+def _field_path(loc: tuple[Any, ...]) -> str:
+    return ".".join(str(p) for p in loc) or "(top level)"
+
+
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping; ConfigError naming the file when it is missing, unreadable or not a mapping."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError("file not found; check the path", path=str(p))
+    try:
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(f"malformed YAML{where}: {getattr(exc, 'problem', exc)}", path=str(p)) from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read: {exc}", path=str(p)) from exc
+    if not isinstance(data, dict):
+        raise ConfigError("expected a mapping of keys to values at the top level", path=str(p))
+    return data
+
+
+def validate(model: type[M], data: dict[str, Any], path: str | Path) -> M:
+    """Validate ``data`` against ``model``; the first error becomes a ConfigError naming file and field."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key (typo?); remove it or check the schema in docs/"
+        elif err["type"] == "missing":
+            msg = "required field is missing"
+        more = f" (and {len(exc.errors()) - 1} more problem(s))" if len(exc.errors()) > 1 else ""
+        raise ConfigError(msg + more, path=str(path), field=_field_path(err["loc"])) from exc
+
+
+def load_cell_config(path: str | Path) -> CellConfig:
+    """Load and validate a cell config YAML."""
+    return validate(CellConfig, read_yaml(path), path)
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Load a recipe; part paths become absolute (relative to the recipe file) and must exist."""
+    p = Path(path)
+    recipe = validate(Recipe, read_yaml(p), p)
+    base = p.resolve().parent
+    for field in ("cad", "actual"):
+        value = getattr(recipe.part, field)
+        if value is None:
+            continue
+        resolved = value if value.is_absolute() else base / value
+        if not resolved.is_file():
+            raise ConfigError(f"mesh file not found: {resolved}", path=str(p), field=f"part.{field}")
+        setattr(recipe.part, field, resolved)
+    return recipe
+
+
+DEFAULT_CELL = Path(__file__).resolve().parent.parent / "recipes" / "cells" / "sim.yaml"

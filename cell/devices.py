@@ -1,0 +1,90 @@
+"""Build the cell's devices from its config: the only place that knows which class implements which driver.
+
+The controller receives a :class:`DeviceBundle` and sees only the Protocols of ``cell.contracts``; switching a
+simulated cell for a real one is a config change. Driver modules are imported here lazily, by name, so that a
+missing or broken hardware library only matters when its driver is configured.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from typing import Any
+
+import trimesh
+
+from cell.config import CellConfig, MaterialConfig
+from cell.contracts import Camera, Projector, Robot
+from cell.errors import ConfigError
+
+# (device kind, driver name) -> "module:Class". Sim devices are not listed: they share one simulated world
+# and are built together by fakes.sim_cell.build_sim_cell.
+REAL_DRIVERS: dict[tuple[str, str], str] = {
+    ("robot", "ur_rtde"): "drivers.ur_robot:URRobot",
+    ("camera", "genicam"): "drivers.genicam_camera:GenICamCamera",
+    ("projector", "serial"): "drivers.serial_projector:SerialProjector",
+    ("robot", "replay"): "fakes.replay:ReplayRobot",
+    ("camera", "replay"): "fakes.replay:ReplayCamera",
+    ("projector", "replay"): "fakes.replay:ReplayProjector",
+}
+
+
+@dataclass
+class DeviceBundle:
+    """The devices of one cell. ``sim`` is the simulated world when the cell is simulated (ground truth)."""
+
+    robot: Robot
+    camera: Camera
+    projector: Projector
+    sim: Any | None = None
+    names: dict[str, str] = field(default_factory=dict)
+
+    def items(self) -> list[tuple[str, Any]]:
+        """(kind, device) pairs in connection order."""
+        return [("robot", self.robot), ("projector", self.projector), ("camera", self.camera)]
+
+
+def _import_driver(kind: str, driver: str, where: str) -> type:
+    target = REAL_DRIVERS.get((kind, driver))
+    if target is None:
+        raise ConfigError(f"no '{driver}' driver for a {kind}", field=where)
+    module_name, class_name = target.split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ConfigError(
+            f"the '{driver}' {kind} driver needs {exc.name or 'a library'} which cannot be imported ({exc}); "
+            "install it or use driver: sim",
+            field=where,
+        ) from exc
+    return getattr(module, class_name)
+
+
+def build_devices(
+    cfg: CellConfig,
+    *,
+    part_W: trimesh.Trimesh | None = None,
+    part_material: MaterialConfig | None = None,
+    seed: int | None = None,
+) -> DeviceBundle:
+    """Devices for ``cfg``. ``part_W`` (world coordinates, mm) is what a simulated cell renders; real cells ignore it."""
+    drivers = {"robot": cfg.robot.driver, "camera": cfg.sensor.camera.driver, "projector": cfg.sensor.projector.driver}
+    sim_kinds = [k for k, d in drivers.items() if d == "sim"]
+    if sim_kinds and len(sim_kinds) != len(drivers):
+        raise ConfigError(
+            f"simulated devices ({', '.join(sim_kinds)}) cannot be mixed with real ones: they share one "
+            "simulated world; make every driver 'sim' or none",
+            field="driver",
+        )
+    names = {"robot": cfg.robot.name, "camera": cfg.sensor.camera.name, "projector": cfg.sensor.projector.name}
+    if sim_kinds:
+        from fakes.sim_cell import build_sim_cell
+
+        sim = build_sim_cell(cfg, part_W, part_material=part_material, seed=seed)
+        return DeviceBundle(robot=sim.robot, camera=sim.camera, projector=sim.projector, sim=sim, names=names)
+    robot = _import_driver("robot", cfg.robot.driver, "robot.driver")(cfg.robot)
+    camera = _import_driver("camera", cfg.sensor.camera.driver, "sensor.camera.driver")(cfg.sensor.camera)
+    projector = _import_driver("projector", cfg.sensor.projector.driver, "sensor.projector.driver")(
+        cfg.sensor.projector
+    )
+    return DeviceBundle(robot=robot, camera=camera, projector=projector, names=names)

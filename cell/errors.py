@@ -1,0 +1,65 @@
+"""One small error hierarchy for the whole cell.
+
+The controller decides what to do with an error by its class: device timeouts and protocol errors are
+retryable, device faults pause for the operator, configuration/calibration/planning errors stop a job before
+it moves anything. Every message names the file, field or device and says what to do.
+"""
+
+from __future__ import annotations
+
+
+class CellError(Exception):
+    """Base class of every error the cell raises on purpose."""
+
+    exit_code = 1
+
+
+class ConfigError(CellError):
+    """A config, recipe or input file is missing or invalid. Nothing has been written or moved."""
+
+    exit_code = 2
+
+    def __init__(self, message: str, *, path: str | None = None, field: str | None = None) -> None:
+        self.path = path
+        self.field = field
+        where = ""
+        if path:
+            where = f"{path}"
+            if field:
+                where += f": field '{field}'"
+            where += ": "
+        super().__init__(f"{where}{message}")
+
+
+class DeviceError(CellError):
+    """Base of the errors a device raises; ``device`` names it as the cell config does."""
+
+    retryable = False
+
+    def __init__(self, device: str, message: str) -> None:
+        self.device = device
+        super().__init__(f"{device}: {message}")
+
+
+class DeviceTimeout(DeviceError):
+    """The device did not answer in time. Retrying may help."""
+
+    retryable = True
+
+
+class DeviceProtocolError(DeviceError):
+    """The device answered something the driver cannot parse (garbled reply, wrong echo)."""
+
+    retryable = True
+
+
+class DeviceFault(DeviceError):
+    """The device reports a fault (lamp error, protective stop, refused motion). Needs the operator."""
+
+
+class CalibrationError(CellError):
+    """A calibration routine failed or would be worse than the active calibration."""
+
+
+class PlanningError(CellError):
+    """No viewpoint plan satisfies the constraints, or a pose is unreachable."""

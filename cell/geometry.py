@@ -1,0 +1,85 @@
+"""Rigid transforms as 4x4 float64 matrices named ``T_<to>_<from>`` (mm, rad).
+
+``T_B_T @ p_T`` maps a homogeneous point from the tool frame {T} into the base frame {B}.
+SciPy's Rotation does the rotation algebra; these helpers only fix the cell's conventions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+Pose = NDArray[np.float64]
+
+
+def make_pose(rotation: ArrayLike | None = None, translation_mm: ArrayLike | None = None) -> Pose:
+    """Build T from a 3x3 rotation matrix and a translation in mm."""
+    T = np.eye(4)
+    if rotation is not None:
+        T[:3, :3] = np.asarray(rotation, dtype=np.float64)
+    if translation_mm is not None:
+        T[:3, 3] = np.asarray(translation_mm, dtype=np.float64)
+    return T
+
+
+def pose_from_xyz_rpy(xyz_mm: ArrayLike, rpy_rad: ArrayLike) -> Pose:
+    """Pose from a translation (mm) and fixed-axis roll, pitch, yaw (rad): R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    return make_pose(Rotation.from_euler("xyz", rpy_rad).as_matrix(), xyz_mm)
+
+
+def pose_from_xyz_rotvec(xyz_mm: ArrayLike, rotvec_rad: ArrayLike) -> Pose:
+    """Pose from a translation (mm) and a rotation vector (axis * angle, rad), as UR controllers use."""
+    return make_pose(Rotation.from_rotvec(rotvec_rad).as_matrix(), xyz_mm)
+
+
+def pose_to_xyz_rotvec(T: Pose) -> NDArray[np.float64]:
+    """Inverse of :func:`pose_from_xyz_rotvec`: a 6-vector [x, y, z (mm), rx, ry, rz (rad)]."""
+    return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+
+
+def invert(T: Pose) -> Pose:
+    """Inverse of a rigid transform without a general matrix inverse."""
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def transform_points(T: Pose, points: ArrayLike) -> NDArray[np.float64]:
+    """Apply T to an (..., 3) array of points."""
+    p = np.asarray(points, dtype=np.float64)
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def transform_vectors(T: Pose, vectors: ArrayLike) -> NDArray[np.float64]:
+    """Rotate an (..., 3) array of direction vectors by T (no translation)."""
+    return np.asarray(vectors, dtype=np.float64) @ T[:3, :3].T
+
+
+def look_at(eye_mm: ArrayLike, target_mm: ArrayLike, up: ArrayLike = (0.0, 1.0, 0.0)) -> Pose:
+    """Pose of an optical frame at ``eye`` whose +z axis points at ``target``.
+
+    The optical frame follows OpenCV: +z forward, +x right, +y down in the image. ``up`` is the world
+    direction that should appear as image-up (-y); it is replaced by a perpendicular one if parallel to z.
+    """
+    eye = np.asarray(eye_mm, dtype=np.float64)
+    z = np.asarray(target_mm, dtype=np.float64) - eye
+    norm = np.linalg.norm(z)
+    if norm == 0:
+        raise ValueError("look_at: eye and target coincide")
+    z /= norm
+    up_v = np.asarray(up, dtype=np.float64)
+    if abs(np.dot(up_v, z)) > 0.999 * np.linalg.norm(up_v):
+        up_v = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(-up_v, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_pose(np.column_stack([x, y, z]), eye)
+
+
+def rotation_angle_between(Ta: Pose, Tb: Pose) -> float:
+    """Angle (rad) of the relative rotation between two poses."""
+    R = Ta[:3, :3].T @ Tb[:3, :3]
+    return float(np.linalg.norm(Rotation.from_matrix(R).as_rotvec()))

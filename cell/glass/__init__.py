@@ -1,0 +1,1 @@
+"""Back-imaging inspection of specular glass."""

@@ -1,0 +1,1 @@
+"""CAD-guided view planning, feedback planners, robot kinematics and reachability."""

@@ -1,0 +1,1 @@
+"""Structured-light sensing: patterns, decoding, triangulation, error model."""

@@ -1,0 +1,1 @@
+"""Simulated and replay devices behind the same contracts as the real drivers."""

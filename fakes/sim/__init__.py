@@ -1,0 +1,1 @@
+"""The physically based scene simulator that the simulated devices share."""
