@@ -1,0 +1,226 @@
+"""The run folder: every input, every state change, every view and every result of one job, written as it happens.
+
+Layout of a run folder::
+
+    inputs/          copies of the recipe, the cell config, the CAD files and calibration files the run read
+    journal.jsonl    one JSON object per line: state changes, device commands, decisions (append + fsync)
+    checkpoint.json  what is done: the plan, the completed views, the current step (atomic replace)
+    views/NNN/       one folder per measured view (pose, cloud, masks), written atomically (rename of a temp dir)
+    results/         report.json, report.html, cloud.ply, deviations.csv
+
+Killing the process at any instant leaves a folder from which the job resumes: a view folder exists whole or
+not at all, the checkpoint is replaced atomically, and a torn last journal line is ignored when reading.
+An SQLite index in the runs root (``index.sqlite``) lists runs by part, time and verdict for ``cell history``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sqlite3
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cell.errors import ConfigError
+
+INDEX_NAME = "index.sqlite"
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that a reader sees the old file or the new one, never a torn one."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
+
+
+def write_json_atomic(path: Path, obj: Any) -> None:
+    write_atomic(path, json.dumps(obj, indent=2, default=_json_default).encode())
+
+
+@dataclass
+class RunFolder:
+    """One run's folder. Create with :meth:`create`, reopen with :meth:`open`."""
+
+    path: Path
+
+    # ------------------------------------------------------------------ creation
+    @classmethod
+    def create(cls, root: Path, part_name: str, *, name: str | None = None) -> "RunFolder":
+        """A new, empty run folder under ``root`` named ``<part>-<UTC time>`` unless ``name`` is given."""
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
+        path = Path(root) / (name or f"{part_name}-{stamp}")
+        if path.exists() and any(path.iterdir()):
+            raise ConfigError("run folder exists and is not empty; choose another --out or `cell resume` it",
+                              path=str(path))
+        (path / "inputs").mkdir(parents=True, exist_ok=True)
+        (path / "views").mkdir(exist_ok=True)
+        (path / "results").mkdir(exist_ok=True)
+        return cls(path)
+
+    @classmethod
+    def open(cls, path: Path) -> "RunFolder":
+        """An existing run folder; ConfigError if it is not one."""
+        path = Path(path)
+        if not (path / "inputs").is_dir() or not (path / "journal.jsonl").exists():
+            raise ConfigError("not a run folder (no inputs/ or journal.jsonl)", path=str(path))
+        return cls(path)
+
+    # ------------------------------------------------------------------ inputs
+    def copy_input(self, source: Path, name: str | None = None) -> Path:
+        """Copy a file the run reads into inputs/ (once) and return the copy's path."""
+        target = self.path / "inputs" / (name or Path(source).name)
+        if not target.exists():
+            write_atomic(target, Path(source).read_bytes())
+        return target
+
+    # ------------------------------------------------------------------ journal
+    @property
+    def journal_path(self) -> Path:
+        return self.path / "journal.jsonl"
+
+    def log(self, event: str, **fields: Any) -> None:
+        """Append one journal entry (time, event, fields) and fsync it."""
+        entry = {"t": time.time(), "event": event, **fields}
+        line = json.dumps(entry, default=_json_default) + "\n"
+        with open(self.journal_path, "a", encoding="utf-8") as f:
+            f.write(line)
+            f.flush()
+            os.fsync(f.fileno())
+
+    def journal(self) -> list[dict[str, Any]]:
+        """All complete journal entries; a torn last line (the process died mid-write) is skipped."""
+        if not self.journal_path.exists():
+            return []
+        entries = []
+        for line in self.journal_path.read_text(encoding="utf-8").splitlines():
+            try:
+                entries.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue
+        return entries
+
+    # ------------------------------------------------------------------ checkpoint
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.path / "checkpoint.json"
+
+    def save_checkpoint(self, state: dict[str, Any]) -> None:
+        write_json_atomic(self.checkpoint_path, state)
+
+    def load_checkpoint(self) -> dict[str, Any] | None:
+        if not self.checkpoint_path.exists():
+            return None
+        return json.loads(self.checkpoint_path.read_text())
+
+    # ------------------------------------------------------------------ views
+    def view_dir(self, index: int) -> Path:
+        return self.path / "views" / f"{index:03d}"
+
+    @contextmanager
+    def writing_view(self, index: int) -> Iterator[Path]:
+        """Yield a temporary folder to fill; on success it becomes views/NNN in one rename."""
+        final = self.view_dir(index)
+        tmp = Path(tempfile.mkdtemp(dir=self.path / "views", prefix=f".{index:03d}."))
+        try:
+            yield tmp
+            for child in tmp.iterdir():
+                with open(child, "rb") as f:
+                    os.fsync(f.fileno())
+            if final.exists():
+                shutil.rmtree(final)
+            os.replace(tmp, final)
+            _fsync_dir(final.parent)
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+
+    def completed_views(self) -> list[int]:
+        """Indices of the view folders that exist whole (temp folders of a killed write are ignored)."""
+        views = self.path / "views"
+        return sorted(int(p.name) for p in views.iterdir() if p.is_dir() and p.name.isdigit())
+
+    def discard_partial_views(self) -> None:
+        """Remove temp view folders left by a process that died mid-write."""
+        for p in (self.path / "views").iterdir():
+            if p.name.startswith("."):
+                shutil.rmtree(p, ignore_errors=True)
+
+    @property
+    def results_dir(self) -> Path:
+        return self.path / "results"
+
+
+# ---------------------------------------------------------------------------------------------- index
+class RunIndex:
+    """SQLite index of runs in a runs root: part, start time, verdict and key figures."""
+
+    def __init__(self, root: Path) -> None:
+        self.path = Path(root) / INDEX_NAME
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with self._connect() as db:
+            db.execute(
+                "CREATE TABLE IF NOT EXISTS runs (folder TEXT PRIMARY KEY, part TEXT, started TEXT, "
+                "status TEXT, verdict TEXT, n_points INTEGER, coverage REAL, dev_min REAL, dev_max REAL, "
+                "updated TEXT)"
+            )
+
+    def _connect(self) -> sqlite3.Connection:
+        return sqlite3.connect(self.path, timeout=10)
+
+    def upsert(self, folder: Path, part: str, status: str, **figures: Any) -> None:
+        now = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        with self._connect() as db:
+            db.execute(
+                "INSERT INTO runs (folder, part, started, status, updated) VALUES (?, ?, ?, ?, ?) "
+                "ON CONFLICT(folder) DO UPDATE SET status=excluded.status, updated=excluded.updated",
+                (str(Path(folder).resolve()), part, now, status, now),
+            )
+            for key in ("verdict", "n_points", "coverage", "dev_min", "dev_max"):
+                if key in figures and figures[key] is not None:
+                    db.execute(f"UPDATE runs SET {key}=? WHERE folder=?",
+                               (figures[key], str(Path(folder).resolve())))
+
+    def history(self, part: str | None = None) -> list[dict[str, Any]]:
+        with self._connect() as db:
+            db.row_factory = sqlite3.Row
+            if part:
+                rows = db.execute("SELECT * FROM runs WHERE part=? ORDER BY started", (part,)).fetchall()
+            else:
+                rows = db.execute("SELECT * FROM runs ORDER BY started").fetchall()
+        return [dict(r) for r in rows]
