@@ -1,0 +1,389 @@
+"""Simulated UR5e behind the :class:`cell.contracts.Robot` contract.
+
+What it checks before moving (refusal, nothing moves, PlanningError/DeviceFault naming the robot): connected,
+no protective stop, speed and acceleration within the configured maxima, target a rigid transform, flange
+inside the configured envelope (base frame), every sample of the path reachable by IK on a continuous branch
+within the joint limits and without joint speeds above the UR5e's 180 deg/s (singularity crossings).
+
+What happens while moving (simulated time on a :class:`~fakes.clock.SimClock`, nothing sleeps): the flange and
+the tool body points must stay above the table (world z > clearance) and out of the obstacle mesh; on contact
+the arm stops at the last safe sample, the protective stop latches and DeviceFault says what touched what, as
+a UR controller would. ``inject_fault`` makes the next move fail midway the same way. ``command_log`` keeps
+every command with its target, speed, acceleration, start time, duration and outcome.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+import numpy as np
+import trimesh
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial.transform import Rotation, Slerp
+
+from cell.config import RobotConfig
+from cell.contracts import Envelope, RobotMode, RobotState
+from cell.errors import DeviceFault, DeviceTimeout, PlanningError
+from cell.planning.kinematics import (
+    UR5E,
+    URKinematics,
+    check_pose,
+    trapezoid_duration,
+    trapezoid_time_at,
+)
+from fakes.clock import SimClock
+
+Array = NDArray[np.float64]
+
+UR5E_MAX_JOINT_SPEED_RAD_S = math.pi  # hardware limit of every UR5e joint (180 deg/s)
+FaultKind = Literal["protective_stop", "connection_loss"]
+
+
+class _CollisionModel:
+    """Table plane z=0 and an optional obstacle mesh in {W}, against flange + tool body points in {T}."""
+
+    def __init__(self, obstacles_W: trimesh.Trimesh | None, tool_body_T: Array | None, clearance_mm: float):
+        pts = np.zeros((1, 3)) if tool_body_T is None else np.vstack([np.zeros((1, 3)), tool_body_T])
+        self.points_T = pts  # row 0 is the flange origin
+        self.mesh = obstacles_W
+        self.clearance = clearance_mm
+        self.hull_eq: Array | None = None
+        if tool_body_T is not None and len(tool_body_T) >= 4:
+            try:
+                self.hull_eq = ConvexHull(tool_body_T).equations  # (F, 4): inside when n.p + c <= 0
+            except QhullError:  # flat or degenerate tool body: points only
+                self.hull_eq = None
+
+    def first_contact(self, T_W_T: Array) -> tuple[int, str] | None:
+        """Index of the first sample pose (n, 4, 4) in contact and what touches, or None."""
+        pts = np.einsum("nij,mj->nmi", T_W_T[:, :3, :3], self.points_T) + T_W_T[:, None, :3, 3]
+        hits: list[tuple[int, str]] = []
+        low = pts[..., 2] < self.clearance
+        if low.any():
+            k = int(np.argmax(low.any(axis=1)))
+            m = int(np.argmax(low[k]))
+            what = "flange" if m == 0 else f"tool body point {m - 1}"
+            hits.append((k, f"{what} touches the table at world z = {pts[k, m, 2]:.2f} mm"))
+        if self.mesh is not None:
+            hit = self._mesh_contact(T_W_T, pts)
+            if hit is not None:
+                hits.append(hit)
+        return min(hits) if hits else None
+
+    def _mesh_contact(self, T_W_T: Array, pts: Array) -> tuple[int, str] | None:
+        lo, hi = self.mesh.bounds[0] - self.clearance, self.mesh.bounds[1] + self.clearance
+        n, m = pts.shape[:2]
+        near = np.all((pts >= lo) & (pts <= hi), axis=-1)  # cheap box pre-filter before exact distances
+        first: tuple[int, str] | None = None
+        if near.any():
+            idx = np.argwhere(near)
+            sd = trimesh.proximity.signed_distance(self.mesh, pts[near])  # > 0 inside the mesh
+            bad = sd > -self.clearance
+            if bad.any():
+                k, j = idx[np.argmax(bad)]
+                what = "flange" if j == 0 else f"tool body point {j - 1}"
+                first = (
+                    int(k),
+                    f"{what} hits the obstacle mesh at world {np.round(pts[k, j], 1).tolist()} mm",
+                )
+        if (
+            self.hull_eq is not None
+        ):  # obstacle vertices inside the tool body (catches parts poking between corners)
+            body_lo, body_hi = pts[:, 1:].min(axis=1), pts[:, 1:].max(axis=1)
+            overlap = np.all((body_hi >= lo) & (body_lo <= hi), axis=-1)
+            for k in np.flatnonzero(overlap):
+                if first is not None and k >= first[0]:
+                    break
+                v_T = (self.mesh.vertices - T_W_T[k, :3, 3]) @ T_W_T[k, :3, :3]
+                inside = np.all(v_T @ self.hull_eq[:, :3].T + self.hull_eq[:, 3] <= 0.0, axis=1)
+                if inside.any():
+                    v = self.mesh.vertices[np.argmax(inside)]
+                    first = (
+                        int(k),
+                        f"tool body hits the obstacle mesh near world {np.round(v, 1).tolist()} mm",
+                    )
+                    break
+        return first
+
+
+class SimRobot:
+    """A simulated UR5e arm on a :class:`SimClock`; see the module docstring for what it checks."""
+
+    def __init__(
+        self,
+        config: RobotConfig,
+        *,
+        clock: SimClock | None = None,
+        obstacles_W: trimesh.Trimesh | None = None,
+        tool_body_T: ArrayLike | None = None,
+        clearance_mm: float = 0.0,
+        kinematics: URKinematics = UR5E,
+        path_step_mm: float = 2.0,
+        path_step_rad: float = math.radians(0.5),
+    ) -> None:
+        self.config = config
+        self.name = config.name
+        self.clock = clock or SimClock()
+        self.kin = kinematics
+        self.T_W_B = config.T_W_B.matrix()
+        self._envelope = Envelope(tuple(config.envelope_min_mm), tuple(config.envelope_max_mm))
+        body = None if tool_body_T is None else np.asarray(tool_body_T, dtype=np.float64).reshape(-1, 3)
+        self._collision = _CollisionModel(obstacles_W, body, clearance_mm)
+        self._step_mm, self._step_rad = path_step_mm, path_step_rad
+        self._q = np.deg2rad(np.asarray(config.home_joints_deg, dtype=np.float64))
+        self._connected = False
+        self._protective_stop = False
+        self._fault: tuple[FaultKind, float | None] | None = None
+        self.command_log: list[dict[str, Any]] = []
+
+    # -------------------------------------------------------------------------------------- contract
+    @property
+    def envelope(self) -> Envelope:
+        return self._envelope
+
+    def connect(self) -> None:
+        self._connected = True
+
+    def close(self) -> None:
+        self._connected = False
+
+    def state(self) -> RobotState:
+        mode = RobotMode.IDLE if self._connected else RobotMode.DISCONNECTED
+        return RobotState(mode=mode, protective_stop=self._protective_stop)
+
+    def tool_pose(self) -> Array:
+        """Current flange pose ``T_B_T`` (mm)."""
+        self._require_connected()
+        return self.kin.fk(self._q)
+
+    def joints(self) -> Array:
+        """Current joint angles (rad)."""
+        self._require_connected()
+        return self._q.copy()
+
+    def world_tool_pose(self) -> Array:
+        """Current flange pose in the world, ``T_W_T = T_W_B @ T_B_T`` (mm), for the simulated camera."""
+        return self.T_W_B @ self.tool_pose()
+
+    def stop(self) -> None:
+        """Moves block until done on the simulated clock, so there is never motion to stop; logged only."""
+        self._log("stop", None, None, None, 0.0, self.clock.now(), "ok")
+
+    def unlock_protective_stop(self) -> None:
+        """Clear a latched protective stop, as the UR dashboard's 'unlock protective stop' does."""
+        self._require_connected()
+        self._protective_stop = False
+
+    def inject_fault(self, kind: FaultKind, after_s: float | None = None) -> None:
+        """Make the next move fail ``after_s`` seconds into its motion (default: half way)."""
+        if kind not in ("protective_stop", "connection_loss"):
+            raise ValueError(f"unknown fault kind {kind!r}; use 'protective_stop' or 'connection_loss'")
+        self._fault = (kind, after_s)
+
+    def move_linear(self, T_B_T: NDArray[np.float64], speed_mm_s: float, accel_mm_s2: float) -> None:
+        """Straight-line Cartesian move of the flange to ``T_B_T`` (mm), TCP speed/accel trapezoid."""
+        target = np.array(T_B_T, dtype=np.float64)
+        entry = self._log("move_linear", target, speed_mm_s, accel_mm_s2, 0.0, self.clock.now(), "refused")
+        self._require_ready()
+        self._check_limit(
+            "TCP speed", speed_mm_s, self.config.max_tcp_speed_mm_s, "mm/s", "max_tcp_speed_mm_s"
+        )
+        self._check_limit(
+            "TCP acceleration", accel_mm_s2, self.config.max_tcp_accel_mm_s2, "mm/s^2", "max_tcp_accel_mm_s2"
+        )
+        try:
+            check_pose(target)
+        except PlanningError as exc:
+            raise PlanningError(f"{self.name}: move_linear refused: {exc}") from exc
+        self._check_envelope(target[None, :3, 3], "target")
+        start = self.kin.fk(self._q)
+        dist = float(np.linalg.norm(target[:3, 3] - start[:3, 3]))
+        rot = Rotation.from_matrix(np.stack([start[:3, :3], target[:3, :3]]))
+        angle = float(np.linalg.norm((rot[0].inv() * rot[1]).as_rotvec()))
+        n = max(math.ceil(dist / self._step_mm), math.ceil(angle / self._step_rad), 1) + 1
+        u = np.linspace(0.0, 1.0, n)
+        poses = np.empty((n, 4, 4))
+        poses[:] = np.eye(4)
+        poses[:, :3, 3] = start[:3, 3] + u[:, None] * (target[:3, 3] - start[:3, 3])
+        poses[:, :3, :3] = Slerp([0.0, 1.0], rot)(u).as_matrix()
+        poses[-1] = target
+        path = self._follow(poses)
+        # Translation at TCP limits; a rotation-dominated move is timed on the wrist at the joint limits.
+        t_lin = trapezoid_duration(dist, speed_mm_s, accel_mm_s2)
+        t_rot = trapezoid_duration(
+            angle, self.config.max_joint_speed_rad_s, self.config.max_joint_accel_rad_s2
+        )
+        if t_lin >= t_rot:
+            times = trapezoid_time_at(u * dist, dist, speed_mm_s, accel_mm_s2)
+        else:
+            times = trapezoid_time_at(
+                u * angle, angle, self.config.max_joint_speed_rad_s, self.config.max_joint_accel_rad_s2
+            )
+        self._check_joint_rates(path, times)
+        self._execute(entry, path, times)
+
+    def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float, accel_rad_s2: float) -> None:
+        """Joint-space move to ``joints_rad``; all joints synchronised, the limiting joint sets the time."""
+        target = np.array(joints_rad, dtype=np.float64).reshape(-1)
+        entry = self._log("move_joint", target, speed_rad_s, accel_rad_s2, 0.0, self.clock.now(), "refused")
+        self._require_ready()
+        self._check_limit(
+            "joint speed", speed_rad_s, self.config.max_joint_speed_rad_s, "rad/s", "max_joint_speed_rad_s"
+        )
+        self._check_limit(
+            "joint acceleration",
+            accel_rad_s2,
+            self.config.max_joint_accel_rad_s2,
+            "rad/s^2",
+            "max_joint_accel_rad_s2",
+        )
+        if target.shape != (6,) or not np.all(np.isfinite(target)):
+            raise PlanningError(f"{self.name}: move_joint refused: needs 6 finite joint angles, got {target}")
+        lo, hi = np.asarray(self.kin.joint_min_rad), np.asarray(self.kin.joint_max_rad)
+        if np.any(target < lo) or np.any(target > hi):
+            j = int(np.argmax((target < lo) | (target > hi)))
+            raise PlanningError(
+                f"{self.name}: move_joint refused: joint {j + 1} target {target[j]:.4f} rad is "
+                f"outside its limits [{lo[j]:.4f}, {hi[j]:.4f}] rad"
+            )
+        delta = target - self._q
+        span = float(np.max(np.abs(delta)))
+        n = max(math.ceil(span / self._step_rad), 1) + 1
+        u = np.linspace(0.0, 1.0, n)
+        path = self._q + u[:, None] * delta
+        path[-1] = target
+        self._check_envelope(self.kin.fk(path)[:, :3, 3], "joint path")
+        times = trapezoid_time_at(u * span, span, speed_rad_s, accel_rad_s2)
+        self._execute(entry, path, times)
+
+    # -------------------------------------------------------------------------------------- internals
+    def _log(
+        self,
+        command: str,
+        target: Array | None,
+        speed: float | None,
+        accel: float | None,
+        duration: float,
+        start: float,
+        outcome: str,
+    ) -> dict[str, Any]:
+        entry = {
+            "command": command,
+            "target": None if target is None else target.copy(),
+            "speed": speed,
+            "accel": accel,
+            "start_s": start,
+            "duration_s": duration,
+            "outcome": outcome,
+        }
+        self.command_log.append(entry)
+        return entry
+
+    def _require_connected(self) -> None:
+        if not self._connected:
+            raise DeviceFault(self.name, "not connected; call connect() first")
+
+    def _require_ready(self) -> None:
+        self._require_connected()
+        if self._protective_stop:
+            raise DeviceFault(
+                self.name, "protective stop active; clear the cause, then unlock_protective_stop()"
+            )
+
+    def _check_limit(self, what: str, value: float, limit: float, unit: str, field: str) -> None:
+        if not (math.isfinite(value) and 0.0 < value <= limit):
+            raise DeviceFault(
+                self.name,
+                f"refused: {what} {value} {unit} is outside (0, {limit}] (robot.{field} in the cell config)",
+            )
+
+    def _check_envelope(self, points_B: Array, what: str) -> None:
+        lo, hi = np.asarray(self._envelope.min_mm), np.asarray(self._envelope.max_mm)
+        out = np.any((points_B < lo - 1e-9) | (points_B > hi + 1e-9), axis=1)
+        if out.any():
+            p = points_B[np.argmax(out)]
+            raise PlanningError(
+                f"{self.name}: refused: {what} flange position {np.round(p, 1).tolist()} mm "
+                f"(base frame) is outside the envelope {lo.tolist()} .. {hi.tolist()} mm"
+            )
+
+    def _follow(self, poses: Array) -> Array:
+        """IK along sampled poses, each sample on the branch nearest the previous joints (n, 6)."""
+        q_all, valid, _ = self.kin.ik_all(poses)
+        path = np.empty((len(poses), 6))
+        prev = self._q
+        for k in range(len(poses)):
+            cands = q_all[k][valid[k]]
+            if len(cands) == 0:
+                where = "target" if k == len(poses) - 1 else f"path sample {k}/{len(poses) - 1}"
+                raise PlanningError(
+                    f"{self.name}: move_linear refused: {where} unreachable: "
+                    f"{self.kin.why_unreachable(poses[k])}"
+                )
+            shifted, ok = self.kin.shift_into_limits(cands, prev)
+            if not ok.any():
+                raise PlanningError(
+                    f"{self.name}: move_linear refused: path sample {k} violates joint limits"
+                )
+            shifted = shifted[ok]
+            prev = shifted[np.argmin(np.linalg.norm(shifted - prev, axis=1))]
+            path[k] = prev
+        return path
+
+    def _check_joint_rates(self, path: Array, times: Array) -> None:
+        """Refuse paths whose IK-followed joints would exceed the hardware joint speed (singularity)."""
+        if len(path) < 2:
+            return
+        dq = np.abs(np.diff(path, axis=0))
+        dt = np.maximum(np.diff(times), 1e-12)
+        rate = dq / dt[:, None]
+        if rate.max() > UR5E_MAX_JOINT_SPEED_RAD_S:
+            k, j = np.unravel_index(np.argmax(rate), rate.shape)
+            raise PlanningError(
+                f"{self.name}: move_linear refused: joint {j + 1} would need {rate[k, j]:.2f} rad/s "
+                f"> {UR5E_MAX_JOINT_SPEED_RAD_S:.2f} rad/s at path sample {k + 1} (singularity or "
+                "branch flip); use move_joint or another path"
+            )
+
+    def _execute(self, entry: dict[str, Any], path: Array, times: Array) -> None:
+        """Run a checked path: stop early on contact or injected fault; advance the clock; log."""
+        duration = float(times[-1])
+        end, outcome, error = len(path) - 1, "ok", None
+        contact = self._collision.first_contact(self.T_W_B @ self.kin.fk(path))
+        if contact is not None:
+            end = max(contact[0] - 1, 0)
+            outcome = "protective_stop"
+            error = DeviceFault(
+                self.name,
+                f"protective stop: {contact[1]}; the arm stopped at the last safe pose. "
+                "Move clear, then unlock_protective_stop()",
+            )
+        if self._fault is not None:
+            kind, after = self._fault
+            self._fault = None
+            t_fault = duration / 2.0 if after is None else min(float(after), duration)
+            k_fault = int(np.searchsorted(times, t_fault, side="right") - 1)
+            if k_fault < end or error is None:
+                end = max(k_fault, 0)
+                if kind == "protective_stop":
+                    outcome = "protective_stop"
+                    error = DeviceFault(
+                        self.name, f"protective stop (injected) {t_fault:.3f} s into the move"
+                    )
+                else:
+                    outcome = "connection_loss"
+                    error = DeviceTimeout(
+                        self.name, f"connection lost {t_fault:.3f} s into the move; reconnect"
+                    )
+        self._q = path[end].copy()
+        elapsed = float(times[end])
+        self.clock.advance(elapsed)
+        entry.update(duration_s=elapsed, outcome=outcome)
+        if error is not None:
+            if outcome == "protective_stop":
+                self._protective_stop = True
+            elif outcome == "connection_loss":
+                self._connected = False
+            raise error
