@@ -1,0 +1,241 @@
+"""The inspection report of an error map: report.json, report.html, cloud.ply (with ``deviation``), deviations.csv.
+
+The schema of report.json is documented in docs/report-schema.md. Deviations are in mm, + outside the material.
+Out-of-tolerance points are grouped into regions by a radius graph (cKDTree pairs + connected components).
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+SCHEMA_VERSION = 1
+PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """Tolerance band in mm: a deviation d passes when lower_mm <= d <= upper_mm."""
+
+    lower_mm: float = -0.3
+    upper_mm: float = 0.3
+
+
+@dataclass
+class ReportInput:
+    """What a report is made of: points (N, 3, mm, part frame), their deviations and the run's context."""
+
+    points_mm: NDArray[np.float64]
+    deviation_mm: NDArray[np.float64]
+    tolerance: Tolerance
+    n_points_input: int
+    excluded: dict[str, int] = field(default_factory=dict)
+    nominal_area_mm2: float | None = None
+    covered_area_mm2: float | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+
+def out_of_tolerance_regions(
+    points_mm: NDArray,
+    deviation_mm: NDArray,
+    tol: Tolerance,
+    link_radius_mm: float | None = None,
+    max_regions: int = 20,
+) -> list[dict[str, Any]]:
+    """Spatial clusters of out-of-tolerance points, largest first, with centre and extreme deviation.
+
+    Points closer than ``link_radius_mm`` are one region; by default 3x the cloud's median point spacing.
+    """
+    bad = np.flatnonzero((deviation_mm < tol.lower_mm) | (deviation_mm > tol.upper_mm))
+    if len(bad) == 0:
+        return []
+    if link_radius_mm is None:
+        sub = points_mm[:: max(1, len(points_mm) // 20000)]
+        link_radius_mm = (
+            3.0
+            * float(np.median(cKDTree(sub).query(sub, k=2)[0][:, 1]))
+            * max(1, len(points_mm) // 20000) ** 0.5
+        )
+    pts = points_mm[bad]
+    pairs = cKDTree(pts).query_pairs(link_radius_mm, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(bad), len(bad)))
+    n, lab = connected_components(graph, directed=False)
+    sizes = np.bincount(lab, minlength=n)
+    regions = []
+    for r in np.argsort(-sizes)[:max_regions]:
+        idx = np.flatnonzero(lab == r)
+        dev = deviation_mm[bad[idx]]
+        ext = int(idx[np.argmax(np.abs(dev))])
+        regions.append(
+            {
+                "n_points": int(len(idx)),
+                "centre_mm": [round(float(c), 4) for c in pts[idx].mean(0)],
+                "extreme_mm": round(float(deviation_mm[bad[ext]]), 5),
+                "extreme_at_mm": [round(float(c), 4) for c in pts[ext]],
+                "kind": "excess" if deviation_mm[bad[ext]] > 0 else "dent",
+            }
+        )
+    return regions
+
+
+def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The report.json document (see docs/report-schema.md)."""
+    d = inp.deviation_mm
+    tol = inp.tolerance
+    inside = (d >= tol.lower_mm) & (d <= tol.upper_mm)
+    stats: dict[str, Any] = {}
+    if len(d):
+        stats = {
+            "mean_mm": float(d.mean()),
+            "std_mm": float(d.std()),
+            "min_mm": float(d.min()),
+            "max_mm": float(d.max()),
+            "rms_mm": float(np.sqrt(np.mean(d * d))),
+            "percentiles_mm": {f"p{q}": float(v) for q, v in zip(PERCENTILES, np.percentile(d, PERCENTILES), strict=True)},
+        }
+    coverage = None
+    if inp.nominal_area_mm2 and inp.covered_area_mm2 is not None:
+        coverage = float(inp.covered_area_mm2 / inp.nominal_area_mm2)
+    regions = out_of_tolerance_regions(inp.points_mm, d, tol)
+    verdict = "pass" if len(d) and inside.all() else ("no_data" if not len(d) else "fail")
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "verdict": verdict,
+        "tolerance": {"lower_mm": tol.lower_mm, "upper_mm": tol.upper_mm},
+        "n_points": int(len(d)),
+        "n_points_input": int(inp.n_points_input),
+        "n_out_of_tolerance": int((~inside).sum()),
+        "fraction_in_tolerance": float(inside.mean()) if len(d) else None,
+        "coverage": coverage,
+        "deviation": stats,
+        "regions": regions,
+        "excluded": inp.excluded,
+        "views": views or [],
+        "metadata": inp.metadata,
+    }
+
+
+def write_ply(path: Path, points_mm: NDArray, deviation_mm: NDArray) -> None:
+    """Binary little-endian PLY with x, y, z (double) and a float ``deviation`` scalar field per vertex."""
+    rec = np.empty(len(points_mm), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("deviation", "<f4")])
+    rec["x"], rec["y"], rec["z"] = points_mm[:, 0], points_mm[:, 1], points_mm[:, 2]
+    rec["deviation"] = deviation_mm
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment units mm; deviation = signed distance to nominal, mm\n"
+        f"element vertex {len(rec)}\nproperty double x\nproperty double y\nproperty double z\n"
+        "property float deviation\nend_header\n"
+    )
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(rec.tobytes())
+
+
+def write_csv(path: Path, points_mm: NDArray, deviation_mm: NDArray) -> None:
+    """deviations.csv: x_mm,y_mm,z_mm,deviation_mm."""
+    np.savetxt(
+        path,
+        np.column_stack([points_mm, deviation_mm]),
+        fmt="%.5f",
+        delimiter=",",
+        header="x_mm,y_mm,z_mm,deviation_mm",
+        comments="",
+    )
+
+
+def _png(fig: Any) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _pictures(
+    points: NDArray, dev: NDArray, tol: Tolerance, max_points: int = 200_000
+) -> tuple[list, str | None]:
+    """Colour error-map pictures from several view directions and a histogram (base64 PNG)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return [], None
+    if len(points) > max_points:
+        sel = np.random.default_rng(0).choice(len(points), max_points, replace=False)
+        points, dev = points[sel], dev[sel]
+    lim = max(abs(tol.lower_mm), abs(tol.upper_mm)) * 2
+    views = [("top (-z)", 90, -90), ("front", 0, -90), ("side", 0, 0), ("iso", 30, -60)]
+    images = []
+    for name, elev, azim in views:
+        fig = plt.figure(figsize=(4.5, 4))
+        ax = fig.add_subplot(projection="3d")
+        sc = ax.scatter(*points.T, c=dev, cmap="jet", vmin=-lim, vmax=lim, s=0.5, linewidths=0)
+        ax.view_init(elev=elev, azim=azim)
+        ax.set_title(name)
+        ax.set_axis_off()
+        fig.colorbar(sc, ax=ax, shrink=0.7, label="deviation (mm)")
+        images.append({"name": name, "elev_deg": elev, "azim_deg": azim, "png": _png(fig)})
+        plt.close(fig)
+    fig, ax = plt.subplots(figsize=(6, 3))
+    ax.hist(dev, bins=100, color="0.4")
+    for t in (tol.lower_mm, tol.upper_mm):
+        ax.axvline(t, color="r")
+    ax.set_xlabel("deviation (mm)")
+    ax.set_ylabel("points")
+    hist = _png(fig)
+    plt.close(fig)
+    return images, hist
+
+
+def _html(doc: dict[str, Any], images: list, hist: str | None) -> str:
+    colour = {"pass": "#2a2", "fail": "#c22"}.get(doc["verdict"], "#888")
+    st = doc["deviation"]
+    rows = "".join(
+        f"<tr><td>{i + 1}</td><td>{r['kind']}</td><td>{r['n_points']}</td><td>{r['extreme_mm']:+.3f}</td>"
+        f"<td>{', '.join(f'{c:.2f}' for c in r['centre_mm'])}</td></tr>"
+        for i, r in enumerate(doc["regions"])
+    )
+    pics = "".join(f'<img alt="{im["name"]}" src="data:image/png;base64,{im["png"]}">' for im in images)
+    hist_html = (
+        f'<img alt="histogram" src="data:image/png;base64,{hist}">' if hist else "<p>(no matplotlib)</p>"
+    )
+    stats = "".join(f"<tr><td>{k}</td><td>{v}</td></tr>" for k, v in st.items())
+    meta = json.dumps({"metadata": doc["metadata"], "excluded": doc["excluded"]}, indent=1)
+    tol = doc["tolerance"]
+    return f"""<!doctype html><html><head><meta charset="utf-8"><title>Inspection report</title>
+<style>body{{font-family:sans-serif;margin:2em}} td,th{{border:1px solid #ccc;padding:2px 6px}}
+table{{border-collapse:collapse}} .v{{font-size:2em;color:white;background:{colour};padding:.3em;display:inline-block}}</style>
+</head><body><div class="v">{doc["verdict"].upper()}</div>
+<p>tolerance {tol["lower_mm"]:+.3f} .. {tol["upper_mm"]:+.3f} mm; {doc["n_points"]} points,
+{doc["n_out_of_tolerance"]} out of tolerance; coverage {doc["coverage"]}</p>
+<h2>Error map (mm, + outside the material)</h2>{pics}<h2>Histogram</h2>{hist_html}
+<h2>Out-of-tolerance regions</h2><table><tr><th>#</th><th>kind</th><th>points</th><th>extreme mm</th>
+<th>centre mm</th></tr>{rows}</table><h2>Statistics</h2><table>{stats}</table>
+<h2>Run</h2><pre>{meta}</pre></body></html>"""
+
+
+def write_report(out_dir: Path, inp: ReportInput, pictures: bool = True) -> dict[str, Any]:
+    """Write report.json, report.html, cloud.ply and deviations.csv into ``out_dir``; return the json doc."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    images, hist = (
+        _pictures(inp.points_mm, inp.deviation_mm, inp.tolerance)
+        if pictures and len(inp.points_mm)
+        else ([], None)
+    )
+    views = [{k: v for k, v in im.items() if k != "png"} for im in images]
+    doc = summarise(inp, views)
+    (out_dir / "report.json").write_text(json.dumps(doc, indent=2))
+    (out_dir / "report.html").write_text(_html(doc, images, hist))
+    write_ply(out_dir / "cloud.ply", inp.points_mm, inp.deviation_mm)
+    write_csv(out_dir / "deviations.csv", inp.points_mm, inp.deviation_mm)
+    return doc

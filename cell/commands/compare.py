@@ -1,0 +1,137 @@
+"""``cell compare NOMINAL CLOUD``: error map and report of any cloud against any nominal mesh."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+import typer
+
+from cell.errors import ConfigError
+
+
+def load_cloud(path: Path) -> np.ndarray:
+    """Points (N, 3, mm) from PLY (vertices), XYZ or CSV (first three numeric columns; a header row is skipped)."""
+    if not path.is_file():
+        raise ConfigError("cloud file not found", path=str(path))
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".ply":
+            loaded = trimesh.load(path, process=False)
+            pts = np.asarray(loaded.vertices, dtype=np.float64)
+        elif suffix in (".xyz", ".txt", ".csv"):
+            delim = "," if suffix == ".csv" else None
+            with open(path) as fh:
+                first = fh.readline()
+            skip = 0 if _is_numeric_row(first, delim) else 1
+            pts = np.loadtxt(path, delimiter=delim, skiprows=skip, usecols=(0, 1, 2), ndmin=2)
+        else:
+            raise ConfigError(f"unknown cloud format '{suffix}': use .ply, .xyz or .csv", path=str(path))
+    except (ValueError, OSError) as exc:
+        raise ConfigError(f"cannot read the cloud: {exc}", path=str(path)) from exc
+    return pts.reshape(-1, 3)
+
+
+def _is_numeric_row(line: str, delim: str | None) -> bool:
+    try:
+        [float(x) for x in line.strip().split(delim)[:3]]
+        return True
+    except ValueError:
+        return False
+
+
+def parse_tolerance(text: str) -> tuple[float, float]:
+    """'-0.3,0.3' -> (-0.3, 0.3) mm."""
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError as exc:
+        raise ConfigError(f"--tolerance must be 'LOWER,UPPER' in mm, got '{text}'") from exc
+    if not lo < hi:
+        raise ConfigError(f"--tolerance lower bound must be below the upper one, got '{text}'")
+    return lo, hi
+
+
+def run_compare(
+    nominal_path: Path,
+    cloud_path: Path,
+    out: Path,
+    align: str = "none",
+    tolerance: str = "-0.3,0.3",
+    datums: Path | None = None,
+    pictures: bool = True,
+) -> dict:
+    """Load, check, align, compute the error map and write the report; return report.json's document."""
+    from cell.analysis.errormap import NominalMesh, signed_distance
+    from cell.analysis.registration import datum_align, icp_point_to_plane
+    from cell.analysis.report import ReportInput, Tolerance, write_report
+    from cell.geometry import transform_points
+
+    lo, hi = parse_tolerance(tolerance)
+    if align not in ("none", "datums", "bestfit"):
+        raise ConfigError(f"--align must be none, datums or bestfit, got '{align}'")
+    if not nominal_path.is_file():
+        raise ConfigError("nominal mesh not found", path=str(nominal_path))
+    mesh = trimesh.load(nominal_path, force="mesh", process=False)
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ConfigError("the nominal has no triangles", path=str(nominal_path))
+    t0 = time.perf_counter()
+    nominal = NominalMesh.from_trimesh(mesh)
+    raw = load_cloud(cloud_path)
+    finite = np.isfinite(raw).all(1)
+    pts = raw[finite]
+    if len(pts) == 0:
+        raise ConfigError("the cloud has no finite points (empty or all NaN)", path=str(cloud_path))
+    ratio = np.linalg.norm(np.ptp(pts, 0)) / nominal.extent_mm
+    if len(pts) > 10 and not 1 / 30 < ratio < 30:
+        raise ConfigError(
+            f"the cloud is {ratio:.3g}x the size of the nominal: wrong units? (both must be in mm)",
+            path=str(cloud_path),
+        )
+    T = np.eye(4)
+    if align == "datums":
+        if datums is None:
+            raise ConfigError(
+                "--align datums needs --datums FILE (csv: nominal x,y,z, measured x,y,z per row)"
+            )
+        d = np.loadtxt(datums, delimiter=",", ndmin=2, comments="#")
+        if d.shape[1] != 6:
+            raise ConfigError("datum file needs 6 columns: nominal x,y,z, measured x,y,z", path=str(datums))
+        T = datum_align(d[:, 3:6], d[:, 0:3])
+    elif align == "bestfit":
+        T = icp_point_to_plane(nominal, pts).T
+    pts = transform_points(T, pts)
+    em = signed_distance(nominal, pts)
+    excluded = dict(nominal.excluded)
+    excluded["non_finite_points"] = int((~finite).sum())
+    meta = {
+        "nominal": str(nominal_path),
+        "cloud": str(cloud_path),
+        "align": align,
+        "warning": "best-fit alignment hides global deviations" if align == "bestfit" else None,
+        "T_P_cloud": T.round(9).tolist(),
+        "seconds": round(time.perf_counter() - t0, 3),
+        "nominal_watertight": nominal.watertight,
+    }
+    inp = ReportInput(pts, em.deviation_mm, Tolerance(lo, hi), len(raw), excluded, metadata=meta)
+    return write_report(out, inp, pictures=pictures)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def compare(
+        nominal: Path = typer.Argument(..., help="nominal mesh (STL/PLY/OBJ, mm)"),
+        cloud: Path = typer.Argument(..., help="measured cloud (PLY/XYZ/CSV, mm)"),
+        out: Path = typer.Option(
+            ..., "--out", help="folder for report.json, report.html, cloud.ply, deviations.csv"
+        ),
+        align: str = typer.Option("none", help="none | datums | bestfit (best-fit hides global deviations)"),
+        tolerance: str = typer.Option("-0.3,0.3", help="tolerance band LOWER,UPPER in mm"),
+        datums: Path = typer.Option(None, help="csv of datum pairs for --align datums"),
+    ) -> None:
+        """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report."""
+        doc = run_compare(nominal, cloud, out, align, tolerance, datums)
+        typer.echo(
+            f"{doc['verdict']}: {doc['n_points']} points, {doc['n_out_of_tolerance']} out of tolerance -> {out}"
+        )
