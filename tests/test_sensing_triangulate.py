@@ -1,0 +1,118 @@
+"""Triangulation against independent truth: eq 2.7 on synthetic steps, the simulator's hit points, the gauge
+block's slot depths (recipes/parts/gauge.truth.json)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from scipy import stats
+
+from cell.config import DEFAULT_CELL, SimConfig, load_cell_config
+from cell.contracts import CameraSettings, PixelFormat
+from cell.geometry import look_at, make_pose, transform_points
+from cell.mesh import load_mesh
+from cell.sensing.patterns import dissertation_gcls, gcls_patterns
+from cell.sensing.scan import scan_view
+from cell.sensing.triangulate import (
+    PinholeTriangulator,
+    ReferencePlaneTriangulator,
+    Triangulator,
+    fit_d_S,
+    reference_model_from_geometry,
+)
+from fakes.camera import SimCamera
+from fakes.clock import SimClock
+from fakes.projector import SimProjector
+from fakes.sim.render import SceneRenderer
+from fakes.sim.scene import Scene
+from fakes.sim.testing import small_rig
+
+PARTS = Path(__file__).resolve().parent.parent / "recipes" / "parts"
+
+
+def test_fit_d_S_recovers_per_pixel_parameters_eq_2_7() -> None:
+    rng = np.random.default_rng(0)
+    d = rng.uniform(380, 450, (4, 5))
+    S = rng.uniform(360, 420, (4, 5))
+    h = np.array([-30.0, -10.0, 10.0, 25.0, 50.0])
+    L = h[:, None, None] * d / (S - h[:, None, None])  # eq 2.1 solved for L
+    d_fit, S_fit = fit_d_S(h, L)
+    np.testing.assert_allclose(d_fit, d, rtol=1e-9)
+    np.testing.assert_allclose(S_fit, S, rtol=1e-9)
+    L[2, 0, 0] = np.nan  # a missing step still leaves four
+    assert np.isfinite(fit_d_S(h, L)[0][0, 0])
+
+
+def test_reference_model_from_geometry_recovers_the_prototype_baseline_and_standoff() -> None:
+    sensor = load_cell_config(DEFAULT_CELL).sensor
+    ref = reference_model_from_geometry(sensor)
+    assert isinstance(ref, Triangulator)
+    assert np.nanmax(np.abs(ref.d - 429.3)) < 0.02 and np.nanmax(np.abs(ref.S - sensor.standoff_mm)) < 0.02
+
+
+@pytest.fixture(scope="module")
+def plate_scan():  # noqa: ANN201
+    tilt = make_pose(trimesh.transformations.rotation_matrix(0.2, [1, 0.3, 0])[:3, :3], [0, 0, 30.0])
+    rig = small_rig(part_W=trimesh.creation.box((400, 300, 4), transform=tilt), bit_depth=8,
+                    sim=SimConfig(seed=11))
+    rig.projector.connect(); rig.projector.set_power(True); rig.camera.connect()  # noqa: E702
+    rig.camera.configure(CameraSettings(exposure_ms=10.0, pixel_format=PixelFormat.MONO8))
+    ps = gcls_patterns(128, 96, 8, 8)
+    view = scan_view(rig.camera, rig.projector, ps, PinholeTriangulator.from_sensor(rig.sensor), bit_depth=8)
+    return rig, view
+
+
+def test_pinhole_cloud_matches_simulator_hit_points(plate_scan) -> None:  # noqa: ANN001
+    rig, view = plate_scan
+    gt = rig.renderer.ground_truth(rig.T_W_C).points_C
+    ok = view.cloud.valid
+    assert ok.mean() > 0.9 and np.all(np.isnan(view.cloud.points_C[~ok]))
+    err = np.linalg.norm(view.cloud.points_C[ok] - gt[ok], axis=1)
+    assert np.sqrt(np.mean(err**2)) < 0.1  # mm; ~1 mm camera pixels, 2 mm projector pixels
+
+
+def test_reference_plane_model_agrees_with_pinhole(plate_scan) -> None:  # noqa: ANN001
+    rig, view = plate_scan
+    ref = reference_model_from_geometry(rig.sensor)
+    assert isinstance(ref, ReferencePlaneTriangulator)
+    c = ref.triangulate(view.decoded)
+    diff = c.points_C[..., 2] - view.cloud.points_C[..., 2]
+    assert np.nanmax(np.abs(diff)) < 0.05  # mm, the table interpolation of the analytic calibration
+
+
+def _gauge_view(seed: int = 4):  # noqa: ANN202
+    cfg = load_cell_config(DEFAULT_CELL)
+    part = load_mesh(PARTS / "gauge.stl")
+    renderer = SceneRenderer(cfg.sensor, cfg.sim, Scene.from_meshes(part, cfg.sim))
+    T_W_C = look_at((0.0, 0.0, 30.0 + cfg.sensor.standoff_mm), (0.0, 0.0, 30.0), up=(0.0, 1.0, 0.0))
+    projector = SimProjector(cfg.sensor.projector)
+    camera = SimCamera(cfg.sensor.camera, renderer, projector, lambda: T_W_C, SimClock(), np.random.default_rng(seed))
+    projector.connect(); projector.set_power(True); camera.connect()  # noqa: E702
+    view = scan_view(camera, projector, dissertation_gcls(), PinholeTriangulator.from_sensor(cfg.sensor),
+                     bit_depth=8)
+    return transform_points(T_W_C, view.cloud.points_C), view
+
+
+@pytest.mark.skipif(not (PARTS / "gauge.stl").is_file(), reason="gauge block not built")
+def test_gauge_block_slots_are_resolved() -> None:
+    truth = json.loads((PARTS / "gauge.truth.json").read_text())
+    P, _ = _gauge_view()
+    x, y, z = P[..., 0], P[..., 1], P[..., 2]
+    found = {}
+    for slot in truth["slots"]:
+        x0, x1 = slot["x_range_mm"]
+        band = np.isfinite(z) & (np.abs(y) < 40)
+        inside = band & (x > x0 + 1.5) & (x < x1 - 1.5)
+        around = band & (((x > x0 - 8) & (x < x0 - 1.5)) | ((x > x1 + 1.5) & (x < x1 + 8)))
+        depth_um = 1000 * (z[around].mean() - z[inside].mean())
+        p = stats.ttest_ind(z[around], z[inside], equal_var=False, alternative="greater").pvalue
+        found[slot["depth_um"]] = (depth_um, p)
+    for nominal in (32.0, 24.0, 14.0):
+        depth_um, p = found[nominal]
+        assert p < 1e-6, (nominal, found)
+        assert abs(depth_um - nominal) < 4.0, (nominal, found)
+    print("gauge slots (nominal um: measured um, p):", found)
