@@ -1,0 +1,299 @@
+"""Render what the simulated camera sees of a projector pattern on the scene, and expose the ground truth.
+
+Per camera pose, one ray cast gives a :class:`ViewGeometry` (hit points, projector coordinates, shadow test,
+shading factors, blur weights); it is cached, so N patterns at one pose cost one ray cast. Per pattern:
+
+    rate_e_per_ms = ambient_e_per_ms * albedo
+                  + irradiance_e_per_ms * p_lin(u_p, v_p) * (s_p/r)^2 * (albedo*cos_i + specular*cos_a^n)
+    signal_e = exposure_ms * rate_e_per_ms      (then camera defocus, shot + read noise, gain, DN, clip)
+
+with p_lin = black + (1 - black) * (pattern / 255)^gamma sampled bilinearly at the projector coordinate of the
+hit point (after projector defocus blur), cos_i the incidence cosine, r the distance to the projector centre,
+s_p the projector focus distance, cos_a the Phong cosine between the mirror direction of the light and the
+direction to the camera. Derivation and parameters: docs/simulator.md.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.config import SensorConfig, SimConfig
+from cell.geometry import invert, transform_points, transform_vectors
+from fakes.sim.optics import blur_sigma_px, pixel_rays, project_points
+from fakes.sim.scene import Scene
+
+# Blur levels (px) of the layered defocus model: each pixel blends the two levels around its own sigma.
+BLUR_LEVELS = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
+SHADOW_OFFSET_MM = 0.01  # shadow rays start this far off the surface so they do not hit their own triangle
+_OUTSIDE = -1.0e6  # remap coordinate of pixels that see no projector light (falls in the zero border)
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Per-pixel truth of one camera pose. Points in mm; NaN where the pixel ray hits nothing."""
+
+    points_W: NDArray[np.float64]  # (H, W, 3)
+    points_C: NDArray[np.float64]  # (H, W, 3)
+    normals_W: NDArray[np.float64]  # (H, W, 3) unit geometric normal facing the camera
+    hit: NDArray[np.bool_]  # the ray hit the table or the part
+    part: NDArray[np.bool_]  # the ray hit the part
+    lit: NDArray[np.bool_]  # hit, inside the projector frustum, facing it and not shadowed
+    projector_uv: NDArray[np.float64]  # (H, W, 2) projector pixel coordinate; NaN outside the frustum
+
+
+@dataclass(frozen=True)
+class BlurLayers:
+    """Layered blur: per used level sigma (px), a per-pixel weight map (None when it is 1 everywhere)."""
+
+    sigmas: tuple[float, ...]
+    weights: tuple[NDArray[np.float32] | None, ...]
+
+
+@dataclass(frozen=True)
+class ViewGeometry:
+    """Everything about one camera pose that does not depend on the pattern shown."""
+
+    T_W_C: NDArray[np.float64]
+    distance: NDArray[np.float64]  # (H, W) along the unit pixel ray, inf on a miss
+    triangle: NDArray[np.int32]  # (H, W) scene triangle, -1 on a miss
+    hit: NDArray[np.bool_]
+    part: NDArray[np.bool_]
+    lit: NDArray[np.bool_]
+    in_frustum: NDArray[np.bool_]
+    map_x: NDArray[np.float32]  # projector column of each camera pixel (far outside where not lit)
+    map_y: NDArray[np.float32]
+    ambient_e_per_ms: NDArray[np.float32]  # ambient rate of each pixel
+    projector_e_per_ms: NDArray[np.float32]  # rate per unit of linear pattern value
+    projector_blur: BlurLayers
+    camera_blur: BlurLayers
+
+
+def blur_layers(sigma: NDArray[np.float32]) -> BlurLayers:
+    """Split a per-pixel sigma map (px) into the two bracketing :data:`BLUR_LEVELS` with linear weights."""
+    levels = np.asarray(BLUR_LEVELS, dtype=np.float32)
+    s = np.clip(sigma, 0.0, levels[-1])
+    k = np.clip(np.searchsorted(levels, s, side="right") - 1, 0, len(levels) - 2)
+    frac = (s - levels[k]) / (levels[k + 1] - levels[k])
+    sigmas, weights = [], []
+    used = np.flatnonzero(np.bincount(k.ravel(), minlength=len(levels)))
+    for j in np.union1d(used, used + 1):
+        w = np.where(k == j, 1.0 - frac, 0.0) + np.where(k == j - 1, frac, 0.0)
+        if not np.any(w):
+            continue
+        sigmas.append(float(levels[j]))
+        weights.append(None if np.all(w == 1.0) else w.astype(np.float32))
+    return BlurLayers(tuple(sigmas), tuple(weights))
+
+
+def _apply_layers(image: NDArray[np.float32], layers: BlurLayers, sample=None) -> NDArray[np.float32]:  # noqa: ANN001
+    """Sum over levels of weight * sample(blur(image, sigma)); ``sample`` maps a blurred image to the output
+    grid (identity by default)."""
+    out = None
+    for sigma, w in zip(layers.sigmas, layers.weights, strict=True):
+        src = image if sigma == 0 else cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+        img = sample(src) if sample is not None else src
+        if w is not None:
+            img = img * w
+        out = img if out is None else cv2.add(out, img)
+    return out
+
+
+def standard_normal_image(shape: tuple[int, ...], rng: np.random.Generator) -> NDArray[np.float32]:
+    """Standard normal float32 noise, reproducible from ``rng``. OpenCV's randn is ~6x faster than numpy's
+    generator here (noise was the largest cost per frame); its thread-local RNG is re-seeded from ``rng`` on
+    every call, so the images depend only on the caller's seed."""
+    cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
+    out = np.empty(shape, dtype=np.float32)
+    cv2.randn(out, 0.0, 1.0)
+    return out
+
+
+class SceneRenderer:
+    """Renders camera images of the scene lit by the projector's pattern, for any camera pose T_W_C."""
+
+    def __init__(self, sensor: SensorConfig, sim: SimConfig, scene: Scene, cache_size: int = 3):
+        self.sensor = sensor
+        self.sim = sim
+        self.scene = scene
+        self.cam = sensor.camera
+        self.proj = sensor.projector
+        self.T_C_P = sensor.projector.T_C_P.matrix()
+        p = self.proj
+        self._lut = (p.black_level + (1 - p.black_level) * (np.arange(256) / 255.0) ** p.gamma).astype(
+            np.float32
+        )
+        self._cache: OrderedDict[bytes, ViewGeometry] = OrderedDict()
+        self._cache_size = cache_size
+
+    # ------------------------------------------------------------------------------------------ geometry
+    def view(self, T_W_C: NDArray[np.float64]) -> ViewGeometry:
+        """The pattern-independent geometry of pose T_W_C (cached, least recently used dropped)."""
+        T_W_C = np.asarray(T_W_C, dtype=np.float64)
+        key = T_W_C.tobytes()
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        view = self._compute_view(T_W_C)
+        self._cache[key] = view
+        if len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
+        return view
+
+    def _compute_view(self, T_W_C: NDArray[np.float64]) -> ViewGeometry:
+        cam, proj, scene = self.cam, self.proj, self.scene
+        H, W = cam.height_px, cam.width_px
+        rays_C = pixel_rays(cam).reshape(-1, 3)
+        dirs_W = transform_vectors(T_W_C, rays_C)
+        eye_W = T_W_C[:3, 3]
+        hits = scene.cast(eye_W[None, :], dirs_W)
+        hit = hits.hit
+        idx = np.flatnonzero(hit)
+        t = hits.triangle[idx]
+        n = hits.normal[idx]
+        P_W = eye_W + dirs_W[idx] * hits.distance[idx, None]
+
+        T_W_P = T_W_C @ self.T_C_P
+        P_P = transform_points(invert(T_W_P), P_W)
+        uv = project_points(proj, P_P)
+        in_frustum = (
+            (P_P[:, 2] > 0)
+            & np.all(uv > -0.5, axis=1)
+            & (uv[:, 0] < proj.width_px - 0.5)
+            & (uv[:, 1] < proj.height_px - 0.5)
+        )
+        to_proj = T_W_P[:3, 3] - P_W
+        r = np.linalg.norm(to_proj, axis=1)
+        l_dir = to_proj / r[:, None]
+        cos_i = np.einsum("ij,ij->i", n, l_dir)
+        cand = np.flatnonzero(in_frustum & (cos_i > 0))
+        shadow = scene.occluded(
+            P_W[cand] + SHADOW_OFFSET_MM * n[cand], l_dir[cand], r[cand] - SHADOW_OFFSET_MM
+        )
+        lit_sub = np.zeros(len(idx), dtype=bool)
+        lit_sub[cand[~shadow]] = True
+
+        # Phong: mirror direction of the light about the normal, against the direction back to the camera
+        mirror = 2 * cos_i[:, None] * n - l_dir
+        cos_a = np.clip(-np.einsum("ij,ij->i", mirror, dirs_W[idx]), 0.0, 1.0)
+        alb, spec, shin = scene.albedo[t], scene.specular[t], scene.shininess[t]
+        falloff = (proj.focus_distance_mm / r) ** 2
+        gain = proj.irradiance_e_per_ms * falloff * (alb * np.maximum(cos_i, 0) + spec * cos_a**shin)
+
+        def full(values, fill, dtype):  # noqa: ANN001, ANN202 - scatter per-hit values to the image
+            out = np.full(H * W, fill, dtype=dtype)
+            out[idx] = values
+            return out.reshape(H, W)
+
+        lit = full(lit_sub, False, bool)
+        map_uv = np.where(lit_sub[:, None], uv, _OUTSIDE)
+        proj_sigma = np.where(lit_sub, blur_sigma_px(proj, P_P[:, 2]), 0.0)
+        cam_sigma = blur_sigma_px(cam, hits.distance[idx] * rays_C[idx, 2])
+        return ViewGeometry(
+            T_W_C=T_W_C.copy(),
+            distance=hits.distance.reshape(H, W),
+            triangle=hits.triangle.astype(np.int32).reshape(H, W),
+            hit=hit.reshape(H, W),
+            part=hits.is_part.reshape(H, W),
+            lit=lit,
+            in_frustum=full(in_frustum, False, bool),
+            map_x=full(map_uv[:, 0], _OUTSIDE, np.float32),
+            map_y=full(map_uv[:, 1], _OUTSIDE, np.float32),
+            ambient_e_per_ms=full(self.sim.ambient_e_per_ms * alb, 0.0, np.float32),
+            projector_e_per_ms=full(np.where(lit_sub, gain, 0.0), 0.0, np.float32),
+            projector_blur=blur_layers(full(proj_sigma, 0.0, np.float32)),
+            camera_blur=blur_layers(full(cam_sigma, 0.0, np.float32)),
+        )
+
+    def ground_truth(self, T_W_C: NDArray[np.float64]) -> GroundTruth:
+        """Per-pixel hit points, normals, masks and projector coordinates of pose T_W_C (float64)."""
+        v = self.view(T_W_C)
+        rays_C = pixel_rays(self.cam)
+        points_C = np.where(v.hit[..., None], rays_C * v.distance[..., None], np.nan)
+        points_W = transform_points(v.T_W_C, points_C)
+        n = self.scene.face_normals[np.maximum(v.triangle, 0)]
+        dirs_W = transform_vectors(v.T_W_C, rays_C)
+        flip = np.einsum("ijk,ijk->ij", n, dirs_W) > 0
+        normals_W = np.where(v.hit[..., None], np.where(flip[..., None], -n, n), np.nan)
+        P_P = transform_points(invert(v.T_W_C @ self.T_C_P), points_W)
+        uv = project_points(self.proj, P_P)
+        uv[~v.in_frustum] = np.nan
+        return GroundTruth(points_W, points_C, normals_W, v.hit, v.part, v.lit, uv)
+
+    # ------------------------------------------------------------------------------------------ images
+    def signal_e(
+        self, T_W_C: NDArray[np.float64], pattern: NDArray[np.uint8], exposure_ms: float
+    ) -> NDArray[np.float32]:
+        """Noise-free collected electrons per pixel (H, W) float32, after both defocus blurs."""
+        proj = self.proj
+        pattern = np.asarray(pattern)
+        if pattern.dtype != np.uint8 or pattern.shape != (proj.height_px, proj.width_px):
+            raise ValueError(
+                f"pattern must be uint8 of shape {(proj.height_px, proj.width_px)} (projector "
+                f"'{proj.name}'), got {pattern.dtype} {pattern.shape}"
+            )
+        v = self.view(T_W_C)
+        lin = self._lut[pattern]
+
+        def sample(src: NDArray[np.float32]) -> NDArray[np.float32]:
+            return cv2.remap(
+                src, v.map_x, v.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+            )
+
+        p = _apply_layers(lin, v.projector_blur, sample)
+        rate = cv2.add(v.ambient_e_per_ms, cv2.multiply(v.projector_e_per_ms, p))
+        signal = rate * np.float32(exposure_ms)
+        return _apply_layers(signal, v.camera_blur)
+
+    def sensor_dn(
+        self,
+        signal_e: NDArray[np.float32],
+        gain_db: float,
+        rng: np.random.Generator | None,
+        bit_depth: int | None = None,
+    ) -> NDArray[np.integer]:
+        """Electrons to digital numbers: shot + read noise (one Gaussian of variance signal + read^2, the
+        Gaussian limit of Poisson shot noise plus Gaussian read noise), full-well clip, gain, dark offset,
+        rounding and clip to the bit depth. ``rng=None`` or ``sim.noise=False`` gives the noise-free image."""
+        cam = self.cam
+        bits = bit_depth or cam.bit_depth
+        top = float(2**bits - 1)
+        e = signal_e
+        if rng is not None and self.sim.noise:
+            noise = standard_normal_image(e.shape, rng)
+            std = cv2.sqrt(cv2.add(e, float(cam.read_noise_e) ** 2))
+            e = cv2.add(e, cv2.multiply(noise, std))
+        dn_per_e = 10 ** (gain_db / 20) * top / cam.full_well_e
+        dn = np.clip(e, 0.0, cam.full_well_e) * np.float32(dn_per_e) + np.float32(cam.dark_offset_dn)
+        np.clip(dn, 0.0, top, out=dn)
+        np.rint(dn, out=dn)
+        return dn.astype(np.uint8 if bits == 8 else np.uint16)
+
+    def render(
+        self,
+        T_W_C: NDArray[np.float64],
+        pattern: NDArray[np.uint8],
+        exposure_ms: float,
+        gain_db: float,
+        rng: np.random.Generator | None,
+        bit_depth: int | None = None,
+    ) -> NDArray[np.integer]:
+        """One camera image (H, W), uint8 for 8-bit, uint16 for 10/12-bit, of ``pattern`` from pose T_W_C."""
+        return self.sensor_dn(self.signal_e(T_W_C, pattern, exposure_ms), gain_db, rng, bit_depth)
+
+    def render_stack(
+        self,
+        T_W_C: NDArray[np.float64],
+        patterns: Sequence[NDArray[np.uint8]],
+        exposure_ms: float,
+        gain_db: float,
+        rng: np.random.Generator | None,
+        bit_depth: int | None = None,
+    ) -> NDArray[np.integer]:
+        """(N, H, W) images of every pattern from one pose: one ray cast, N shadings."""
+        return np.stack([self.render(T_W_C, p, exposure_ms, gain_db, rng, bit_depth) for p in patterns])
