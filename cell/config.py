@@ -13,20 +13,12 @@ from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from cell.errors import ConfigError
 from cell.geometry import Pose, pose_from_xyz_rpy
-
-PositiveFloat = Annotated[float, Field(gt=0)]
-Fraction = Annotated[float, Field(ge=0, le=1)]
-Vec3 = tuple[float, float, float]
-
-
-class Strict(BaseModel):
-    """Base of every schema: unknown keys are errors, values are validated on assignment too."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+from cell.planning.settings import PlanSettings
+from cell.schema import Fraction, PositiveFloat, Strict, Vec3
 
 
 class PoseConfig(Strict):
@@ -134,7 +126,7 @@ class RobotConfig(Strict):
     home_joints_deg: tuple[float, float, float, float, float, float]
 
     @model_validator(mode="after")
-    def _envelope_ordered(self) -> "RobotConfig":
+    def _envelope_ordered(self) -> RobotConfig:
         if any(lo >= hi for lo, hi in zip(self.envelope_min_mm, self.envelope_max_mm)):
             raise ValueError("envelope_min_mm must be below envelope_max_mm on every axis")
         return self
@@ -199,6 +191,7 @@ class Recipe(Strict):
     name: str = ""
     part: PartConfig
     tolerance: ToleranceConfig
+    plan: PlanSettings = PlanSettings()
 
 
 # --------------------------------------------------------------------------------------------- loading

@@ -1,0 +1,232 @@
+"""The closed loop (sections 3.2-3.3): measure, evaluate (shadow map IS, reflection map IR, accuracy map IA,
+cost Q of eq 3.22), add viewpoints V_k with g_kS (holes and shadows: cluster, box, place) and g_kR (glare:
+rotate the sensor by beta > theta/2 about the spot, eqs 3.24-3.26), until Q is under the set point or the view
+budget is spent. Every decision is appended to the plan's log with its reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from cell.geometry import Pose, make_pose
+from cell.planning.clustering import cluster_points
+from cell.planning.coverage import coverage_fraction, covered_by_points
+from cell.planning.measured import DefectRegion, MeasuredView
+from cell.planning.planner import Plan, fill_holes
+from cell.planning.viewpoints import Viewpoint
+
+Array = NDArray[np.float64]
+SAME_POSE_MM, SAME_POSE_RAD = 10.0, np.deg2rad(3.0)
+
+
+@dataclass
+class LoopResult:
+    """Every viewpoint measured (in order), their measurements, the coverage and Q per iteration."""
+
+    viewpoints: list[Viewpoint]
+    views: list[MeasuredView]
+    coverage: list[float]
+    cost: list[float]
+    covered: NDArray[np.bool_]
+
+
+def cost_q(hole_area_mm2: float, distance_area_mm2: float, w: float) -> float:
+    """Eq 3.22: Q = |w u + j v| (u: hole cost, v: distance cost, both mm^2)."""
+    return float(abs(complex(w * hole_area_mm2, distance_area_mm2)))
+
+
+def _boxes_overlap(a: Array, b: Array) -> bool:
+    return bool(np.all(a.min(axis=0) <= b.max(axis=0)) and np.all(b.min(axis=0) <= a.max(axis=0)))
+
+
+def accuracy_map(views: list[MeasuredView], normals_at: Callable[[Array], Array], tol_mm: float,
+                 link_mm: float = 0.5, first_new: int = 1) -> Array:
+    """IA (eq 3.9): points of a view that disagree along the surface normal by more than ``tol_mm`` with the
+    nearest point (within ``link_mm``) of an earlier overlapping view. Pairs whose nominal normals differ by
+    more than 10 deg (across an edge or a thin sheet) are not compared. Normals: the views' own when they carry
+    them, else the nominal normal at the point. Only views from index ``first_new`` on are compared (with every
+    earlier one), so each iteration checks what it added."""
+    out = []
+    trees = [cKDTree(v.points_W) if len(v.points_W) else None for v in views[:-1]]
+    for j in range(max(1, first_new), len(views)):
+        pj = views[j].points_W
+        if len(pj) == 0:
+            continue
+        for i in range(j):
+            pi = views[i].points_W
+            if trees[i] is None or not _boxes_overlap(pi, pj):
+                continue
+            d, k = trees[i].query(pj, distance_upper_bound=link_mm)
+            near = np.isfinite(d)
+            if not near.any():
+                continue
+            nj = views[j].normals_W[near] if views[j].normals_W is not None else normals_at(pj[near])
+            ni = views[i].normals_W[k[near]] if views[i].normals_W is not None else normals_at(pi[k[near]])
+            same = np.einsum("ij,ij->i", nj, ni) > np.cos(np.deg2rad(10.0))
+            gap = np.abs(np.einsum("ij,ij->i", pj[near] - pi[k[near]], nj))
+            out.append(pj[near][same & (gap > tol_mm)])
+    return np.vstack(out) if out else np.zeros((0, 3))
+
+
+def rotate_about(T: Pose, point: Array, axis: Array, angle: float) -> Pose:
+    """Rigid rotation of pose T about the line through ``point`` along ``axis`` (world)."""
+    R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
+    return make_pose(R, point - R @ point) @ T
+
+
+class FeedbackPlanner:
+    """g_k: defect maps -> new viewpoints, on top of an initial plan."""
+
+    def __init__(self, plan: Plan):
+        self.plan = plan
+        self.log = plan.log
+        s = plan.surface
+        self.tree = cKDTree(s.points)
+        self.st = plan.sensor.settings
+
+    def normals_at(self, pts: Array) -> Array:
+        return self.plan.surface.normals[self.tree.query(pts)[1]]
+
+    def samples_near(self, pts: Array, radius: float) -> NDArray[np.int64]:
+        if len(pts) == 0:
+            return np.zeros(0, dtype=np.int64)
+        hits = self.tree.query_ball_point(pts, radius)
+        return np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hits]))
+
+    def g_kR(self, region: DefectRegion, T_W_C: Pose, name: str) -> Viewpoint | None:
+        """Glare spot: rotate the sensor about the spot centre by beta = theta/2 + margin (eqs 3.24-3.26) in the
+        plane of the view and incident rays, toward whichever side is reachable and predicted glare-free."""
+        sensor, s = self.plan.sensor, self.plan.surface
+        p = region.points_W.mean(axis=0)
+        T_W_P = sensor.projector_pose(T_W_C)
+        V = p - T_W_C[:3, 3]
+        V /= np.linalg.norm(V)
+        N = p - T_W_P[:3, 3]
+        N /= np.linalg.norm(N)
+        theta = float(np.arccos(np.clip(V @ N, -1, 1)))  # eq 3.24
+        beta = theta / 2 + np.deg2rad(self.st.glare_margin_deg)  # eq 3.26
+        axis = np.cross(V, N)
+        idx = self.samples_near(region.points_W, 2.0)
+        if len(idx) == 0 or np.linalg.norm(axis) < 1e-9:
+            return None
+        spot_mirror = sensor.mirror_angle(T_W_C, s.points[idx], s.normals[idx]).max()
+        best = None
+        for sign in (1.0, -1.0):
+            T = rotate_about(T_W_C, p, axis, sign * beta)
+            ok, why = self.plan.patch_planner.reach.check(T)
+            if not ok:
+                self.log.append({"event": "g_kR_side_rejected", "patch": name, "reason": why, "sign": sign})
+                continue
+            meas = sensor.measurable(T, s.points[idx], s.normals[idx], s.occluder)
+            clear = sensor.mirror_angle(T, s.points[idx], s.normals[idx]) > spot_mirror
+            frac = float((meas & clear).mean())
+            if best is None or frac > best[1]:
+                best = (T, frac, sign, idx[meas & clear])
+        if best is None or best[1] == 0:
+            self.log.append({"event": "g_kR_failed", "patch": name, "reason": "no rotation side is reachable and "
+                             "measures the spot"})
+            return None
+        T, frac, sign, meas = best
+        self.log.append({"event": "viewpoint", "source": "g_kR", "patch": name,
+                         "reason": f"glare spot of {region.pixels} px: theta = {np.rad2deg(theta):.1f} deg, rotate "
+                         f"beta = {np.rad2deg(beta):.1f} deg > theta/2 ({'forward' if sign > 0 else 'backward'})",
+                         "spot_fraction": round(frac, 3)})
+        return Viewpoint(T, self.plan.patch_planner.reach.target(T), name, "g_kR", frac, meas)
+
+    def propose(self, k: int, new_views: list[MeasuredView], covered: NDArray[np.bool_], ia: Array
+                ) -> list[Viewpoint]:
+        s = self.plan.surface
+        out: list[Viewpoint] = []
+        glare_owned = np.zeros(len(s.points), dtype=bool)
+        for vi, mv in enumerate(new_views):
+            for ri, reg in enumerate(r for r in mv.defects if r.reason == "glare"):
+                idx = self.samples_near(reg.points_W, 2.0)
+                if len(idx) == 0 or covered[idx].mean() > 0.9:
+                    continue  # another view already measured the spot
+                glare_owned[idx] = True
+                vp = self.g_kR(reg, mv.T_W_C, f"R{k}.{vi}.{ri}")
+                if vp is not None:
+                    out.append(vp)
+        holes = np.flatnonzero(s.inspectable & ~covered & ~glare_owned)
+        shadow_pts = [r.boundary_W for mv in new_views for r in mv.defects if r.reason == "shadow"]
+        if shadow_pts and len(np.vstack(shadow_pts)):
+            self.log.append({"event": "shadow_map", "reason": "IS: boundary points of shadow regions",
+                             "points": int(sum(len(p) for p in shadow_pts))})
+        out += fill_holes(self.plan.patch_planner, holes, f"S{k}.", "g_kS", self.log)
+        if len(ia):
+            lab = cluster_points(ia, 5.0)
+            for c in range(int(lab.max()) + 1):
+                idx = self.samples_near(ia[lab == c], 2.0)
+                if s.area[idx].sum() >= self.st.min_patch_area_mm2:
+                    self.log.append({"event": "accuracy", "patch": f"A{k}.{c}", "reason": "IA: overlapping views "
+                                     f"disagree by > {self.st.accuracy_tol_mm} mm; add a redundant view"})
+                    out += self.plan.patch_planner.plan(idx, f"A{k}.{c}", "g_kA")
+        return out
+
+
+def is_duplicate(T: Pose, existing: list[Pose]) -> bool:
+    for E in existing:
+        if np.linalg.norm(T[:3, 3] - E[:3, 3]) < SAME_POSE_MM:
+            R = E[:3, :3].T @ T[:3, :3]
+            if np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)) < SAME_POSE_RAD:
+                return True
+    return False
+
+
+def run_loop(plan: Plan, measure: Callable[[Pose], MeasuredView]) -> LoopResult:
+    """Measure the plan's viewpoints, then iterate g_k until Q < set point or the view budget is spent."""
+    fb = FeedbackPlanner(plan)
+    st, s, log = fb.st, plan.surface, plan.log
+    setpoint = st.q_setpoint_fraction * s.inspectable_area_mm2
+    done: list[Viewpoint] = []
+    views: list[MeasuredView] = []
+    pending = list(plan.viewpoints)[: st.view_budget]
+    coverage: list[float] = []
+    costs: list[float] = []
+    covered = np.zeros(len(s.points), dtype=bool)
+    ia_all = np.zeros((0, 3))
+    for k in range(st.max_iterations + 1):
+        new = [measure(v.T_W_C) for v in pending]
+        done += pending
+        views += new
+        pts = np.vstack([v.points_W for v in views]) if views else np.zeros((0, 3))
+        covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
+        u = float(s.area[s.inspectable & ~covered].sum())
+        ia = np.vstack([ia_all, accuracy_map(views, fb.normals_at, st.accuracy_tol_mm, first_new=len(views) - len(new))])
+        ia_all = ia
+        v_area = float(s.area[fb.samples_near(ia, 1.0)].sum()) if len(ia) else 0.0
+        q = cost_q(u, v_area, st.hole_weight)
+        coverage.append(coverage_fraction(s, covered))
+        costs.append(q)
+        log.append({"event": "evaluate", "iteration": k, "views": len(done), "coverage": round(coverage[-1], 5),
+                    "u_mm2": round(u, 1), "v_mm2": round(v_area, 1), "Q": round(q, 1),
+                    "setpoint": round(setpoint, 1),
+                    "glare_regions": sum(r.reason == "glare" for mv in new for r in mv.defects),
+                    "shadow_regions": sum(r.reason == "shadow" for mv in new for r in mv.defects),
+                    "reason": "Q at or under the set point: stop" if q <= setpoint else "Q above the set point"})
+        if q <= setpoint:
+            break
+        if len(done) >= st.view_budget or k == st.max_iterations:
+            log.append({"event": "stop", "reason": "view budget or iteration limit reached with Q above the set "
+                        "point", "Q": round(q, 1)})
+            break
+        proposed = fb.propose(k, new, covered, ia)
+        pending = []
+        for vp in proposed:
+            if is_duplicate(vp.T_W_C, [d.T_W_C for d in done + pending]):
+                log.append({"event": "duplicate", "patch": vp.patch, "reason": "an equal pose was already measured"})
+                continue
+            if len(done) + len(pending) >= st.view_budget:
+                log.append({"event": "budget", "patch": vp.patch, "reason": "view budget spent"})
+                break
+            pending.append(vp)
+        if not pending:
+            log.append({"event": "stop", "reason": "no new viewpoint can improve Q", "Q": round(q, 1)})
+            break
+    return LoopResult(done, views, coverage, costs, covered)

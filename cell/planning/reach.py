@@ -1,0 +1,62 @@
+"""Can the robot put the sensor at a viewpoint? IK within joint limits away from the wrist singularity, flange
+inside the configured envelope, and the sensor body clear of table and part.
+
+The sensor body is approximated by points in the flange frame {T}: the flange, the camera and projector centres
+and points along the bar joining them; each must stay ``clearance_mm`` above the table (z = 0 of {W}) and away
+from the part surface (nearest-neighbour distance to the part's vertices and surface samples, SciPy KD-tree).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from cell.config import CellConfig
+from cell.contracts import Envelope
+from cell.geometry import Pose, invert, transform_points
+from cell.planning.kinematics import UR5E, URKinematics
+
+Array = NDArray[np.float64]
+
+
+def sensor_body_points_T(cfg: CellConfig, n_bar: int = 8) -> Array:
+    """Points (M, 3) of the sensor body in the flange frame (mm): flange, camera, projector and the bar."""
+    T_T_C = cfg.sensor.T_T_C.matrix()
+    T_T_P = T_T_C @ cfg.sensor.projector.T_C_P.matrix()
+    cam, proj = T_T_C[:3, 3], T_T_P[:3, 3]
+    bar = cam + np.linspace(0, 1, n_bar)[:, None] * (proj - cam)
+    return np.vstack([np.zeros((1, 3)), bar])
+
+
+class ReachChecker:
+    """Reachability of camera poses T_W_C for one cell and one part (surface points in world mm)."""
+
+    def __init__(self, cfg: CellConfig, part_points_W: Array, clearance_mm: float,
+                 kinematics: URKinematics = UR5E):
+        self.T_W_B = cfg.robot.T_W_B.matrix()
+        self.T_B_W = invert(self.T_W_B)
+        self.T_C_T = invert(cfg.sensor.T_T_C.matrix())
+        self.envelope = Envelope(tuple(cfg.robot.envelope_min_mm), tuple(cfg.robot.envelope_max_mm))
+        self.body_T = sensor_body_points_T(cfg)
+        self.tree = cKDTree(part_points_W)
+        self.clearance = clearance_mm
+        self.kin = kinematics
+
+    def target(self, T_W_C: Pose) -> Pose:
+        """Flange target T_B_T = inv(T_W_B) @ T_W_C @ inv(T_T_C)."""
+        return self.T_B_W @ T_W_C @ self.T_C_T
+
+    def check(self, T_W_C: Pose) -> tuple[bool, str]:
+        """(ok, reason); reason says which check failed with the numbers."""
+        T_B_T = self.target(T_W_C)
+        if not self.envelope.contains(T_B_T[:3, 3]):
+            return False, f"flange {np.round(T_B_T[:3, 3], 1).tolist()} mm (base) outside the envelope"
+        body_W = transform_points(self.T_W_B @ T_B_T, self.body_T)
+        low = body_W[:, 2].min()
+        if low < self.clearance:
+            return False, f"sensor body {low:.1f} mm above the table, needs {self.clearance:.0f} mm"
+        d, _ = self.tree.query(body_W)
+        if d.min() < self.clearance:
+            return False, f"sensor body {d.min():.1f} mm from the part, needs {self.clearance:.0f} mm"
+        return self.kin.reachable(T_B_T)

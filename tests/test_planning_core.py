@@ -1,0 +1,93 @@
+"""Planner building blocks against independent truth: analytic geometry, brute force, the dissertation's eqs."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import trimesh
+
+from cell.config import DEFAULT_CELL, load_cell_config
+from cell.planning.feedback import cost_q, rotate_about
+from cell.planning.patches import cluster_patches
+from cell.planning.sensor_model import SensorModel
+from cell.planning.setcover import greedy_cover
+from cell.planning.settings import PlanSettings
+from cell.planning.tour import order_tour, pose_costs, tour_length
+
+CFG = load_cell_config(DEFAULT_CELL)
+
+
+def test_field_of_view_matches_the_cell_config():
+    s = SensorModel.from_config(CFG, PlanSettings())
+    w, h = s.fov_mm
+    assert w == pytest.approx(1024 * 393.7 / 2017.0)  # ~200 x 150 mm (sim.yaml comment, Table 2.x)
+    assert 195 < w < 205 and 145 < h < 155
+    # projector aimed at the field centre: triangulation angle = atan(baseline / stand-off)
+    assert np.rad2deg(s.triangulation_angle) == pytest.approx(np.rad2deg(np.arctan2(429.3, 393.7)), abs=0.01)
+
+
+def test_measurable_on_a_plane_is_the_image_footprint():
+    s = SensorModel.from_config(CFG, PlanSettings())
+    T = s.pose(np.zeros(3), np.array([0, 0, -1.0]), 0.0)
+    xs, ys = np.meshgrid(np.linspace(-150, 150, 61), np.linspace(-120, 120, 49))
+    pts = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
+    nrm = np.tile([0, 0, 1.0], (len(pts), 1))
+    ok = s.measurable(T, pts, nrm, None)
+    # inside the camera's footprint (and lit: the projector's footprint is larger) <=> measured
+    w, h = s.fov_mm
+    inside = (np.abs(pts @ T[:3, 0]) < w / 2 - 1) & (np.abs(pts @ T[:3, 1]) < h / 2 - 1)
+    border = (np.abs(np.abs(pts @ T[:3, 0]) - w / 2) < 1) | (np.abs(np.abs(pts @ T[:3, 1]) - h / 2) < 1)
+    assert np.array_equal(ok[~border], inside[~border])
+
+
+def test_cost_q_is_the_modulus_of_eq_3_22():
+    assert cost_q(3.0, 4.0, 1.0) == pytest.approx(5.0)
+    assert cost_q(3.0, 4.0, 2.0) == pytest.approx(np.hypot(6.0, 4.0))
+    assert cost_q(7.0, 0.0, 1.0) == pytest.approx(7.0)  # eq 3.27: Q = u when the distance cost is zero
+
+
+def test_two_opt_matches_brute_force_on_small_tours():
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        pts = rng.uniform(-300, 300, (7, 3))
+        poses = [np.eye(4) for _ in pts]
+        for T, p in zip(poses, pts):
+            T[:3, 3] = p
+        cost = pose_costs(poses)
+        got = tour_length(cost, order_tour(cost, 0))
+        best = min(tour_length(cost, [0, *perm]) for perm in itertools.permutations(range(1, 7)))
+        assert got <= 1.25 * best  # 2-opt is a local optimum, not the optimum: within 25% on these
+
+
+def test_greedy_cover_picks_the_known_cover():
+    # universe of 6 elements; one set covers all, greedy must take it alone
+    masks = np.array([[1, 1, 0, 0, 0, 0], [0, 0, 1, 1, 0, 0], [1, 1, 1, 1, 1, 1], [0, 0, 0, 0, 1, 1]], bool)
+    assert greedy_cover(masks, np.ones(6), 6.0) == [2]
+    assert greedy_cover(masks[[0, 1, 3]], np.ones(6), 6.0) == [0, 1, 2]
+
+
+def test_patches_of_a_box_are_its_faces():
+    box = trimesh.creation.box((100, 80, 40))
+    lab = cluster_patches(box, np.deg2rad(25))
+    assert len(np.unique(lab)) == 6
+    for k in np.unique(lab):  # eq 3.1: every triangle within the cone of its patch's mean normal
+        n = box.face_normals[lab == k]
+        assert np.all(n @ n.mean(axis=0) / np.linalg.norm(n.mean(axis=0)) > np.cos(np.deg2rad(25)))
+
+
+def test_patch_cone_splits_a_cylinder_into_sectors():
+    cyl = trimesh.creation.cylinder(radius=100, height=200, sections=72)
+    side = np.abs(cyl.face_normals[:, 2]) < 0.5
+    lab = cluster_patches(cyl, np.deg2rad(25), side)
+    # each sector spans < 2 x 25 deg of the 360 deg side: at least 8 sectors
+    assert len(np.unique(lab[side])) >= 8
+
+
+def test_rotate_about_keeps_the_pivot():
+    T = np.eye(4)
+    T[:3, 3] = [0, 0, 400]
+    p = np.array([10.0, 0, 0])
+    R = rotate_about(T, p, np.array([0, 1.0, 0]), 0.3)
+    assert np.linalg.norm(R[:3, 3] - p) == pytest.approx(np.linalg.norm(T[:3, 3] - p))

@@ -1,0 +1,66 @@
+"""Run folders: atomic views, torn journal lines, checkpoints and the SQLite index."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cell.errors import ConfigError
+from cell.runs import RunFolder, RunIndex
+
+
+def test_view_exists_whole_or_not_at_all(tmp_path: Path) -> None:
+    run = RunFolder.create(tmp_path, "part", name="r1")
+    with run.writing_view(0) as d:
+        np.save(d / "points.npy", np.ones((10, 3)))
+    with pytest.raises(RuntimeError):
+        with run.writing_view(1) as d:
+            np.save(d / "points.npy", np.ones((10, 3)))
+            raise RuntimeError("killed mid-write")
+    assert run.completed_views() == [0]
+    assert np.load(run.view_dir(0) / "points.npy").shape == (10, 3)
+    assert not [p for p in (run.path / "views").iterdir() if p.name.startswith(".")]
+
+
+def test_partial_view_folders_left_by_a_kill_are_discarded(tmp_path: Path) -> None:
+    run = RunFolder.create(tmp_path, "part", name="r1")
+    (run.path / "views" / ".003.abc").mkdir()  # what a SIGKILL during writing_view leaves behind
+    assert run.completed_views() == []
+    run.discard_partial_views()
+    assert list((run.path / "views").iterdir()) == []
+
+
+def test_torn_journal_line_is_skipped(tmp_path: Path) -> None:
+    run = RunFolder.create(tmp_path, "part", name="r1")
+    run.log("state", state="connecting")
+    run.log("view", view=0, pose=np.eye(4))
+    with open(run.journal_path, "a") as f:
+        f.write('{"t": 1, "event": "vi')  # the process died mid-write
+    entries = run.journal()
+    assert [e["event"] for e in entries] == ["state", "view"]
+    assert entries[1]["pose"] == np.eye(4).tolist()
+
+
+def test_checkpoint_round_trip_and_reopen(tmp_path: Path) -> None:
+    run = RunFolder.create(tmp_path, "part", name="r1")
+    run.log("state", state="idle")
+    run.save_checkpoint({"phase": "scanning", "views": [{"T_B_T": np.eye(4)}]})
+    again = RunFolder.open(run.path)
+    assert again.load_checkpoint()["views"][0]["T_B_T"] == np.eye(4).tolist()
+    with pytest.raises(ConfigError, match="not a run folder"):
+        RunFolder.open(tmp_path / "elsewhere")
+    with pytest.raises(ConfigError, match="not empty"):
+        RunFolder.create(tmp_path, "part", name="r1")
+
+
+def test_index_lists_runs_by_part(tmp_path: Path) -> None:
+    index = RunIndex(tmp_path)
+    index.upsert(tmp_path / "a", "pillar", "running")
+    index.upsert(tmp_path / "b", "gauge", "running")
+    index.upsert(tmp_path / "a", "pillar", "done", verdict="fail", n_points=1000, dev_min=-0.6)
+    rows = index.history("pillar")
+    assert len(rows) == 1 and rows[0]["status"] == "done" and rows[0]["verdict"] == "fail"
+    assert rows[0]["dev_min"] == pytest.approx(-0.6)
+    assert len(index.history()) == 2
