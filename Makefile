@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m cell demo --out runs/demo
+	$(PY) -m cell demo
 
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile -q

@@ -89,6 +89,8 @@ class ProjectorConfig(PinholeConfig):
 
     driver: Literal["sim", "serial", "replay"] = "sim"
     name: str = "projector"
+    serial: str = "SIM-PROJ-0001"
+    model: str = "simulated"
     T_C_P: PoseConfig = Field(description="projector optical frame in the camera frame {C}")
     irradiance_e_per_ms: PositiveFloat = Field(
         description="camera signal (electrons/ms) from a white pixel on an albedo-1 surface facing the "
@@ -151,6 +153,15 @@ class SimConfig(Strict):
     noise: bool = True
 
 
+class CalibrationFiles(Strict):
+    """The active calibration files (paths relative to the cell config file). Empty: the config's nominal
+    geometry is used, and every result says so."""
+
+    sensor: Path | None = Field(None, description="per-pixel d, S, alpha (cell calibrate sensor)")
+    gamma: Path | None = Field(None, description="projector response LUT (cell calibrate gamma)")
+    hand_eye: Path | None = Field(None, description="T_T_C; overrides sensor.T_T_C (cell calibrate handeye)")
+
+
 class CellConfig(Strict):
     """A whole cell: one robot carrying one area sensor; the simulator section is used by sim devices."""
 
@@ -159,6 +170,7 @@ class CellConfig(Strict):
     robot: RobotConfig
     sensor: SensorConfig
     sim: SimConfig = SimConfig()
+    calibration: CalibrationFiles = CalibrationFiles()
 
 
 # --------------------------------------------------------------------------------------------- recipes
@@ -236,8 +248,19 @@ def validate(model: type[M], data: dict[str, Any], path: str | Path) -> M:
 
 
 def load_cell_config(path: str | Path) -> CellConfig:
-    """Load and validate a cell config YAML."""
-    return validate(CellConfig, read_yaml(path), path)
+    """Load and validate a cell config YAML; calibration paths become absolute and must exist."""
+    cfg = validate(CellConfig, read_yaml(path), path)
+    base = Path(path).resolve().parent
+    for field in ("sensor", "gamma", "hand_eye"):
+        value = getattr(cfg.calibration, field)
+        if value is None:
+            continue
+        resolved = value if value.is_absolute() else base / value
+        if not resolved.exists():
+            raise ConfigError(f"calibration file not found: {resolved}; run `cell calibrate` or remove the entry",
+                              path=str(path), field=f"calibration.{field}")
+        setattr(cfg.calibration, field, resolved)
+    return cfg
 
 
 def load_recipe(path: str | Path) -> Recipe:

@@ -34,10 +34,16 @@ class SimCell:
     projector: SimProjector
     camera: SimCamera
     part_W: trimesh.Trimesh | None
+    seed: int = 0
 
     def camera_pose(self) -> NDArray[np.float64]:
         """T_W_C of the camera now (mm): world <- base <- flange <- camera."""
         return self.camera.pose_source()
+
+    def reseed(self, *key: int) -> None:
+        """Restart the camera noise from (cell seed, *key): a view's images then depend only on the view,
+        not on what was captured before, so a resumed run reproduces an uninterrupted one exactly."""
+        self.camera.rng = np.random.default_rng([self.seed, *key])
 
 
 def sensor_body_T(cfg: CellConfig) -> NDArray[np.float64]:
@@ -66,6 +72,7 @@ def build_sim_cell(
     def camera_pose() -> NDArray[np.float64]:
         return T_W_B @ robot.tool_pose() @ T_T_C
 
-    rng = np.random.default_rng(cfg.sim.seed if seed is None else seed)
+    seed = cfg.sim.seed if seed is None else seed
+    rng = np.random.default_rng(seed)
     camera = SimCamera(cfg.sensor.camera, renderer, projector, pose_source=camera_pose, clock=clock, rng=rng)
-    return SimCell(cfg, scene, renderer, clock, robot, projector, camera, part_W)
+    return SimCell(cfg, scene, renderer, clock, robot, projector, camera, part_W, seed)

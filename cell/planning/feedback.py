@@ -50,7 +50,8 @@ def accuracy_map(views: list[MeasuredView], normals_at: Callable[[Array], Array]
     """IA (eq 3.9): points of a view that disagree along the surface normal by more than ``tol_mm`` with the
     nearest point (within ``link_mm``) of an earlier overlapping view. Pairs whose nominal normals differ by
     more than 10 deg (across an edge or a thin sheet) are not compared. Normals: the views' own when they carry
-    them, else the nominal normal at the point. Only views from index ``first_new`` on are compared (with every
+    them, else the nominal normal at the point; views that carry their points' deviations from the nominal are
+    compared by those instead. Only views from index ``first_new`` on are compared (with every
     earlier one), so each iteration checks what it added."""
     out = []
     trees = [cKDTree(v.points_W) if len(v.points_W) else None for v in views[:-1]]
@@ -66,12 +67,30 @@ def accuracy_map(views: list[MeasuredView], normals_at: Callable[[Array], Array]
             near = np.isfinite(d)
             if not near.any():
                 continue
-            nj = views[j].normals_W[near] if views[j].normals_W is not None else normals_at(pj[near])
-            ni = views[i].normals_W[k[near]] if views[i].normals_W is not None else normals_at(pi[k[near]])
-            same = np.einsum("ij,ij->i", nj, ni) > np.cos(np.deg2rad(10.0))
-            gap = np.abs(np.einsum("ij,ij->i", pj[near] - pi[k[near]], nj))
-            out.append(pj[near][same & (gap > tol_mm)])
+            dj, di = views[j].deviation_mm, views[i].deviation_mm
+            if dj is not None and di is not None:
+                # deviations from the nominal: robust on bends and sheet edges, where normals are not
+                gap = np.abs(dj[near] - di[k[near]])
+                same = np.ones(len(gap), dtype=bool)
+            else:
+                nj = views[j].normals_W[near] if views[j].normals_W is not None else normals_at(pj[near])
+                ni = views[i].normals_W[k[near]] if views[i].normals_W is not None else normals_at(pi[k[near]])
+                same = np.einsum("ij,ij->i", nj, ni) > np.cos(np.deg2rad(10.0))
+                gap = np.abs(np.einsum("ij,ij->i", pj[near] - pi[k[near]], nj))
+            out.append(_consistent(pj[near][same], gap[same] > tol_mm))
     return np.vstack(out) if out else np.zeros((0, 3))
+
+
+def _consistent(points: Array, flagged: NDArray[np.bool_], radius_mm: float = 1.0, share: float = 0.5,
+                min_points: int = 5) -> Array:
+    """The flagged points whose neighbourhood (``radius_mm``) is mostly flagged too: a real disagreement
+    between two views covers an area, while isolated mixed pixels at sheet edges do not."""
+    if not flagged.any():
+        return np.zeros((0, 3))
+    candidates = points[flagged]
+    n_all = cKDTree(points).query_ball_point(candidates, radius_mm, return_length=True)
+    n_flag = cKDTree(candidates).query_ball_point(candidates, radius_mm, return_length=True)
+    return candidates[(n_flag >= min_points) & (n_flag >= share * n_all)]
 
 
 def rotate_about(T: Pose, point: Array, axis: Array, angle: float) -> Pose:
@@ -179,54 +198,87 @@ def is_duplicate(T: Pose, existing: list[Pose]) -> bool:
     return False
 
 
+@dataclass
+class Evaluation:
+    """The evaluator Lambda (eq 3.17) for one iteration: what is covered, the cost Q and the accuracy map."""
+
+    covered: NDArray[np.bool_]
+    coverage: float
+    u_mm2: float  # uncovered inspectable area (holes)
+    v_mm2: float  # area where overlapping views disagree (IA)
+    q: float
+    setpoint: float
+    ia: Array
+
+    @property
+    def qualified(self) -> bool:
+        return self.q <= self.setpoint
+
+    def to_json(self) -> dict[str, Any]:
+        return {"qualified": self.qualified, "coverage": round(self.coverage, 5), "u_mm2": round(self.u_mm2, 1),
+                "v_mm2": round(self.v_mm2, 1), "Q": round(self.q, 1), "setpoint": round(self.setpoint, 1)}
+
+
+def evaluate(fb: FeedbackPlanner, views: list[MeasuredView], first_new: int, ia_before: Array) -> Evaluation:
+    """Coverage, hole area u, accuracy map IA (views from ``first_new`` on against earlier ones, added to
+    ``ia_before``), its area v and Q = |w u + j v| against the set point."""
+    st, s = fb.st, fb.plan.surface
+    pts = np.vstack([v.points_W for v in views]) if views else np.zeros((0, 3))
+    covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
+    u = float(s.area[s.inspectable & ~covered].sum())
+    ia = np.vstack([ia_before, accuracy_map(views, fb.normals_at, st.accuracy_tol_mm, first_new=first_new)])
+    v_area = float(s.area[fb.samples_near(ia, 1.0)].sum()) if len(ia) else 0.0
+    q = cost_q(u, v_area, st.hole_weight)
+    return Evaluation(covered, coverage_fraction(s, covered), u, v_area, q,
+                      st.q_setpoint_fraction * s.inspectable_area_mm2, ia)
+
+
+def select_new(fb: FeedbackPlanner, proposed: list[Viewpoint], done: list[Pose]) -> list[Viewpoint]:
+    """The proposed viewpoints that are not a pose already measured, within the view budget (logged)."""
+    pending: list[Viewpoint] = []
+    for vp in proposed:
+        if is_duplicate(vp.T_W_C, done + [p.T_W_C for p in pending]):
+            fb.log.append({"event": "duplicate", "patch": vp.patch, "reason": "an equal pose was already measured"})
+            continue
+        if len(done) + len(pending) >= fb.st.view_budget:
+            fb.log.append({"event": "budget", "patch": vp.patch, "reason": "view budget spent"})
+            break
+        pending.append(vp)
+    return pending
+
+
 def run_loop(plan: Plan, measure: Callable[[Pose], MeasuredView]) -> LoopResult:
     """Measure the plan's viewpoints, then iterate g_k until Q < set point or the view budget is spent."""
     fb = FeedbackPlanner(plan)
-    st, s, log = fb.st, plan.surface, plan.log
-    setpoint = st.q_setpoint_fraction * s.inspectable_area_mm2
+    st, log = fb.st, plan.log
     done: list[Viewpoint] = []
     views: list[MeasuredView] = []
     pending = list(plan.viewpoints)[: st.view_budget]
     coverage: list[float] = []
     costs: list[float] = []
-    covered = np.zeros(len(s.points), dtype=bool)
-    ia_all = np.zeros((0, 3))
+    ia = np.zeros((0, 3))
+    ev: Evaluation | None = None
     for k in range(st.max_iterations + 1):
         new = [measure(v.T_W_C) for v in pending]
         done += pending
         views += new
-        pts = np.vstack([v.points_W for v in views]) if views else np.zeros((0, 3))
-        covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
-        u = float(s.area[s.inspectable & ~covered].sum())
-        ia = np.vstack([ia_all, accuracy_map(views, fb.normals_at, st.accuracy_tol_mm, first_new=len(views) - len(new))])
-        ia_all = ia
-        v_area = float(s.area[fb.samples_near(ia, 1.0)].sum()) if len(ia) else 0.0
-        q = cost_q(u, v_area, st.hole_weight)
-        coverage.append(coverage_fraction(s, covered))
-        costs.append(q)
-        log.append({"event": "evaluate", "iteration": k, "views": len(done), "coverage": round(coverage[-1], 5),
-                    "u_mm2": round(u, 1), "v_mm2": round(v_area, 1), "Q": round(q, 1),
-                    "setpoint": round(setpoint, 1),
+        ev = evaluate(fb, views, len(views) - len(new), ia)
+        ia = ev.ia
+        coverage.append(ev.coverage)
+        costs.append(ev.q)
+        log.append({"event": "evaluate", "iteration": k, "views": len(done), **ev.to_json(),
                     "glare_regions": sum(r.reason == "glare" for mv in new for r in mv.defects),
                     "shadow_regions": sum(r.reason == "shadow" for mv in new for r in mv.defects),
-                    "reason": "Q at or under the set point: stop" if q <= setpoint else "Q above the set point"})
-        if q <= setpoint:
+                    "reason": "Q at or under the set point: stop" if ev.qualified else "Q above the set point"})
+        if ev.qualified:
             break
         if len(done) >= st.view_budget or k == st.max_iterations:
             log.append({"event": "stop", "reason": "view budget or iteration limit reached with Q above the set "
-                        "point", "Q": round(q, 1)})
+                        "point", "Q": round(ev.q, 1)})
             break
-        proposed = fb.propose(k, new, covered, ia)
-        pending = []
-        for vp in proposed:
-            if is_duplicate(vp.T_W_C, [d.T_W_C for d in done + pending]):
-                log.append({"event": "duplicate", "patch": vp.patch, "reason": "an equal pose was already measured"})
-                continue
-            if len(done) + len(pending) >= st.view_budget:
-                log.append({"event": "budget", "patch": vp.patch, "reason": "view budget spent"})
-                break
-            pending.append(vp)
+        pending = select_new(fb, fb.propose(k, new, ev.covered, ev.ia), [d.T_W_C for d in done])
         if not pending:
-            log.append({"event": "stop", "reason": "no new viewpoint can improve Q", "Q": round(q, 1)})
+            log.append({"event": "stop", "reason": "no new viewpoint can improve Q", "Q": round(ev.q, 1)})
             break
+    covered = ev.covered if ev is not None else np.zeros(len(plan.surface.points), dtype=bool)
     return LoopResult(done, views, coverage, costs, covered)

@@ -1,0 +1,226 @@
+"""Per-pixel (pixel-to-pixel) calibration of the structured-light sensor, dissertation 2.2 and 5.1.1.
+
+The flat reference board is stepped n times toward the sensor by known heights h_k (h_0 = 0 is the reference
+plane). At every step both stripe directions are decoded (step 1) and the encoded points P_k(h_i, v_j), the
+intersections of horizontal and vertical code lines, are found with sub-pixel precision (steps 2-4,
+:mod:`cell.calibration.codepoints`). Per encoded point:
+
+* the vectors P_0 P_k on the reference plane (mm: undistorted normalised camera coordinates times the
+  reference depth, i.e. eq 2.6 with res = S0 / f) give the offset angle alpha to the stripe gradient
+  (step 5; the average of the alpha_k weighted by vector length, because short vectors have noisy angles);
+* L'_k = |P_0 P_k| along their common direction and h_k give d and S by linear least squares (eq 2.7, step 6).
+
+The per-point d, S and alpha are interpolated to every camera pixel (linear on the Delaunay triangulation of
+the points, nearest outside) and, with the reference plane's column code map, make the
+:class:`cell.sensing.triangulate.ReferencePlaneTriangulator` that measures with L' = L sec(alpha) (eq 2.9).
+alpha is stored as the angle that triangulator needs: with the stripe gradient g, the row direction x and the
+correspondence direction b, cos(alpha) = (b.g)/(x.g), which is the dissertation's angle between b and g when
+the stripes run across the rows (as they do for column stripes).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+
+from cell.calibration.codepoints import locate_codes
+from cell.calibration.store import load_calibration, save_calibration, save_map_png
+from cell.config import CameraConfig, ProjectorConfig
+from cell.errors import CalibrationError, ConfigError
+from cell.sensing.decode import Decoded
+from cell.sensing.triangulate import ReferencePlaneTriangulator, fit_d_S, normalized_coords, reference_table
+
+MIN_STEPS = 3
+
+
+@dataclass
+class SensorCalibration:
+    """Result of the per-pixel calibration: the measuring model and what the technician needs to judge it."""
+
+    model: ReferencePlaneTriangulator
+    points_px: NDArray[np.float64]  # (N, 2) camera position of each encoded point (mean over the steps)
+    d_mm: NDArray[np.float64]  # (N,) per encoded point
+    S_mm: NDArray[np.float64]
+    alpha_rad: NDArray[np.float64]
+    residual_mm: NDArray[np.float64]  # (N,) RMS of h_k - L'_k S/(d + L'_k) over the steps
+    heights_mm: NDArray[np.float64]
+    figures: dict[str, Any] = field(default_factory=dict)
+
+
+def code_grid(u_ref: NDArray, v_ref: NDArray, n_points: int, margin: float = 0.03) -> NDArray[np.float64]:
+    """A square grid of about ``n_points`` projector codes (u, v) spanning the codes seen on the reference
+    plane (inside the 3rd-97th percentile, so every point has neighbours in the image)."""
+    n = int(round(np.sqrt(n_points)))
+    ok = np.isfinite(u_ref) & np.isfinite(v_ref)
+    if ok.sum() < 100:
+        raise CalibrationError("reference step: fewer than 100 pixels decoded in both directions; is the board "
+                               "in view, lit by the projector and inside the depth of field?")
+    ulo, uhi = np.percentile(u_ref[ok], [100 * margin, 100 * (1 - margin)])
+    vlo, vhi = np.percentile(v_ref[ok], [100 * margin, 100 * (1 - margin)])
+    uu, vv = np.meshgrid(np.linspace(ulo, uhi, n), np.linspace(vlo, vhi, n))
+    return np.column_stack([uu.ravel(), vv.ravel()])
+
+
+class SensorCalibrator:
+    """Feed the decoded steps in order with :meth:`add_step`, then :meth:`finish`. Keeps only the encoded
+    points of each step (not the images), so 30 full-resolution steps fit in memory."""
+
+    def __init__(self, camera: CameraConfig, projector: ProjectorConfig, reference_depth_mm: float,
+                 n_points: int = 65536, K: NDArray | None = None, dist: NDArray | None = None):
+        self.camera, self.projector = camera, projector
+        self.S0 = float(reference_depth_mm)
+        self.n_points = n_points
+        self.K = camera.K() if K is None else np.asarray(K, float)
+        self.dist = camera.distortion.as_array() if dist is None else np.asarray(dist, float)
+        self.heights: list[float] = []
+        self.positions: list[NDArray] = []  # (N, 2) px per step
+        self.codes: NDArray | None = None
+        self.u_ref: NDArray | None = None
+        self.grad: NDArray | None = None
+
+    def add_step(self, height_mm: float, decoded: Decoded) -> int:
+        """Add one step (board ``height_mm`` above the reference plane; the first step is the reference, 0).
+        Returns how many encoded points were found."""
+        W, H = self.camera.width_px, self.camera.height_px
+        if set(decoded.axes) != {"columns", "rows"}:
+            raise CalibrationError("sensor calibration needs both stripe directions decoded (direction 'both')")
+        u, v = decoded.axes["columns"].u, decoded.axes["rows"].u
+        if u.shape != (H, W):
+            raise CalibrationError(f"step {len(self.heights)}: decoded maps are {u.shape[1]}x{u.shape[0]}, the "
+                                   f"camera '{self.camera.name}' is {W}x{H}: resolution mismatch")
+        if not self.heights:
+            if height_mm != 0:
+                raise CalibrationError(f"the first step is the reference plane and must have height 0, got "
+                                       f"{height_mm} mm")
+            self.codes = code_grid(u, v, self.n_points)
+            self.u_ref = u.astype(np.float64)
+        elif not height_mm > self.heights[-1]:
+            raise CalibrationError(f"step {len(self.heights)}: height {height_mm} mm is not above the previous "
+                                   f"{self.heights[-1]} mm; steps must increase toward the sensor")
+        pos, grad = locate_codes(u, v, self.codes, (self.projector.width_px, self.projector.height_px))
+        if self.grad is None:
+            self.grad = grad
+        found = int(np.isfinite(pos[:, 0]).sum())
+        if found < 0.2 * len(self.codes):
+            raise CalibrationError(f"step {len(self.heights)} at {height_mm} mm: only {found} of "
+                                   f"{len(self.codes)} encoded points found; is the board in view?")
+        self.heights.append(float(height_mm))
+        self.positions.append(pos)
+        return found
+
+    def _plane_mm(self, px: NDArray) -> NDArray:
+        """Camera pixels (N, 2) to reference-plane coordinates (mm): undistorted normalised x S0."""
+        out = np.full_like(px, np.nan)
+        ok = np.isfinite(px[:, 0])
+        if ok.any():
+            out[ok] = cv2.undistortPoints(px[ok].reshape(-1, 1, 2), self.K, self.dist).reshape(-1, 2) * self.S0
+        return out
+
+    def finish(self, stride: int = 1) -> SensorCalibration:
+        """Fit d, S, alpha per encoded point (eq 2.7, steps 5-6), interpolate to every pixel, build the model.
+
+        ``stride`` > 1 uses every stride-th code line in each direction (1/stride^2 of the points): Table 5.1
+        compares 4096, 16384 and 65536 points from one set of images this way."""
+        n = len(self.heights)
+        if n < MIN_STEPS:
+            raise CalibrationError(f"sensor calibration: {n} steps; at least {MIN_STEPS} (30 recommended)")
+        h = np.asarray(self.heights)
+        side = int(round(np.sqrt(len(self.codes))))
+        sel = np.zeros((side, side), bool)
+        sel[::stride, ::stride] = True
+        sel = sel.ravel()
+        m = np.stack([self._plane_mm(p[sel]) for p in self.positions])  # (n, N, 2)
+        b = m[1:] - m[0]  # P0Pk vectors (n-1, N, 2)
+        total = np.nansum(b, axis=0)
+        bhat = total / np.maximum(np.linalg.norm(total, axis=1, keepdims=True), 1e-12)
+        L = np.concatenate([np.zeros((1, len(bhat))), np.einsum("knj,nj->kn", b, bhat)])
+        L[np.isnan(m[:, :, 0])] = np.nan
+        d, S = fit_d_S(h, L)
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # points seen in no step: NaN, filtered below
+            res = np.sqrt(np.nanmean((h[:, None] - L * S / (d + L)) ** 2, axis=0))
+            grad = self.grad[sel]
+            g = grad * np.sign(np.sum(grad * bhat, axis=1, keepdims=True))
+            alpha_diss = np.arctan2(g[:, 0] * bhat[:, 1] - g[:, 1] * bhat[:, 0], np.sum(g * bhat, axis=1))
+            cos_eff = np.clip(np.sum(bhat * g, axis=1) / np.abs(g[:, 0]), -1, 1)
+        alpha_eff = np.arccos(cos_eff)
+        ok = np.isfinite(d) & np.isfinite(S) & np.isfinite(alpha_eff) & (np.sum(np.isfinite(L), 0) >= MIN_STEPS)
+        if ok.sum() < 16:
+            raise CalibrationError(f"sensor calibration: only {int(ok.sum())} encoded points could be fitted")
+        pos = np.nanmean(np.stack(self.positions), axis=0)[sel]
+        ok &= np.isfinite(pos[:, 0])
+        W, H = self.camera.width_px, self.camera.height_px
+        yy, xx = np.mgrid[0:H, 0:W]
+        grid = np.column_stack([xx.ravel(), yy.ravel()]).astype(np.float64)
+        vals = np.column_stack([d[ok], S[ok], alpha_eff[ok]])
+        lin = LinearNDInterpolator(pos[ok], vals)(grid)
+        near = NearestNDInterpolator(pos[ok], vals)(grid[np.isnan(lin[:, 0])])
+        lin[np.isnan(lin[:, 0])] = near
+        maps = lin.reshape(H, W, 3)
+        xn, yn = normalized_coords(self.K, self.dist, W, H)
+        table, u0 = reference_table(self.u_ref, xn)
+        sign = float(np.sign(np.nanmean(bhat[:, 0])) or 1.0)
+        model = ReferencePlaneTriangulator(maps[..., 0], maps[..., 1], maps[..., 2], xn, yn, table, u0, 0.25,
+                                           self.S0, sign)
+        figures = {
+            "steps": n, "heights_mm": [float(x) for x in h], "encoded_points": int(sel.sum()),
+            "fitted_points": int(ok.sum()),
+            "d_mm": _stats(d[ok]), "S_mm": _stats(S[ok]), "alpha_deg": _stats(np.degrees(alpha_diss[ok])),
+            "residual_mm": _stats(res[ok]),
+        }
+        return SensorCalibration(model, pos, d, S, alpha_eff, res, h, figures)
+
+
+def _stats(x: NDArray) -> dict[str, float]:
+    x = x[np.isfinite(x)]
+    return {"mean": float(x.mean()), "std": float(x.std()), "min": float(x.min()), "max": float(x.max()),
+            "rms": float(np.sqrt(np.mean(x * x)))}
+
+
+def _standard_error(cal: SensorCalibration) -> float:
+    """Median over the encoded points of the fit's standard error of height, residual / sqrt(steps - 2): the
+    figure by which a new calibration is compared with the active one (fewer steps fit closer but know less)."""
+    return float(np.nanmedian(cal.residual_mm) / np.sqrt(max(len(cal.heights_mm) - 2, 1)))
+
+
+def save_sensor_calibration(cal: SensorCalibration, path: Path, camera: CameraConfig, projector: ProjectorConfig,
+                            force: bool = False) -> Path:
+    """Versioned file of the per-pixel model (see :mod:`cell.calibration.store`); worse-than-existing files
+    (by :func:`_standard_error`) are refused unless ``force``. Writes d/S/alpha maps as PNG beside it."""
+    m = cal.model
+    arrays = {"d": m.d, "S": m.S, "alpha": m.alpha, "ref_x": m.ref_x, "points_px": cal.points_px,
+              "d_points": cal.d_mm, "S_points": cal.S_mm, "alpha_points": cal.alpha_rad,
+              "residual_points": cal.residual_mm, "heights_mm": cal.heights_mm}
+    meta = {"camera": {"serial": camera.serial, "resolution": [camera.width_px, camera.height_px],
+                       "K": camera.K().tolist(), "dist": camera.distortion.as_array().tolist()},
+            "projector": {"serial": projector.name, "resolution": [projector.width_px, projector.height_px]},
+            "model": {"u0": m.u0, "du": m.du, "res_mm": m.res_mm, "sign": m.sign},
+            "figures": cal.figures,
+            "quality": {"median_residual_mm": float(np.nanmedian(cal.residual_mm)),
+                        "standard_error_mm": _standard_error(cal)}}
+    out = save_calibration(path, "sensor_per_pixel", arrays, meta, "quality.standard_error_mm", force)
+    stem = Path(path).with_suffix("")
+    for name, arr in (("d", m.d), ("S", m.S), ("alpha", m.alpha)):
+        save_map_png(stem.parent / f"{stem.name}_{name}.png", arr)
+    return out
+
+
+def load_sensor_model(path: Path, camera: CameraConfig) -> ReferencePlaneTriangulator:
+    """The per-pixel model saved by :func:`save_sensor_calibration`; ConfigError if it was made for another
+    camera resolution."""
+    meta, a = load_calibration(path, "sensor_per_pixel")
+    if list(meta["camera"]["resolution"]) != [camera.width_px, camera.height_px]:
+        raise ConfigError(f"calibration is for a {meta['camera']['resolution']} camera, '{camera.name}' is "
+                          f"{camera.width_px}x{camera.height_px}: resolution mismatch", path=str(path))
+    K, dist = np.array(meta["camera"]["K"]), np.array(meta["camera"]["dist"])
+    xn, yn = normalized_coords(K, dist, camera.width_px, camera.height_px)
+    mm = meta["model"]
+    return ReferencePlaneTriangulator(a["d"], a["S"], a["alpha"], xn, yn, a["ref_x"], mm["u0"], mm["du"],
+                                      mm["res_mm"], mm["sign"])

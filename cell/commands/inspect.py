@@ -1,0 +1,207 @@
+"""``cell inspect``, ``cell resume``, ``cell report``, ``cell history``, ``cell diagram`` and ``cell demo``.
+
+A run reads only the copies in its ``inputs/`` folder once it has started, so ``cell resume`` finishes it even
+if the original recipe, CAD or cell config changed or moved meanwhile.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+from rich.console import Console
+
+from cell.config import DEFAULT_CELL, PartConfig, Recipe, load_cell_config, load_recipe, read_yaml, validate
+from cell.controller import Controller, ControllerSettings
+from cell.errors import ConfigError
+from cell.runs import RunFolder, RunIndex, write_json_atomic
+
+REPO = Path(__file__).resolve().parents[2]
+DEMO_RECIPE = REPO / "recipes" / "pillar.yaml"
+console = Console()
+EXIT_PAUSED = 3
+
+
+def _progress(ctl: Controller) -> None:
+    elapsed = time.monotonic() - ctl.progress.started
+    done, total = ctl.views_done, ctl.views_total
+    remaining = ""
+    times = ctl.progress.view_times
+    if len(times) >= 2 and total > done:
+        per_view = (times[-1] - times[0]) / (len(times) - 1)
+        remaining = f", ~{per_view * (total - done):.0f} s left"
+    view = ""
+    if ctl.current_view is not None and ctl.state.startswith("scanning"):
+        view = f" | view {ctl.current_view + 1} of {total}, {done} decoded"
+    console.print(f"[{elapsed:6.1f} s] {ctl.state}{view}{remaining}", highlight=False)
+
+
+def _start_run(recipe_path: Path, cell_path: Path, out: Path | None, sim_actual: Path | None) -> RunFolder:
+    """Validate every input, then create the run folder and copy the inputs into it (nothing before that)."""
+    cfg = load_cell_config(cell_path)
+    recipe = load_recipe(recipe_path)
+    from cell.commands.plan import load_part_W
+
+    load_part_W(recipe, recipe_path, cfg)  # refuses a part that is invalid or does not fit the cell
+    actual = sim_actual or recipe.part.actual
+    if sim_actual is not None:
+        from cell.mesh import load_mesh
+
+        load_mesh(sim_actual, what="simulated actual part")
+    part = recipe.name or recipe.part.cad.stem
+    run = RunFolder.create(out.parent, part, name=out.name) if out else RunFolder.create(REPO / "runs", part)
+    manifest: dict[str, Any] = {
+        "recipe": run.copy_input(recipe_path, "recipe.yaml").name,
+        "cell": run.copy_input(cell_path, "cell.yaml").name,
+        "cad": run.copy_input(recipe.part.cad, "nominal" + recipe.part.cad.suffix).name,
+        "actual": run.copy_input(actual, "actual" + Path(actual).suffix).name if actual else None,
+        "sources": {"recipe": str(recipe_path), "cell": str(cell_path), "cad": str(recipe.part.cad),
+                    "actual": str(actual) if actual else None},
+    }
+    write_json_atomic(run.path / "inputs" / "manifest.json", manifest)
+    run.log("run_created", part=part, **manifest["sources"])
+    return run
+
+
+def _load_run_inputs(run: RunFolder) -> tuple[Recipe, Any, Path | None]:
+    """The recipe and cell config as copied into the run, with the part paths pointing at the copies."""
+    inputs = run.path / "inputs"
+    manifest = json.loads((inputs / "manifest.json").read_text())
+    recipe_file = inputs / manifest["recipe"]
+    data = read_yaml(recipe_file)
+    data.setdefault("part", {})
+    data["part"] = {**data["part"], "cad": str(inputs / manifest["cad"]), "actual": None}
+    recipe = validate(Recipe, data, recipe_file)
+    recipe.part = PartConfig.model_validate({**recipe.part.model_dump(), "cad": inputs / manifest["cad"]})
+    cfg = load_cell_config(inputs / manifest["cell"])
+    actual = inputs / manifest["actual"] if manifest.get("actual") else None
+    return recipe, cfg, actual
+
+
+def _execute(run: RunFolder, *, resume: bool, settings: ControllerSettings, seed: int | None) -> str:
+    from cell.devices import build_devices
+    from cell.inspection import LambertianInspection
+    from cell.mesh import load_mesh
+    from cell.planning.kinematics import UR5E
+
+    recipe, cfg, actual_path = _load_run_inputs(run)
+    T_W_P = recipe.part.T_W_P.matrix()
+    nominal_W = load_mesh(recipe.part.cad).apply_transform(T_W_P)
+    actual_W = load_mesh(actual_path).apply_transform(T_W_P) if actual_path else nominal_W
+    devices = build_devices(cfg, part_W=actual_W, part_material=recipe.part.material, seed=seed)
+    job = LambertianInspection(recipe, cfg, nominal_W)
+    r = cfg.robot
+    ctl = Controller(
+        devices, job, run, settings,
+        robot_limits=(r.max_tcp_speed_mm_s, r.max_tcp_accel_mm_s2, r.max_joint_speed_rad_s, r.max_joint_accel_rad_s2),
+        home_joints_rad=np.deg2rad(r.home_joints_deg), kinematics=UR5E, on_progress=_progress,
+    )
+    index = RunIndex(run.path.parent)
+    index.upsert(run.path, job.part_name, "running")
+    state = ctl.execute(resume=resume)
+    summary = (run.load_checkpoint() or {}).get("summary", {})
+    dev = summary.get("deviation") or {}
+    index.upsert(run.path, job.part_name, state, verdict=summary.get("verdict"), n_points=summary.get("n_points"),
+                 coverage=summary.get("coverage"), dev_min=dev.get("min_mm"), dev_max=dev.get("max_mm"))
+    _finish_message(run, state, ctl.message, summary)
+    return state
+
+
+def _finish_message(run: RunFolder, state: str, message: str, summary: dict[str, Any]) -> None:
+    if state == "done":
+        console.print(f"[bold]verdict: {str(summary.get('verdict')).upper()}[/]  "
+                      f"({summary.get('n_points')} points, coverage {summary.get('coverage')})")
+        console.print(f"report: {run.results_dir / 'report.html'}")
+        return
+    if state == "paused":
+        console.print(f"[yellow]paused[/]: {message}\nfix the cause, then: cell resume {run.path}")
+        sys.exit(EXIT_PAUSED)
+    console.print(f"[red]{state}[/]: {message}\nrun folder: {run.path}")
+    sys.exit(1)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("inspect")
+    def inspect_cmd(
+        recipe: Path = typer.Argument(..., help="inspection recipe YAML"),
+        cell: Path = typer.Option(DEFAULT_CELL, "--cell", help="cell config YAML"),
+        out: Path = typer.Option(None, "--out", help="run folder to create (default: runs/<part>-<time>)"),
+        sim_actual: Path = typer.Option(None, "--sim-actual", help="simulation: mesh rendered as the made part"),
+        seed: int = typer.Option(None, "--seed", help="simulation noise seed (default: the cell's sim.seed)"),
+        pipelining: bool = typer.Option(True, help="decode view k while moving to view k+1"),
+    ) -> None:
+        """Run an inspection recipe end to end; Ctrl-C pauses safely (resume with `cell resume DIR`)."""
+        run = _start_run(recipe, cell, out, sim_actual)
+        _execute(run, resume=False, settings=ControllerSettings(pipelining=pipelining), seed=seed)
+
+    @app.command("resume")
+    def resume_cmd(
+        run_dir: Path = typer.Argument(..., help="run folder of an interrupted run"),
+        seed: int = typer.Option(None, "--seed", help="the seed the run was started with, if one was given"),
+    ) -> None:
+        """Finish an interrupted or paused run from its last checkpoint."""
+        run = RunFolder.open(run_dir)
+        if (run.load_checkpoint() or {}).get("phase") == "done":
+            raise ConfigError("this run is already done; `cell report` rebuilds its report", path=str(run_dir))
+        _execute(run, resume=True, settings=ControllerSettings(), seed=seed)
+
+    @app.command("report")
+    def report_cmd(run_dir: Path = typer.Argument(..., help="run folder")) -> None:
+        """Rebuild a finished run's report from its stored views."""
+        from cell.inspection import LambertianInspection
+        from cell.mesh import load_mesh
+
+        run = RunFolder.open(run_dir)
+        checkpoint = run.load_checkpoint() or {}
+        if checkpoint.get("phase") not in ("reporting", "done"):
+            raise ConfigError("the run has not reached reporting; `cell resume` it first", path=str(run_dir))
+        recipe, cfg, _ = _load_run_inputs(run)
+        nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
+        summary = LambertianInspection(recipe, cfg, nominal_W).report(run, checkpoint.get("registration", {}))
+        run.log("report_rebuilt", **summary)
+        _finish_message(run, "done", "", summary)
+
+    @app.command("history")
+    def history_cmd(
+        part: str = typer.Argument(None, help="part name (default: all parts)"),
+        runs: Path = typer.Option(REPO / "runs", "--runs", help="runs root holding index.sqlite"),
+    ) -> None:
+        """List the runs of a part: time, status, verdict and key figures."""
+        from rich.table import Table
+
+        rows = RunIndex(runs).history(part)
+        table = Table(title=f"runs of {part or 'all parts'} in {runs}")
+        for column in ("started", "part", "status", "verdict", "points", "coverage", "dev min", "dev max", "folder"):
+            table.add_column(column)
+        for r in rows:
+            fmt = lambda v, f="{:.3f}": "" if v is None else f.format(v)  # noqa: E731
+            table.add_row(r["started"], r["part"], r["status"], r["verdict"] or "", fmt(r["n_points"], "{}"),
+                          fmt(r["coverage"]), fmt(r["dev_min"]), fmt(r["dev_max"]), r["folder"])
+        console.print(table)
+
+    @app.command("diagram")
+    def diagram_cmd(out: Path = typer.Option(REPO / "docs" / "state-machine.md", "--out")) -> None:
+        """Export the controller's state diagram (Mermaid), generated from its declaration."""
+        from cell.controller import mermaid_diagram
+
+        out.write_text("# Controller state machine\n\nGenerated by `cell diagram` from `cell/controller.py`.\n\n"
+                       + mermaid_diagram())
+        console.print(f"wrote {out}")
+
+    @app.command("demo")
+    def demo_cmd(
+        runs: Path = typer.Option(REPO / "runs", "--runs", help="runs root; each demo makes a new run folder"),
+    ) -> None:
+        """A full simulated inspection of the demo pillar (with its dented actual), ending in a report."""
+        recipe = load_recipe(DEMO_RECIPE)
+        part = recipe.name or recipe.part.cad.stem
+        out = runs / f"demo-{part}-{time.strftime('%Y%m%d-%H%M%S')}"
+        console.print(f"simulated inspection of {DEMO_RECIPE.relative_to(REPO)} (actual part: "
+                      f"{recipe.part.actual.name if recipe.part.actual else 'nominal'}) -> {out}")
+        run = _start_run(DEMO_RECIPE, DEFAULT_CELL, out, None)
+        _execute(run, resume=False, settings=ControllerSettings(), seed=None)

@@ -1,0 +1,463 @@
+"""The cell controller: a declared state machine that runs a job view by view, with checkpoints.
+
+States (``transitions`` HierarchicalMachine, ``auto_transitions=False`` so no generated ``to_X`` bypasses a
+guard, ``queued=True``, exceptions routed to :meth:`Controller._on_exception`)::
+
+    idle -> connecting -> homing -> planning -> scanning(moving -> capturing ... -> decoding)
+         -> evaluating -> replanning -> scanning ... -> registering -> reporting -> done
+    any active state -> paused (operator), faulted (unrecoverable), aborted
+    idle -> resuming -> connecting -> homing -> the phase the checkpoint records
+
+The controller never imports a driver: it receives a :class:`cell.devices.DeviceBundle` and a job (what to
+plan, capture, decode, evaluate, register and report: :class:`Job`). After each completed view the view folder
+exists whole (see :mod:`cell.runs`); the checkpoint records the plan and the phase, so a killed run resumes.
+Decoding of view k runs in a worker thread while the robot moves to view k+1 (pipelining).
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+import numpy as np
+from transitions.extensions import HierarchicalGraphMachine
+
+from cell.contracts import ProjectorSource
+from cell.devices import DeviceBundle
+from cell.errors import CellError, DeviceError, DeviceFault, PlanningError
+from cell.planning.motion import via_points
+from cell.runs import RunFolder
+
+ACTIVE = ["connecting", "homing", "planning", "scanning", "evaluating", "replanning", "registering", "reporting",
+          "resuming"]
+STATES: list[Any] = [
+    "idle", "connecting", "homing", "planning",
+    {"name": "scanning", "children": ["moving", "capturing", "decoding"]},
+    "evaluating", "replanning", "registering", "reporting", "done", "paused", "faulted", "aborted", "resuming",
+]
+TERMINAL = {"done", "paused", "faulted", "aborted"}
+
+
+def _transitions() -> list[dict[str, Any]]:
+    safe = ["robot_normal", "projector_ready"]  # no motion while either is false
+    return [
+        {"trigger": "start", "source": "idle", "dest": "connecting"},
+        {"trigger": "resume", "source": ["idle", "paused"], "dest": "resuming"},
+        {"trigger": "resumed", "source": "resuming", "dest": "connecting"},
+        {"trigger": "connected", "source": "connecting", "dest": "homing", "conditions": safe},
+        # after homing, go to the phase the checkpoint records (first matching condition wins)
+        {"trigger": "homed", "source": "homing", "dest": "planning", "conditions": "needs_plan"},
+        {"trigger": "homed", "source": "homing", "dest": "scanning_moving", "conditions": ["views_pending"] + safe},
+        {"trigger": "homed", "source": "homing", "dest": "evaluating", "conditions": "phase_is_scanning"},
+        {"trigger": "homed", "source": "homing", "dest": "registering", "conditions": "phase_is_registering"},
+        {"trigger": "homed", "source": "homing", "dest": "reporting", "conditions": "phase_is_reporting"},
+        {"trigger": "planned", "source": "planning", "dest": "scanning_moving", "conditions": safe},
+        {"trigger": "arrived", "source": "scanning_moving", "dest": "scanning_capturing", "conditions": safe},
+        {"trigger": "captured", "source": "scanning_capturing", "dest": "scanning_moving",
+         "conditions": ["views_pending"] + safe},
+        {"trigger": "captured", "source": "scanning_capturing", "dest": "scanning_decoding"},
+        {"trigger": "decoded", "source": "scanning_decoding", "dest": "evaluating"},
+        {"trigger": "needs_views", "source": "evaluating", "dest": "replanning"},
+        {"trigger": "qualified", "source": "evaluating", "dest": "registering"},
+        {"trigger": "replanned", "source": "replanning", "dest": "scanning_moving",
+         "conditions": ["views_pending"] + safe},
+        {"trigger": "replanned", "source": "replanning", "dest": "registering"},
+        {"trigger": "registered", "source": "registering", "dest": "reporting", "conditions": "cloud_registered"},
+        {"trigger": "reported", "source": "reporting", "dest": "done"},
+        {"trigger": "pause", "source": ACTIVE, "dest": "paused"},
+        {"trigger": "fault", "source": "*", "dest": "faulted"},
+        {"trigger": "abort", "source": "*", "dest": "aborted"},
+    ]
+
+
+class Job(Protocol):
+    """What a job does at each step; the controller sequences it and owns motion, retries and checkpoints.
+
+    Views are JSON-serialisable dicts with at least ``T_B_T`` (4x4 nested lists, mm): the robot target.
+    """
+
+    part_name: str
+
+    def plan(self) -> list[dict[str, Any]]:
+        """The initial viewpoints V0."""
+        ...
+
+    def capture(self, devices: DeviceBundle, view: dict[str, Any], index: int) -> Any:
+        """Project and grab at a view (the robot is already there); returns what :meth:`decode` needs."""
+        ...
+
+    def decode(self, view: dict[str, Any], captured: Any, out_dir: Path) -> dict[str, Any]:
+        """Decode and triangulate one view, writing its files into ``out_dir``; returns a JSON summary."""
+        ...
+
+    def evaluate(self, run: RunFolder, views: list[dict[str, Any]], iteration: int) -> dict[str, Any]:
+        """Judge the measured views: ``{"qualified": bool, "Q": float, ...}``."""
+        ...
+
+    def replan(self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]) -> list[dict[str, Any]]:
+        """New viewpoints V_k from the defect maps (may be empty)."""
+        ...
+
+    def register(self, run: RunFolder, views: list[dict[str, Any]]) -> dict[str, Any]:
+        """Bring all views into the part frame, merge and filter; ``{"n_points": int, ...}``."""
+        ...
+
+    def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
+        """Error map and report files in ``run.results_dir``; returns the report's key figures."""
+        ...
+
+
+@dataclass
+class ControllerSettings:
+    """Limits and policies of a run. Speeds are fractions of the robot config's maxima (never above 1)."""
+
+    max_retries: int = 3
+    retry_delay_s: float = 0.2
+    view_budget: int = 60
+    max_iterations: int = 4
+    speed_fraction: float = 0.8
+    lift_mm: float = 80.0  # retract height between views (cell.planning.motion)
+    pipelining: bool = True
+    grab_timeout_ms: float = 2000.0
+
+
+@dataclass
+class _Progress:
+    started: float = field(default_factory=time.monotonic)
+    view_times: list[float] = field(default_factory=list)
+
+
+class Controller:
+    """Runs one job on one device bundle into one run folder."""
+
+    def __init__(
+        self,
+        devices: DeviceBundle,
+        job: Job,
+        run: RunFolder,
+        settings: ControllerSettings | None = None,
+        *,
+        robot_limits: tuple[float, float, float, float] = (250.0, 1200.0, 1.0, 3.0),
+        home_joints_rad: np.ndarray | None = None,
+        kinematics: Any | None = None,
+        on_progress: Callable[["Controller"], None] | None = None,
+    ) -> None:
+        self.devices = devices
+        self.job = job
+        self.run = run
+        self.settings = settings or ControllerSettings()
+        self.robot_limits = robot_limits  # tcp mm/s, tcp mm/s^2, joint rad/s, joint rad/s^2
+        self.home_joints_rad = home_joints_rad
+        self.kinematics = kinematics  # has ik_nearest(T_B_T, q_ref) -> joints; used when a line is refused
+        self.on_progress = on_progress
+        self.checkpoint: dict[str, Any] = run.load_checkpoint() or {"phase": "new", "views": [], "iteration": 0}
+        self.message = ""
+        self.progress = _Progress()
+        self._pause_requested = threading.Event()
+        self._executor: ThreadPoolExecutor | None = None
+        self._pending: dict[int, Future[dict[str, Any]]] = {}
+        self._registration: dict[str, Any] | None = None
+        self._attempts = 0
+        self.current_view: int | None = None
+        self.machine = HierarchicalGraphMachine(
+            model=self, states=STATES, transitions=_transitions(), initial="idle", auto_transitions=False,
+            queued=True, send_event=False, after_state_change="_journal_state", graph_engine="mermaid",
+            title="Inspection cell controller",
+        )
+
+    # ------------------------------------------------------------------ conditions (guards)
+    def robot_normal(self) -> bool:
+        return self.devices.robot.state().normal
+
+    def projector_ready(self) -> bool:
+        return self.devices.projector.status().ready
+
+    def needs_plan(self) -> bool:
+        return not self.checkpoint["views"]
+
+    def views_pending(self) -> bool:
+        return self._next_view() is not None
+
+    def phase_is_scanning(self) -> bool:
+        return self.checkpoint["phase"] in ("scanning", "evaluating", "replanning")
+
+    def phase_is_registering(self) -> bool:
+        return self.checkpoint["phase"] == "registering"
+
+    def phase_is_reporting(self) -> bool:
+        return self.checkpoint["phase"] == "reporting"
+
+    def cloud_registered(self) -> bool:
+        return bool(self._registration and self._registration.get("n_points", 0) > 0)
+
+    # ------------------------------------------------------------------ bookkeeping
+    def _journal_state(self) -> None:
+        self.run.log("state", state=self.state, message=self.message)
+        if self.on_progress:
+            self.on_progress(self)
+
+    def _save(self, **updates: Any) -> None:
+        self.checkpoint.update(updates)
+        self.run.save_checkpoint(self.checkpoint)
+
+    def _done_views(self) -> set[int]:
+        return set(self.run.completed_views()) | set(self._pending)
+
+    def _next_view(self) -> int | None:
+        done = self._done_views()
+        for i in range(len(self.checkpoint["views"])):
+            if i not in done:
+                return i
+        return None
+
+    @property
+    def views_total(self) -> int:
+        return len(self.checkpoint["views"])
+
+    @property
+    def views_done(self) -> int:
+        return len(self.run.completed_views())
+
+    def request_pause(self, reason: str = "operator") -> None:
+        """Ask for a safe pause at the next step boundary (Ctrl-C calls this)."""
+        self.message = f"pause requested: {reason}"
+        self._pause_requested.set()
+
+    # ------------------------------------------------------------------ the run loop
+    def execute(self, *, resume: bool = False) -> str:
+        """Run until done, paused, faulted or aborted; returns the final state. Devices are made safe on exit."""
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="decode")
+        previous = signal.getsignal(signal.SIGINT)
+        in_main = threading.current_thread() is threading.main_thread()
+        if in_main:
+            signal.signal(signal.SIGINT, lambda *_: self.request_pause("Ctrl-C"))
+        try:
+            self.run.discard_partial_views()
+            self.resume() if resume else self.start()
+            while self.state not in TERMINAL:
+                if self._pause_requested.is_set():
+                    self._drain_decodes()
+                    self._make_safe()
+                    self.pause()
+                    break
+                self._step()
+        finally:
+            if in_main:
+                signal.signal(signal.SIGINT, previous)
+            self._make_safe()
+            self._executor.shutdown(wait=True, cancel_futures=False)
+            self.run.log("exit", state=self.state, message=self.message)
+        return self.state
+
+    def _step(self) -> None:
+        handler = getattr(self, "_do_" + self.state)
+        try:
+            handler()
+            self._attempts = 0
+        except CellError as exc:
+            self._handle_error(exc)
+        except Exception as exc:  # a bug: record it, make safe, fault
+            self.message = f"internal error: {type(exc).__name__}: {exc}"
+            self.run.log("error", kind="internal", error=repr(exc))
+            self.fault()
+
+    def _handle_error(self, exc: CellError) -> None:
+        retryable = isinstance(exc, DeviceError) and exc.retryable
+        self.run.log("error", kind=type(exc).__name__, error=str(exc), attempt=self._attempts + 1,
+                     retryable=retryable)
+        if retryable and self._attempts < self.settings.max_retries:
+            self._attempts += 1
+            time.sleep(self.settings.retry_delay_s)
+            return  # same state, same handler: retry
+        self._attempts = 0
+        self.message = str(exc)
+        self._drain_decodes()
+        if isinstance(exc, DeviceError):
+            self.pause()  # needs the operator; `cell resume` continues from the last checkpoint
+        else:
+            self.fault()
+
+    def _make_safe(self) -> None:
+        """Stop the robot and blank the projector; never raises (this runs on every exit path)."""
+        for action in (self.devices.robot.stop, self._blank_projector):
+            try:
+                action()
+            except Exception as exc:  # a device that is gone cannot be made safer; record and go on
+                self.run.log("safe_stop_failed", error=repr(exc))
+
+    def _blank_projector(self) -> None:
+        w, h = self.devices.projector.resolution
+        self.devices.projector.show(np.zeros((h, w), np.uint8))
+
+    # ------------------------------------------------------------------ state handlers
+    def _do_resuming(self) -> None:
+        self.run.log("resume", checkpoint=self.checkpoint.get("phase"), views_done=self.views_done)
+        self.resumed()
+
+    def _do_connecting(self) -> None:
+        for kind, device in self.devices.items():
+            device.connect()
+            self.run.log("device", device=self.devices.names.get(kind, kind), command="connect")
+        projector = self.devices.projector
+        projector.set_power(True)
+        projector.set_source(ProjectorSource.HDMI)
+        self._blank_projector()
+        if not self.robot_normal():
+            raise DeviceFault(self.devices.names.get("robot", "robot"),
+                              f"not ready for motion: {self.devices.robot.state()}")
+        if not self.projector_ready():
+            raise DeviceFault(self.devices.names.get("projector", "projector"),
+                              f"not ready: {projector.status()}")
+        self.connected()
+
+    def _do_homing(self) -> None:
+        if self.home_joints_rad is not None:
+            _, _, qd, qdd = self.robot_limits
+            f = self.settings.speed_fraction
+            self.devices.robot.move_joint(self.home_joints_rad, qd * f, qdd * f)
+            self.run.log("device", device="robot", command="move_joint", target=self.home_joints_rad)
+        self.homed()
+
+    def _do_planning(self) -> None:
+        views = self.job.plan()
+        self.run.log("plan", n_views=len(views), views=views)
+        self._save(phase="scanning", views=views, iteration=0)
+        self.planned()
+
+    def _do_scanning_moving(self) -> None:
+        index = self._next_view()
+        assert index is not None  # guarded by views_pending
+        view = self.checkpoint["views"][index]
+        target = np.asarray(view["T_B_T"], dtype=np.float64)
+        robot = self.devices.robot
+        z_max = robot.envelope.max_mm[2] - 1.0
+        path = via_points(robot.tool_pose(), target, self.settings.lift_mm, z_max)
+        for T_B_T in path[:-1]:
+            try:
+                self._move_to(T_B_T, index)
+            except PlanningError as exc:  # a via point out of reach: go on without it
+                self.run.log("decision", view=index, reason=f"via point skipped: {exc}")
+        self._move_to(target, index)
+        self.current_view = index
+        self.arrived()
+
+    def _move_to(self, T_B_T: np.ndarray, index: int) -> None:
+        """A linear move within the speed limits; a joint move to the nearest IK branch if the line is refused."""
+        robot = self.devices.robot
+        v, a, qd, qdd = self.robot_limits
+        f = self.settings.speed_fraction
+        self.run.log("device", device="robot", command="move_linear", view=index, target=T_B_T)
+        try:
+            robot.move_linear(T_B_T, v * f, a * f)
+        except PlanningError as exc:
+            if self.kinematics is None:
+                raise
+            # a straight line can pass a singularity or leave the envelope where a joint move does not
+            q = self.kinematics.ik_nearest(T_B_T, robot.joints())
+            self.run.log("device", device="robot", command="move_joint", view=index, target=q,
+                         reason=f"linear path refused: {exc}")
+            robot.move_joint(q, qd * f, qdd * f)
+
+    def _do_scanning_capturing(self) -> None:
+        index = self.current_view
+        view = self.checkpoint["views"][index]
+        self.run.log("capture", view=index)
+        captured = self.job.capture(self.devices, view, index)
+        assert self._executor is not None
+        future = self._executor.submit(self._decode_view, index, view, captured)
+        self._pending[index] = future
+        if not self.settings.pipelining:
+            self._collect(block=True)
+        else:
+            self._collect(block=False)
+        self.progress.view_times.append(time.monotonic())
+        self.captured()
+
+    def _decode_view(self, index: int, view: dict[str, Any], captured: Any) -> dict[str, Any]:
+        with self.run.writing_view(index) as tmp:
+            summary = self.job.decode(view, captured, tmp)
+        return summary
+
+    def _collect(self, *, block: bool) -> None:
+        """Record finished decodes in the journal; re-raise a decode's error here, in the main thread."""
+        for index in sorted(self._pending):
+            future = self._pending[index]
+            if not block and not future.done():
+                continue
+            summary = future.result()
+            del self._pending[index]
+            self.run.log("view", view=index, summary=summary)
+
+    def _drain_decodes(self) -> None:
+        for future in list(self._pending.values()):
+            try:
+                future.result()
+            except Exception as exc:  # its error is reported by _collect or lost with the pause; view is redone
+                self.run.log("error", kind="decode", error=repr(exc))
+        try:
+            self._collect(block=True)
+        except Exception:
+            self._pending.clear()
+
+    def _do_scanning_decoding(self) -> None:
+        self._collect(block=True)
+        self._save(phase="evaluating")
+        self.decoded()
+
+    def _do_evaluating(self) -> None:
+        iteration = int(self.checkpoint.get("iteration", 0))
+        evaluation = self.job.evaluate(self.run, self.checkpoint["views"], iteration)
+        self.run.log("evaluation", **{"iteration": iteration, **evaluation})
+        spent = len(self.checkpoint["views"]) >= self.settings.view_budget
+        last = iteration + 1 >= self.settings.max_iterations
+        if evaluation.get("qualified") or spent or last:
+            if not evaluation.get("qualified"):
+                self.run.log("decision", reason="view budget or iteration limit reached before the set point",
+                             Q=evaluation.get("Q"))
+            self._save(phase="registering", evaluation=evaluation)
+            self.qualified()
+        else:
+            self._save(phase="replanning", evaluation=evaluation)
+            self.needs_views()
+
+    def _do_replanning(self) -> None:
+        room = self.settings.view_budget - len(self.checkpoint["views"])
+        new_views = self.job.replan(self.run, self.checkpoint["views"], self.checkpoint["evaluation"])[:room]
+        self.run.log("replan", n_new=len(new_views), views=new_views)
+        views = self.checkpoint["views"] + new_views
+        iteration = int(self.checkpoint.get("iteration", 0)) + 1
+        self._save(phase="scanning" if new_views else "registering", views=views, iteration=iteration)
+        self.replanned()
+
+    def _do_registering(self) -> None:
+        self._registration = self.job.register(self.run, self.checkpoint["views"])
+        self.run.log("registration", **self._registration)
+        if not self.cloud_registered():
+            raise CellError("registration produced no points: nothing to report")
+        self._save(phase="reporting", registration=self._registration)
+        self.registered()
+
+    def _do_reporting(self) -> None:
+        registration = self._registration or self.checkpoint.get("registration", {})
+        summary = self.job.report(self.run, registration)
+        self.run.log("report", **summary)
+        self._save(phase="done", summary=summary)
+        self.reported()
+
+
+def mermaid_diagram() -> str:
+    """The controller's state diagram in Mermaid, generated from :data:`STATES` and the transition table."""
+
+    class _Model:
+        pass
+
+    model = _Model()
+    HierarchicalGraphMachine(model=model, states=STATES, transitions=_transitions(), initial="idle",
+                             auto_transitions=False, graph_engine="mermaid", show_conditions=True,
+                             title="Inspection cell controller")
+    return "```mermaid\n" + model.get_graph().draw(None) + "\n```\n"

@@ -1,0 +1,105 @@
+"""The glass measurement from one set of rig frames: markers -> view rays -> reflection search -> feedback.
+
+Each camera in turn is the primary for the markers it identified; the others confirm or correct its points
+(3.4). Identification predicts, for every detected dot, the screen point its view ray reaches when reflected
+by the nominal CAD, and takes the nearest screen dot within a gate (robust to missing dots; the weaker
+bottom-skin copies were already dropped by the detector's threshold and would be ~thickness away).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.contracts import MarkerScreen
+from cell.glass.calibration import LocalQuadratic, ViewVectorCalibration
+from cell.glass.config import GlassSearchConfig
+from cell.glass.feedback import FeedbackCamera, feedback
+from cell.glass.markers import DotDetections, detect_dots, identify
+from cell.glass.reflection import RaySearchProblem, ReflectionLaw, golden_section
+from cell.glass.surface import SmoothSurface, plane_hits, reflect
+
+
+@dataclass(frozen=True)
+class CameraMarkers:
+    """One camera's identified markers: centroids (N, 2), view rays (N, 3) and screen dot index (N,)."""
+
+    detections: DotDetections
+    origins: NDArray[np.float64]
+    dirs: NDArray[np.float64]
+    dot: NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class GlassMeasurement:
+    """Measured surface points and normals (world mm) with the primary camera, the dot, the cameras used,
+    the search's offset angle (rad) and iteration count per point."""
+
+    points: NDArray[np.float64]
+    normals: NDArray[np.float64]
+    camera: NDArray[np.int64]
+    dot: NDArray[np.int64]
+    n_cameras: NDArray[np.int64]
+    theta: NDArray[np.float64]
+    iterations: NDArray[np.int64]
+    spread: NDArray[np.float64]
+    points_single: NDArray[np.float64]  # the primary camera's CAD-seeded result before feedback
+
+
+def find_markers(image: NDArray, calib: ViewVectorCalibration, cad: SmoothSurface, screen: MarkerScreen,
+                 search: GlassSearchConfig) -> CameraMarkers:
+    """Detect, ray and identify one camera's marker dots."""
+    det = detect_dots(image, dark_fraction=search.dark_fraction)
+    o, d = calib.rays_at(det.centroids_px)
+    hit = cad.cast(np.nan_to_num(o), np.nan_to_num(d, nan=1.0 / np.sqrt(3)))
+    pred = plane_hits(np.nan_to_num(hit.point), reflect(d, np.nan_to_num(hit.normal)), screen.T_W_S)
+    pred[~(hit.hit & np.all(np.isfinite(d), axis=1))] = np.nan
+    pitch = float(np.median(np.linalg.norm(np.diff(screen.dots_mm, axis=0), axis=1)))
+    dot = identify(pred, screen.dots_mm, search.gate_fraction * pitch)
+    return CameraMarkers(det, o, d, dot)
+
+
+def screen_point_W(screen: MarkerScreen, dot: NDArray[np.int64]) -> NDArray[np.float64]:
+    """World coordinates (N, 3) of screen dots."""
+    xy = screen.dots_mm[dot]
+    T = screen.T_W_S
+    return xy[:, 0:1] * T[:3, 0] + xy[:, 1:2] * T[:3, 1] + T[:3, 3]
+
+
+def measure(images: list[NDArray], calibs: list[ViewVectorCalibration], cad: SmoothSurface,
+            screen: MarkerScreen, search: GlassSearchConfig, max_cameras: int | None = None) -> GlassMeasurement:
+    """Measure the pane from one frame per camera. ``max_cameras`` caps the cameras per point (1 = no
+    feedback; None = until the normal settles below ``search.feedback_tol_urad``, or all when forced by
+    ``max_cameras``)."""
+    markers = [find_markers(img, cal, cad, screen, search) for img, cal in zip(images, calibs)]
+    fb_cams = []
+    for m, cal in zip(markers, calibs):
+        ok = m.dot >= 0
+        fb_cams.append(FeedbackCamera(cal, LocalQuadratic(m.detections.centroids_px[ok], screen.dots_mm[m.dot[ok]],
+                                                          k=12)))
+    forced = max_cameras is not None
+    tol = 0.0 if forced else search.feedback_tol_urad * 1e-6
+    out: dict[str, list] = {k: [] for k in GlassMeasurement.__dataclass_fields__}
+    for c, m in enumerate(markers):
+        ok = (m.dot >= 0) & np.all(np.isfinite(m.dirs), axis=1)
+        prob = RaySearchProblem(m.origins[ok], m.dirs[ok], screen_point_W(screen, m.dot[ok]))
+        law = ReflectionLaw(prob, cad)
+        res = golden_section(law, search.max_surface_error_mm, search.angle_tol_urad * 1e-6,
+                             search.length_tol_mm)
+        others = [fb for j, fb in enumerate(fb_cams) if j != c]
+        if forced:
+            others = others[: max(max_cameras - 1, 0)]
+        fb = feedback(law, res, others, screen.T_W_S, search.max_surface_error_mm, tol, search.length_tol_mm)
+        keep = res.ok
+        out["points"].append(fb.points[keep])
+        out["normals"].append(fb.normals[keep])
+        out["camera"].append(np.full(int(keep.sum()), c))
+        out["dot"].append(m.dot[ok][keep])
+        out["n_cameras"].append(fb.n_cameras[keep])
+        out["theta"].append(res.theta[keep])
+        out["iterations"].append(res.iterations[keep])
+        out["spread"].append(fb.spread[keep])
+        out["points_single"].append(res.points[keep])
+    return GlassMeasurement(**{k: np.concatenate(v) for k, v in out.items()})

@@ -1,0 +1,261 @@
+"""The lambertian inspection job: what the controller plans, captures, decodes, evaluates, registers and reports.
+
+Each step reads and writes the run folder only, so any step can run again after a resume:
+- plan: CAD-guided viewpoints V0 (cell.planning, chapter 3.1);
+- capture: the GCLS pattern stack at one view (the robot is already there);
+- decode: sub-pixel decoding, triangulation in {C}, the kinematic chain into {W} (eqs 4.1-4.4), the link filter
+  (4.4), and the view's defect regions (shadow, glare, low contrast) on the nominal surface -> views/NNN/;
+- evaluate / replan: coverage, accuracy map and Q (eq 3.22) and the feedback viewpoints g_k (3.2-3.3);
+- register / report: all views in the part frame, merged; signed deviations against the nominal; report.
+
+Until the calibration routines land, triangulation uses the cell config's sensor geometry (for the simulated
+cell, the simulator's truth) and the report says so.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+
+from cell.analysis.errormap import NominalMesh, signed_distance
+from cell.analysis.linkfilter import link_cluster
+from cell.analysis.report import ReportInput, Tolerance, write_report
+from cell.config import CellConfig, Recipe
+from cell.contracts import CameraSettings, PixelFormat, TriggerMode
+from cell.devices import DeviceBundle
+from cell.geometry import invert, transform_points, transform_vectors
+from cell.planning.feedback import FeedbackPlanner, evaluate, select_new
+from cell.planning.measured import DefectRegion, MeasuredView, measured_view_from_masks
+from cell.planning.planner import Plan, plan_initial
+from cell.planning.viewpoints import Viewpoint
+from cell.runs import RunFolder, write_json_atomic
+from cell.sensing.decode import Reason, decode
+from cell.sensing.patterns import PatternSet, gcls_patterns
+from cell.sensing.scan import capture_stack
+from cell.sensing.stack import check_stack
+from cell.sensing.triangulate import PinholeTriangulator, normalized_coords
+
+# which decode reasons become which defect map of chapter 3 (IS: shadow, IR: glare)
+DEFECT_REASONS = {"shadow": Reason.DARK, "glare": Reason.SATURATED, "low_contrast": Reason.LOW_CONTRAST}
+
+
+@dataclass
+class InspectionSettings:
+    """Job-level settings (the recipe's ``plan:`` section holds the planner's)."""
+
+    link_mm: float = 0.3  # link distance of the outlier filter (dissertation: 0.1-0.5 mm)
+    min_cluster_px: int = 200
+    table_margin_mm: float = 0.5  # points lower than this above the table top (world z) are the table
+    crop_mm: float = 5.0  # points farther than this from the nominal surface are background, not part
+    eval_voxel_mm: float = 0.5  # coverage and the accuracy map use one point per voxel: ample for 0.5 pt/mm^2
+    pictures: bool = True
+
+
+class LambertianInspection:
+    """The job the controller runs for a recipe on a structured-light cell."""
+
+    def __init__(self, recipe: Recipe, cfg: CellConfig, nominal_W: trimesh.Trimesh,
+                 settings: InspectionSettings | None = None) -> None:
+        self.recipe = recipe
+        self.cfg = cfg
+        self.nominal_W = nominal_W
+        self.settings = settings or InspectionSettings()
+        self.part_name = recipe.name or Path(recipe.part.cad).stem
+        self.T_W_P = recipe.part.T_W_P.matrix()
+        self.T_W_B = cfg.robot.T_W_B.matrix()
+        self.T_T_C = cfg.sensor.T_T_C.matrix()
+        proj = cfg.sensor.projector
+        self.patterns: PatternSet = gcls_patterns(proj.width_px, proj.height_px, 12, n_shifts=12,
+                                                  n_gray=6 if proj.width_px >= 768 else None)
+        self.triangulator = PinholeTriangulator.from_sensor(cfg.sensor)
+        self._plan: Plan | None = None
+        self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
+        self._nominal_rays = trimesh.ray.ray_triangle.RayMeshIntersector(nominal_W) \
+            if not trimesh.ray.has_embree else trimesh.ray.ray_pyembree.RayMeshIntersector(nominal_W)
+
+    # ------------------------------------------------------------------ planning
+    @property
+    def plan_model(self) -> Plan:
+        """The f0 plan (recomputed deterministically after a resume: it also holds the surface samples)."""
+        if self._plan is None:
+            self._plan = plan_initial(self.nominal_W, self.cfg, self.recipe.plan)
+        return self._plan
+
+    @staticmethod
+    def _view_dict(vp: Viewpoint, iteration: int) -> dict[str, Any]:
+        return {"T_W_C": vp.T_W_C.tolist(), "T_B_T": vp.T_B_T.tolist(), "patch": vp.patch, "source": vp.source,
+                "iteration": iteration}
+
+    def plan(self) -> list[dict[str, Any]]:
+        return [self._view_dict(v, 0) for v in self.plan_model.viewpoints]
+
+    # ------------------------------------------------------------------ one view
+    def prepare(self, devices: DeviceBundle) -> None:
+        """Camera settings for the stack: software trigger, the camera's native bit depth."""
+        cam = self.cfg.sensor.camera
+        devices.camera.configure(CameraSettings(cam.exposure_ms, cam.gain_db, PixelFormat(f"Mono{cam.bit_depth}")
+                                                if cam.bit_depth != 8 else PixelFormat.MONO8, TriggerMode.SOFTWARE))
+
+    def capture(self, devices: DeviceBundle, view: dict[str, Any], index: int) -> dict[str, Any]:
+        if devices.sim is not None:
+            devices.sim.reseed(index)
+        self.prepare(devices)
+        T_B_T = devices.robot.tool_pose()
+        images = capture_stack(devices.camera, devices.projector, self.patterns)
+        return {"images": images, "T_B_T": T_B_T, "camera": devices.camera.name}
+
+    def decode(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+        cam = self.cfg.sensor.camera
+        stack = check_stack(captured["images"], self.patterns, (cam.width_px, cam.height_px), cam.bit_depth,
+                            source=f"camera '{captured['camera']}'")
+        decoded = decode(stack, self.patterns, cam.bit_depth)
+        cloud = self.triangulator.triangulate(decoded)
+        T_W_C = self.T_W_B @ captured["T_B_T"] @ self.T_T_C
+        valid = cloud.valid
+        kept = link_cluster(cloud.points_C, link_mm=self.settings.link_mm,
+                            min_cluster_px=self.settings.min_cluster_px)
+        keep = valid & kept.keep
+        points_W = transform_points(T_W_C, cloud.points_C[keep])
+        quality = cloud.contrast[keep].astype(np.float32)
+        on_table = points_W[:, 2] < self.settings.table_margin_mm
+        deviation = signed_distance(self.nominal, points_W).deviation_mm
+        far = np.abs(deviation) > self.settings.crop_mm
+        part = ~on_table & ~far
+        points_W, quality, deviation = points_W[part], quality[part], deviation[part]
+        np.save(out_dir / "points_W.npy", points_W)
+        sub = voxel_subsample_index(points_W, self.settings.eval_voxel_mm)
+        np.save(out_dir / "points_eval_W.npy", points_W[sub])
+        np.save(out_dir / "deviation_eval.npy", deviation[sub])
+        np.save(out_dir / "quality.npy", quality)
+        cv2.imwrite(str(out_dir / "reasons.png"), cloud.reasons)
+        regions = self._defects(T_W_C, cloud.reasons)
+        _save_regions(out_dir / "defects.npz", regions)
+        summary = {
+            "T_W_C": T_W_C.tolist(), "T_B_T": captured["T_B_T"].tolist(), "points": int(len(points_W)),
+            "decoded": int(valid.sum()), "link_filtered": int((valid & ~kept.keep).sum()),
+            "excluded": {"table": int(on_table.sum()), "background": int((far & ~on_table).sum())},
+            "excluded": {"table": int(on_table.sum()), "background": int((far & ~on_table).sum())},
+            "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
+        }
+        write_json_atomic(out_dir / "view.json", summary)
+        return summary
+
+    def _defects(self, T_W_C: NDArray[np.float64], reasons: NDArray[np.uint8]) -> list[DefectRegion]:
+        """Hole regions per reason, located on the nominal surface by casting their pixels' rays on the CAD."""
+        masks = {name: (reasons & np.uint8(bit)) > 0 for name, bit in DEFECT_REASONS.items()}
+        holes = np.logical_or.reduce(list(masks.values()))
+        nominal = np.full(reasons.shape + (3,), np.nan)
+        if holes.any():
+            cam = self.cfg.sensor.camera
+            xn, yn = normalized_coords(cam.K(), cam.distortion.as_array(), cam.width_px, cam.height_px)
+            rays_C = np.stack([xn[holes], yn[holes], np.ones(int(holes.sum()))], axis=-1)
+            dirs = transform_vectors(T_W_C, rays_C / np.linalg.norm(rays_C, axis=1, keepdims=True))
+            origins = np.broadcast_to(T_W_C[:3, 3], dirs.shape)
+            locations, ray_index, _ = self._nominal_rays.intersects_location(origins, dirs, multiple_hits=False)
+            hole_points = np.full((int(holes.sum()), 3), np.nan)
+            hole_points[ray_index] = locations
+            nominal[holes] = hole_points
+        empty = np.zeros(reasons.shape, dtype=bool)
+        return measured_view_from_masks(T_W_C, np.zeros(reasons.shape + (3,)), empty, masks, nominal).defects
+
+    # ------------------------------------------------------------------ feedback
+    def _measured(self, run: RunFolder, n_views: int) -> list[MeasuredView]:
+        out = []
+        for i in range(n_views):
+            d = run.view_dir(i)
+            meta = json.loads((d / "view.json").read_text())
+            out.append(MeasuredView(np.asarray(meta["T_W_C"]), np.load(d / "points_eval_W.npy"),
+                                    _load_regions(d / "defects.npz"),
+                                    deviation_mm=np.load(d / "deviation_eval.npy")))
+        return out
+
+    def evaluate(self, run: RunFolder, views: list[dict[str, Any]], iteration: int) -> dict[str, Any]:
+        measured = self._measured(run, len(views))
+        fb = FeedbackPlanner(self.plan_model)
+        ev = evaluate(fb, measured, first_new=1, ia_before=np.zeros((0, 3)))
+        return {**ev.to_json(), "iteration": iteration, "views": len(views)}
+
+    def replan(self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]
+               ) -> list[dict[str, Any]]:
+        measured = self._measured(run, len(views))
+        fb = FeedbackPlanner(self.plan_model)
+        ev = evaluate(fb, measured, first_new=1, ia_before=np.zeros((0, 3)))
+        k = int(evaluation.get("iteration", 0))
+        latest = [m for m, v in zip(measured, views) if int(v.get("iteration", 0)) == k]
+        start = len(fb.log)
+        proposed = fb.propose(k, latest, ev.covered, ev.ia)
+        new = select_new(fb, proposed, [np.asarray(v["T_W_C"]) for v in views])
+        for entry in fb.log[start:]:
+            run.log("decision", **{"kind": entry.get("event"), **{k: v for k, v in entry.items() if k != "event"}})
+        return [self._view_dict(v, k + 1) for v in new]
+
+    # ------------------------------------------------------------------ results
+    def register(self, run: RunFolder, views: list[dict[str, Any]]) -> dict[str, Any]:
+        """All views into the part frame via the kinematic chain (eqs 4.1-4.4): T_P_W @ p_W."""
+        points, quality = [], []
+        for i in run.completed_views():
+            points.append(np.load(run.view_dir(i) / "points_W.npy"))
+            quality.append(np.load(run.view_dir(i) / "quality.npy"))
+        pts_W = np.vstack(points) if points else np.zeros((0, 3))
+        pts_P = transform_points(invert(self.T_W_P), pts_W)
+        np.save(run.results_dir / "points_P.npy", pts_P)
+        return {"n_points": int(len(pts_P)), "views": len(points), "method": "kinematic chain (robot pose, "
+                "hand-eye, part placement)"}
+
+    def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
+        pts_P = np.load(run.results_dir / "points_P.npy")
+        nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
+        nominal = NominalMesh.from_trimesh(nominal_P)
+        dev = signed_distance(nominal, pts_P).deviation_mm
+        tol = self.recipe.tolerance
+        checkpoint = run.load_checkpoint() or {}
+        evaluation = checkpoint.get("evaluation", {})
+        plan = self.plan_model
+        inp = ReportInput(
+            points_mm=pts_P, deviation_mm=dev, tolerance=Tolerance(tol.lower, tol.upper),
+            n_points_input=int(len(pts_P)), excluded=dict(nominal.excluded) if isinstance(nominal.excluded, dict)
+            else {"degenerate_triangles": int(nominal.excluded)},
+            nominal_area_mm2=float(plan.surface.inspectable_area_mm2),
+            covered_area_mm2=float(evaluation.get("coverage", 0.0)) * float(plan.surface.inspectable_area_mm2),
+            metadata={"part": self.part_name, "cad": str(self.recipe.part.cad), "views": registration.get("views"),
+                      "registration": registration.get("method"), "evaluation": evaluation,
+                      "geometry_source": "cell config sensor geometry (no sensor calibration yet)"},
+        )
+        doc = write_report(run.results_dir, inp, pictures=self.settings.pictures)
+        return {"verdict": doc.get("verdict"), "n_points": doc.get("n_points"),
+                "coverage": evaluation.get("coverage"), "deviation": doc.get("deviation")}
+
+
+def voxel_subsample_index(points: NDArray[np.float64], voxel_mm: float) -> NDArray[np.int64]:
+    """Indices of one point (the first) per occupied voxel of edge ``voxel_mm``."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    cells = np.floor(points / voxel_mm).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # one int64 per voxel: a fast 1-D unique
+    _, first = np.unique(key, return_index=True)
+    return np.sort(first)
+
+
+def _save_regions(path: Path, regions: list[DefectRegion]) -> None:
+    arrays: dict[str, Any] = {"reasons": np.array([r.reason for r in regions], dtype="U16"),
+                              "pixels": np.array([r.pixels for r in regions], dtype=np.int64)}
+    for k, r in enumerate(regions):
+        arrays[f"boundary_{k}"] = r.boundary_W
+        arrays[f"points_{k}"] = r.points_W
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def _load_regions(path: Path) -> list[DefectRegion]:
+    with np.load(path) as data:
+        return [DefectRegion(str(reason), data[f"boundary_{k}"], data[f"points_{k}"], int(px))
+                for k, (reason, px) in enumerate(zip(data["reasons"], data["pixels"]))]
