@@ -47,6 +47,17 @@ def test_decoded_projector_coordinate_matches_ground_truth(plate_rig, ps) -> Non
     assert np.abs(err).max() < 0.6
 
 
+def test_both_directions_decode_rows_and_columns_against_ground_truth(plate_rig) -> None:  # noqa: ANN001
+    ps = gcls_patterns(128, 96, 8, 8, "both")  # row stripes are decoded along camera columns
+    dec = decode(_capture(plate_rig, ps), ps)
+    truth = plate_rig.renderer.ground_truth(plate_rig.T_W_C).projector_uv
+    for axis, k in (("columns", 0), ("rows", 1)):
+        ad = dec.axes[axis]
+        assert ad.valid.mean() > 0.9, axis
+        err = ad.u[ad.valid] - truth[..., k][ad.valid]
+        assert np.sqrt(np.mean(err**2)) < 0.1 and np.abs(err).max() < 0.6, axis
+
+
 def test_gcls_edges_land_within_a_tenth_of_a_pixel_on_a_12bit_camera() -> None:
     rig = small_rig(bit_depth=12, sim=SimConfig(seed=5))
     stack = _capture(rig, GCLS, 12)

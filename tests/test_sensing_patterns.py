@@ -12,7 +12,8 @@ from cell.sensing.patterns import dissertation_gcls, gcls_patterns, gcps_pattern
 def test_dissertation_set_has_64_stripes_of_12px_and_768_codes() -> None:
     ps = dissertation_gcls()
     code = ps.code("columns")
-    assert (code.n_gray, 1 << code.n_gray, code.stripe_px, code.n_shifts, code.n_codes) == (6, 64, 12, 12, 768)
+    got = (code.n_gray, 1 << code.n_gray, code.stripe_px, code.n_shifts, code.n_codes)
+    assert got == (6, 64, 12, 12, 768)
     assert len(ps) == 2 + 2 * 6 + 2 * 12 and ps.frames.shape == (38, 768, 1024)
     v = dissertation_gcls("0.4mm").code("columns")
     assert (v.shift_px, v.n_shifts, v.n_codes) == (2, 6, 384)  # 1024 * 0.4 / 200 ~ 2 px; 64 x 6 codes

@@ -28,7 +28,8 @@ def test_scan_writes_cloud_masks_and_summary(tmp_path: Path) -> None:
     counts = summary["counts"]
     pts = np.asarray(trimesh.load(out / "cloud.ply").vertices)
     assert len(pts) == counts["valid"] > 100_000
-    # Points on the gauge top (z = 30) or the table (z = 0), in world mm; the camera looked down at the centre.
+    # Points on the gauge top (z = 30) or the table (z = 0), in world mm; the camera looked down at the
+    # centre.
     top = np.abs(pts[:, 2] - 30.0) < 0.1
     table = np.abs(pts[:, 2]) < 0.1
     assert np.mean(top | table) > 0.995 and top.sum() > 0.5 * len(pts)

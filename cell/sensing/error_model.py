@@ -12,7 +12,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 
-def one_pixel_error(res_mm: ArrayLike, S_mm: ArrayLike, d_mm: ArrayLike, m_px: ArrayLike) -> NDArray[np.float64]:
+def one_pixel_error(res_mm: ArrayLike, S_mm: ArrayLike, d_mm: ArrayLike, m_px: ArrayLike
+                    ) -> NDArray[np.float64]:
     """Height error (mm) caused by a one-pixel error in L at pixel distance ``m_px`` (eq 2.5); broadcasts."""
     res = np.asarray(res_mm, dtype=np.float64)
     S = np.asarray(S_mm, dtype=np.float64)

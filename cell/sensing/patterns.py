@@ -1,4 +1,5 @@
-"""Projector pattern sets: GCLS (Gray code + line shifting) and the GCPS baseline (Gray code + phase shifting).
+"""Projector pattern sets: GCLS (Gray code + line shifting) and the GCPS baseline (Gray code + phase
+shifting).
 
 Conventions (projector pixels, OpenCV pixel-centre convention): projector pixel ``i`` covers the continuous
 coordinate ``[i - 0.5, i + 0.5]``. Along the coded axis the coded range is ``[0, n_codes * shift_px)`` pixels
@@ -84,7 +85,8 @@ def gray_bits(index: NDArray[np.int64], n_bits: int) -> NDArray[np.uint8]:
 
 
 def _axis_frames(code: AxisCode, length: int) -> tuple[list[str], list[NDArray[np.uint8]]]:
-    """1-D profiles (values 0/255) of one axis' coded frames, with names; each pattern followed by its inverse."""
+    """1-D profiles (values 0/255) of one axis' coded frames, with names; each pattern followed by its
+    inverse."""
     x = np.arange(length, dtype=np.int64) - code.offset_px  # pixel index within the coded range
     inside = (x >= 0) & (x < code.extent_px)
     names: list[str] = []
@@ -160,7 +162,8 @@ def gcls_patterns(width_px: int = 1024, height_px: int = 768, stripe_px: int = 1
 
 def gcps_patterns(width_px: int = 1024, height_px: int = 768, stripe_px: int = 12, n_phase: int = 4,
                   direction: Direction = "columns", n_gray: int | None = None) -> PatternSet:
-    """GCPS baseline: white, black, Gray patterns with inverses, then ``n_phase`` sinusoids of period 2*stripe."""
+    """GCPS baseline: white, black, Gray patterns with inverses, then ``n_phase`` sinusoids of period
+    2*stripe."""
     if n_phase < 3:
         raise ConfigError("phase shifting needs at least 3 steps")
     codes = [_axis_code(a, width_px if a == "columns" else height_px, stripe_px, n_gray, 0, n_phase)
@@ -168,7 +171,8 @@ def gcps_patterns(width_px: int = 1024, height_px: int = 768, stripe_px: int = 1
     return _assemble("gcps", width_px, height_px, codes)
 
 
-def dissertation_gcls(spacing: Literal["full", "0.4mm"] = "full", direction: Direction = "columns") -> PatternSet:
+def dissertation_gcls(spacing: Literal["full", "0.4mm"] = "full", direction: Direction = "columns"
+                      ) -> PatternSet:
     """The dissertation's example sets on a 1024x768 projector: 6 Gray patterns -> 64 stripes of 12 px, then
     12 shifts of 1 px (768 codes) or, for 0.4 mm point spacing, 6 shifts of 2 px (384 codes)."""
     return gcls_patterns(1024, 768, 12, 12 if spacing == "full" else 6, direction, n_gray=6)

@@ -35,13 +35,15 @@ MASK_COLOURS: tuple[tuple[Reason, tuple[int, int, int]], ...] = (
 
 
 def auto_pose(part_W: trimesh.Trimesh | None, standoff_mm: float) -> NDArray[np.float64]:
-    """T_W_C looking straight down at the part's bounding-box centre (or the world origin) from the stand-off."""
+    """T_W_C looking straight down at the part's bounding-box centre (or the world origin) from the
+    stand-off."""
     centre = part_W.bounds.mean(axis=0) if part_W is not None else np.zeros(3)
     return look_at(centre + (0.0, 0.0, standoff_mm), centre, up=(0.0, 1.0, 0.0))
 
 
 def masks_image(cloud: SensorCloud) -> NDArray[np.uint8]:
-    """BGR picture of the reasons: valid pixels in grey by contrast, the others in the :data:`MASK_COLOURS`."""
+    """BGR picture of the reasons: valid pixels in grey by contrast, the others in the
+    :data:`MASK_COLOURS`."""
     grey = np.clip(np.nan_to_num(cloud.contrast) * 255, 0, 255).astype(np.uint8)
     img = np.repeat(grey[..., None], 3, axis=2)
     for reason, colour in MASK_COLOURS:
@@ -62,8 +64,9 @@ def run_sim_scan(cfg: CellConfig, part_path: Path | None, T_W_C: NDArray[np.floa
     from cell.mesh import load_mesh
 
     if cfg.sensor.camera.driver != "sim":
-        raise ConfigError("cell scan triangulates with the simulator's known geometry until sensor calibration "
-                          "exists; use a cell whose drivers are all 'sim'", field="sensor.camera.driver")
+        raise ConfigError("cell scan triangulates with the simulator's known geometry until sensor "
+                          "calibration exists; use a cell whose drivers are all 'sim'",
+                          field="sensor.camera.driver")
     part_W = load_mesh(part_path) if part_path is not None else None
     if T_W_C is None:
         T_W_C = auto_pose(part_W, cfg.sensor.standoff_mm)

@@ -1,7 +1,8 @@
 """Checks that a captured image stack matches its pattern set before anything is decoded.
 
-A bad stack must stop the scan with an error naming the frame, never decode into something that looks like a
-valid cloud: missing or extra frames, wrong resolution, wrong bit depth (dtype), frames with no projector light.
+A bad stack must stop the scan with an error naming the frame, never decode into something that looks like
+a valid cloud: missing or extra frames, wrong resolution, wrong bit depth (dtype), frames with no projector
+light.
 """
 
 from __future__ import annotations

@@ -8,15 +8,16 @@ Two models behind one interface (:class:`Triangulator`):
 * :class:`ReferencePlaneTriangulator` -- the dissertation's per-pixel model (2.1.1, 2.2): L is the distance on
   the reference plane between where the camera sees the pixel (C) and where the same code is seen on the
   reference plane in the same row (A), corrected by the offset angle (L' = L sec alpha, eq 2.9); then
-  h = L'S/(d + L') with per-pixel d and S (eq 2.8), Z = S - h and X, Y from the perspective model (eqs 2.2-2.3,
-  written in the OpenCV optical frame: X = Z * x_n, Y = Z * y_n with undistorted normalised coordinates, which
-  is eq 2.3's -(S-h)/F * u with the image axes un-mirrored). d, S come from stepping a plane (eq 2.7,
-  :func:`fit_d_S`); :func:`reference_model_from_geometry` runs that same procedure on analytic planes until the
-  calibration issue measures them.
+  h = L'S/(d + L') with per-pixel d and S (eq 2.8), Z = S0 - h (S0 the reference plane's depth) and X, Y
+  from the perspective model (eqs 2.2-2.3, written in the OpenCV optical frame: X = Z * x_n, Y = Z * y_n with
+  undistorted normalised coordinates, which is eq 2.3's -(S-h)/F * u with the image axes un-mirrored). d, S
+  come from stepping a plane (eq 2.7, :func:`fit_d_S`); :func:`reference_model_from_geometry` runs that same
+  procedure on analytic planes until the calibration issue measures them.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Protocol, runtime_checkable
@@ -26,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config import SensorConfig
+from cell.sensing import _cloud_kernel
 from cell.sensing.decode import AxisDecode, Decoded
 
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-15)
@@ -109,13 +111,19 @@ class PinholeTriangulator:
             return (self._t_dot[k] - a * self._t_dot[2]) / (self._r_dot[k] - a * self._r_dot[2])
 
     def triangulate(self, decoded: Decoded) -> SensorCloud:
+        """One fused compiled pass (:func:`_cloud_kernel.pinhole_cloud`); same arithmetic as :meth:`depth`."""
         ad = decoded.primary()
-        Z = self.depth(ad.u, ad.axis)
-        return _cloud(decoded, ad, Z * self.xn, Z * self.yn, Z)
+        k = 0 if ad.axis == "columns" else 1
+        R = self.T_C_P[:3, :3]
+        pts, reasons = _cloud_kernel.pinhole_cloud(
+            ad.u, ad.reasons, self.xn, self.yn, float(self.K_proj[k, k]), float(self.K_proj[k, 2]),
+            np.ascontiguousarray(R[:, k]), np.ascontiguousarray(R[:, 2]), self._t_dot[k], self._t_dot[2])
+        return SensorCloud(pts, reasons, decoded.contrast, ad.sharpness)
 
 
 def fit_d_S(h_steps: NDArray, L_steps: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Per-pixel baseline d and stand-off S (mm) by linear least squares, eq 2.7: [h_k, -L_k] [d, S]^T = -h_k L_k.
+    """Per-pixel baseline d and stand-off S (mm) by linear least squares, eq 2.7:
+    [h_k, -L_k] [d, S]^T = -h_k L_k.
 
     ``h_steps`` (n,) or (n, ...) plane heights above the reference plane, ``L_steps`` (n, ...) the measured L;
     NaN samples are left out per pixel. Closed-form 2x2 normal equations, vectorised over pixels.
@@ -165,7 +173,11 @@ class ReferencePlaneTriangulator:
         ad = decoded.primary()
         L = self.length(ad.u) / np.cos(self.alpha)  # eq 2.9
         h = L * self.S / (self.d + L)  # eq 2.8
-        Z = self.S - h  # eq 2.3
+        # Eq 2.3 writes Z = S - h. The fitted S(i, j) is poorly determined on its own (eq 2.7's d and S are
+        # ~0.996 correlated: 10 um of L noise moves S by ~0.4 mm while h moves by ~3 um, docs/sensing.md), so
+        # the depth is taken from the reference plane itself (depth res_mm, perpendicular to the optical
+        # axis): Z = S0 - h.
+        Z = self.res_mm - h
         return _cloud(decoded, ad, Z * self.xn, Z * self.yn, Z)
 
 
@@ -190,12 +202,35 @@ def reference_table(u_ref: NDArray, xn: NDArray, du: float = 0.25) -> tuple[NDAr
     return table, u0
 
 
+def offset_angle(code_ref: Callable[[NDArray, NDArray], NDArray], xn: NDArray, yn: NDArray,
+                 baseline_C: NDArray) -> NDArray[np.float64]:
+    """Per-pixel offset angle alpha (rad, eq 2.9) of the row look-up: with g the reference plane's code
+    gradient (stripe normal) at the pixel, x the row direction and b the baseline direction on the reference
+    plane, cos(alpha) = (b.g) / (x.g), so that L' = L sec(alpha) for the row distance L. When the stripes run
+    along the camera columns (g = x) this is the dissertation's angle between the baseline and the stripe
+    normal (Fig 2.10); the calibration (cell.calibration.sensor) stores the same quantity. Exact for straight
+    parallel stripes; a tilted projector's stripes fan out (keystone), so the stripe met at A, L away, is
+    turned slightly from the one at the pixel (about 0.03 mm of height at 10 deg and h = 30 mm on the small
+    test sensor, tests/test_sensing_alpha.py). ``code_ref(x, y)`` gives the reference-plane code at normalised
+    camera coordinates; ``baseline_C`` is the projector centre's (x, y) in {C} (mm), the direction along which
+    a raised point's code moves on the reference plane."""
+    eps = 1e-4  # normalised units (~0.04 camera px on the prototype): central differences of a smooth map
+    gx = code_ref(xn + eps, yn) - code_ref(xn - eps, yn)
+    gy = code_ref(xn, yn + eps) - code_ref(xn, yn - eps)
+    b = np.asarray(baseline_C, dtype=np.float64) / np.linalg.norm(baseline_C)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.arccos(np.clip((b[0] * gx + b[1] * gy) / gx, -1.0, 1.0))
+
+
 def reference_model_from_geometry(sensor: SensorConfig, heights_mm: tuple[float, ...] = (-40, -20, 20, 40, 60)
                                   ) -> ReferencePlaneTriangulator:
     """Per-pixel (d, S, alpha) from the known sensor geometry, by the calibration procedure of 2.2 run on
-    analytic planes: reference plane Z = standoff, planes stepped by ``heights_mm`` toward the camera, codes
-    from projecting each pixel's plane point into the pinhole projector, L from the reference table, then
-    eq 2.7 (:func:`fit_d_S`). alpha is the angle of the baseline to the camera rows (zero for this sensor)."""
+    analytic planes: reference plane Z = standoff, planes stepped by ``heights_mm`` toward the camera, L' of
+    every pixel and step the displacement of its code along the baseline on the reference plane (what the
+    calibration measures with encoded points), then eq 2.7 (:func:`fit_d_S`). The reference table (codes of
+    the reference plane along each camera row) is what :meth:`ReferencePlaneTriangulator.length` looks up.
+    alpha per pixel from :func:`offset_angle` (zero when the baseline runs along the camera rows, as on the
+    prototype)."""
     cam, proj = sensor.camera, sensor.projector
     W, H = cam.width_px, cam.height_px
     xn, yn = normalized_coords(cam.K(), cam.distortion.as_array(), W, H)
@@ -213,9 +248,18 @@ def reference_model_from_geometry(sensor: SensorConfig, heights_mm: tuple[float,
     x_ext = np.broadcast_to(np.linspace(xn.min() - 0.6 * span, xn.max() + 0.6 * span, 4 * W), (H, 4 * W))
     y_ext = np.broadcast_to(yn.mean(axis=1, keepdims=True), (H, 4 * W))
     table, u0 = reference_table(code(S0, x_ext, y_ext), x_ext)
-    alpha = np.full((H, W), np.arctan2(t[1], t[0]) if t[0] else 0.0)
+    alpha = offset_angle(lambda x, y: code(S0, x, y), xn, yn, t[:2])
     model = ReferencePlaneTriangulator(np.ones((H, W)), np.ones((H, W)), alpha, xn, yn, table, u0, 0.25, S0,
                                        float(np.sign(t[0]) or 1.0))
-    L = np.stack([model.length(code(S0 - h)) / np.cos(alpha) for h in heights_mm])
-    model.d, model.S = fit_d_S(np.asarray(heights_mm, dtype=np.float64), L)
+    # L' per step as the calibration measures it (cell.calibration.sensor, steps 5-6): how far the pixel's
+    # code moves on the reference plane, along the baseline, when the plane rises by h. Here it is exact:
+    # A' is where the projector ray through the raised point D meets the reference plane, C' is the pixel's.
+    b = t[:2] / np.linalg.norm(t[:2])
+    C_ref = np.stack([xn, yn], -1) * S0
+    L = []
+    for h in heights_mm:
+        D = np.stack([xn, yn, np.ones_like(xn)], -1) * (S0 - h)
+        A = t + (D - t) * ((S0 - t[2]) / (D[..., 2:] - t[2]))
+        L.append((C_ref - A[..., :2]) @ b)
+    model.d, model.S = fit_d_S(np.asarray(heights_mm, dtype=np.float64), np.stack(L))
     return model
