@@ -1,4 +1,4 @@
-"""Error map: signed point-to-triangle distance against independent references (trimesh brute force, analytic)."""
+"""Error map: signed point-to-triangle distance against independent references (trimesh brute force, SDF)."""
 
 from __future__ import annotations
 

@@ -48,3 +48,23 @@ def test_points_map_uses_depth_channel() -> None:
     pts[10, 10, 2] += 5.0
     res = link_cluster(pts, link_mm=0.2, min_cluster_px=20)
     assert not res.keep[10, 10] and res.keep[truth].sum() == truth.sum() - 1
+
+
+def test_labels_match_opencv_on_the_doubled_link_grid() -> None:
+    """Independent labelling: OpenCV on a grid with the links drawn as pixels between the nodes."""
+    import cv2
+
+    z, _ = _surface(80, 100)
+    z[20:40, 30:60] += 1.0  # a raised block: not linked to its surroundings at 0.3 mm
+    z[50, :] = np.nan
+    res = link_cluster(z, link_mm=0.3, min_cluster_px=1)
+    H, W = z.shape
+    grid = np.zeros((2 * H - 1, 2 * W - 1), np.uint8)
+    grid[::2, ::2] = np.isfinite(z)
+    with np.errstate(invalid="ignore"):
+        grid[::2, 1::2] = np.abs(np.diff(z, axis=1)) < 0.3
+        grid[1::2, ::2] = np.abs(np.diff(z, axis=0)) < 0.3
+    ref = cv2.connectedComponents(grid, connectivity=4, ltype=cv2.CV_32S)[1][::2, ::2]
+    pairs = np.unique(np.column_stack([res.labels.ravel(), ref.ravel()]), axis=0)
+    assert len(pairs) == len(np.unique(ref)) >= 4  # a one-to-one map between the two labellings
+    assert len(np.unique(pairs[:, 0])) == len(pairs)

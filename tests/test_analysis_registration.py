@@ -44,7 +44,6 @@ def test_datum_alignment_reports_warp_bestfit_hides_it() -> None:
     plate = trimesh.creation.box(extents=(100.0, 60.0, 4.0))
     plate = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(plate.vertices, plate.faces, 4.0))
     nm = NominalMesh.from_trimesh(plate)
-    top = plate.vertices[:, 2] > 1.9
     rng = np.random.default_rng(4)
     xy = rng.uniform([-50, -30], [50, 30], (4000, 2))
     bow = 0.6 * (xy[:, 0] / 50.0) ** 2  # the ends lift by 0.6 mm; the middle is on nominal

@@ -6,8 +6,8 @@ point may lie inside a face, on an edge or on a vertex; the sign then comes from
 pseudo-normal of that feature (Baerentzen & Aanaes 2005), which is correct for every point off the surface of
 a closed, consistently oriented mesh -- the "shared triangle boundary" case of the dissertation's step 4.
 
-Search: a uniform grid of triangle bounding boxes searched ring by ring around each point, stopping
-only when no unseen triangle can be closer (exact; see ``_triangle_grid``).
+Search: a uniform grid of triangle bounding boxes; each point takes the best triangle of its own cell as a
+bound d and then scans every cell overlapping the box p +- d (exact; see ``_triangle_grid``).
 
 Point-triangle distance: the projection's barycentrics decide face vs boundary; on the boundary the minimum
 over the three clamped edge projections (Ericson, Real-Time Collision Detection 5.1.5) is exact.
@@ -21,7 +21,7 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike, NDArray
 
-from cell.analysis._triangle_grid import build_grid, signed_closest
+from cell.analysis._triangle_grid import build_grid, cell_order, signed_closest
 from cell.errors import ConfigError
 
 _MAX_CELLS = 2_000_000
@@ -46,49 +46,65 @@ class NominalMesh:
     grid_origin: NDArray[np.float64]
     grid_h: float
     grid_dims: NDArray[np.int64]
+    source_face: NDArray[np.int64] | None = None  # (F,) index of each face in the mesh as given
     excluded: dict[str, int] = field(default_factory=dict)
     watertight: bool = True
 
     @classmethod
     def from_trimesh(cls, mesh: trimesh.Trimesh, min_area_mm2: float = 1e-12) -> NominalMesh:
-        """Prepare ``mesh`` (mm). Degenerate (zero-area) and duplicate faces are excluded and counted."""
+        """Prepare ``mesh`` (mm). Degenerate (zero-area) faces are excluded and counted; the kept faces are
+        reordered (``source_face`` maps them back to the mesh as given)."""
         if len(mesh.faces) == 0:
             raise ConfigError("the nominal mesh has no triangles")
-        mesh = mesh.copy()
-        mesh.merge_vertices()
-        area = mesh.area_faces
-        keep = area > min_area_mm2
+        mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        mesh.merge_vertices()  # STL triangle soups share no vertices; pseudo-normals need the shared ones
+        v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+        f = np.asarray(mesh.faces, dtype=np.int64)
+        cr = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        dbl_area = np.linalg.norm(cr, axis=1)
+        keep = 0.5 * dbl_area > min_area_mm2
         excluded = {"degenerate_triangles": int((~keep).sum())}
         if not keep.any():
             raise ConfigError("every triangle of the nominal mesh is degenerate (zero area)")
-        if not keep.all():
-            mesh.update_faces(keep)
-            mesh.remove_unreferenced_vertices()
-        v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
-        f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-        fn = np.asarray(mesh.face_normals, dtype=np.float64)
+        f = f[keep]
+        used = np.bincount(f.ravel(), minlength=len(v)) > 0
+        if not used.all():  # drop vertices no kept face uses (they would widen the grid)
+            v, f = v[used], (np.cumsum(used) - 1)[f]
+        cr, dbl_area = cr[keep], dbl_area[keep]
+        fn = cr / dbl_area[:, None]
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        ab, ac = b - a, c - a
+        # Faces in grid-cell order of their centroids: the triangles a point tests lie together in memory.
+        origin, h, dims = _grid_shape(v, np.linalg.norm(ab, axis=1))
+        cell = np.floor(((a + b + c) / 3 - origin) / h).astype(np.int64)
+        perm = np.argsort((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2], kind="stable")
+        f, fn, dbl_area, a, b, c, ab, ac = (x[perm] for x in (f, fn, dbl_area, a, b, c, ab, ac))
+        source_face = np.flatnonzero(keep)[perm]
+        # Unique edges (ab, bc, ca of each face) by their sorted vertex pair; watertight: each used twice.
+        e = np.stack([f, np.roll(f, -1, axis=1)], -1).reshape(-1, 2)
+        e.sort(1)
+        _, fue, n_use = np.unique(e[:, 0] * len(v) + e[:, 1], return_inverse=True, return_counts=True)
         # Edge pseudo-normal: sum of the adjacent face normals (each weighted by pi) over unique edges.
-        fue = np.asarray(mesh.faces_unique_edges)  # (F, 3) edges ab, bc, ca
-        n_edges = len(mesh.edges_unique)
-        en = np.stack([np.bincount(fue.ravel(), np.repeat(fn[:, i], 3), n_edges) for i in range(3)], 1)
-        edge_normals = _unit(en)[fue]
-        angles = np.asarray(mesh.face_angles)  # (F, 3) interior angle at each corner
+        en = np.stack([np.bincount(fue, np.repeat(fn[:, i], 3), len(n_use)) for i in range(3)], 1)
+        edge_normals = _unit(en)[fue.reshape(-1, 3)]
+        # Interior angles: atan2(|ab x ac|, ab . ac) at a, likewise at b; the three sum to pi.
+        bc = c - b
+        ang_a = np.arctan2(dbl_area, np.einsum("ij,ij->i", ab, ac))
+        ang_b = np.arctan2(dbl_area, -np.einsum("ij,ij->i", ab, bc))
+        angles = np.column_stack([ang_a, ang_b, np.pi - ang_a - ang_b])
         vn = np.stack(
             [np.bincount(f.ravel(), (angles * fn[:, i : i + 1]).ravel(), len(v)) for i in range(3)], 1
         )
-        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-        ab, ac = b - a, c - a
         aa = np.einsum("ij,ij->i", ab, ab)
         cc = np.einsum("ij,ij->i", ac, ac)
         abac = np.einsum("ij,ij->i", ab, ac)
         denom = aa * cc - abac * abac
         lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
-        origin, h, dims = _grid_shape(v, np.linalg.norm(ab, axis=1))
         start, items, boxes = build_grid(lo, hi, origin, h, dims)
         tri = np.column_stack([a, ab, ac, fn, aa, abac, cc, 1.0 / denom, lo, hi])
         return cls(
             vertices=v,
-            faces=f,
+            faces=np.ascontiguousarray(f),
             face_normals=fn,
             edge_normals=edge_normals,
             vertex_normals=_unit(vn),
@@ -99,8 +115,9 @@ class NominalMesh:
             grid_origin=origin,
             grid_h=h,
             grid_dims=dims,
+            source_face=source_face,
             excluded=excluded,
-            watertight=bool(mesh.is_watertight),
+            watertight=bool((n_use == 2).all()),
         )
 
     @property
@@ -114,8 +131,8 @@ class ErrorMap:
     """Signed deviations of a cloud from the nominal mesh.
 
     ``deviation_mm``: signed distance, + outside the material; ``closest_mm``: closest nominal point;
-    ``face``: index of the closest triangle (into the prepared mesh's faces); ``feature``: 0 face interior,
-    1 edge, 2 vertex.
+    ``face``: index of the closest triangle (into the prepared mesh's faces; ``NominalMesh.source_face[face]``
+    is its index in the mesh as given); ``feature``: 0 face interior, 1 edge, 2 vertex.
     """
 
     deviation_mm: NDArray[np.float64]
@@ -131,9 +148,9 @@ def signed_distance(nominal: NominalMesh, points_mm: ArrayLike) -> ErrorMap:
         empty = np.empty(0)
         return ErrorMap(empty, np.empty((0, 3)), np.empty(0, np.int64), np.empty(0, np.int8))
     # Visit points cell by cell so consecutive points touch the same triangles (3x faster than random order).
-    cell = np.floor((p - nominal.grid_origin) / nominal.grid_h).astype(np.int64)
-    dims = nominal.grid_dims
-    order = np.argsort((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2])
+    if not np.isfinite(p).all():
+        raise ConfigError("signed_distance: the points contain NaN or inf; drop them first")
+    order = cell_order(p, nominal.grid_origin, nominal.grid_h, nominal.grid_dims)
     dev, q, face, feat = signed_closest(
         p,
         order,

@@ -6,9 +6,11 @@ distance (0.1-0.5 mm). Clusters are the connected components of the link graph. 
 whole (2 * stripe_width_px + 1)^2 window belongs to the same cluster -- the outlier rims left at shadow
 borders. Heights are never modified, so real dents stay visible.
 
-The link graph is labelled by OpenCV on a doubled grid: node (i, j) sits at (2i, 2j), the link between two
-horizontal or vertical neighbours at the cell between them, so 4-connected labelling of that image gives
-exactly the link components (no union-find by hand; OpenCV's labelling is the fastest at hand).
+The link graph is labelled by a compiled scan-order union-find (numba). Written by hand because no library
+labels a grid graph given by *links*: OpenCV and scipy.ndimage label pixels, and the only way to use them is
+a doubled grid with the links as pixels in between (4x the pixels): that whole filter took 0.18 s of CPU on
+2448x2048 against 0.10 s now (scipy.sparse.csgraph on 10M explicit edges is slower still). The stripe test
+uses OpenCV morphology.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
@@ -39,7 +42,7 @@ def link_cluster(
     min_cluster_px: int = 200,
     stripe_width_px: int = 2,
 ) -> LinkFilterResult:
-    """Filter an organised map: (H, W) heights or (H, W, 3) points (z used as depth), NaN where invalid (mm)."""
+    """Filter an organised map: (H, W) heights or (H, W, 3) points (z as depth), NaN where invalid (mm)."""
     z = np.asarray(height_map)
     if z.ndim == 3 and z.shape[2] == 3:
         z = z[..., 2]
@@ -47,28 +50,89 @@ def link_cluster(
         raise ConfigError(f"link_cluster: expected an (H, W) or (H, W, 3) map, got shape {z.shape}")
     if not link_mm > 0:
         raise ConfigError(f"link_cluster: link distance must be > 0 mm, got {link_mm}")
-    z = z.astype(np.float32, copy=False)
-    H, W = z.shape
-    valid = np.isfinite(z)
-    grid = np.zeros((2 * H - 1, 2 * W - 1), np.uint8)
-    grid[::2, ::2] = valid
-    with np.errstate(invalid="ignore"):
-        grid[::2, 1::2] = np.abs(z[:, 1:] - z[:, :-1]) < link_mm  # NaN compares False: no link
-        grid[1::2, ::2] = np.abs(z[1:, :] - z[:-1, :]) < link_mm
-    n, lab2 = cv2.connectedComponents(grid, connectivity=4, ltype=cv2.CV_32S)
-    labels = np.ascontiguousarray(lab2[::2, ::2])
-    size = np.bincount(labels.ravel(), minlength=n)
-    big = size >= min_cluster_px
-    big[0] = False
+    z = np.ascontiguousarray(z, dtype=np.float32)
+    labels, size = _link_labels(z, np.float32(link_mm))
     # Stripe test: a pixel is interior when its whole window holds one label (min == max over the window).
     k = np.ones((2 * stripe_width_px + 1,) * 2, np.uint8)
     labf = labels.astype(np.float32)  # labels < 2^24 are exact in float32 (cv2 morphology has no int32)
-    interior = (cv2.erode(labf, k, borderType=cv2.BORDER_REPLICATE) == cv2.dilate(labf, k)) & (labels > 0)
-    has_interior = np.bincount(labels[interior], minlength=n) > 0
-    good = big & has_interior
-    keep = good[labels]
-    removed_small = int(size[1:][~big[1:]].sum())
-    removed_stripes = int(size[big & ~has_interior].sum())
+    interior = cv2.erode(labf, k, borderType=cv2.BORDER_REPLICATE) == cv2.dilate(labf, k)
+    keep, removed_small, removed_stripes = _judge(labels, interior, size, min_cluster_px)
     return LinkFilterResult(
         keep=keep, labels=labels, removed_small=removed_small, removed_stripes=removed_stripes
     )
+
+
+@nb.njit(cache=True, inline="always")
+def _find(parent, p):
+    while parent[p] != p:
+        parent[p] = parent[parent[p]]  # path halving
+        p = parent[p]
+    return p
+
+
+@nb.njit(cache=True)
+def _link_labels(z, link):
+    """Labels (0 invalid, 1.. per link component in scan order) and component sizes (index 0 unused)."""
+    H, W = z.shape
+    parent = np.arange(H * W, dtype=np.int32)
+    for i in range(H):
+        for j in range(W):
+            zc = z[i, j]
+            if not np.isfinite(zc):
+                continue
+            p = i * W + j
+            r = p  # p is its own root: hang it on the left neighbour's tree, then merge with the upper one
+            if j > 0 and abs(zc - z[i, j - 1]) < link:  # NaN neighbour compares False: no link
+                r = _find(parent, p - 1)
+                parent[p] = r
+            if i > 0 and abs(zc - z[i - 1, j]) < link:
+                u = _find(parent, p - W)
+                if u != r:
+                    lo_, hi_ = min(u, r), max(u, r)
+                    parent[hi_] = lo_
+                    parent[p] = lo_
+    # Every parent index is below its child's, so one forward pass labels each pixel from its parent's label.
+    labels = np.zeros((H, W), np.int32)
+    flat = labels.ravel()
+    size = np.zeros(H * W + 1, np.int32)
+    n = 1
+    for i in range(H):
+        for j in range(W):
+            if not np.isfinite(z[i, j]):
+                continue
+            p = i * W + j
+            q = parent[p]
+            if q == p:
+                flat[p] = n
+                n += 1
+            else:
+                flat[p] = flat[q]  # q < p is labelled already, with its root's label
+            size[flat[p]] += 1
+    return labels, size[:n]
+
+
+@nb.njit(cache=True)
+def _judge(labels, interior, size, min_px):
+    """Keep mask: clusters of >= ``min_px`` with an interior pixel; counts removed as small / as stripes."""
+    n = size.shape[0]
+    has_interior = np.zeros(n, np.bool_)
+    H, W = labels.shape
+    for i in range(H):
+        for j in range(W):
+            if interior[i, j] and labels[i, j] > 0:
+                has_interior[labels[i, j]] = True
+    good = np.zeros(n, np.bool_)
+    small = 0
+    stripes = 0
+    for c in range(1, n):
+        if size[c] < min_px:
+            small += size[c]
+        elif not has_interior[c]:
+            stripes += size[c]
+        else:
+            good[c] = True
+    keep = np.empty((H, W), np.bool_)
+    for i in range(H):
+        for j in range(W):
+            keep[i, j] = good[labels[i, j]]
+    return keep, small, stripes

@@ -1,16 +1,19 @@
 """Registration of measured clouds into the part frame {P} (dissertation 4.1-4.3).
 
-- :func:`kinematic_chain`: sensor points into the part frame from robot pose, hand-eye and placement (4.1-4.4).
+- :func:`kinematic_chain`: sensor points into the part frame from robot pose, hand-eye, placement (4.1-4.4).
 - :func:`horn_quaternion`: closed-form least-squares rigid transform of point pairs with a unit quaternion
   (Horn 1987; the quaternion model of eqs 4.5-4.7 solved in closed form instead of the iterative 4.9-4.11).
 - :func:`datum_align`: 3-2-1 / RPS alignment from measured datum points and their nominal positions.
 - :func:`icp_point_to_plane`: ICP on the exact closest points of the nominal mesh, optionally restricted to
   user regions (a boolean mask). Used over the whole part it is *best-fit*, which hides global deviations;
   it is never the default of :func:`cell.commands.compare`.
+- :func:`combine_registrations`: the weighted combination of kinematic, datum, feature and ICP estimates
+  (eqs 4.21-4.22). Feature-based alignment from curvature labels lives in :mod:`cell.analysis.features`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,3 +100,48 @@ def icp_point_to_plane(
             return IcpResult(T, new_rms, it)
         rms = new_rms
     return IcpResult(T, rms, max_iter)
+
+
+def combine_registrations(
+    estimates: Sequence[tuple[Pose, float]],
+    centre_mm: ArrayLike,
+    nominal_normal: ArrayLike | None = None,
+    cloud_normal: ArrayLike | None = None,
+) -> Pose:
+    """Weighted combination of registrations ``T_P_cloud`` (kinematic, datum, feature, ICP; eqs 4.21-4.22).
+
+    Eq 4.21: the rotation vector is the weighted sum V = sum lambda_i V_i. The V_i are taken relative to the
+    most-weighted rotation R_0 (V_i = log(R_0^T R_i), R = R_0 exp(V)): equal to the dissertation's sum for
+    nearby rotations and free of the +-pi wrap of raw rotation vectors. Eq 4.22: when the mean surface normals
+    of the nominal (part frame) and of the cloud (cloud frame) are given, the angle about the combined axis
+    is the one that best aligns them (closed form: the angle between their projections on the plane normal
+    to the axis); it is kept from 4.21 when either projection vanishes. The translation (not in the
+    dissertation) makes the cloud's ``centre_mm`` land on the weighted mean of where the estimates put it, so
+    the result does not depend on the frame origin. Weights (>= 0) are normalised; the dissertation's Table I
+    gives user datums the most weight, then features, then the kinematic chain.
+    """
+    if not estimates:
+        raise ConfigError("combine_registrations: no registration estimates")
+    Ts = [np.asarray(T, dtype=np.float64) for T, _ in estimates]
+    lam = np.array([w for _, w in estimates], dtype=np.float64)
+    if (lam < 0).any() or lam.sum() <= 0:
+        raise ConfigError(f"combine_registrations: weights must be >= 0 and not all 0, got {lam.tolist()}")
+    lam = lam / lam.sum()
+    R0 = Ts[int(np.argmax(lam))][:3, :3]
+    V = sum(l * Rotation.from_matrix(R0.T @ T[:3, :3]).as_rotvec() for l, T in zip(lam, Ts, strict=True))
+    R = R0 @ Rotation.from_rotvec(V).as_matrix()
+    if nominal_normal is not None and cloud_normal is not None:
+        rv = Rotation.from_matrix(R).as_rotvec()
+        if np.linalg.norm(rv) > 1e-12:
+            a = rv / np.linalg.norm(rv)
+            m = np.asarray(nominal_normal, dtype=np.float64)
+            p = np.asarray(cloud_normal, dtype=np.float64)
+            m, p = m - a * (a @ m), p - a * (a @ p)
+            if np.linalg.norm(m) > 1e-6 * np.linalg.norm(nominal_normal) and np.linalg.norm(
+                p
+            ) > 1e-6 * np.linalg.norm(cloud_normal):
+                theta = np.arctan2(a @ np.cross(p, m), p @ m)
+                R = Rotation.from_rotvec(a * theta).as_matrix()
+    c = np.asarray(centre_mm, dtype=np.float64)
+    target = sum(l * transform_points(T, c) for l, T in zip(lam, Ts, strict=True))
+    return make_pose(R, target - R @ c)

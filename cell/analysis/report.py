@@ -1,6 +1,6 @@
-"""The inspection report of an error map: report.json, report.html, cloud.ply (with ``deviation``), deviations.csv.
+"""The inspection report of an error map: report.json, report.html, cloud.ply (``deviation``), deviations.csv.
 
-The schema of report.json is documented in docs/report-schema.md. Deviations are in mm, + outside the material.
+The schema of report.json is documented in docs/report-schema.md. Deviations in mm, + outside the material.
 Out-of-tolerance points are grouped into regions by a radius graph (cKDTree pairs + connected components).
 """
 
@@ -19,30 +19,33 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-SCHEMA_VERSION = 1
+from cell.analysis.regions import Coverage, Region, Tolerance, region_verdicts, verdict
+
+__all__ = ["ReportInput", "Tolerance", "out_of_tolerance_regions", "summarise", "write_report"]
+
+SCHEMA_VERSION = 2
 PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
-
-
-@dataclass(frozen=True)
-class Tolerance:
-    """Tolerance band in mm: a deviation d passes when lower_mm <= d <= upper_mm."""
-
-    lower_mm: float = -0.3
-    upper_mm: float = 0.3
 
 
 @dataclass
 class ReportInput:
-    """What a report is made of: points (N, 3, mm, part frame), their deviations and the run's context."""
+    """What a report is made of: points (N, 3, mm, part frame), their deviations and the run's context.
+
+    ``source_face``: closest nominal face per point (index in the mesh as given), needed by face regions;
+    ``regions``: user regions judged one by one; ``coverage``: of the nominal by the points, with the
+    required fraction ``min_coverage`` (below it the verdict is ``incomplete`` unless something fails).
+    """
 
     points_mm: NDArray[np.float64]
     deviation_mm: NDArray[np.float64]
     tolerance: Tolerance
     n_points_input: int
     excluded: dict[str, int] = field(default_factory=dict)
-    nominal_area_mm2: float | None = None
-    covered_area_mm2: float | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
+    source_face: NDArray[np.int64] | None = None
+    regions: list[Region] = field(default_factory=list)
+    coverage: Coverage | None = None
+    min_coverage: float | None = None
 
 
 def out_of_tolerance_regions(
@@ -78,6 +81,8 @@ def out_of_tolerance_regions(
         ext = int(idx[np.argmax(np.abs(dev))])
         regions.append(
             {
+                "name": f"out-of-tolerance-{len(regions) + 1}",
+                "verdict": "fail",
                 "n_points": int(len(idx)),
                 "centre_mm": [round(float(c), 4) for c in pts[idx].mean(0)],
                 "extreme_mm": round(float(deviation_mm[bad[ext]]), 5),
@@ -101,24 +106,40 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
             "min_mm": float(d.min()),
             "max_mm": float(d.max()),
             "rms_mm": float(np.sqrt(np.mean(d * d))),
-            "percentiles_mm": {f"p{q}": float(v) for q, v in zip(PERCENTILES, np.percentile(d, PERCENTILES), strict=True)},
+            "percentiles_mm": {
+                f"p{q}": float(v) for q, v in zip(PERCENTILES, np.percentile(d, PERCENTILES), strict=True)
+            },
         }
-    coverage = None
-    if inp.nominal_area_mm2 and inp.covered_area_mm2 is not None:
-        coverage = float(inp.covered_area_mm2 / inp.nominal_area_mm2)
+    cov = inp.coverage
+    coverage = cov.fraction if cov is not None else None
     regions = out_of_tolerance_regions(inp.points_mm, d, tol)
-    verdict = "pass" if len(d) and inside.all() else ("no_data" if not len(d) else "fail")
+    user = region_verdicts(inp.regions, inp.points_mm, d, inp.source_face, tol, cov, inp.min_coverage)
+    # Points in a region with a band of its own are judged by that band (in region_verdicts), the rest by
+    # the report's band; any failing region fails the part, any unmeasured one makes it incomplete.
+    own_band = np.zeros(len(d), bool)
+    for r in inp.regions:
+        if r.tolerance is not None:
+            own_band |= r.contains(inp.points_mm, inp.source_face)
+    overall = verdict(len(d), int((~inside & ~own_band).sum()), coverage, inp.min_coverage)
+    region_states = {r["verdict"] for r in user}
+    if overall != "no_data" and "fail" in region_states:
+        overall = "fail"
+    elif overall == "pass" and region_states & {"incomplete", "no_data"}:
+        overall = "incomplete"
     return {
         "schema_version": SCHEMA_VERSION,
-        "verdict": verdict,
+        "verdict": overall,
         "tolerance": {"lower_mm": tol.lower_mm, "upper_mm": tol.upper_mm},
         "n_points": int(len(d)),
         "n_points_input": int(inp.n_points_input),
         "n_out_of_tolerance": int((~inside).sum()),
         "fraction_in_tolerance": float(inside.mean()) if len(d) else None,
         "coverage": coverage,
+        "coverage_detail": cov.summary() if cov is not None else None,
+        "min_coverage": inp.min_coverage,
         "deviation": stats,
         "regions": regions,
+        "region_verdicts": user,
         "excluded": inp.excluded,
         "views": views or [],
         "metadata": inp.metadata,
@@ -197,12 +218,18 @@ def _pictures(
 
 
 def _html(doc: dict[str, Any], images: list, hist: str | None) -> str:
-    colour = {"pass": "#2a2", "fail": "#c22"}.get(doc["verdict"], "#888")
+    colour = {"pass": "#2a2", "fail": "#c22", "incomplete": "#d80"}.get(doc["verdict"], "#888")
     st = doc["deviation"]
     rows = "".join(
         f"<tr><td>{i + 1}</td><td>{r['kind']}</td><td>{r['n_points']}</td><td>{r['extreme_mm']:+.3f}</td>"
         f"<td>{', '.join(f'{c:.2f}' for c in r['centre_mm'])}</td></tr>"
         for i, r in enumerate(doc["regions"])
+    )
+    user_rows = "".join(
+        f"<tr><td>{r['name']}</td><td>{r['verdict'].upper()}</td><td>{r['n_points']}</td>"
+        f"<td>{r['n_out_of_tolerance']}</td><td>{r['tolerance']['lower_mm']:+.3f} .. "
+        f"{r['tolerance']['upper_mm']:+.3f}</td><td>{r['coverage']}</td></tr>"
+        for r in doc["region_verdicts"]
     )
     pics = "".join(f'<img alt="{im["name"]}" src="data:image/png;base64,{im["png"]}">' for im in images)
     hist_html = (
@@ -213,12 +240,15 @@ def _html(doc: dict[str, Any], images: list, hist: str | None) -> str:
     tol = doc["tolerance"]
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>Inspection report</title>
 <style>body{{font-family:sans-serif;margin:2em}} td,th{{border:1px solid #ccc;padding:2px 6px}}
-table{{border-collapse:collapse}} .v{{font-size:2em;color:white;background:{colour};padding:.3em;display:inline-block}}</style>
+table{{border-collapse:collapse}}
+.v{{font-size:2em;color:white;background:{colour};padding:.3em;display:inline-block}}</style>
 </head><body><div class="v">{doc["verdict"].upper()}</div>
 <p>tolerance {tol["lower_mm"]:+.3f} .. {tol["upper_mm"]:+.3f} mm; {doc["n_points"]} points,
 {doc["n_out_of_tolerance"]} out of tolerance; coverage {doc["coverage"]}</p>
 <h2>Error map (mm, + outside the material)</h2>{pics}<h2>Histogram</h2>{hist_html}
-<h2>Out-of-tolerance regions</h2><table><tr><th>#</th><th>kind</th><th>points</th><th>extreme mm</th>
+<h2>Regions</h2><table><tr><th>region</th><th>verdict</th><th>points</th><th>out</th><th>tolerance mm</th>
+<th>coverage</th></tr>{user_rows}</table><h2>Out-of-tolerance clusters</h2>
+<table><tr><th>#</th><th>kind</th><th>points</th><th>extreme mm</th>
 <th>centre mm</th></tr>{rows}</table><h2>Statistics</h2><table>{stats}</table>
 <h2>Run</h2><pre>{meta}</pre></body></html>"""
 

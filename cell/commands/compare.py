@@ -13,7 +13,7 @@ from cell.errors import ConfigError
 
 
 def load_cloud(path: Path) -> np.ndarray:
-    """Points (N, 3, mm) from PLY (vertices), XYZ or CSV (first three numeric columns; a header row is skipped)."""
+    """Points (N, 3, mm) from PLY (vertices), XYZ or CSV (first three numeric columns; header row skipped)."""
     if not path.is_file():
         raise ConfigError("cloud file not found", path=str(path))
     suffix = path.suffix.lower()
@@ -61,14 +61,28 @@ def run_compare(
     tolerance: str = "-0.3,0.3",
     datums: Path | None = None,
     pictures: bool = True,
+    regions: Path | None = None,
+    density_per_mm2: float | None = None,
+    radius_mm: float | None = None,
+    min_coverage: float | None = None,
 ) -> dict:
-    """Load, check, align, compute the error map and write the report; return report.json's document."""
+    """Load, check, align, compute the error map and write the report; return report.json's document.
+
+    ``regions``: YAML of user regions (see ``cell.analysis.regions.load_regions``); coverage is computed when
+    a required density (points/mm^2) or radius (mm) is given, and judged against ``min_coverage`` (0..1).
+    """
     from cell.analysis.errormap import NominalMesh, signed_distance
+    from cell.analysis.regions import coverage, load_regions
     from cell.analysis.registration import datum_align, icp_point_to_plane
     from cell.analysis.report import ReportInput, Tolerance, write_report
     from cell.geometry import transform_points
 
     lo, hi = parse_tolerance(tolerance)
+    if min_coverage is not None and not 0 <= min_coverage <= 1:
+        raise ConfigError(f"--min-coverage must be a fraction in [0, 1], got {min_coverage}")
+    if min_coverage is not None and density_per_mm2 is None and radius_mm is None:
+        raise ConfigError("--min-coverage needs --density (points/mm^2) or --radius (mm) to measure coverage")
+    user_regions = load_regions(regions) if regions is not None else []
     if align not in ("none", "datums", "bestfit"):
         raise ConfigError(f"--align must be none, datums or bestfit, got '{align}'")
     if not nominal_path.is_file():
@@ -114,7 +128,25 @@ def run_compare(
         "seconds": round(time.perf_counter() - t0, 3),
         "nominal_watertight": nominal.watertight,
     }
-    inp = ReportInput(pts, em.deviation_mm, Tolerance(lo, hi), len(raw), excluded, metadata=meta)
+    cov = None
+    if density_per_mm2 is not None or radius_mm is not None:
+        cov = coverage(nominal, em.closest_mm, density_per_mm2, radius_mm)
+    n_faces = len(mesh.faces)
+    for r in user_regions:
+        if r.faces is not None and (r.faces.min() < 0 or r.faces.max() >= n_faces):
+            raise ConfigError(f"region '{r.name}': face indices must be in [0, {n_faces})", path=str(regions))
+    inp = ReportInput(
+        pts,
+        em.deviation_mm,
+        Tolerance(lo, hi),
+        len(raw),
+        excluded,
+        metadata=meta,
+        source_face=nominal.source_face[em.face],
+        regions=user_regions,
+        coverage=cov,
+        min_coverage=min_coverage,
+    )
     return write_report(out, inp, pictures=pictures)
 
 
@@ -129,9 +161,18 @@ def register(app: typer.Typer) -> None:
         align: str = typer.Option("none", help="none | datums | bestfit (best-fit hides global deviations)"),
         tolerance: str = typer.Option("-0.3,0.3", help="tolerance band LOWER,UPPER in mm"),
         datums: Path = typer.Option(None, help="csv of datum pairs for --align datums"),
+        regions: Path = typer.Option(
+            None, help="YAML of user regions (face sets or boxes) judged one by one"
+        ),
+        density: float = typer.Option(None, help="coverage: required points per mm^2 of nominal surface"),
+        radius: float = typer.Option(None, help="coverage: search radius in mm (alone: one point covers)"),
+        min_coverage: float = typer.Option(None, help="required covered fraction 0..1 (else 'incomplete')"),
     ) -> None:
         """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report."""
-        doc = run_compare(nominal, cloud, out, align, tolerance, datums)
+        doc = run_compare(
+            nominal, cloud, out, align, tolerance, datums, True, regions, density, radius, min_coverage
+        )
         typer.echo(
-            f"{doc['verdict']}: {doc['n_points']} points, {doc['n_out_of_tolerance']} out of tolerance -> {out}"
+            f"{doc['verdict']}: {doc['n_points']} points, {doc['n_out_of_tolerance']} out of tolerance "
+            f"-> {out}"
         )

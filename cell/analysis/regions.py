@@ -1,0 +1,227 @@
+"""Inspection regions, their verdicts, and coverage of the nominal surface by measured points.
+
+A user region is a set of nominal faces (indices into the mesh as given) or an axis-aligned box in the part
+frame {P} (mm), with an optional tolerance of its own. A point belongs to a face region when its closest
+nominal triangle is one of the region's faces, to a box region when it lies in the box.
+
+Coverage is the fraction of the nominal surface area that has measured points at a required density: the
+nominal surface is sampled uniformly by area (seeded, so reports are reproducible); a sample is covered when
+at least ``min_count`` measured points project (their closest nominal point) within ``radius_mm`` of it, with
+``min_count = ceil(density * pi * radius^2)``. Each sample stands for area / n_samples, so the covered area
+has a sampling error of about sqrt(f (1 - f) / n_samples) of the total.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+import yaml
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
+from scipy.spatial import cKDTree
+
+from cell.analysis.errormap import NominalMesh
+from cell.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """Tolerance band in mm: a deviation d passes when lower_mm <= d <= upper_mm."""
+
+    lower_mm: float = -0.3
+    upper_mm: float = 0.3
+
+
+@dataclass(frozen=True)
+class Region:
+    """A user region: ``faces`` (indices into the nominal mesh as given) or ``box_mm`` ((lo xyz, hi xyz) in
+    the part frame); ``tolerance`` overrides the report's band inside the region."""
+
+    name: str
+    faces: NDArray[np.int64] | None = None
+    box_mm: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    tolerance: Tolerance | None = None
+
+    def contains(self, points_mm: NDArray, source_face: NDArray) -> NDArray[np.bool_]:
+        """Membership of points (N, 3, mm) with their closest nominal face (index in the mesh as given)."""
+        if self.faces is not None:
+            return np.isin(source_face, self.faces)
+        lo, hi = np.asarray(self.box_mm[0]), np.asarray(self.box_mm[1])
+        return ((points_mm >= lo) & (points_mm <= hi)).all(1)
+
+
+class _RegionSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str
+    faces: list[int] | None = None
+    box_mm: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    tolerance_mm: tuple[float, float] | None = None
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> _RegionSpec:
+        if (self.faces is None) == (self.box_mm is None):
+            raise ValueError("give exactly one of 'faces' or 'box_mm'")
+        if self.box_mm is not None and not all(a <= b for a, b in zip(*self.box_mm, strict=True)):
+            raise ValueError("box_mm must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]")
+        if self.tolerance_mm is not None and not self.tolerance_mm[0] < self.tolerance_mm[1]:
+            raise ValueError("tolerance_mm must be [lower, upper] with lower < upper")
+        return self
+
+
+class _RegionFile(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    regions: list[_RegionSpec]
+
+
+def load_regions(path: Path) -> list[Region]:
+    """Regions from YAML: ``regions: [{name, faces: [i, ..] | box_mm: [lo, hi], tolerance_mm: [lo, hi]}]``."""
+    try:
+        spec = _RegionFile.model_validate(yaml.safe_load(Path(path).read_text()))
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"cannot read the region file: {exc}", path=str(path)) from exc
+    except ValidationError as exc:
+        raise ConfigError(f"invalid region file: {exc}", path=str(path)) from exc
+    return [
+        Region(
+            name=r.name,
+            faces=None if r.faces is None else np.asarray(r.faces, np.int64),
+            box_mm=r.box_mm,
+            tolerance=None if r.tolerance_mm is None else Tolerance(*r.tolerance_mm),
+        )
+        for r in spec.regions
+    ]
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """Coverage of the nominal by measured points. ``covered``: per sample; ``samples_mm``/``sample_face``
+    (index in the mesh as given) are the area-uniform samples of the nominal surface."""
+
+    fraction: float
+    area_mm2: float
+    radius_mm: float
+    min_count: int
+    density_per_mm2: float | None
+    samples_mm: NDArray[np.float64]
+    sample_face: NDArray[np.int64]
+    covered: NDArray[np.bool_]
+
+    def summary(self) -> dict[str, Any]:
+        n = len(self.covered)
+        return {
+            "fraction": self.fraction,
+            "covered_area_mm2": self.fraction * self.area_mm2,
+            "nominal_area_mm2": self.area_mm2,
+            "density_per_mm2": self.density_per_mm2,
+            "radius_mm": self.radius_mm,
+            "min_count": self.min_count,
+            "n_samples": n,
+            "sampling_error": math.sqrt(max(self.fraction * (1 - self.fraction), 1.0 / n) / n),
+        }
+
+
+def coverage(
+    nominal: NominalMesh,
+    closest_mm: NDArray,
+    density_per_mm2: float | None = None,
+    radius_mm: float | None = None,
+    n_samples: int | None = None,
+    seed: int = 0,
+) -> Coverage:
+    """Coverage of the nominal surface by points given as their closest nominal points (N, 3, mm).
+
+    Give a required ``density_per_mm2`` (radius then defaults to the one holding 8 points at that density)
+    and/or a ``radius_mm`` (alone: one point within the radius covers).
+    """
+    if density_per_mm2 is None and radius_mm is None:
+        raise ConfigError("coverage needs a required density (points/mm^2) or a radius (mm)")
+    if density_per_mm2 is not None and not density_per_mm2 > 0:
+        raise ConfigError(f"coverage density must be > 0 points/mm^2, got {density_per_mm2}")
+    if radius_mm is None:
+        radius_mm = math.sqrt(8.0 / (math.pi * density_per_mm2))
+    if not radius_mm > 0:
+        raise ConfigError(f"coverage radius must be > 0 mm, got {radius_mm}")
+    min_count = 1 if density_per_mm2 is None else max(1, math.ceil(density_per_mm2 * math.pi * radius_mm**2))
+    mesh = trimesh.Trimesh(nominal.vertices, nominal.faces, process=False)
+    area = float(mesh.area)
+    if n_samples is None:  # about 4 samples per radius-disc, within [2e3, 2e5]
+        n_samples = int(np.clip(4 * area / (math.pi * radius_mm**2), 2_000, 200_000))
+    samples, face = trimesh.sample.sample_surface(mesh, n_samples, seed=seed)
+    closest = np.asarray(closest_mm, dtype=np.float64).reshape(-1, 3)
+    if len(closest):
+        counts = cKDTree(closest).query_ball_point(samples, radius_mm, return_length=True)
+    else:
+        counts = np.zeros(len(samples), np.int64)
+    covered = counts >= min_count
+    src = nominal.source_face if nominal.source_face is not None else np.arange(len(nominal.faces))
+    return Coverage(
+        fraction=float(covered.mean()),
+        area_mm2=area,
+        radius_mm=float(radius_mm),
+        min_count=int(min_count),
+        density_per_mm2=density_per_mm2,
+        samples_mm=np.asarray(samples),
+        sample_face=src[face],
+        covered=covered,
+    )
+
+
+def verdict(n_points: int, n_out: int, coverage_fraction: float | None, min_coverage: float | None) -> str:
+    """``no_data`` without points, ``fail`` with any point out of tolerance, ``incomplete`` when coverage is
+    below the required fraction, else ``pass``."""
+    if n_points == 0:
+        return "no_data"
+    if n_out:
+        return "fail"
+    if min_coverage is not None and coverage_fraction is not None and coverage_fraction < min_coverage:
+        return "incomplete"
+    return "pass"
+
+
+def region_verdicts(
+    regions: Sequence[Region],
+    points_mm: NDArray,
+    deviation_mm: NDArray,
+    source_face: NDArray | None,
+    tol: Tolerance,
+    cov: Coverage | None = None,
+    min_coverage: float | None = None,
+) -> list[dict[str, Any]]:
+    """Verdict, statistics and coverage of each user region (see docs/report-schema.md)."""
+    out = []
+    for r in regions:
+        if r.faces is not None and source_face is None:
+            raise ConfigError(f"region '{r.name}' is a face set but the error map carries no closest faces")
+        inside = r.contains(points_mm, source_face)
+        d = deviation_mm[inside]
+        t = r.tolerance or tol
+        n_out = int(((d < t.lower_mm) | (d > t.upper_mm)).sum())
+        frac = None
+        if cov is not None:
+            in_s = (
+                np.isin(cov.sample_face, r.faces)
+                if r.faces is not None
+                else r.contains(cov.samples_mm, cov.sample_face)
+            )
+            frac = float(cov.covered[in_s].mean()) if in_s.any() else None
+        out.append(
+            {
+                "name": r.name,
+                "kind": "faces" if r.faces is not None else "box",
+                "tolerance": {"lower_mm": t.lower_mm, "upper_mm": t.upper_mm},
+                "n_points": int(len(d)),
+                "n_out_of_tolerance": n_out,
+                "mean_mm": float(d.mean()) if len(d) else None,
+                "min_mm": float(d.min()) if len(d) else None,
+                "max_mm": float(d.max()) if len(d) else None,
+                "coverage": frac,
+                "verdict": verdict(len(d), n_out, frac, min_coverage),
+            }
+        )
+    return out

@@ -1,0 +1,73 @@
+"""Multi-view merge of noisy views of a known plane: noise drops as the weights predict, no bias, no loss."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cell.analysis.merge import merge_views
+from cell.errors import ConfigError
+
+
+def _plane(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    # Known surface, kept inside one 1 mm voxel layer (0.5..0.62 mm) so voxel borders never split noise.
+    return 0.5 + 0.002 * x + 0.0005 * y
+
+
+def _views() -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Three views with different noise, overlapping in x: [0, 40], [20, 60], [10, 50] (mm)."""
+    rng = np.random.default_rng(21)
+    views, weights, truth = [], [], []
+    for (x0, x1), sigma in zip([(0, 40), (20, 60), (10, 50)], [0.02, 0.04, 0.08], strict=True):
+        n = 40 * (x1 - x0) * 20
+        xy = rng.uniform([x0, 0], [x1, 20], (n, 2))
+        z = _plane(xy[:, 0], xy[:, 1])
+        views.append(np.column_stack([xy, z + rng.normal(0, sigma, n)]))
+        weights.append(np.full(n, 1.0 / sigma**2))
+        truth.append(z)
+    return views, weights, truth
+
+
+def test_weighted_merge_noise_matches_prediction_without_bias() -> None:
+    views, weights, _ = _views()
+    m = merge_views(views, weights, voxel_mm=1.0)
+    # Residual of each merged point from the known plane: the weighted mean of its points' noise (the plane
+    # is linear, so the mean of points on it lies on it). Expected std per voxel: 1 / sqrt(sum w).
+    r = m.points_mm[:, 2] - _plane(m.points_mm[:, 0], m.points_mm[:, 1])
+    z = r / m.sigma_mm
+    assert abs(z.mean()) < 4 / np.sqrt(len(z))  # no bias
+    assert z.std() == pytest.approx(1.0, abs=0.05)
+    overlap3 = m.n_views == 3
+    assert overlap3.sum() > 300
+    rms3 = np.sqrt(np.mean(r[overlap3] ** 2))
+    assert rms3 == pytest.approx(np.sqrt(np.mean(m.sigma_mm[overlap3] ** 2)), rel=0.1)
+    only_best = m.points_mm[:, 0] < 10  # voxels seen by the 0.02 mm view alone
+    assert rms3 < 0.92 * np.sqrt(np.mean(r[only_best] ** 2))
+    # Equal weights do worse: the noisy view drags the mean.
+    eq = merge_views(views, None, voxel_mm=1.0)
+    r_eq = eq.points_mm[:, 2] - _plane(eq.points_mm[:, 0], eq.points_mm[:, 1])
+    assert np.sqrt(np.mean(r[overlap3] ** 2)) < 0.8 * np.sqrt(np.mean(r_eq[eq.n_views == 3] ** 2))
+
+
+def test_no_points_lost_and_views_outside_overlaps_kept() -> None:
+    views, weights, _ = _views()
+    views[1] = views[1].copy()
+    views[1][:5] = np.nan
+    m = merge_views(views, weights, voxel_mm=1.0)
+    n = sum(len(v) for v in views)
+    assert (m.source == -1).sum() == 5 and m.count.sum() == n - 5
+    p = np.concatenate(views)
+    ok = m.source >= 0
+    assert np.allclose(m.weight.sum(), np.concatenate(weights)[ok].sum())
+    # Every input point lies in the voxel of its merged point.
+    assert np.array_equal(np.floor(p[ok] / 1.0), np.floor(m.points_mm[m.source[ok]] / 1.0))
+    # The occupied voxels are exactly those of the inputs: the single-view strips (x < 10, x > 50) remain.
+    assert len(m.points_mm) == len(np.unique(np.floor(p[ok]), axis=0))
+    assert (m.points_mm[:, 0] < 10).sum() == 200 and (m.points_mm[:, 0] > 50).sum() == 200
+
+
+def test_bad_input() -> None:
+    with pytest.raises(ConfigError):
+        merge_views([np.full((3, 3), np.nan)])
+    with pytest.raises(ConfigError):
+        merge_views([np.zeros((3, 3))], voxel_mm=0.0)
