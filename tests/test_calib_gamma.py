@@ -24,7 +24,8 @@ def rig():
 
 def _plane_sigma(rig, patterns, rng):
     cloud = PinholeTriangulator.from_sensor(rig.sensor).triangulate(
-        decode(rig.capture(10.0, patterns.frames, rng), patterns, 12))
+        decode(rig.capture(10.0, patterns.frames, rng), patterns, 12)
+    )
     return fit_plane(cloud.points_C[cloud.valid])["std_mm"]
 
 

@@ -1,5 +1,6 @@
 """Hand-eye calibration against the simulator's truth: AX=XB solvers from board poses (solvePnP on projected
-board corners with pixel noise) and the dissertation's ICP method on gauge scans (ground-truth points + noise)."""
+board corners with pixel noise) and the dissertation's ICP method on gauge scans (ground-truth points +
+noise)."""
 
 from __future__ import annotations
 
@@ -35,8 +36,14 @@ def _reachable_views(cfg, target_W, n, rng, tilt_deg=30.0, dist_mm=420.0):
     T_W_B, T_T_C = cfg.robot.T_W_B.matrix(), cfg.sensor.T_T_C.matrix()
     out = []
     while len(out) < n:
-        tilt, az, roll = np.radians(rng.uniform(5, tilt_deg)), rng.uniform(0, 2 * np.pi), rng.uniform(-0.6, 0.6)
-        eye = target_W + dist_mm * np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
+        tilt, az, roll = (
+            np.radians(rng.uniform(5, tilt_deg)),
+            rng.uniform(0, 2 * np.pi),
+            rng.uniform(-0.6, 0.6),
+        )
+        eye = target_W + dist_mm * np.array(
+            [np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)]
+        )
         T_W_C = look_at(eye, target_W) @ make_pose(Rotation.from_rotvec([0, 0, roll]).as_matrix())
         T_B_T = invert(T_W_B) @ T_W_C @ invert(T_T_C)
         sols = UR5E.ik(T_B_T, allow_singular=False)
@@ -72,6 +79,7 @@ def test_board_pose_solvers_reject_bad_input(cfg):
         handeye_from_board_poses(spins, spins)
 
 
+@pytest.mark.slow
 def test_icp_hand_eye_on_gauge_scans(cfg):
     rng = np.random.default_rng(5)
     gauge = load_mesh(GAUGE)
@@ -84,14 +92,16 @@ def test_icp_hand_eye_on_gauge_scans(cfg):
     # oblique views at three corners: the top and two side faces in each, so every view pins all six dof
     for az in np.radians([57, 147, 237]):
         eye = centre + 400 * np.array([np.sin(0.87) * np.cos(az), np.sin(0.87) * np.sin(az), np.cos(0.87)])
-        T_B_T = UR5E.fk(UR5E.ik(invert(T_W_B) @ look_at(eye, centre) @ invert(T_T_C), allow_singular=False)
-                        .joints[0])
+        T_B_T = UR5E.fk(
+            UR5E.ik(invert(T_W_B) @ look_at(eye, centre) @ invert(T_T_C), allow_singular=False).joints[0]
+        )
         gt = renderer.ground_truth(T_W_B @ T_B_T @ T_T_C)
         p = gt.points_C[gt.part][::40]  # simulated scan: true points + the sensor's 0.016 mm noise
         views.append(GaugeView(p + rng.normal(0, 0.016, p.shape), T_B_T))
     # start from the nominal mounting drawing: ~1.5 mm and 0.5 deg off
-    T_init = T_T_C @ make_pose(Rotation.from_euler("xyz", [0.4, -0.3, 0.25], degrees=True).as_matrix(),
-                               (1.0, -0.8, 0.6))
+    T_init = T_T_C @ make_pose(
+        Rotation.from_euler("xyz", [0.4, -0.3, 0.25], degrees=True).as_matrix(), (1.0, -0.8, 0.6)
+    )
     res = handeye_icp(NominalMesh.from_trimesh(gauge), views, T_W_B, T_W_P, T_init)
     dt, dr = pose_error(res.T_T_C, T_T_C)
     assert pose_error(T_init, T_T_C)[0] > 1.0

@@ -3,7 +3,8 @@
 Truth: the board moves along the camera axis and the projector centre lies in the camera's z = 0 plane, so for
 every pixel h = L'S/(d + L') holds exactly with S = the reference-plane depth (stand-off), d = the baseline
 length and alpha = the angle of the baseline to the camera rows (the column stripes run along camera y on the
-board, because the projector is turned about camera y only). Here the baseline is turned 3 deg out of the rows.
+board, because the projector is turned about camera y only). Here the baseline is turned 3 deg out of the
+rows.
 """
 
 from __future__ import annotations
@@ -28,9 +29,14 @@ BETA_DEG = 3.0
 @pytest.fixture(scope="module")
 def rig():
     b = math.radians(BETA_DEG)
-    sensor = small_sensor(projector={"T_C_P": {
-        "xyz_mm": [BASELINE_MM * math.cos(b), BASELINE_MM * math.sin(b), 0.0],
-        "rpy_deg": [0.0, -math.degrees(math.atan2(BASELINE_MM, STANDOFF_MM)), 0.0]}})
+    sensor = small_sensor(
+        projector={
+            "T_C_P": {
+                "xyz_mm": [BASELINE_MM * math.cos(b), BASELINE_MM * math.sin(b), 0.0],
+                "rpy_deg": [0.0, -math.degrees(math.atan2(BASELINE_MM, STANDOFF_MM)), 0.0],
+            }
+        }
+    )
     return SteppedReferenceBoard(sensor, SimConfig(seed=7))
 
 
@@ -61,7 +67,9 @@ def test_flat_test_at_known_heights(rig, calibrated):
     ps = gcls_patterns(128, 96, 8, 8, "columns")
     rng = np.random.default_rng(9)
     for h in (12.5, 27.3):  # between the calibration steps
-        f = flat_test(res.model.triangulate(decode(rig.capture(h, ps.frames, rng), ps, 12)), res.model.res_mm, h)
+        f = flat_test(
+            res.model.triangulate(decode(rig.capture(h, ps.frames, rng), ps, 12)), res.model.res_mm, h
+        )
         assert abs(f["mean_mm"]) < 0.005 and f["std_mm"] < 0.03, f
 
 

@@ -22,8 +22,9 @@ def board_pose_from_corners(object_mm: NDArray, image_px: NDArray, K: NDArray, d
     img = np.asarray(image_px, dtype=np.float64).reshape(-1, 1, 2)
     if len(obj) < 4 or len(obj) != len(img):
         raise CalibrationError(f"board pose needs >= 4 matched corners, got {len(obj)} and {len(img)}")
-    ok, rvec, tvec = cv2.solvePnP(obj, img, np.asarray(K, float), np.asarray(dist, float),
-                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    ok, rvec, tvec = cv2.solvePnP(
+        obj, img, np.asarray(K, float), np.asarray(dist, float), flags=cv2.SOLVEPNP_ITERATIVE
+    )
     if not ok:
         raise CalibrationError("board pose: solvePnP found no solution; is the board in view and flat?")
     return make_pose(cv2.Rodrigues(rvec)[0], tvec.ravel())

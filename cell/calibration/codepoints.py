@@ -1,6 +1,7 @@
 """Encoded points: where the camera sees a given projector coordinate (u, v), with sub-pixel precision.
 
-Step 2 of the dissertation's 5.1.1: the intersection of a decoded horizontal and vertical stripe line. Here the
+Step 2 of the dissertation's 5.1.1: the intersection of a decoded horizontal and vertical stripe line. Here
+the
 decoded maps u(x, y) and v(x, y) are fitted by a plane over a small window around the pixel whose code is
 nearest (a least-squares line fit in both directions at once) and the plane pair is solved for the sub-pixel
 position where u = u_i and v = v_j.
@@ -28,9 +29,16 @@ def _seeds(u: NDArray, v: NDArray, codes: NDArray, shape_p: tuple[int, int]) -> 
     return table[cv, cu] - 1
 
 
-def locate_codes(u: NDArray, v: NDArray, codes_uv: NDArray, projector_size: tuple[int, int],
-                 half_window: int = 2, min_samples: int = 9) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Camera position (x, y) px of every projector code (u_i, v_j) in ``codes_uv`` (N, 2), NaN where not seen,
+def locate_codes(
+    u: NDArray,
+    v: NDArray,
+    codes_uv: NDArray,
+    projector_size: tuple[int, int],
+    half_window: int = 2,
+    min_samples: int = 9,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Camera position (x, y) px of every projector code (u_i, v_j) in ``codes_uv`` (N, 2), NaN where not
+    seen,
     and the unit direction of grad u there (the stripe gradient, camera px frame), both (N, 2).
 
     ``u``, ``v``: decoded projector coordinate maps (H, W), NaN where invalid; ``projector_size`` (w, h)."""

@@ -36,8 +36,10 @@ def measure_response(images: NDArray, levels: NDArray, min_swing_dn: float = 20.
     swing = im[-1] - im[0]
     ok = swing > min_swing_dn
     if ok.sum() < 100:
-        raise CalibrationError("projector response: too few pixels lit by the projector (white - black below "
-                               f"{min_swing_dn} DN); is the white board in view and the projector on?")
+        raise CalibrationError(
+            "projector response: too few pixels lit by the projector (white - black below "
+            f"{min_swing_dn} DN); is the white board in view and the projector on?"
+        )
     return np.median((im[:, ok] - im[0, ok]) / swing[ok], axis=1)
 
 
@@ -45,7 +47,9 @@ def linearising_lut(levels: NDArray, response: NDArray) -> NDArray[np.uint8]:
     """LUT[256]: the pattern value to send so that the projected intensity is linear in the wanted value."""
     r = np.asarray(response, dtype=np.float64)
     if np.any(np.diff(r) <= -0.01):
-        raise CalibrationError("projector response is not monotonic; check exposure (saturation) and ambient light")
+        raise CalibrationError(
+            "projector response is not monotonic; check exposure (saturation) and ambient light"
+        )
     r = np.maximum.accumulate(r)
     wanted = np.arange(256) / 255.0
     return np.clip(np.rint(np.interp(wanted, r, np.asarray(levels, float))), 0, 255).astype(np.uint8)
@@ -65,5 +69,8 @@ def apply_lut(patterns: PatternSet, lut: NDArray[np.uint8]) -> PatternSet:
 
 
 def gamma_figures(levels: NDArray, response: NDArray) -> dict[str, Any]:
-    return {"levels": [int(x) for x in levels], "response": [float(x) for x in response],
-            "fitted_gamma": fitted_gamma(levels, response)}
+    return {
+        "levels": [int(x) for x in levels],
+        "response": [float(x) for x in response],
+        "fitted_gamma": fitted_gamma(levels, response),
+    }

@@ -7,7 +7,8 @@ Two methods:
   used when the installed OpenCV exposes it; the OpenCV 5.0.0 Python wheel does not (opencv/opencv#29565,
   fixed by PR #29584 after the 5.0.0.93 release), so the two closed forms are written here as a fallback,
   following the published algorithms that OpenCV implements.
-* :func:`handeye_icp` -- the dissertation's method (4.1.3): scan a gauge of known CAD, find the closest point of
+* :func:`handeye_icp` -- the dissertation's method (4.1.3): scan a gauge of known CAD, find the closest point
+of
   every measured point on the CAD triangles (point-to-plane foot points), solve the rigid transform in closed
   form with the unit quaternion (eqs 4.5-4.12, Horn's eigenvector solution) and iterate (eq 4.14) until the
   ratio of successive cost decreases (eq 4.15) says the rest is negligible. With several views the unknown is
@@ -59,7 +60,9 @@ def _park(A: list[Pose], B: list[Pose]) -> Pose:
     """Park & Martin (1994): R_X = (M^T M)^(-1/2) M^T with M = sum beta alpha^T of the rotation logs."""
     M = np.zeros((3, 3))
     for a, b in zip(A, B):
-        M += np.outer(Rotation.from_matrix(b[:3, :3]).as_rotvec(), Rotation.from_matrix(a[:3, :3]).as_rotvec())
+        M += np.outer(
+            Rotation.from_matrix(b[:3, :3]).as_rotvec(), Rotation.from_matrix(a[:3, :3]).as_rotvec()
+        )
     w, V = np.linalg.eigh(M.T @ M)
     R = V @ np.diag(1.0 / np.sqrt(w)) @ V.T @ M.T
     return make_pose(R, _translation(A, B, R))
@@ -90,20 +93,28 @@ def handeye_from_board_poses(T_B_T: Sequence[Pose], T_C_Bd: Sequence[Pose], meth
     if len(T_B_T) != len(T_C_Bd):
         raise CalibrationError(f"hand-eye: {len(T_B_T)} robot poses but {len(T_C_Bd)} board poses")
     if len(T_B_T) < MIN_POSES:
-        raise CalibrationError(f"hand-eye: {len(T_B_T)} poses; at least {MIN_POSES} with rotations about "
-                               "different axes are needed (10-20 recommended)")
+        raise CalibrationError(
+            f"hand-eye: {len(T_B_T)} poses; at least {MIN_POSES} with rotations about "
+            "different axes are needed (10-20 recommended)"
+        )
     if method not in _CV_METHODS:
         raise CalibrationError(f"hand-eye method '{method}': use one of {sorted(_CV_METHODS)}")
     A, B = _relative_motions(T_B_T, T_C_Bd)
     axes = np.array([Rotation.from_matrix(a[:3, :3]).as_rotvec() for a in A])
     if np.linalg.matrix_rank(axes, tol=1e-3) < 2:
-        raise CalibrationError("hand-eye: the robot rotated about a single axis only; add poses that rotate "
-                               "about at least two different axes")
+        raise CalibrationError(
+            "hand-eye: the robot rotated about a single axis only; add poses that rotate "
+            "about at least two different axes"
+        )
     solver = getattr(cv2, "calibrateHandEye", None)
     if solver is not None:  # pragma: no cover - depends on the installed OpenCV build
-        R, t = solver([g[:3, :3] for g in T_B_T], [g[:3, 3] for g in T_B_T],
-                      [c[:3, :3] for c in T_C_Bd], [c[:3, 3] for c in T_C_Bd],
-                      method=getattr(cv2, _CV_METHODS[method]))
+        R, t = solver(
+            [g[:3, :3] for g in T_B_T],
+            [g[:3, 3] for g in T_B_T],
+            [c[:3, :3] for c in T_C_Bd],
+            [c[:3, 3] for c in T_C_Bd],
+            method=getattr(cv2, _CV_METHODS[method]),
+        )
         return make_pose(R, np.ravel(t))
     return _park(A, B) if method == "park" else _tsai(A, B)
 
@@ -119,7 +130,8 @@ class GaugeView:
 
 @dataclass
 class IcpHandEyeResult:
-    """``T_T_C`` found, the cost Delta_i (eq 4.14, weighted mean squared distance mm^2) and delta (eq 4.15) per
+    """``T_T_C`` found, the cost Delta_i (eq 4.14, weighted mean squared distance mm^2) and delta (eq 4.15)
+    per
     iteration, and whether the stop rule was met before ``max_iter``."""
 
     T_T_C: Pose
@@ -135,21 +147,33 @@ class IcpHandEyeResult:
 def _balance(normals: NDArray) -> NDArray:
     """Weights that give every surface orientation (normal binned to ~6 deg) the same total weight: a view
     sees far more of the top face than of the sides, and the sides are what pin the in-plane position."""
-    _, inverse, counts = np.unique(np.rint(normals * 10).astype(np.int32), axis=0, return_inverse=True,
-                                   return_counts=True)
+    _, inverse, counts = np.unique(
+        np.rint(normals * 10).astype(np.int32), axis=0, return_inverse=True, return_counts=True
+    )
     return 1.0 / counts[inverse.ravel()]
 
 
-def handeye_icp(nominal: NominalMesh, views: Sequence[GaugeView], T_W_B: Pose, T_W_P: Pose, T_T_C_init: Pose,
-                max_iter: int = 200, rel_tol: float = 1e-6, max_dist_mm: float = 1.0,
-                start_dist_mm: float = 10.0, patience: int = 5) -> IcpHandEyeResult:
+def handeye_icp(
+    nominal: NominalMesh,
+    views: Sequence[GaugeView],
+    T_W_B: Pose,
+    T_W_P: Pose,
+    T_T_C_init: Pose,
+    max_iter: int = 200,
+    rel_tol: float = 1e-6,
+    max_dist_mm: float = 1.0,
+    start_dist_mm: float = 10.0,
+    patience: int = 5,
+) -> IcpHandEyeResult:
     """``T_T_C`` by ICP of gauge scans against the gauge CAD ``nominal`` (part frame {P}, mm).
 
     Each iteration maps the points of view k into {P} with ``T_P_T_k T_T_C`` (T_P_T_k = T_W_P^-1 T_W_B
     T_B_T_k), takes the closest point on the CAD triangles, carries it back into {T} and solves ``T_T_C`` in
     closed form (unit quaternion). Pairs farther apart than a cut-off are left out (table, clutter): the
     cut-off starts at ``start_dist_mm`` (how far off the initial guess may put a point) and follows
-    3 x the current RMS down to ``max_dist_mm``. Each surface orientation gets the same total weight (:func:`_balance`). Stop rule from eq 4.15: with delta = (D_i - D_i-1)/(D_i-1 - D_i-2) the cost still to come is about
+    3 x the current RMS down to ``max_dist_mm``. Each surface orientation gets the same total weight
+    (:func:`_balance`). Stop rule from eq 4.15: with delta = (D_i - D_i-1)/(D_i-1 - D_i-2) the cost still to
+    come is about
     |D_i - D_i-1| delta/(1 - delta) (a geometric tail); stop when that is below ``rel_tol * D_i``; or, at
     the noise floor, where the correspondences only shuffle and delta jumps about, when the lowest cost has
     not improved for ``patience`` iterations (the transform of the lowest cost is returned).
@@ -159,8 +183,10 @@ def handeye_icp(nominal: NominalMesh, views: Sequence[GaugeView], T_W_B: Pose, T
     T_P_T = [invert(T_W_P) @ T_W_B @ v.T_B_T for v in views]
     pts = [np.asarray(v.points_C, dtype=np.float64).reshape(-1, 3) for v in views]
     if sum(len(p) for p in pts) < 100:
-        raise CalibrationError(f"hand-eye ICP: only {sum(len(p) for p in pts)} gauge points; scan the gauge "
-                               "so that it fills the view")
+        raise CalibrationError(
+            f"hand-eye ICP: only {sum(len(p) for p in pts)} gauge points; scan the gauge "
+            "so that it fills the view"
+        )
     X = np.array(T_T_C_init, dtype=np.float64)
     result = IcpHandEyeResult(X)
     cutoff = start_dist_mm
@@ -177,8 +203,10 @@ def handeye_icp(nominal: NominalMesh, views: Sequence[GaugeView], T_W_B: Pose, T
             normals.append(nominal.face_normals[em.face[keep]])
         d2_all = np.concatenate(d2)
         if len(d2_all) < 100:
-            raise CalibrationError(f"hand-eye ICP: only {len(d2_all)} points within {cutoff:.1f} mm of the "
-                                   "gauge CAD; the initial hand-eye guess or the gauge placement is too far off")
+            raise CalibrationError(
+                f"hand-eye ICP: only {len(d2_all)} points within {cutoff:.1f} mm of the "
+                "gauge CAD; the initial hand-eye guess or the gauge placement is too far off"
+            )
         w = _balance(np.concatenate(normals))
         result.cost_mm2.append(float(np.sum(w * d2_all) / np.sum(w)))
         c = result.cost_mm2
@@ -206,4 +234,5 @@ def pose_error(T_est: Pose, T_true: Pose) -> tuple[float, float]:
     """(translation error mm, rotation error deg) between two poses."""
     dT = invert(T_true) @ T_est
     return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), float(
-        np.degrees(np.linalg.norm(Rotation.from_matrix(dT[:3, :3]).as_rotvec())))
+        np.degrees(np.linalg.norm(Rotation.from_matrix(dT[:3, :3]).as_rotvec()))
+    )

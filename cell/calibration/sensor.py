@@ -31,11 +31,12 @@ from numpy.typing import NDArray
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
 from cell.calibration.codepoints import locate_codes
+from cell.calibration.rejection import fit_residuals, robust_fit, spatial_outliers
 from cell.calibration.store import load_calibration, save_calibration, save_map_png
 from cell.config import CameraConfig, ProjectorConfig
 from cell.errors import CalibrationError, ConfigError
 from cell.sensing.decode import Decoded
-from cell.sensing.triangulate import ReferencePlaneTriangulator, fit_d_S, normalized_coords, reference_table
+from cell.sensing.triangulate import ReferencePlaneTriangulator, normalized_coords, reference_table
 
 MIN_STEPS = 3
 
@@ -60,8 +61,10 @@ def code_grid(u_ref: NDArray, v_ref: NDArray, n_points: int, margin: float = 0.0
     n = int(round(np.sqrt(n_points)))
     ok = np.isfinite(u_ref) & np.isfinite(v_ref)
     if ok.sum() < 100:
-        raise CalibrationError("reference step: fewer than 100 pixels decoded in both directions; is the board "
-                               "in view, lit by the projector and inside the depth of field?")
+        raise CalibrationError(
+            "reference step: fewer than 100 pixels decoded in both directions; is the board "
+            "in view, lit by the projector and inside the depth of field?"
+        )
     ulo, uhi = np.percentile(u_ref[ok], [100 * margin, 100 * (1 - margin)])
     vlo, vhi = np.percentile(v_ref[ok], [100 * margin, 100 * (1 - margin)])
     uu, vv = np.meshgrid(np.linspace(ulo, uhi, n), np.linspace(vlo, vhi, n))
@@ -72,11 +75,20 @@ class SensorCalibrator:
     """Feed the decoded steps in order with :meth:`add_step`, then :meth:`finish`. Keeps only the encoded
     points of each step (not the images), so 30 full-resolution steps fit in memory."""
 
-    def __init__(self, camera: CameraConfig, projector: ProjectorConfig, reference_depth_mm: float,
-                 n_points: int = 65536, K: NDArray | None = None, dist: NDArray | None = None):
+    def __init__(
+        self,
+        camera: CameraConfig,
+        projector: ProjectorConfig,
+        reference_depth_mm: float,
+        n_points: int = 65536,
+        K: NDArray | None = None,
+        dist: NDArray | None = None,
+        reject_k: float = 5.0,
+    ):
         self.camera, self.projector = camera, projector
         self.S0 = float(reference_depth_mm)
         self.n_points = n_points
+        self.reject_k = reject_k  # robust sigmas beyond which samples and points are rejected (rejection.py)
         self.K = camera.K() if K is None else np.asarray(K, float)
         self.dist = camera.distortion.as_array() if dist is None else np.asarray(dist, float)
         self.heights: list[float] = []
@@ -90,27 +102,36 @@ class SensorCalibrator:
         Returns how many encoded points were found."""
         W, H = self.camera.width_px, self.camera.height_px
         if set(decoded.axes) != {"columns", "rows"}:
-            raise CalibrationError("sensor calibration needs both stripe directions decoded (direction 'both')")
+            raise CalibrationError(
+                "sensor calibration needs both stripe directions decoded (direction 'both')"
+            )
         u, v = decoded.axes["columns"].u, decoded.axes["rows"].u
         if u.shape != (H, W):
-            raise CalibrationError(f"step {len(self.heights)}: decoded maps are {u.shape[1]}x{u.shape[0]}, the "
-                                   f"camera '{self.camera.name}' is {W}x{H}: resolution mismatch")
+            raise CalibrationError(
+                f"step {len(self.heights)}: decoded maps are {u.shape[1]}x{u.shape[0]}, the "
+                f"camera '{self.camera.name}' is {W}x{H}: resolution mismatch"
+            )
         if not self.heights:
             if height_mm != 0:
-                raise CalibrationError(f"the first step is the reference plane and must have height 0, got "
-                                       f"{height_mm} mm")
+                raise CalibrationError(
+                    f"the first step is the reference plane and must have height 0, got {height_mm} mm"
+                )
             self.codes = code_grid(u, v, self.n_points)
             self.u_ref = u.astype(np.float64)
         elif not height_mm > self.heights[-1]:
-            raise CalibrationError(f"step {len(self.heights)}: height {height_mm} mm is not above the previous "
-                                   f"{self.heights[-1]} mm; steps must increase toward the sensor")
+            raise CalibrationError(
+                f"step {len(self.heights)}: height {height_mm} mm is not above the previous "
+                f"{self.heights[-1]} mm; steps must increase toward the sensor"
+            )
         pos, grad = locate_codes(u, v, self.codes, (self.projector.width_px, self.projector.height_px))
         if self.grad is None:
             self.grad = grad
         found = int(np.isfinite(pos[:, 0]).sum())
         if found < 0.2 * len(self.codes):
-            raise CalibrationError(f"step {len(self.heights)} at {height_mm} mm: only {found} of "
-                                   f"{len(self.codes)} encoded points found; is the board in view?")
+            raise CalibrationError(
+                f"step {len(self.heights)} at {height_mm} mm: only {found} of "
+                f"{len(self.codes)} encoded points found; is the board in view?"
+            )
         self.heights.append(float(height_mm))
         self.positions.append(pos)
         return found
@@ -120,7 +141,9 @@ class SensorCalibrator:
         out = np.full_like(px, np.nan)
         ok = np.isfinite(px[:, 0])
         if ok.any():
-            out[ok] = cv2.undistortPoints(px[ok].reshape(-1, 1, 2), self.K, self.dist).reshape(-1, 2) * self.S0
+            out[ok] = (
+                cv2.undistortPoints(px[ok].reshape(-1, 1, 2), self.K, self.dist).reshape(-1, 2) * self.S0
+            )
         return out
 
     def finish(self, stride: int = 1) -> SensorCalibration:
@@ -142,19 +165,31 @@ class SensorCalibrator:
         bhat = total / np.maximum(np.linalg.norm(total, axis=1, keepdims=True), 1e-12)
         L = np.concatenate([np.zeros((1, len(bhat))), np.einsum("knj,nj->kn", b, bhat)])
         L[np.isnan(m[:, :, 0])] = np.nan
-        d, S = fit_d_S(h, L)
+        d, S, L, rejected = robust_fit(h, L, self.reject_k)
+        sub = len(range(0, side, stride))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            spatial = spatial_outliers(d / S, sub, self.reject_k)
+        d[spatial], S[spatial] = np.nan, np.nan
+        rejected["spatial_outliers"] = int(spatial.sum())
         with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # points seen in no step: NaN, filtered below
-            res = np.sqrt(np.nanmean((h[:, None] - L * S / (d + L)) ** 2, axis=0))
+            res = np.sqrt(np.nanmean(fit_residuals(h, L, d, S) ** 2, axis=0))
             grad = self.grad[sel]
             g = grad * np.sign(np.sum(grad * bhat, axis=1, keepdims=True))
             alpha_diss = np.arctan2(g[:, 0] * bhat[:, 1] - g[:, 1] * bhat[:, 0], np.sum(g * bhat, axis=1))
             cos_eff = np.clip(np.sum(bhat * g, axis=1) / np.abs(g[:, 0]), -1, 1)
         alpha_eff = np.arccos(cos_eff)
-        ok = np.isfinite(d) & np.isfinite(S) & np.isfinite(alpha_eff) & (np.sum(np.isfinite(L), 0) >= MIN_STEPS)
+        ok = (
+            np.isfinite(d)
+            & np.isfinite(S)
+            & np.isfinite(alpha_eff)
+            & (np.sum(np.isfinite(L), 0) >= MIN_STEPS)
+        )
         if ok.sum() < 16:
             raise CalibrationError(f"sensor calibration: only {int(ok.sum())} encoded points could be fitted")
-        pos = np.nanmean(np.stack(self.positions), axis=0)[sel]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # codes never seen: NaN, left out
+            pos = np.nanmean(np.stack(self.positions), axis=0)[sel]
         ok &= np.isfinite(pos[:, 0])
         W, H = self.camera.width_px, self.camera.height_px
         yy, xx = np.mgrid[0:H, 0:W]
@@ -167,44 +202,74 @@ class SensorCalibrator:
         xn, yn = normalized_coords(self.K, self.dist, W, H)
         table, u0 = reference_table(self.u_ref, xn)
         sign = float(np.sign(np.nanmean(bhat[:, 0])) or 1.0)
-        model = ReferencePlaneTriangulator(maps[..., 0], maps[..., 1], maps[..., 2], xn, yn, table, u0, 0.25,
-                                           self.S0, sign)
+        model = ReferencePlaneTriangulator(
+            maps[..., 0], maps[..., 1], maps[..., 2], xn, yn, table, u0, 0.25, self.S0, sign
+        )
         figures = {
-            "steps": n, "heights_mm": [float(x) for x in h], "encoded_points": int(sel.sum()),
+            "steps": n,
+            "heights_mm": [float(x) for x in h],
+            "encoded_points": int(sel.sum()),
             "fitted_points": int(ok.sum()),
-            "d_mm": _stats(d[ok]), "S_mm": _stats(S[ok]), "alpha_deg": _stats(np.degrees(alpha_diss[ok])),
+            "d_mm": _stats(d[ok]),
+            "S_mm": _stats(S[ok]),
+            "alpha_deg": _stats(np.degrees(alpha_diss[ok])),
             "residual_mm": _stats(res[ok]),
+            "rejected": rejected,
         }
         return SensorCalibration(model, pos, d, S, alpha_eff, res, h, figures)
 
 
 def _stats(x: NDArray) -> dict[str, float]:
     x = x[np.isfinite(x)]
-    return {"mean": float(x.mean()), "std": float(x.std()), "min": float(x.min()), "max": float(x.max()),
-            "rms": float(np.sqrt(np.mean(x * x)))}
+    return {
+        "mean": float(x.mean()),
+        "std": float(x.std()),
+        "min": float(x.min()),
+        "max": float(x.max()),
+        "rms": float(np.sqrt(np.mean(x * x))),
+    }
 
 
 def _standard_error(cal: SensorCalibration) -> float:
     """Median over the encoded points of the fit's standard error of height, residual / sqrt(steps - 2): the
-    figure by which a new calibration is compared with the active one (fewer steps fit closer but know less)."""
+    figure by which a new calibration is compared with the active one (fewer steps fit closer but know
+    less)."""
     return float(np.nanmedian(cal.residual_mm) / np.sqrt(max(len(cal.heights_mm) - 2, 1)))
 
 
-def save_sensor_calibration(cal: SensorCalibration, path: Path, camera: CameraConfig, projector: ProjectorConfig,
-                            force: bool = False) -> Path:
+def save_sensor_calibration(
+    cal: SensorCalibration, path: Path, camera: CameraConfig, projector: ProjectorConfig, force: bool = False
+) -> Path:
     """Versioned file of the per-pixel model (see :mod:`cell.calibration.store`); worse-than-existing files
     (by :func:`_standard_error`) are refused unless ``force``. Writes d/S/alpha maps as PNG beside it."""
     m = cal.model
-    arrays = {"d": m.d, "S": m.S, "alpha": m.alpha, "ref_x": m.ref_x, "points_px": cal.points_px,
-              "d_points": cal.d_mm, "S_points": cal.S_mm, "alpha_points": cal.alpha_rad,
-              "residual_points": cal.residual_mm, "heights_mm": cal.heights_mm}
-    meta = {"camera": {"serial": camera.serial, "resolution": [camera.width_px, camera.height_px],
-                       "K": camera.K().tolist(), "dist": camera.distortion.as_array().tolist()},
-            "projector": {"serial": projector.name, "resolution": [projector.width_px, projector.height_px]},
-            "model": {"u0": m.u0, "du": m.du, "res_mm": m.res_mm, "sign": m.sign},
-            "figures": cal.figures,
-            "quality": {"median_residual_mm": float(np.nanmedian(cal.residual_mm)),
-                        "standard_error_mm": _standard_error(cal)}}
+    arrays = {
+        "d": m.d,
+        "S": m.S,
+        "alpha": m.alpha,
+        "ref_x": m.ref_x,
+        "points_px": cal.points_px,
+        "d_points": cal.d_mm,
+        "S_points": cal.S_mm,
+        "alpha_points": cal.alpha_rad,
+        "residual_points": cal.residual_mm,
+        "heights_mm": cal.heights_mm,
+    }
+    meta = {
+        "camera": {
+            "serial": camera.serial,
+            "resolution": [camera.width_px, camera.height_px],
+            "K": camera.K().tolist(),
+            "dist": camera.distortion.as_array().tolist(),
+        },
+        "projector": {"serial": projector.name, "resolution": [projector.width_px, projector.height_px]},
+        "model": {"u0": m.u0, "du": m.du, "res_mm": m.res_mm, "sign": m.sign},
+        "figures": cal.figures,
+        "quality": {
+            "median_residual_mm": float(np.nanmedian(cal.residual_mm)),
+            "standard_error_mm": _standard_error(cal),
+        },
+    }
     out = save_calibration(path, "sensor_per_pixel", arrays, meta, "quality.standard_error_mm", force)
     stem = Path(path).with_suffix("")
     for name, arr in (("d", m.d), ("S", m.S), ("alpha", m.alpha)):
@@ -217,10 +282,14 @@ def load_sensor_model(path: Path, camera: CameraConfig) -> ReferencePlaneTriangu
     camera resolution."""
     meta, a = load_calibration(path, "sensor_per_pixel")
     if list(meta["camera"]["resolution"]) != [camera.width_px, camera.height_px]:
-        raise ConfigError(f"calibration is for a {meta['camera']['resolution']} camera, '{camera.name}' is "
-                          f"{camera.width_px}x{camera.height_px}: resolution mismatch", path=str(path))
+        raise ConfigError(
+            f"calibration is for a {meta['camera']['resolution']} camera, '{camera.name}' is "
+            f"{camera.width_px}x{camera.height_px}: resolution mismatch",
+            path=str(path),
+        )
     K, dist = np.array(meta["camera"]["K"]), np.array(meta["camera"]["dist"])
     xn, yn = normalized_coords(K, dist, camera.width_px, camera.height_px)
     mm = meta["model"]
-    return ReferencePlaneTriangulator(a["d"], a["S"], a["alpha"], xn, yn, a["ref_x"], mm["u0"], mm["du"],
-                                      mm["res_mm"], mm["sign"])
+    return ReferencePlaneTriangulator(
+        a["d"], a["S"], a["alpha"], xn, yn, a["ref_x"], mm["u0"], mm["du"], mm["res_mm"], mm["sign"]
+    )

@@ -1,4 +1,5 @@
-"""Versioned calibration files: arrays in ``<name>.npz`` next to ``<name>.yaml`` metadata (camera and projector
+"""Versioned calibration files: arrays in ``<name>.npz`` next to ``<name>.yaml`` metadata (camera and
+projector
 serials, resolutions, date, residual statistics), plus residual maps as PNG pictures.
 
 An existing calibration is never replaced by a failed or worse one: :func:`save_calibration` compares the
@@ -32,8 +33,14 @@ def _nested(d: dict[str, Any], key: str) -> float | None:
     return float(cur)
 
 
-def save_calibration(path: Path, kind: str, arrays: dict[str, NDArray], meta: dict[str, Any],
-                     quality_key: str | None = None, force: bool = False) -> Path:
+def save_calibration(
+    path: Path,
+    kind: str,
+    arrays: dict[str, NDArray],
+    meta: dict[str, Any],
+    quality_key: str | None = None,
+    force: bool = False,
+) -> Path:
     """Write ``path``.yaml and ``path``.npz atomically; returns the YAML path.
 
     If a calibration of the same kind exists at ``path`` and ``quality_key`` (a dotted key into ``meta``,
@@ -46,12 +53,18 @@ def save_calibration(path: Path, kind: str, arrays: dict[str, NDArray], meta: di
             raise CalibrationError(f"{ypath} exists; pass --force to replace it")
         new_q, old_q = _nested(meta, quality_key), _nested(old, quality_key)
         if old_q is not None and (new_q is None or new_q > old_q):
-            raise CalibrationError(f"{ypath} exists and is better ({quality_key} {old_q:.6g} vs new "
-                                   f"{new_q if new_q is None else f'{new_q:.6g}'}); kept it. Pass --force to "
-                                   "replace it anyway")
-    full = {"format_version": FORMAT_VERSION, "kind": kind,
-            "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-            "arrays": npath.name, **meta}
+            raise CalibrationError(
+                f"{ypath} exists and is better ({quality_key} {old_q:.6g} vs new "
+                f"{new_q if new_q is None else f'{new_q:.6g}'}); kept it. Pass --force to "
+                "replace it anyway"
+            )
+    full = {
+        "format_version": FORMAT_VERSION,
+        "kind": kind,
+        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "arrays": npath.name,
+        **meta,
+    }
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     write_atomic(npath, buf.getvalue())
@@ -68,8 +81,11 @@ def load_metadata(path: Path) -> dict[str, Any]:
     if not isinstance(meta, dict) or "kind" not in meta:
         raise ConfigError("not a calibration file (no 'kind')", path=str(ypath))
     if meta.get("format_version") != FORMAT_VERSION:
-        raise ConfigError(f"calibration format {meta.get('format_version')}, this cell reads {FORMAT_VERSION}",
-                          path=str(ypath), field="format_version")
+        raise ConfigError(
+            f"calibration format {meta.get('format_version')}, this cell reads {FORMAT_VERSION}",
+            path=str(ypath),
+            field="format_version",
+        )
     return meta
 
 
@@ -77,8 +93,9 @@ def load_calibration(path: Path, kind: str) -> tuple[dict[str, Any], dict[str, N
     """(metadata, arrays) of a calibration of ``kind``."""
     meta = load_metadata(path)
     if meta["kind"] != kind:
-        raise ConfigError(f"calibration of kind '{meta['kind']}', expected '{kind}'", path=str(path),
-                          field="kind")
+        raise ConfigError(
+            f"calibration of kind '{meta['kind']}', expected '{kind}'", path=str(path), field="kind"
+        )
     npath = Path(path).with_suffix(".npz")
     if not npath.is_file():
         raise ConfigError("calibration arrays missing", path=str(npath))

@@ -29,8 +29,9 @@ WHITE_BOARD = MaterialConfig(albedo=0.8, specular=0.0, shininess=1.0)
 BOARD_BASE_Z_MM = 100.0  # the reference plane (step 0) lies this far above the table
 
 
-def reference_board_mesh(top_z_mm: float, size_mm: tuple[float, float] = (600.0, 450.0),
-                         thickness_mm: float = 10.0) -> trimesh.Trimesh:
+def reference_board_mesh(
+    top_z_mm: float, size_mm: tuple[float, float] = (600.0, 450.0), thickness_mm: float = 10.0
+) -> trimesh.Trimesh:
     """A flat board centred on the world z axis whose top face is the plane z = ``top_z_mm`` (mm)."""
     box = trimesh.creation.box(extents=(size_mm[0], size_mm[1], thickness_mm))
     box.apply_translation((0.0, 0.0, top_z_mm - thickness_mm / 2))
@@ -61,95 +62,176 @@ class SteppedReferenceBoard:
         mesh = board if part_W is None else trimesh.util.concatenate([board, part_W])
         return SceneRenderer(self.sensor, self.sim, Scene.from_meshes(mesh, self.sim, self.material))
 
-    def capture(self, height_mm: float, patterns: Sequence[NDArray[np.uint8]], rng: np.random.Generator,
-                exposure_ms: float | None = None) -> NDArray[np.integer]:
+    def capture(
+        self,
+        height_mm: float,
+        patterns: Sequence[NDArray[np.uint8]],
+        rng: np.random.Generator,
+        exposure_ms: float | None = None,
+    ) -> NDArray[np.integer]:
         """(N, H, W) camera images of ``patterns`` on the board at ``height_mm``."""
         cam = self.sensor.camera
-        return self.renderer(height_mm).render_stack(self.T_W_C, list(patterns), exposure_ms or cam.exposure_ms,
-                                                     cam.gain_db, rng)
+        return self.renderer(height_mm).render_stack(
+            self.T_W_C, list(patterns), exposure_ms or cam.exposure_ms, cam.gain_db, rng
+        )
 
 
-# --------------------------------------------------------------------------------------------- textured boards
-def charuco_board(squares: tuple[int, int] = (9, 7), square_mm: float = 20.0, marker_mm: float = 15.0,
-                  dictionary: int = cv2.aruco.DICT_5X5_100) -> cv2.aruco.CharucoBoard:
+# --------------------------------------------------------------------------------------------- textured
+# boards
+def charuco_board(
+    squares: tuple[int, int] = (9, 7),
+    square_mm: float = 20.0,
+    marker_mm: float = 15.0,
+    dictionary: int = cv2.aruco.DICT_5X5_100,
+) -> cv2.aruco.CharucoBoard:
     """An OpenCV ChArUco board (lengths in mm)."""
-    return cv2.aruco.CharucoBoard(squares, square_mm, marker_mm, cv2.aruco.getPredefinedDictionary(dictionary))
+    return cv2.aruco.CharucoBoard(
+        squares, square_mm, marker_mm, cv2.aruco.getPredefinedDictionary(dictionary)
+    )
 
 
-def board_texture(board: cv2.aruco.CharucoBoard, px_per_mm: float = 8.0, black_albedo: float = 0.05,
-                  white_albedo: float = 0.85) -> tuple[NDArray[np.float32], float]:
+def board_texture(
+    board: cv2.aruco.CharucoBoard,
+    px_per_mm: float = 8.0,
+    black_albedo: float = 0.05,
+    white_albedo: float = 0.85,
+) -> tuple[NDArray[np.float32], float]:
     """Albedo image (float32) of the board's printed face and its resolution (texture px per mm)."""
     nx, ny = board.getChessboardSize()
     s = board.getSquareLength()
-    img = board.generateImage((int(round(nx * s * px_per_mm)), int(round(ny * s * px_per_mm))), marginSize=0,
-                              borderBits=1)
+    img = board.generateImage(
+        (int(round(nx * s * px_per_mm)), int(round(ny * s * px_per_mm))), marginSize=0, borderBits=1
+    )
     return (black_albedo + (white_albedo - black_albedo) * img.astype(np.float32) / 255.0), px_per_mm
 
 
-def render_textured_board(renderer: SceneRenderer, T_C_Bd: NDArray[np.float64], texture: NDArray[np.float32],
-                          px_per_mm: float, rng: np.random.Generator | None,
-                          white_level: float | NDArray[np.uint8] = 1.0, exposure_ms: float | None = None
-                          ) -> NDArray[np.integer]:
+def render_textured_board(
+    renderer: SceneRenderer,
+    T_C_Bd: NDArray[np.float64],
+    texture: NDArray[np.float32],
+    px_per_mm: float,
+    rng: np.random.Generator | None,
+    white_level: float = 1.0,
+    exposure_ms: float | None = None,
+) -> NDArray[np.integer]:
     """Camera image of a textured board whose plane is z = 0 of {Bd} (x right, y down along the texture,
     origin at the texture's top-left corner, mm), at pose ``T_C_Bd`` in front of the camera.
 
     Only the board is in view (it hides what lies behind it); ``white_level`` is the projector's uniform
-    grey (0..1) lighting it, besides the ambient light, or a projector pattern (H_p, W_p) uint8, sampled where
-    each board point lies in the projector image (pinhole projector at ``renderer.T_C_P``, its defocus blur at
-    the board distance, its response curve), as projector calibration needs."""
-    cam, proj = renderer.cam, renderer.proj
-    rays = pixel_rays(cam)
-    T_Bd_C = invert(T_C_Bd)
-    o = T_Bd_C[:3, 3]
-    d = rays @ T_Bd_C[:3, :3].T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = -o[2] / d[..., 2]
-    hit = np.isfinite(t) & (t > 0)
-    P = o + d * np.where(hit, t, 0)[..., None]
-    h_t, w_t = texture.shape
-    map_x = (P[..., 0] * px_per_mm - 0.5).astype(np.float32)
-    map_y = (P[..., 1] * px_per_mm - 0.5).astype(np.float32)
-    map_x[~hit] = -1e6
-    # footprint of one camera pixel on the board, in texture px: pre-blur the texture to it (anti-aliasing)
-    depth = float(np.median(t[hit] * rays[..., 2][hit])) if hit.any() else cam.focus_distance_mm
-    footprint = depth / cam.fx_px * px_per_mm
-    tex = cv2.GaussianBlur(texture, (0, 0), max(0.5 * footprint, 0.3))
-    albedo = cv2.remap(tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    n_C = T_C_Bd[:3, 2]
-    P_C = rays * (t * hit)[..., None]
-    T_C_P = renderer.T_C_P
-    to_proj = T_C_P[:3, 3] - P_C
-    r = np.linalg.norm(to_proj, axis=-1)
-    cos_i = np.abs(to_proj @ n_C) / np.maximum(r, 1e-9)
-    if np.ndim(white_level) == 0:
-        lit = proj.black_level + (1 - proj.black_level) * float(white_level) ** proj.gamma
-    else:
-        pattern = np.asarray(white_level)
-        if pattern.shape != (proj.height_px, proj.width_px) or pattern.dtype != np.uint8:
-            raise ValueError(f"pattern must be uint8 {(proj.height_px, proj.width_px)}, got {pattern.dtype} "
-                             f"{pattern.shape}")
-        lut = (proj.black_level + (1 - proj.black_level) * (np.arange(256) / 255.0) ** proj.gamma)
-        lin = lut.astype(np.float32)[pattern]
-        uv = project_points(proj, transform_points(invert(T_C_P), P_C)).astype(np.float32)
-        uv[~hit | ~np.isfinite(uv[..., 0])] = -1e6
-        p_depth = float(np.median(transform_points(invert(T_C_P), P_C[hit])[:, 2])) if hit.any() else 1.0
-        p_sigma = float(blur_sigma_px(proj, np.array([p_depth]))[0])
+    grey (0..1) lighting it, besides the ambient light."""
+    view = _BoardView(renderer, T_C_Bd, texture, px_per_mm)
+    proj = renderer.proj
+    return view.image(
+        proj.black_level + (1 - proj.black_level) * float(white_level) ** proj.gamma, rng, exposure_ms
+    )
+
+
+def render_textured_board_stack(
+    renderer: SceneRenderer,
+    T_C_Bd: NDArray[np.float64],
+    texture: NDArray[np.float32],
+    px_per_mm: float,
+    patterns: Sequence[NDArray[np.uint8]],
+    rng: np.random.Generator | None,
+    exposure_ms: float | None = None,
+) -> NDArray[np.integer]:
+    """(N, H, W) camera images of projector ``patterns`` on the textured board (projector calibration): each
+    board point shows the pattern where it lies in the projector image (pinhole projector at
+    ``renderer.T_C_P``, its response curve and its defocus blur at the board distance). One geometry pass."""
+    view = _BoardView(renderer, T_C_Bd, texture, px_per_mm)
+    proj = renderer.proj
+    uv = project_points(proj, transform_points(invert(renderer.T_C_P), view.P_C)).astype(np.float32)
+    uv[~view.hit | ~np.isfinite(uv[..., 0])] = -1e6
+    p_depth = float(np.median(transform_points(invert(renderer.T_C_P), view.P_C[view.hit])[:, 2]))
+    p_sigma = float(blur_sigma_px(proj, np.array([p_depth]))[0])
+    lut = (proj.black_level + (1 - proj.black_level) * (np.arange(256) / 255.0) ** proj.gamma).astype(
+        np.float32
+    )
+    out = []
+    for pattern in patterns:
+        pat = np.asarray(pattern)
+        if pat.shape != (proj.height_px, proj.width_px) or pat.dtype != np.uint8:
+            raise ValueError(
+                f"pattern must be uint8 {(proj.height_px, proj.width_px)}, got {pat.dtype} {pat.shape}"
+            )
+        lin = lut[pat]
         if p_sigma > 0.3:
             lin = cv2.GaussianBlur(lin, (0, 0), p_sigma, borderType=cv2.BORDER_REPLICATE)
-        lit = cv2.remap(lin, uv[..., 0], uv[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                        borderValue=float(proj.black_level))
-    rate = albedo * (renderer.sim.ambient_e_per_ms
-                     + proj.irradiance_e_per_ms * lit * (proj.focus_distance_mm / r) ** 2 * cos_i)
-    signal = (rate * np.float32(exposure_ms or cam.exposure_ms)).astype(np.float32)
-    signal[~hit] = 0.0
-    sigma = float(blur_sigma_px(cam, np.array([depth]))[0])
-    if sigma > 0.3:
-        signal = cv2.GaussianBlur(signal, (0, 0), sigma)
-    return renderer.sensor_dn(signal, cam.gain_db, rng)
+        lit = cv2.remap(
+            lin,
+            uv[..., 0],
+            uv[..., 1],
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=float(proj.black_level),
+        )
+        out.append(view.image(lit, rng, exposure_ms))
+    return np.stack(out)
 
 
-def board_poses(board: cv2.aruco.CharucoBoard, distance_mm: float, n: int, rng: np.random.Generator,
-                max_tilt_deg: float = 30.0, spread_mm: float = 25.0) -> list[NDArray[np.float64]]:
+class _BoardView:
+    """Pattern-independent geometry and shading of a textured board at one pose (see
+    render_textured_board)."""
+
+    def __init__(
+        self,
+        renderer: SceneRenderer,
+        T_C_Bd: NDArray[np.float64],
+        texture: NDArray[np.float32],
+        px_per_mm: float,
+    ):
+        self.renderer = renderer
+        cam, proj = renderer.cam, renderer.proj
+        rays = pixel_rays(cam)
+        T_Bd_C = invert(T_C_Bd)
+        o = T_Bd_C[:3, 3]
+        d = rays @ T_Bd_C[:3, :3].T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -o[2] / d[..., 2]
+        self.hit = hit = np.isfinite(t) & (t > 0)
+        P = o + d * np.where(hit, t, 0)[..., None]
+        map_x = (P[..., 0] * px_per_mm - 0.5).astype(np.float32)
+        map_y = (P[..., 1] * px_per_mm - 0.5).astype(np.float32)
+        map_x[~hit] = -1e6
+        # footprint of one camera pixel on the board, in texture px: pre-blur the texture to it
+        # (anti-aliasing)
+        self.depth = float(np.median(t[hit] * rays[..., 2][hit])) if hit.any() else cam.focus_distance_mm
+        footprint = self.depth / cam.fx_px * px_per_mm
+        tex = cv2.GaussianBlur(texture, (0, 0), max(0.5 * footprint, 0.3))
+        self.albedo = cv2.remap(
+            tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
+        n_C = T_C_Bd[:3, 2]
+        self.P_C = rays * (t * hit)[..., None]
+        to_proj = renderer.T_C_P[:3, 3] - self.P_C
+        r = np.linalg.norm(to_proj, axis=-1)
+        cos_i = np.abs(to_proj @ n_C) / np.maximum(r, 1e-9)
+        self.proj_rate = (proj.irradiance_e_per_ms * (proj.focus_distance_mm / r) ** 2 * cos_i).astype(
+            np.float32
+        )
+
+    def image(
+        self, lit: float | NDArray[np.float32], rng: np.random.Generator | None, exposure_ms: float | None
+    ) -> NDArray[np.integer]:
+        """The camera image when the projector's linear output at each pixel's board point is ``lit``."""
+        r, cam = self.renderer, self.renderer.cam
+        rate = self.albedo * (r.sim.ambient_e_per_ms + self.proj_rate * lit)
+        signal = (rate * np.float32(exposure_ms or cam.exposure_ms)).astype(np.float32)
+        signal[~self.hit] = 0.0
+        sigma = float(blur_sigma_px(cam, np.array([self.depth]))[0])
+        if sigma > 0.3:
+            signal = cv2.GaussianBlur(signal, (0, 0), sigma)
+        return r.sensor_dn(signal, cam.gain_db, rng)
+
+
+def board_poses(
+    board: cv2.aruco.CharucoBoard,
+    distance_mm: float,
+    n: int,
+    rng: np.random.Generator,
+    max_tilt_deg: float = 30.0,
+    spread_mm: float = 25.0,
+) -> list[NDArray[np.float64]]:
     """``n`` poses ``T_C_Bd`` of a planar board in front of the camera for calibration: board centre near the
     optical axis at ``distance_mm`` (+-10 %), shifted up to ``spread_mm`` sideways, tilted up to
     ``max_tilt_deg`` about a random in-plane axis and turned up to +-20 deg about its normal."""
@@ -162,8 +244,10 @@ def board_poses(board: cv2.aruco.CharucoBoard, distance_mm: float, n: int, rng: 
     for _ in range(n):
         axis = rng.uniform(0, 2 * np.pi)
         tilt = np.radians(rng.uniform(0.3, 1.0) * max_tilt_deg)
-        R = (Rotation.from_rotvec(tilt * np.array([np.cos(axis), np.sin(axis), 0.0]))
-             * Rotation.from_rotvec([0.0, 0.0, np.radians(rng.uniform(-20, 20))])).as_matrix()
+        R = (
+            Rotation.from_rotvec(tilt * np.array([np.cos(axis), np.sin(axis), 0.0]))
+            * Rotation.from_rotvec([0.0, 0.0, np.radians(rng.uniform(-20, 20))])
+        ).as_matrix()
         c_C = np.array([*rng.uniform(-spread_mm, spread_mm, 2), distance_mm * rng.uniform(0.9, 1.1)])
         T = np.eye(4)
         T[:3, :3] = R
