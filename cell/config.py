@@ -203,6 +203,8 @@ class Recipe(Strict):
     name: str = ""
     part: PartConfig
     tolerance: ToleranceConfig
+    min_coverage: Fraction = Field(0.95, description="share of the inspectable surface that must be measured "
+                                   "for a pass/fail verdict; below it the verdict is 'incomplete'")
     plan: PlanSettings = PlanSettings()
 
 

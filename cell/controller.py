@@ -30,7 +30,7 @@ from transitions.extensions import HierarchicalGraphMachine
 from cell.contracts import ProjectorSource
 from cell.devices import DeviceBundle
 from cell.errors import CellError, DeviceError, DeviceFault, PlanningError
-from cell.planning.motion import via_points
+from cell.planning.motion import Move
 from cell.runs import RunFolder
 
 ACTIVE = ["connecting", "homing", "planning", "scanning", "evaluating", "replanning", "registering", "reporting",
@@ -61,6 +61,7 @@ def _transitions() -> list[dict[str, Any]]:
         {"trigger": "captured", "source": "scanning_capturing", "dest": "scanning_moving",
          "conditions": ["views_pending"] + safe},
         {"trigger": "captured", "source": "scanning_capturing", "dest": "scanning_decoding"},
+        {"trigger": "no_more_views", "source": "scanning_moving", "dest": "scanning_decoding"},
         {"trigger": "decoded", "source": "scanning_decoding", "dest": "evaluating"},
         {"trigger": "needs_views", "source": "evaluating", "dest": "replanning"},
         {"trigger": "qualified", "source": "evaluating", "dest": "registering"},
@@ -121,7 +122,6 @@ class ControllerSettings:
     view_budget: int = 60
     max_iterations: int = 4
     speed_fraction: float = 0.8
-    lift_mm: float = 80.0  # retract height between views (cell.planning.motion)
     pipelining: bool = True
     grab_timeout_ms: float = 2000.0
 
@@ -144,7 +144,7 @@ class Controller:
         *,
         robot_limits: tuple[float, float, float, float] = (250.0, 1200.0, 1.0, 3.0),
         home_joints_rad: np.ndarray | None = None,
-        kinematics: Any | None = None,
+        motion: Any | None = None,
         on_progress: Callable[["Controller"], None] | None = None,
     ) -> None:
         self.devices = devices
@@ -153,7 +153,7 @@ class Controller:
         self.settings = settings or ControllerSettings()
         self.robot_limits = robot_limits  # tcp mm/s, tcp mm/s^2, joint rad/s, joint rad/s^2
         self.home_joints_rad = home_joints_rad
-        self.kinematics = kinematics  # has ik_nearest(T_B_T, q_ref) -> joints; used when a line is refused
+        self.motion = motion  # cell.planning.motion.MotionPlanner: collision-checked paths; None: straight lines
         self.on_progress = on_progress
         self.checkpoint: dict[str, Any] = run.load_checkpoint() or {"phase": "new", "views": [], "iteration": 0}
         self.message = ""
@@ -206,7 +206,7 @@ class Controller:
         self.run.save_checkpoint(self.checkpoint)
 
     def _done_views(self) -> set[int]:
-        return set(self.run.completed_views()) | set(self._pending)
+        return set(self.run.completed_views()) | set(self._pending) | set(self.checkpoint.get("skipped", []))
 
     def _next_view(self) -> int | None:
         done = self._done_views()
@@ -273,6 +273,7 @@ class Controller:
         if retryable and self._attempts < self.settings.max_retries:
             self._attempts += 1
             time.sleep(self.settings.retry_delay_s)
+            self._reconnect(exc.device)
             return  # same state, same handler: retry
         self._attempts = 0
         self.message = str(exc)
@@ -281,6 +282,18 @@ class Controller:
             self.pause()  # needs the operator; `cell resume` continues from the last checkpoint
         else:
             self.fault()
+
+    def _reconnect(self, name: str) -> None:
+        """Close and reopen the device a timeout came from: a lost connection is the commonest cause."""
+        for kind, device in self.devices.items():
+            if self.devices.names.get(kind, kind) != name:
+                continue
+            try:
+                device.close()
+                device.connect()
+                self.run.log("device", device=name, command="reconnect")
+            except CellError as exc:  # the retry itself will report what is wrong
+                self.run.log("error", kind=type(exc).__name__, error=str(exc), during="reconnect")
 
     def _make_safe(self) -> None:
         """Stop the robot and blank the projector; never raises (this runs on every exit path)."""
@@ -332,36 +345,33 @@ class Controller:
     def _do_scanning_moving(self) -> None:
         index = self._next_view()
         assert index is not None  # guarded by views_pending
-        view = self.checkpoint["views"][index]
-        target = np.asarray(view["T_B_T"], dtype=np.float64)
+        target = np.asarray(self.checkpoint["views"][index]["T_B_T"], dtype=np.float64)
         robot = self.devices.robot
-        z_max = robot.envelope.max_mm[2] - 1.0
-        path = via_points(robot.tool_pose(), target, self.settings.lift_mm, z_max)
-        for T_B_T in path[:-1]:
+        if self.motion is None:
+            moves = [Move("linear", target)]
+        else:
             try:
-                self._move_to(T_B_T, index)
-            except PlanningError as exc:  # a via point out of reach: go on without it
-                self.run.log("decision", view=index, reason=f"via point skipped: {exc}")
-        self._move_to(target, index)
-        self.current_view = index
-        self.arrived()
-
-    def _move_to(self, T_B_T: np.ndarray, index: int) -> None:
-        """A linear move within the speed limits; a joint move to the nearest IK branch if the line is refused."""
-        robot = self.devices.robot
+                moves, rejected = self.motion.plan(robot.tool_pose(), robot.joints(), target, self.home_joints_rad)
+            except PlanningError as exc:  # this view cannot be reached safely: skip it, say why
+                self.run.log("decision", view=index, reason=f"view skipped: {exc}")
+                self._save(skipped=sorted(set(self.checkpoint.get("skipped", [])) | {index}))
+                if not self.views_pending():
+                    self.no_more_views()
+                return
+            if rejected:
+                self.run.log("decision", view=index, reason="path options dropped: " + "; ".join(rejected))
         v, a, qd, qdd = self.robot_limits
         f = self.settings.speed_fraction
-        self.run.log("device", device="robot", command="move_linear", view=index, target=T_B_T)
-        try:
-            robot.move_linear(T_B_T, v * f, a * f)
-        except PlanningError as exc:
-            if self.kinematics is None:
-                raise
-            # a straight line can pass a singularity or leave the envelope where a joint move does not
-            q = self.kinematics.ik_nearest(T_B_T, robot.joints())
-            self.run.log("device", device="robot", command="move_joint", view=index, target=q,
-                         reason=f"linear path refused: {exc}")
-            robot.move_joint(q, qd * f, qdd * f)
+        for move in moves:
+            self.run.log("device", device="robot", command=f"move_{move.kind}", view=index, target=move.target,
+                         speed_scale=move.speed_scale)
+            k = f * move.speed_scale
+            if move.kind == "linear":
+                robot.move_linear(move.target, v * k, a * k)
+            else:
+                robot.move_joint(move.target, qd * k, qdd * k)
+        self.current_view = index
+        self.arrived()
 
     def _do_scanning_capturing(self) -> None:
         index = self.current_view

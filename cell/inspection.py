@@ -26,13 +26,19 @@ from numpy.typing import NDArray
 
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.linkfilter import link_cluster
-from cell.analysis.report import ReportInput, Tolerance, write_report
+from cell.analysis.merge import merge_views
+from cell.analysis.regions import Coverage
+from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
 from cell.config import CellConfig, Recipe
 from cell.contracts import CameraSettings, PixelFormat, TriggerMode
 from cell.devices import DeviceBundle
+from cell.errors import DeviceFault
 from cell.geometry import invert, transform_points, transform_vectors
+from cell.planning.coverage import coverage_fraction, covered_by_points
 from cell.planning.feedback import FeedbackPlanner, evaluate, select_new
+from cell.planning.kinematics import UR5E
 from cell.planning.measured import DefectRegion, MeasuredView, measured_view_from_masks
+from cell.planning.motion import MotionPlanner
 from cell.planning.planner import Plan, plan_initial
 from cell.planning.viewpoints import Viewpoint
 from cell.runs import RunFolder, write_json_atomic
@@ -54,7 +60,10 @@ class InspectionSettings:
     min_cluster_px: int = 200
     table_margin_mm: float = 0.5  # points lower than this above the table top (world z) are the table
     crop_mm: float = 5.0  # points farther than this from the nominal surface are background, not part
-    eval_voxel_mm: float = 0.5  # coverage and the accuracy map use one point per voxel: ample for 0.5 pt/mm^2
+    eval_voxel_mm: float = 0.5
+    merge_voxel_mm: float = 0.2
+    lift_mm: float = 80.0  # retract height between views
+    min_defect_points: int = 10  # out-of-tolerance clusters smaller than this are isolated outliers  # views are averaged on this grid (quality-weighted)  # coverage and the accuracy map use one point per voxel: ample for 0.5 pt/mm^2
     pictures: bool = True
 
 
@@ -93,6 +102,13 @@ class LambertianInspection:
         return {"T_W_C": vp.T_W_C.tolist(), "T_B_T": vp.T_B_T.tolist(), "patch": vp.patch, "source": vp.source,
                 "iteration": iteration}
 
+    def motion_planner(self, speed_fraction: float) -> MotionPlanner:
+        """Collision-checked paths between views against this part and the table (cell.planning.motion)."""
+        robot = self.cfg.robot
+        return MotionPlanner(self.plan_model.patch_planner.reach, UR5E, lift_mm=self.settings.lift_mm,
+                             z_max_mm=robot.envelope_max_mm[2] - 1.0,
+                             tcp_speed_mm_s=robot.max_tcp_speed_mm_s * speed_fraction)
+
     def plan(self) -> list[dict[str, Any]]:
         return [self._view_dict(v, 0) for v in self.plan_model.viewpoints]
 
@@ -109,6 +125,10 @@ class LambertianInspection:
         self.prepare(devices)
         T_B_T = devices.robot.tool_pose()
         images = capture_stack(devices.camera, devices.projector, self.patterns)
+        status = devices.projector.status()
+        if not status.ready:  # a lamp that failed mid-stack leaves dark frames: measure again after the fix
+            why = ", ".join(status.errors) or str(status)
+            raise DeviceFault(devices.projector.name, f"not ready after the pattern stack: {why}")
         return {"images": images, "T_B_T": T_B_T, "camera": devices.camera.name}
 
     def decode(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
@@ -166,29 +186,28 @@ class LambertianInspection:
         return measured_view_from_masks(T_W_C, np.zeros(reasons.shape + (3,)), empty, masks, nominal).defects
 
     # ------------------------------------------------------------------ feedback
-    def _measured(self, run: RunFolder, n_views: int) -> list[MeasuredView]:
-        out = []
-        for i in range(n_views):
+    def _measured(self, run: RunFolder) -> dict[int, MeasuredView]:
+        """The measured views by view index (skipped or unmeasured views are absent)."""
+        out = {}
+        for i in run.completed_views():
             d = run.view_dir(i)
             meta = json.loads((d / "view.json").read_text())
-            out.append(MeasuredView(np.asarray(meta["T_W_C"]), np.load(d / "points_eval_W.npy"),
-                                    _load_regions(d / "defects.npz"),
-                                    deviation_mm=np.load(d / "deviation_eval.npy")))
+            out[i] = MeasuredView(np.asarray(meta["T_W_C"]), np.load(d / "points_eval_W.npy"),
+                                  _load_regions(d / "defects.npz"), deviation_mm=np.load(d / "deviation_eval.npy"))
         return out
 
     def evaluate(self, run: RunFolder, views: list[dict[str, Any]], iteration: int) -> dict[str, Any]:
-        measured = self._measured(run, len(views))
         fb = FeedbackPlanner(self.plan_model)
-        ev = evaluate(fb, measured, first_new=1, ia_before=np.zeros((0, 3)))
+        ev = evaluate(fb, list(self._measured(run).values()), first_new=1, ia_before=np.zeros((0, 3)))
         return {**ev.to_json(), "iteration": iteration, "views": len(views)}
 
     def replan(self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]
                ) -> list[dict[str, Any]]:
-        measured = self._measured(run, len(views))
+        measured = self._measured(run)
         fb = FeedbackPlanner(self.plan_model)
-        ev = evaluate(fb, measured, first_new=1, ia_before=np.zeros((0, 3)))
+        ev = evaluate(fb, list(measured.values()), first_new=1, ia_before=np.zeros((0, 3)))
         k = int(evaluation.get("iteration", 0))
-        latest = [m for m, v in zip(measured, views) if int(v.get("iteration", 0)) == k]
+        latest = [m for i, m in measured.items() if int(views[i].get("iteration", 0)) == k]
         start = len(fb.log)
         proposed = fb.propose(k, latest, ev.covered, ev.ia)
         new = select_new(fb, proposed, [np.asarray(v["T_W_C"]) for v in views])
@@ -198,39 +217,65 @@ class LambertianInspection:
 
     # ------------------------------------------------------------------ results
     def register(self, run: RunFolder, views: list[dict[str, Any]]) -> dict[str, Any]:
-        """All views into the part frame via the kinematic chain (eqs 4.1-4.4): T_P_W @ p_W."""
-        points, quality = [], []
+        """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
+        already being in {W} through robot pose and hand-eye), merged on a voxel grid weighted by quality."""
+        T_P_W = invert(self.T_W_P)
+        points, weights = [], []
         for i in run.completed_views():
-            points.append(np.load(run.view_dir(i) / "points_W.npy"))
-            quality.append(np.load(run.view_dir(i) / "quality.npy"))
-        pts_W = np.vstack(points) if points else np.zeros((0, 3))
-        pts_P = transform_points(invert(self.T_W_P), pts_W)
-        np.save(run.results_dir / "points_P.npy", pts_P)
-        return {"n_points": int(len(pts_P)), "views": len(points), "method": "kinematic chain (robot pose, "
-                "hand-eye, part placement)"}
+            points.append(transform_points(T_P_W, np.load(run.view_dir(i) / "points_W.npy")))
+            weights.append(np.square(np.load(run.view_dir(i) / "quality.npy")).astype(np.float64) + 1e-6)
+        if not points or not sum(len(p) for p in points):
+            return {"n_points": 0, "views": len(points)}
+        merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
+        np.save(run.results_dir / "points_P.npy", merged.points_mm)
+        return {"n_points": int(len(merged.points_mm)), "n_points_views": int(sum(len(p) for p in points)),
+                "views": len(points), "merge_voxel_mm": self.settings.merge_voxel_mm,
+                "method": "kinematic chain (robot pose, hand-eye, part placement); weighted voxel merge"}
+
+    def inspectable_coverage(self, run: RunFolder, views: list[dict[str, Any]]) -> Coverage:
+        """Coverage of the inspectable nominal surface (what the planner can see: not the underside on the
+        table) at the recipe's point density, from the measured views."""
+        plan, st = self.plan_model, self.recipe.plan
+        s = plan.surface
+        measured = self._measured(run)
+        pts = np.vstack([m.points_W for m in measured.values()]) if measured else np.zeros((0, 3))
+        covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
+        ins = s.inspectable
+        return Coverage(fraction=coverage_fraction(s, covered), area_mm2=float(s.inspectable_area_mm2),
+                        radius_mm=st.coverage_radius_mm, min_count=1, density_per_mm2=st.point_density_per_mm2,
+                        samples_mm=transform_points(invert(self.T_W_P), s.points[ins]),
+                        sample_face=s.face[ins], covered=covered[ins])
 
     def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
         pts_P = np.load(run.results_dir / "points_P.npy")
         nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
         nominal = NominalMesh.from_trimesh(nominal_P)
-        dev = signed_distance(nominal, pts_P).deviation_mm
+        em = signed_distance(nominal, pts_P)
         tol = self.recipe.tolerance
+        band = Tolerance(tol.lower, tol.upper)
+        isolated = isolated_out_of_tolerance(pts_P, em.deviation_mm, band, self.settings.min_defect_points)
+        kept = ~isolated
+        pts_P, deviation, faces = pts_P[kept], em.deviation_mm[kept], nominal.source_face[em.face][kept]
         checkpoint = run.load_checkpoint() or {}
-        evaluation = checkpoint.get("evaluation", {})
-        plan = self.plan_model
+        views = checkpoint.get("views", [])
+        excluded: dict[str, int] = dict(nominal.excluded)
+        excluded["isolated_out_of_tolerance_points"] = int(isolated.sum())
+        for i in run.completed_views():
+            for reason, n in json.loads((run.view_dir(i) / "view.json").read_text()).get("excluded", {}).items():
+                excluded[f"{reason}_points"] = excluded.get(f"{reason}_points", 0) + int(n)
         inp = ReportInput(
-            points_mm=pts_P, deviation_mm=dev, tolerance=Tolerance(tol.lower, tol.upper),
-            n_points_input=int(len(pts_P)), excluded=dict(nominal.excluded) if isinstance(nominal.excluded, dict)
-            else {"degenerate_triangles": int(nominal.excluded)},
-            nominal_area_mm2=float(plan.surface.inspectable_area_mm2),
-            covered_area_mm2=float(evaluation.get("coverage", 0.0)) * float(plan.surface.inspectable_area_mm2),
-            metadata={"part": self.part_name, "cad": str(self.recipe.part.cad), "views": registration.get("views"),
-                      "registration": registration.get("method"), "evaluation": evaluation,
+            points_mm=pts_P, deviation_mm=deviation, tolerance=band,
+            n_points_input=int(registration.get("n_points_views", len(pts_P))), excluded=excluded,
+            source_face=faces, coverage=self.inspectable_coverage(run, views),
+            min_coverage=self.recipe.min_coverage,
+            metadata={"part": self.part_name, "cad": Path(self.recipe.part.cad).name,
+                      "views": [{k: v[k] for k in ("patch", "source", "iteration")} for v in views],
+                      "registration": registration, "evaluation": checkpoint.get("evaluation", {}),
                       "geometry_source": "cell config sensor geometry (no sensor calibration yet)"},
         )
         doc = write_report(run.results_dir, inp, pictures=self.settings.pictures)
-        return {"verdict": doc.get("verdict"), "n_points": doc.get("n_points"),
-                "coverage": evaluation.get("coverage"), "deviation": doc.get("deviation")}
+        return {"verdict": doc.get("verdict"), "n_points": doc.get("n_points"), "coverage": doc.get("coverage"),
+                "deviation": doc.get("deviation")}
 
 
 def voxel_subsample_index(points: NDArray[np.float64], voxel_mm: float) -> NDArray[np.int64]:

@@ -48,6 +48,42 @@ class ReportInput:
     min_coverage: float | None = None
 
 
+def _default_link_radius(points_mm: NDArray) -> float:
+    """3x the cloud's median point spacing (estimated on a subsample, scaled back to the full density)."""
+    stride = max(1, len(points_mm) // 20000)
+    sub = points_mm[::stride]
+    return 3.0 * float(np.median(cKDTree(sub).query(sub, k=2)[0][:, 1])) * stride**0.5
+
+
+def out_of_tolerance_clusters(
+    points_mm: NDArray, deviation_mm: NDArray, tol: Tolerance, link_radius_mm: float | None = None
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Indices of the out-of-tolerance points and their cluster label (points closer than the link radius,
+    by default :func:`_default_link_radius`, share a cluster)."""
+    bad = np.flatnonzero((deviation_mm < tol.lower_mm) | (deviation_mm > tol.upper_mm))
+    if len(bad) == 0:
+        return bad, np.zeros(0, dtype=np.int64)
+    radius = _default_link_radius(points_mm) if link_radius_mm is None else link_radius_mm
+    pts = points_mm[bad]
+    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(bad), len(bad)))
+    _, lab = connected_components(graph, directed=False)
+    return bad, lab.astype(np.int64)
+
+
+def isolated_out_of_tolerance(
+    points_mm: NDArray, deviation_mm: NDArray, tol: Tolerance, min_points: int
+) -> NDArray[np.bool_]:
+    """Mask of out-of-tolerance points in clusters of fewer than ``min_points``: isolated outliers (mixed
+    pixels at edges, noise spikes) rather than a surface defect, which covers an area."""
+    out = np.zeros(len(deviation_mm), dtype=bool)
+    bad, lab = out_of_tolerance_clusters(points_mm, deviation_mm, tol)
+    if len(bad):
+        sizes = np.bincount(lab)
+        out[bad[sizes[lab] < min_points]] = True
+    return out
+
+
 def out_of_tolerance_regions(
     points_mm: NDArray,
     deviation_mm: NDArray,
@@ -55,25 +91,12 @@ def out_of_tolerance_regions(
     link_radius_mm: float | None = None,
     max_regions: int = 20,
 ) -> list[dict[str, Any]]:
-    """Spatial clusters of out-of-tolerance points, largest first, with centre and extreme deviation.
-
-    Points closer than ``link_radius_mm`` are one region; by default 3x the cloud's median point spacing.
-    """
-    bad = np.flatnonzero((deviation_mm < tol.lower_mm) | (deviation_mm > tol.upper_mm))
+    """Spatial clusters of out-of-tolerance points, largest first, with centre and extreme deviation."""
+    bad, lab = out_of_tolerance_clusters(points_mm, deviation_mm, tol, link_radius_mm)
     if len(bad) == 0:
         return []
-    if link_radius_mm is None:
-        sub = points_mm[:: max(1, len(points_mm) // 20000)]
-        link_radius_mm = (
-            3.0
-            * float(np.median(cKDTree(sub).query(sub, k=2)[0][:, 1]))
-            * max(1, len(points_mm) // 20000) ** 0.5
-        )
     pts = points_mm[bad]
-    pairs = cKDTree(pts).query_pairs(link_radius_mm, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(bad), len(bad)))
-    n, lab = connected_components(graph, directed=False)
-    sizes = np.bincount(lab, minlength=n)
+    sizes = np.bincount(lab)
     regions = []
     for r in np.argsort(-sizes)[:max_regions]:
         idx = np.flatnonzero(lab == r)

@@ -87,7 +87,6 @@ def _execute(run: RunFolder, *, resume: bool, settings: ControllerSettings, seed
     from cell.devices import build_devices
     from cell.inspection import LambertianInspection
     from cell.mesh import load_mesh
-    from cell.planning.kinematics import UR5E
 
     recipe, cfg, actual_path = _load_run_inputs(run)
     T_W_P = recipe.part.T_W_P.matrix()
@@ -96,10 +95,12 @@ def _execute(run: RunFolder, *, resume: bool, settings: ControllerSettings, seed
     devices = build_devices(cfg, part_W=actual_W, part_material=recipe.part.material, seed=seed)
     job = LambertianInspection(recipe, cfg, nominal_W)
     r = cfg.robot
+
     ctl = Controller(
         devices, job, run, settings,
         robot_limits=(r.max_tcp_speed_mm_s, r.max_tcp_accel_mm_s2, r.max_joint_speed_rad_s, r.max_joint_accel_rad_s2),
-        home_joints_rad=np.deg2rad(r.home_joints_deg), kinematics=UR5E, on_progress=_progress,
+        home_joints_rad=np.deg2rad(r.home_joints_deg), motion=job.motion_planner(settings.speed_fraction),
+        on_progress=_progress,
     )
     index = RunIndex(run.path.parent)
     index.upsert(run.path, job.part_name, "running")

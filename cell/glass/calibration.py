@@ -1,7 +1,7 @@
 """Vector-based camera calibration (dissertation 2.6, Figs 2.23-2.25): a view ray for every pixel.
 
 A level dot board is imaged at two known heights z1 < z2. At each height the identified dot centroids give
-pixel -> board (X, Y) correspondences; a local quadratic least-squares fit over the ``NEIGHBOURS`` nearest dots
+pixel -> board (X, Y) correspondences; a local quadratic least-squares fit over the ``k`` nearest dots
 carries them to any pixel. Like the perspective model of Fig 2.25 (and unlike the bilinear ratios of Fig
 2.24) it follows perspective and lens distortion without a lens model, and being a least-squares fit it
 averages the centroid noise: an exact interpolation would pass each dot's ~5 um noise straight into the ray
@@ -11,8 +11,10 @@ of a pixel runs from P2 = (X2, Y2, z2) down through P1 = (X1, Y1, z1).
 The other cameras of the feedback (3.4) must also *project* a surface point into their image; for that an
 OpenCV camera model (pinhole + Brown) is fitted to the same non-coplanar correspondences.
 
-Saved and versioned: ``<dir>/<camera>.v<k>.npz`` holds the correspondences, the dense per-pixel rays and the
-fitted model; ``<dir>/<camera>.v<k>.yaml`` the metadata (camera, serial, board, residuals, time). Loading
+Saved and versioned: ``<dir>/<camera>.v<k>.npz`` holds the correspondences and the fitted model, which
+define the view ray of every (sub-)pixel through :meth:`ViewVectorCalibration.rays_at` (a dense per-pixel
+table would cost 16 s to fill per 1024x768 camera and is never read: markers sit at sub-pixel positions);
+``<dir>/<camera>.v<k>.yaml`` the metadata (camera, serial, board, residuals, time). Loading
 takes the highest version; saving never overwrites.
 """
 
@@ -66,20 +68,6 @@ class ViewVectorCalibration:
         p = [np.column_stack([f(uv), np.full(len(uv), z)]) for f, z in zip(self._interp, self.heights_mm)]
         return p[1], unit(p[0] - p[1])
 
-    def dense_rays(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """The calibration at every pixel centre: origins and directions (H, W, 3), float32."""
-        w, h = self.resolution
-        o = np.empty((h, w, 3), np.float32)
-        d = np.empty((h, w, 3), np.float32)
-        u = np.arange(w, dtype=np.float64)
-        for r0 in range(0, h, 64):  # row blocks keep the (n, k, 6) fit temporaries small
-            rows = np.arange(r0, min(r0 + 64, h), dtype=np.float64)
-            gu, gv = np.meshgrid(u, rows)
-            ob, db = self.rays_at(np.column_stack([gu.ravel(), gv.ravel()]))
-            o[r0:r0 + len(rows)] = ob.reshape(len(rows), w, 3)
-            d[r0:r0 + len(rows)] = db.reshape(len(rows), w, 3)
-        return o, d
-
     @property
     def centre_mm(self) -> NDArray[np.float64]:
         """Projection centre of the fitted model in {W}."""
@@ -100,10 +88,8 @@ class ViewVectorCalibration:
         d.mkdir(parents=True, exist_ok=True)
         version = max(_versions(d, self.camera), default=0) + 1
         path = d / f"{self.camera}.v{version}.npz"
-        o, r = self.dense_rays()
         np.savez_compressed(path, pixels0=self.pixels[0], board0=self.board_xy[0], pixels1=self.pixels[1],
-                            board1=self.board_xy[1], K=self.K, dist=self.dist, T_W_C=self.T_W_C,
-                            ray_origin=o, ray_dir=r)
+                            board1=self.board_xy[1], K=self.K, dist=self.dist, T_W_C=self.T_W_C)
         meta = {"camera": self.camera, "serial": self.serial, "version": version,
                 "resolution": list(self.resolution), "heights_mm": list(self.heights_mm),
                 "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), **self.meta}
@@ -172,7 +158,7 @@ def board_correspondences(image: NDArray, board: BoardConfig, height_mm: float, 
     """Detected board dots and their board-plane (X, Y) in {W} (mm), identified by the nominal camera model
     of the config: a detection is the dot whose predicted pixel is nearest, within ``gate_fraction`` of the
     local dot spacing in the image."""
-    det = detect_dots(image)
+    det = detect_dots(image, full_profile_px=1)  # a board has no second reflection: the whole profile
     dots = board.dots_mm() + np.asarray(board.centre_xy_mm)
     T_C_W = np.linalg.inv(cam.T_W_C.matrix())
     rvec, _ = cv2.Rodrigues(T_C_W[:3, :3])

@@ -1,7 +1,8 @@
-"""Schemas of the back-imaging glass rig config and of a glass recipe (until CellConfig grows a glass section).
+"""Schemas of the back-imaging glass rig config and of a glass recipe (until CellConfig grows a glass
+section).
 
-Units: mm, degrees in files (radians inside), ms, electrons (e), pixels (px), microradians (urad) for the small
-angle thresholds of the searches.
+Units: mm, degrees in files (radians inside), ms, electrons (e), pixels (px), microradians (urad) for the
+small angle thresholds of the searches.
 """
 
 from __future__ import annotations
@@ -103,15 +104,25 @@ class GlassSearchConfig(Strict):
     max_surface_error_mm: PositiveFloat = Field(3.0, description="Delta of eq 2.13: largest expected error")
     angle_tol_urad: PositiveFloat = Field(2.0, description="stop when the offset angle is below this")
     length_tol_mm: PositiveFloat = Field(2e-4, description="stop when the search interval is this short")
-    feedback_tol_urad: PositiveFloat = Field(20.0, description="stop adding cameras when the normal moves less")
+    feedback_tol_urad: PositiveFloat = Field(
+        20.0, description="stop adding cameras when the normal moves less")
     gate_fraction: Annotated[float, Field(gt=0, lt=0.5)] = Field(
         0.4, description="identification gate as a fraction of the screen pitch")
     dark_fraction: Annotated[float, Field(gt=0.1, lt=0.9)] = Field(
         0.5, description="a pixel is a top-layer dot below this fraction of the local background")
+    centroid_profile_px: Annotated[int, Field(ge=0, le=5)] = Field(
+        1, description="0: eq 2.14 weights below the threshold only; >0: the whole dot profile grown by this "
+        "many pixels (cell.glass.markers.detect_dots)")
+    outlier_alpha: Annotated[float, Field(gt=0, lt=0.5)] = Field(
+        1e-3, description="reject a point whose cameras' normals disagree at this chi-square tail level")
+    max_depth_sigma_mm: PositiveFloat = Field(
+        0.05, description="reject a point whose depth standard error (from the cameras' geometry and the "
+        "normal noise) exceeds this accuracy target (mm)")
 
 
 class GlassPartConfig(Strict):
-    """The pane: its nominal top skin (CAD) and, for simulation, the made one. Paths relative to the recipe."""
+    """The pane: its nominal top skin (CAD) and, for simulation, the made one. Paths relative to the
+    recipe."""
 
     cad: Path
     actual: Path | None = None

@@ -30,7 +30,8 @@ class FeedbackCamera:
     screen_map: LocalQuadratic
 
     def normals(self, points_W: NDArray[np.float64], T_W_S: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Reflection-law normals (N, 3) this camera measures at ``points_W``; NaN where it cannot see them."""
+        """Reflection-law normals (N, 3) this camera measures at ``points_W``; NaN where it cannot see
+        them."""
         uv = self.calib.project(points_W)
         w, h = self.calib.resolution
         inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
@@ -46,16 +47,24 @@ class FeedbackCamera:
 
 @dataclass(frozen=True)
 class FeedbackResult:
-    """Per point: final position and averaged normal, cameras used (incl. the primary), the normal's change
-    when the last camera was added (rad), the rms angle of the cameras' normals to their mean (rad; large
-    where the cameras disagree, e.g. at the pane's edges) and the position after each number of cameras."""
+    """Per point: final position and averaged normal; ``n_cameras`` whose normal exists at the final point
+    (incl. the primary); the normal's change when the last camera was added (rad); ``residual`` = sum of
+    squared angles of those normals to their mean (rad^2, the minimised cost); ``curvature`` = its second
+    derivative along the ray at the optimum (rad^2/mm^2, how sharply the cameras pin the depth; 0 for
+    a single camera) and the position after each number of cameras."""
 
     points: NDArray[np.float64]
     normals: NDArray[np.float64]
     n_cameras: NDArray[np.int64]
     last_change: NDArray[np.float64]
-    spread: NDArray[np.float64]
+    residual: NDArray[np.float64]
+    curvature: NDArray[np.float64]
     history: NDArray[np.float64]
+
+    @property
+    def spread(self) -> NDArray[np.float64]:
+        """RMS angle (rad) of the cameras' normals to their mean."""
+        return np.sqrt(self.residual / np.maximum(self.n_cameras, 1))
 
 
 def _spread(normals: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -67,36 +76,44 @@ def _spread(normals: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def feedback(law: ReflectionLaw, primary: SearchResult, cameras: list[FeedbackCamera],
              T_W_S: NDArray[np.float64], max_error_mm: float, tol_rad: float,
-             length_tol_mm: float = 2e-4) -> FeedbackResult:
-    """Confirm/correct the primary camera's points with ``cameras`` in order (3.4)."""
+             length_tol_mm: float = 2e-4, curvature_step_mm: float = 0.05) -> FeedbackResult:
+    """Confirm/correct the primary camera's points with ``cameras`` in order (3.4). The curvature of the
+    cost is a central difference over +-``curvature_step_mm`` (the cost is quadratic near its minimum)."""
     origins, dirs = law.p.origins, law.p.dirs
     t = primary.t.copy()
     normal = primary.normals.copy()
-    n_used = np.ones(len(t), dtype=np.int64)
+    n_cams = np.ones(len(t), dtype=np.int64)
     change = np.full(len(t), np.nan)
     active = primary.ok.copy()
     history = [primary.points.copy()]
-    spread = np.zeros(len(t))
+    residual = np.zeros(len(t))
+    curvature = np.zeros(len(t))
     a, b = law.bracket(max_error_mm)
+    h = curvature_step_mm
     for k in range(len(cameras)):
         sees = np.all(np.isfinite(cameras[k].normals(origins + t[:, None] * dirs, T_W_S)), axis=1)
         step = active & sees
         used = cameras[: k + 1]
 
-        def cost(tt: NDArray[np.float64], idx: NDArray[np.int64]) -> NDArray[np.float64]:
+        def normals_at(tt: NDArray[np.float64], idx: NDArray[np.int64],
+                       used: list[FeedbackCamera] = used) -> NDArray[np.float64]:
             m = origins[idx] + tt[:, None] * dirs[idx]
-            ns = [law.required_normal(tt, idx)] + [c.normals(m, T_W_S) for c in used]
-            return _spread(np.stack(ns))
+            return np.stack([law.required_normal(tt, idx)] + [c.normals(m, T_W_S) for c in used])
+
+        def cost(tt: NDArray[np.float64], idx: NDArray[np.int64]) -> NDArray[np.float64]:
+            return _spread(normals_at(tt, idx))
 
         t_new, _ = golden_minimize(cost, a, b, step, length_tol_mm)
         idx = np.flatnonzero(step)
-        m = origins[idx] + t_new[idx, None] * dirs[idx]
-        ns = np.stack([law.required_normal(t_new[idx], idx)] + [c.normals(m, T_W_S) for c in used])
+        ns = normals_at(t_new[idx], idx)
         v = unit(np.nanmean(ns, axis=0))
-        delta = np.arctan2(np.linalg.norm(np.cross(v, normal[idx]), axis=1), np.einsum("ij,ij->i", v, normal[idx]))
+        old = normal[idx]
+        delta = np.arctan2(np.linalg.norm(np.cross(v, old), axis=1), np.einsum("ij,ij->i", v, old))
         t[idx], normal[idx], change[idx] = t_new[idx], v, delta
-        spread[idx] = np.sqrt(_spread(ns) / np.sum(np.all(np.isfinite(ns), axis=2), axis=0))
-        n_used[idx] += 1
+        residual[idx] = _spread(ns)
+        curvature[idx] = (cost(t[idx] + h, idx) - 2 * residual[idx] + cost(t[idx] - h, idx)) / h**2
+        n_cams[idx] = np.sum(np.all(np.isfinite(ns), axis=2), axis=0)
         active[idx[delta < tol_rad]] = False  # settled: no more cameras for these points
         history.append(origins + t[:, None] * dirs)
-    return FeedbackResult(origins + t[:, None] * dirs, normal, n_used, change, spread, np.stack(history))
+    return FeedbackResult(origins + t[:, None] * dirs, normal, n_cams, change, residual, curvature,
+                          np.stack(history))

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from cell.contracts import MarkerScreen
 from cell.glass.calibration import LocalQuadratic, ViewVectorCalibration
 from cell.glass.config import GlassSearchConfig
+from cell.glass.consistency import check_consistency
 from cell.glass.feedback import FeedbackCamera, feedback
 from cell.glass.markers import DotDetections, detect_dots, identify
 from cell.glass.reflection import RaySearchProblem, ReflectionLaw, golden_section
@@ -44,14 +45,25 @@ class GlassMeasurement:
     n_cameras: NDArray[np.int64]
     theta: NDArray[np.float64]
     iterations: NDArray[np.int64]
-    spread: NDArray[np.float64]
+    residual: NDArray[np.float64]  # feedback cost: sum of squared normal angles to their mean (rad^2)
+    curvature: NDArray[np.float64]  # its second derivative along the primary ray (rad^2/mm^2)
+    cos_incidence: NDArray[np.float64]  # |primary ray . normal|
     points_single: NDArray[np.float64]  # the primary camera's CAD-seeded result before feedback
+    accepted: NDArray[np.bool_]  # passed the consistency test (cell.glass.consistency)
+    p_value: NDArray[np.float64]
+    depth_sigma_mm: NDArray[np.float64]
+    normal_sigma_rad: float  # per-camera normal noise estimated from all residuals
+
+    @property
+    def spread(self) -> NDArray[np.float64]:
+        """RMS angle (rad) of the cameras' normals to their mean."""
+        return np.sqrt(self.residual / np.maximum(self.n_cameras, 1))
 
 
 def find_markers(image: NDArray, calib: ViewVectorCalibration, cad: SmoothSurface, screen: MarkerScreen,
                  search: GlassSearchConfig) -> CameraMarkers:
     """Detect, ray and identify one camera's marker dots."""
-    det = detect_dots(image, dark_fraction=search.dark_fraction)
+    det = detect_dots(image, dark_fraction=search.dark_fraction, full_profile_px=search.centroid_profile_px)
     o, d = calib.rays_at(det.centroids_px)
     hit = cad.cast(np.nan_to_num(o), np.nan_to_num(d, nan=1.0 / np.sqrt(3)))
     pred = plane_hits(np.nan_to_num(hit.point), reflect(d, np.nan_to_num(hit.normal)), screen.T_W_S)
@@ -69,7 +81,8 @@ def screen_point_W(screen: MarkerScreen, dot: NDArray[np.int64]) -> NDArray[np.f
 
 
 def measure(images: list[NDArray], calibs: list[ViewVectorCalibration], cad: SmoothSurface,
-            screen: MarkerScreen, search: GlassSearchConfig, max_cameras: int | None = None) -> GlassMeasurement:
+            screen: MarkerScreen, search: GlassSearchConfig,
+            max_cameras: int | None = None) -> GlassMeasurement:
     """Measure the pane from one frame per camera. ``max_cameras`` caps the cameras per point (1 = no
     feedback; None = until the normal settles below ``search.feedback_tol_urad``, or all when forced by
     ``max_cameras``)."""
@@ -77,11 +90,11 @@ def measure(images: list[NDArray], calibs: list[ViewVectorCalibration], cad: Smo
     fb_cams = []
     for m, cal in zip(markers, calibs):
         ok = m.dot >= 0
-        fb_cams.append(FeedbackCamera(cal, LocalQuadratic(m.detections.centroids_px[ok], screen.dots_mm[m.dot[ok]],
-                                                          k=12)))
+        screen_map = LocalQuadratic(m.detections.centroids_px[ok], screen.dots_mm[m.dot[ok]], k=12)
+        fb_cams.append(FeedbackCamera(cal, screen_map))
     forced = max_cameras is not None
     tol = 0.0 if forced else search.feedback_tol_urad * 1e-6
-    out: dict[str, list] = {k: [] for k in GlassMeasurement.__dataclass_fields__}
+    out: dict[str, list] = {k: [] for k in _PER_CAMERA}
     for c, m in enumerate(markers):
         ok = (m.dot >= 0) & np.all(np.isfinite(m.dirs), axis=1)
         prob = RaySearchProblem(m.origins[ok], m.dirs[ok], screen_point_W(screen, m.dot[ok]))
@@ -100,6 +113,16 @@ def measure(images: list[NDArray], calibs: list[ViewVectorCalibration], cad: Smo
         out["n_cameras"].append(fb.n_cameras[keep])
         out["theta"].append(res.theta[keep])
         out["iterations"].append(res.iterations[keep])
-        out["spread"].append(fb.spread[keep])
+        out["residual"].append(fb.residual[keep])
+        out["curvature"].append(fb.curvature[keep])
+        out["cos_incidence"].append(np.abs(np.einsum("ij,ij->i", prob.dirs, fb.normals))[keep])
         out["points_single"].append(res.points[keep])
-    return GlassMeasurement(**{k: np.concatenate(v) for k, v in out.items()})
+    cat = {k: np.concatenate(v) for k, v in out.items()}
+    c = check_consistency(cat["residual"], cat["curvature"], cat["n_cameras"], cat["cos_incidence"],
+                          search.outlier_alpha, search.max_depth_sigma_mm)
+    return GlassMeasurement(**cat, accepted=c.accepted, p_value=c.p_value, depth_sigma_mm=c.depth_sigma_mm,
+                            normal_sigma_rad=c.sigma_rad)
+
+
+_PER_CAMERA = ("points", "normals", "camera", "dot", "n_cameras", "theta", "iterations", "residual",
+               "curvature", "cos_incidence", "points_single")

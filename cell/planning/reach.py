@@ -60,3 +60,22 @@ class ReachChecker:
         if d.min() < self.clearance:
             return False, f"sensor body {d.min():.1f} mm from the part, needs {self.clearance:.0f} mm"
         return self.kin.reachable(T_B_T)
+
+    def path_clear(self, T_B_T: NDArray[np.float64]) -> tuple[bool, str]:
+        """Flange inside the envelope and sensor body clear of table and part at every flange pose of a
+        (N, 4, 4) stack (a sampled path)."""
+        p = T_B_T[:, :3, 3]
+        lo, hi = np.asarray(self.envelope.min_mm), np.asarray(self.envelope.max_mm)
+        outside = np.any((p < lo - 1e-6) | (p > hi + 1e-6), axis=1)
+        if outside.any():
+            where = np.round(p[np.argmax(outside)], 1).tolist()
+            return False, f"flange leaves the envelope on the way at {where} mm (base)"
+        T_W_T = np.einsum("ij,njk->nik", self.T_W_B, T_B_T)
+        body_W = np.einsum("nij,mj->nmi", T_W_T[:, :3, :3], self.body_T) + T_W_T[:, None, :3, 3]
+        low = body_W[..., 2].min()
+        if low < self.clearance:
+            return False, f"sensor body {low:.1f} mm above the table on the way, needs {self.clearance:.0f} mm"
+        d, _ = self.tree.query(body_W.reshape(-1, 3))
+        if d.min() < self.clearance:
+            return False, f"sensor body {d.min():.1f} mm from the part on the way, needs {self.clearance:.0f} mm"
+        return True, "clear"

@@ -54,7 +54,8 @@ def refract(d: NDArray[np.float64], n: NDArray[np.float64], eta: float) -> NDArr
 
 def dot_grid_value(xy: NDArray[np.float64], grid: DotGridConfig, sigma_mm: NDArray[np.float64]) -> NDArray:
     """Relative radiance (0..1) of a dot grid at plane points ``xy`` (N, 2, mm): 1 on white, black_level in a
-    dot, analytic Gaussian-blurred edge of width ``sigma_mm``; 0 off the grid's sheet (half a pitch margin)."""
+    dot, analytic Gaussian-blurred edge of width ``sigma_mm``; 0 off the grid's sheet (half a pitch
+    margin)."""
     p = grid.pitch_mm
     half = np.array([(grid.cols - 1) / 2, (grid.rows - 1) / 2])
     ij = np.clip(np.round(xy / p + half), 0, [grid.cols - 1, grid.rows - 1])

@@ -1,0 +1,154 @@
+"""One glass inspection end to end on a rig: calibrate (or load) the view vectors, grab, measure, error map
+and report into a run folder. The rig is injected (the ``cell glass`` command builds the simulated one).
+
+Run folder (cell/runs.py layout): ``inputs/`` copies of recipe, rig config and meshes; ``views/<camera>.npy``
+the averaged frame of each camera; ``calibration/`` the view-vector calibrations used (when computed in
+this run); ``results/`` the report files of the lambertian inspection (report.json/html, cloud.ply with
+``deviation``, deviations.csv) for the accepted points in the part frame, plus ``normals.ply`` (x, y, z,
+nx, ny, nz, deviation) and ``glass_points.npz`` with every measured point and its rejection figures.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+
+from cell.analysis.errormap import NominalMesh, signed_distance
+from cell.analysis.report import ReportInput, Tolerance, write_report
+from cell.contracts import GlassRig
+from cell.errors import CalibrationError
+from cell.geometry import invert, transform_points
+from cell.glass.calibration import ViewVectorCalibration, calibrate_view_vectors
+from cell.glass.config import GlassRecipe, GlassRigConfig
+from cell.glass.inspect import GlassMeasurement, measure
+from cell.glass.surface import SmoothSurface
+from cell.runs import RunFolder
+
+BoardPlacer = Callable[[float | None], None]
+
+
+def grab_mean(rig: GlassRig, frames: int) -> list[NDArray[np.float32]]:
+    """Mean of ``frames`` simultaneous grabs, one float32 image per camera (averaging cuts the noise)."""
+    acc = [f.pixels.astype(np.float64) for f in rig.grab_all(5000.0)]
+    for _ in range(frames - 1):
+        acc = [a + f.pixels for a, f in zip(acc, rig.grab_all(5000.0))]
+    return [(a / frames).astype(np.float32) for a in acc]
+
+
+def calibrate_rig(rig: GlassRig, cfg: GlassRigConfig, place_board: BoardPlacer,
+                  frames: int) -> list[ViewVectorCalibration]:
+    """Vector calibration of every camera (2.6): the board at its two heights, ``frames`` grabs averaged."""
+    boards = []
+    for h in cfg.board.heights_mm:
+        place_board(h)
+        boards.append(grab_mean(rig, frames))
+    place_board(None)
+    return [calibrate_view_vectors((boards[0][k], boards[1][k]), cfg.board, cam)
+            for k, cam in enumerate(cfg.cameras)]
+
+
+def load_calibrations(directory: Path, cfg: GlassRigConfig) -> list[ViewVectorCalibration] | None:
+    """The latest saved calibration of every camera in ``directory``, or None if any camera has none."""
+    try:
+        cals = [ViewVectorCalibration.load(directory, cam.name) for cam in cfg.cameras]
+    except CalibrationError:
+        return None
+    for cal, cam in zip(cals, cfg.cameras):
+        if cal.serial != cam.serial or tuple(cal.resolution) != (cam.width_px, cam.height_px):
+            raise CalibrationError(
+                f"{directory}: the calibration of '{cam.name}' is for serial {cal.serial} at "
+                f"{cal.resolution}, the rig has {cam.serial} at {(cam.width_px, cam.height_px)}; "
+                "recalibrate into an empty calibration_dir")
+    return cals
+
+
+def run_glass_inspection(run: RunFolder, recipe: GlassRecipe, cfg: GlassRigConfig, rig: GlassRig,
+                         place_board: BoardPlacer, nominal_W: trimesh.Trimesh, frames: int = 4,
+                         board_frames: int = 8) -> dict[str, Any]:
+    """Calibrate or load, grab, measure and report; returns the summary (verdict, counts, statistics)."""
+    t0 = time.monotonic()
+    rig.connect()
+    try:
+        cal_dir = recipe.calibration_dir
+        cals = load_calibrations(cal_dir, cfg) if cal_dir is not None else None
+        source = f"loaded from {cal_dir}"
+        if cals is None:
+            cals = calibrate_rig(rig, cfg, place_board, board_frames)
+            cal_dir = cal_dir or run.path / "calibration"
+            for cal in cals:
+                cal.save(cal_dir)
+            source = f"calibrated in this run, saved to {cal_dir}"
+        run.log("calibration", source=source, model_rms_px=[c.meta.get("model_rms_px") for c in cals])
+        images = grab_mean(rig, frames)
+    finally:
+        rig.close()
+    for cam, img in zip(cfg.cameras, images):
+        np.save(run.path / "views" / f"{cam.name}.npy", img)
+    run.log("grabbed", cameras=len(images), frames=frames)
+    screen = rig.screen
+    m = measure(images, cals, SmoothSurface(nominal_W), screen, recipe.search)
+    run.log("measured", points=len(m.points), accepted=int(m.accepted.sum()))
+    return _report(run, recipe, nominal_W, m, {"calibration": source, "frames": frames,
+                                               "cameras": [c.name for c in cfg.cameras],
+                                               "seconds": round(time.monotonic() - t0, 2)})
+
+
+def _report(run: RunFolder, recipe: GlassRecipe, nominal_W: trimesh.Trimesh, m: GlassMeasurement,
+            meta: dict[str, Any]) -> dict[str, Any]:
+    T_P_W = invert(recipe.part.T_W_P.matrix())
+    nominal = NominalMesh.from_trimesh(nominal_W.copy().apply_transform(T_P_W))
+    acc = m.accepted
+    pts_P = transform_points(T_P_W, m.points[acc])
+    normals_P = m.normals[acc] @ T_P_W[:3, :3].T
+    dev = signed_distance(nominal, pts_P).deviation_mm
+    unconfirmed = m.n_cameras < 2
+    inconsistent = ~unconfirmed & ~acc & (m.p_value <= recipe.search.outlier_alpha)
+    excluded = {"unconfirmed_single_camera": int(unconfirmed.sum()),
+                "inconsistent_normals": int(inconsistent.sum()),
+                "depth_uncertain": int((~acc & ~unconfirmed & ~inconsistent).sum()), **nominal.excluded}
+    metadata = {
+        "part": recipe.name or recipe.part.cad.stem, "cad": str(recipe.part.cad),
+        "method": "back-imaging glass (reflection search seeded by the CAD, multi-camera feedback, "
+                  "chi-square consistency test)",
+        "markers": int(len(m.points)), "accepted": int(acc.sum()),
+        "normal_sigma_urad": round(m.normal_sigma_rad * 1e6, 2),
+        "depth_sigma_median_mm": float(np.median(m.depth_sigma_mm[acc])) if acc.any() else None, **meta,
+    }
+    r = run.results_dir
+    tol = Tolerance(recipe.tolerance.lower, recipe.tolerance.upper)
+    inp = ReportInput(points_mm=pts_P, deviation_mm=dev, tolerance=tol, n_points_input=int(len(m.points)),
+                      excluded=excluded, metadata=metadata)
+    doc = write_report(r, inp)
+    write_normals_ply(r / "normals.ply", pts_P, normals_P, dev)
+    np.savez_compressed(r / "glass_points.npz", points_W=m.points, normals_W=m.normals, accepted=acc,
+                        camera=m.camera, dot=m.dot, n_cameras=m.n_cameras, p_value=m.p_value,
+                        depth_sigma_mm=m.depth_sigma_mm, points_single_W=m.points_single)
+    summary = {"verdict": doc["verdict"], "n_points": doc["n_points"], "markers": int(len(m.points)),
+               "deviation": doc["deviation"]}
+    run.log("reported", **summary)
+    return summary
+
+
+def write_normals_ply(path: Path, points: NDArray[np.float64], normals: NDArray[np.float64],
+                      deviation: Sequence[float] | NDArray[np.float64]) -> None:
+    """Binary little-endian PLY: x, y, z, nx, ny, nz (double) and ``deviation`` (float) per vertex.
+
+    Written with a numpy structured array (a dozen lines) rather than trimesh, whose point-cloud export
+    drops normals and custom scalar fields.
+    """
+    rec = np.empty(len(points), dtype=[*((k, "<f8") for k in ("x", "y", "z", "nx", "ny", "nz")),
+                                       ("deviation", "<f4")])
+    for i, k in enumerate(("x", "y", "z")):
+        rec[k] = points[:, i]
+        rec["n" + k] = normals[:, i]
+    rec["deviation"] = np.asarray(deviation, np.float32)
+    props = "".join(f"property double {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz"))
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n{props}"
+              "property float deviation\nend_header\n")
+    path.write_bytes(header.encode("ascii") + rec.tobytes())

@@ -1,0 +1,166 @@
+"""The controller end to end on a small simulated cell: states, guards, retries, pauses, resume, limits.
+
+A small box part and the 160x120 test sensor keep each run to a few seconds. Every run's result is compared with
+an uninterrupted reference run: a fault that was retried or resumed must not change a single statistic.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from cell.config import DEFAULT_CELL, CellConfig, load_cell_config, load_recipe
+from cell.controller import Controller, ControllerSettings
+from cell.devices import DeviceBundle, build_devices
+from cell.inspection import LambertianInspection
+from cell.runs import RunFolder
+from fakes.sim.testing import small_sensor
+
+
+def small_cell() -> CellConfig:
+    cfg = load_cell_config(DEFAULT_CELL)
+    sensor = small_sensor(bit_depth=8).model_dump()
+    sensor["T_T_C"] = cfg.sensor.T_T_C.model_dump()
+    return CellConfig.model_validate({**cfg.model_dump(), "sensor": sensor})
+
+
+@pytest.fixture(scope="module")
+def recipe_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("box")
+    box = trimesh.creation.box(extents=(120.0, 90.0, 40.0))
+    box.apply_translation((0.0, 0.0, 20.0))
+    box.export(folder / "box.stl")
+    (folder / "box.yaml").write_text(yaml.safe_dump({
+        "name": "box",
+        "part": {"cad": "box.stl"},
+        "tolerance": {"lower": -0.3, "upper": 0.3},
+        "min_coverage": 0.6,  # the robot stands on the -y side: the box's +y face is out of its reach
+        "plan": {"resolution_mm": 1.5, "point_density_per_mm2": 0.2, "view_budget": 8, "max_iterations": 1},
+    }))
+    return folder / "box.yaml"
+
+
+def make_controller(recipe_path: Path, run_dir: Path, **settings) -> tuple[Controller, DeviceBundle]:
+    cfg = small_cell()
+    recipe = load_recipe(recipe_path)
+    nominal = trimesh.load(recipe.part.cad)
+    devices = build_devices(cfg, part_W=nominal, seed=5)
+    job = LambertianInspection(recipe, cfg, nominal)
+    job.settings.pictures = False
+    job.settings.min_cluster_px = 20
+    run = RunFolder.open(run_dir) if (run_dir / "journal.jsonl").exists() else RunFolder.create(
+        run_dir.parent, "box", name=run_dir.name)
+    r = cfg.robot
+    ctl_settings = ControllerSettings(retry_delay_s=0.0, **settings)
+    ctl = Controller(devices, job, run, ctl_settings,
+                     robot_limits=(r.max_tcp_speed_mm_s, r.max_tcp_accel_mm_s2, r.max_joint_speed_rad_s,
+                                   r.max_joint_accel_rad_s2),
+                     home_joints_rad=np.deg2rad(r.home_joints_deg), motion=job.motion_planner(ctl_settings.speed_fraction))
+    return ctl, devices
+
+
+def result_of(run_dir: Path) -> dict:
+    doc = json.loads((run_dir / "results" / "report.json").read_text())
+    return {"verdict": doc["verdict"], "n_points": doc["n_points"], "deviation": doc["deviation"]}
+
+
+@pytest.fixture(scope="module")
+def reference(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    run_dir = tmp_path_factory.mktemp("ref") / "run"
+    ctl, devices = make_controller(recipe_path, run_dir)
+    assert ctl.execute() == "done", ctl.message
+    states = [e["state"] for e in RunFolder.open(run_dir).journal() if e["event"] == "state"]
+    return {"result": result_of(run_dir), "states": states, "log": devices.robot.command_log,
+            "views": len(ctl.checkpoint["views"])}
+
+
+def test_uninterrupted_run_passes_through_every_phase(reference: dict) -> None:
+    states = reference["states"]
+    for expected in ("connecting", "homing", "planning", "scanning_moving", "scanning_capturing",
+                     "scanning_decoding", "evaluating", "registering", "reporting", "done"):
+        assert expected in states
+    assert states.index("planning") < states.index("scanning_moving") < states.index("evaluating")
+    assert reference["result"]["verdict"] == "pass"  # the simulator renders the nominal box itself
+    assert reference["result"]["n_points"] > 1000
+
+
+def test_robot_never_commanded_outside_envelope_or_limits(reference: dict) -> None:
+    cfg = small_cell()
+    lo, hi = np.array(cfg.robot.envelope_min_mm), np.array(cfg.robot.envelope_max_mm)
+    moves = [e for e in reference["log"] if e["command"] in ("move_linear", "move_joint")]
+    assert moves
+    for e in moves:
+        if e["command"] == "move_linear":
+            p = np.asarray(e["target"])[:3, 3]
+            assert np.all(p >= lo - 1e-6) and np.all(p <= hi + 1e-6)
+            assert e["speed"] <= cfg.robot.max_tcp_speed_mm_s and e["accel"] <= cfg.robot.max_tcp_accel_mm_s2
+        else:
+            assert e["speed"] <= cfg.robot.max_joint_speed_rad_s
+            assert e["accel"] <= cfg.robot.max_joint_accel_rad_s2
+
+
+def test_no_motion_while_projector_is_not_ready(recipe_path: Path, tmp_path: Path) -> None:
+    ctl, devices = make_controller(recipe_path, tmp_path / "run")
+    devices.projector.faults.lamp_error = True
+    assert ctl.execute() == "paused"
+    assert "projector" in ctl.message and "lamp" in ctl.message
+    assert not [e for e in devices.robot.command_log if e["command"].startswith("move")]
+
+
+@pytest.mark.parametrize("fault", ["drop_frame", "grab_timeout_once", "connection_loss"])
+def test_retryable_faults_end_in_done_with_identical_results(recipe_path: Path, tmp_path: Path, reference: dict,
+                                                             fault: str) -> None:
+    ctl, devices = make_controller(recipe_path, tmp_path / "run")
+    if fault == "drop_frame":
+        devices.camera.faults.drop_frames = 1
+    elif fault == "grab_timeout_once":
+        original = devices.camera.grab
+        calls = {"n": 0}
+
+        def flaky_grab(timeout_ms: float):
+            calls["n"] += 1
+            devices.camera.faults.grab_timeout = calls["n"] == 7
+            return original(timeout_ms)
+
+        devices.camera.grab = flaky_grab
+    else:
+        devices.robot.inject_fault("connection_loss")
+    assert ctl.execute() == "done", ctl.message
+    errors = [e for e in ctl.run.journal() if e["event"] == "error"]
+    assert errors and all(e["retryable"] for e in errors)
+    assert result_of(ctl.run.path) == reference["result"]
+
+
+@pytest.mark.parametrize("fault", ["protective_stop", "lamp_error_mid_run", "operator_pause"])
+def test_pausing_faults_resume_to_identical_results(recipe_path: Path, tmp_path: Path, reference: dict,
+                                                    fault: str) -> None:
+    run_dir = tmp_path / "run"
+    ctl, devices = make_controller(recipe_path, run_dir)
+    if fault == "protective_stop":
+        devices.robot.inject_fault("protective_stop")
+    else:
+        original = devices.camera.trigger
+        calls = {"n": 0}
+
+        def trigger_then_fault() -> None:
+            calls["n"] += 1
+            if calls["n"] == 40:
+                if fault == "lamp_error_mid_run":
+                    devices.projector.faults.lamp_error = True
+                else:
+                    ctl.request_pause("test")
+            original()
+
+        devices.camera.trigger = trigger_then_fault
+    assert ctl.execute() == "paused", ctl.message
+    journal_before = len(ctl.run.journal())
+    # the operator fixes the cause; a new process resumes from the run folder
+    ctl2, _ = make_controller(recipe_path, run_dir)
+    assert ctl2.execute(resume=True) == "done", ctl2.message
+    assert len(ctl2.run.journal()) > journal_before  # nothing of the first part was lost
+    assert result_of(run_dir) == reference["result"]
