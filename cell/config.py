@@ -126,6 +126,7 @@ class RobotConfig(Strict):
     max_joint_speed_rad_s: Annotated[float, Field(gt=0, le=math.pi)]
     max_joint_accel_rad_s2: Annotated[float, Field(gt=0, le=40)]
     home_joints_deg: tuple[float, float, float, float, float, float]
+    options: dict[str, Any] = Field(default_factory=dict, description="driver-specific settings")
 
     @model_validator(mode="after")
     def _envelope_ordered(self) -> RobotConfig:

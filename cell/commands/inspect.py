@@ -7,6 +7,7 @@ if the original recipe, CAD or cell config changed or moved meanwhile.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -54,7 +55,13 @@ def _start_run(recipe_path: Path, cell_path: Path, out: Path | None, sim_actual:
 
         load_mesh(sim_actual, what="simulated actual part")
     part = recipe.name or recipe.part.cad.stem
-    run = RunFolder.create(out.parent, part, name=out.name) if out else RunFolder.create(REPO / "runs", part)
+    final = out if out else REPO / "runs" / f"{part}-{time.strftime('%Y%m%dT%H%M%S')}"
+    if final.exists() and any(final.iterdir()):
+        raise ConfigError("run folder exists and is not empty; choose another --out or `cell resume` it",
+                          path=str(final))
+    # the folder appears under its name only once every input is copied: a run killed before that never
+    # started, and leaves nothing that `cell resume` could mistake for a run
+    run = RunFolder.create(final.parent, part, name=f".{final.name}.partial-{os.getpid()}")
     manifest: dict[str, Any] = {
         "recipe": run.copy_input(recipe_path, "recipe.yaml").name,
         "cell": run.copy_input(cell_path, "cell.yaml").name,
@@ -65,7 +72,10 @@ def _start_run(recipe_path: Path, cell_path: Path, out: Path | None, sim_actual:
     }
     write_json_atomic(run.path / "inputs" / "manifest.json", manifest)
     run.log("run_created", part=part, **manifest["sources"])
-    return run
+    if final.exists():
+        final.rmdir()  # empty (checked above)
+    os.replace(run.path, final)
+    return RunFolder.open(final)
 
 
 def _load_run_inputs(run: RunFolder) -> tuple[Recipe, Any, Path | None]:

@@ -1,0 +1,221 @@
+"""A projector controlled over RS-232 by a command set from a YAML profile (e.g. Epson ESC/VP21).
+
+Control (power, input, status) goes over the serial line; the pixels go over HDMI through a separate
+:class:`PatternDisplay` (injected; an HDMI full-screen display is not written yet), because the two are
+different links on the real device.
+Every exchange is framed by the profile's prompt, bounded by its timeout and retried a bounded number of
+times after a timeout or a garbled reply; a refusal (``ERR``) is a DeviceFault and is not retried.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+from typing import Annotated, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from cell.config import ProjectorConfig, Strict, validate
+from cell.contracts import ProjectorSource, ProjectorStatus
+from cell.errors import DeviceError, DeviceFault, DeviceProtocolError, DeviceTimeout
+from drivers.projector_profile import ProjectorProfile, load_profile
+from drivers.serial_transport import PySerialTransport, Transport, read_frame
+
+
+class PatternDisplay(Protocol):
+    """Where the pixels go: a full-screen output on the projector's HDMI input."""
+
+    def show(self, image: NDArray[np.uint8]) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class SerialProjectorOptions(Strict):
+    """``sensor.projector.options`` for ``driver: serial``."""
+
+    port: str = Field(description="serial device (/dev/ttyUSB0) or pyserial URL (spy://..., rfc2217://...)")
+    profile: str = Field("epson_escvp21", description="profile name in drivers/profiles/ or a YAML path")
+    reply_timeout_s: Annotated[float, Field(gt=0, le=600)] | None = None
+    retries: Annotated[int, Field(ge=0, le=10)] | None = None
+
+
+class SerialProjector:
+    """Projector over a serial control line plus an optional HDMI pattern display (Projector contract)."""
+
+    def __init__(
+        self,
+        config: ProjectorConfig,
+        *,
+        transport: Transport | None = None,
+        display: PatternDisplay | None = None,
+    ) -> None:
+        self.name = config.name
+        self._config = config
+        self.options = validate(
+            SerialProjectorOptions, dict(config.options), f"projector '{config.name}' options"
+        )
+        self.profile: ProjectorProfile = load_profile(self.options.profile)
+        timing = self.profile.timing
+        self._timeout_s = self.options.reply_timeout_s or timing.reply_timeout_s
+        self._retries = timing.retries if self.options.retries is None else self.options.retries
+        self._transport = transport
+        self._owns_transport = transport is None
+        self._display = display
+        self._sequence: list[NDArray[np.uint8]] = []
+        self._next = 0
+
+    # ----------------------------------------------------------------------------------------- link
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return (self._config.width_px, self._config.height_px)
+
+    def connect(self) -> None:
+        """Open the port and check that the projector answers the null command."""
+        if self._transport is None:
+            s = self.profile.serial
+            try:
+                self._transport = PySerialTransport(
+                    self.options.port,
+                    baudrate=s.baudrate,
+                    bytesize=s.bytesize,
+                    parity=s.parity,
+                    stopbits=s.stopbits,
+                )
+            except Exception as exc:  # pyserial raises SerialException/OSError/ValueError for a bad port
+                raise DeviceFault(self.name, f"cannot open serial port {self.options.port!r}: {exc}") from exc
+        self._exchange("ping")
+
+    def close(self) -> None:
+        if self._transport is not None and self._owns_transport:
+            self._transport.close()
+            self._transport = None
+        if self._display is not None:
+            self._display.close()
+
+    def _exchange(self, command: str, **fields: str) -> str | None:
+        """Send one profile command; return the reply's ``value`` for queries, None for set commands."""
+        cmd = self.profile.command(command)
+        if cmd is None:
+            raise DeviceFault(self.name, f"profile '{self.profile.name}' has no '{command}' command")
+        if self._transport is None:
+            raise DeviceFault(self.name, "not connected; call connect() first")
+        p = self.profile
+        text = cmd.send.format(**fields)
+        data = (text + p.terminator).encode(p.encoding)
+        prompt = p.prompt.encode(p.encoding)
+        timeout_s = (
+            cmd.timeout_s
+            if cmd.timeout_s is not None and self.options.reply_timeout_s is None
+            else self._timeout_s
+        )
+        last: DeviceError | None = None
+        attempts = self._retries + 1
+        for attempt in range(1, attempts + 1):
+            what = f"{text!r} (attempt {attempt}/{attempts})"
+            self._transport.discard_input()
+            self._transport.write(data)
+            try:
+                frame = read_frame(self._transport, prompt, timeout_s, self.name, what)
+            except (DeviceTimeout, DeviceProtocolError) as exc:
+                last = exc
+                continue
+            lines = [ln.strip() for ln in frame.decode(p.encoding, errors="replace").split(p.terminator)]
+            lines = [ln for ln in lines if ln]
+            if lines == [p.error_reply]:
+                raise DeviceFault(
+                    self.name,
+                    f"projector refused {text!r} ({p.error_reply}); check its state "
+                    "(warming up, no signal on the input, lamp fault) and its error status",
+                )
+            if cmd.reply is None:
+                if not lines:
+                    return None
+                last = DeviceProtocolError(self.name, f"{what}: expected only {p.prompt!r}, got {frame!r}")
+                continue
+            match = re.fullmatch(cmd.reply, lines[0]) if len(lines) == 1 else None
+            if match:
+                return match["value"]
+            last = DeviceProtocolError(self.name, f"{what}: reply {frame!r} does not match {cmd.reply!r}")
+        assert last is not None
+        raise last
+
+    # ----------------------------------------------------------------------------------------- control
+    def set_power(self, on: bool) -> None:
+        self._exchange("power_on" if on else "power_off")
+
+    def set_source(self, source: ProjectorSource) -> None:
+        """HDMI: select the HDMI input and unmute; INTERNAL: mute to the projector's own black screen."""
+        has_mute = self.profile.command("mute_set") is not None
+        if source is ProjectorSource.HDMI:
+            self._exchange("source_set", code=self.profile.sources["hdmi"])
+            if has_mute:
+                self._exchange("mute_set", state="OFF")
+        elif has_mute:
+            self._exchange("mute_set", state="ON")
+        else:
+            raise DeviceFault(
+                self.name, f"profile '{self.profile.name}' has no command for the internal screen"
+            )
+
+    def _query_optional(self, command: str) -> str | None:
+        return self._exchange(command) if self.profile.command(command) is not None else None
+
+    def status(self) -> ProjectorStatus:
+        """Power, input, lamp hours and errors; temperature is NaN if the command set cannot query it."""
+        pwr = self._exchange("power_query")
+        assert pwr is not None
+        powered = pwr in self.profile.powered_states
+        errors: list[str] = []
+        state = self.profile.power_states.get(pwr, f"unknown power state {pwr}")
+        if "abnormal" in state:
+            errors.append(state)
+        code = self._query_optional("error_query")
+        if code is not None and int(code, 16) != 0:
+            errors.append(self.profile.error_codes.get(code, f"error code {code}"))
+        lamp = self._query_optional("lamp_query")
+        temperature = self._query_optional("temperature_query")
+        source = ProjectorSource.INTERNAL
+        if powered:  # input queries are refused in standby
+            muted = self._query_optional("mute_query") == "ON"
+            if self._query_optional("source_query") == self.profile.sources["hdmi"] and not muted:
+                source = ProjectorSource.HDMI
+        return ProjectorStatus(
+            powered=powered,
+            source=source,
+            lamp_hours=float(lamp) if lamp is not None else math.nan,
+            temperature_c=float(temperature) if temperature is not None else math.nan,
+            errors=tuple(errors),
+        )
+
+    # ----------------------------------------------------------------------------------------- pixels
+    def _check(self, image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        w, h = self.resolution
+        img = np.asarray(image)
+        if img.dtype != np.uint8 or img.shape != (h, w):
+            raise DeviceProtocolError(
+                self.name,
+                f"image must be uint8 of shape ({h}, {w}) to show pixel-exact, got {img.dtype} {img.shape}",
+            )
+        return img
+
+    def show(self, image: NDArray[np.uint8]) -> None:
+        img = self._check(image)
+        if self._display is None:
+            raise DeviceFault(self.name, "no HDMI pattern display attached; pass display= to SerialProjector")
+        self._display.show(img)
+
+    def load_sequence(self, images: Sequence[NDArray[np.uint8]]) -> None:
+        self._sequence = [self._check(im).copy() for im in images]
+        self._next = 0
+
+    def step(self) -> int:
+        """Show the next loaded image and return its index; the sequence repeats after its last image."""
+        if not self._sequence:
+            raise DeviceProtocolError(self.name, "step() without a loaded sequence; call load_sequence first")
+        index = self._next
+        self.show(self._sequence[index])
+        self._next = (index + 1) % len(self._sequence)
+        return index

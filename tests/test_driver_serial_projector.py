@@ -1,0 +1,162 @@
+"""SerialProjector (Epson ESC/VP21 profile) against transcripts: byte-exact in process, and through a real
+pseudo-terminal with pyserial. Expected values come from the transcript fixture, i.e. from what the
+projector says, never from the driver."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import pytest
+
+from cell.config import ProjectorConfig, load_cell_config
+from cell.contracts import Projector, ProjectorSource
+from cell.errors import ConfigError, DeviceFault, DeviceProtocolError, DeviceTimeout
+from drivers.projector_profile import load_profile
+from drivers.serial_projector import SerialProjector
+from drivers.serial_transport import PySerialTransport, RecordingTransport
+from fakes.projector_emulator import ExpectedProtocol, PtyProjectorEmulator, load_transcript, save_transcript
+
+pytestmark = pytest.mark.timeout(10)
+
+ROOT = Path(__file__).resolve().parent.parent
+SESSION = ROOT / "fakes" / "fixtures" / "projector" / "escvp21_session.yaml"
+TIMEOUT_S = 0.2
+RETRIES = 1
+
+
+def projector_config(port: str = "unused", **options: object) -> ProjectorConfig:
+    base = load_cell_config(ROOT / "recipes" / "cells" / "sim.yaml").sensor.projector
+    opts = {
+        "port": port,
+        "profile": "epson_escvp21",
+        "reply_timeout_s": TIMEOUT_S,
+        "retries": RETRIES,
+        **options,
+    }
+    return ProjectorConfig.model_validate({**base.model_dump(), "driver": "serial", "options": opts})
+
+
+def run_session(projector: SerialProjector) -> object:
+    projector.connect()
+    projector.set_power(True)
+    projector.set_source(ProjectorSource.HDMI)
+    status = projector.status()
+    projector.set_power(False)
+    return status
+
+
+def check_session_status(status: object) -> None:
+    # PWR=01 (projecting), ERR=00, LAMP=1234, MUTE=OFF, SOURCE=30 (HDMI) in the transcript
+    assert status.powered and status.source is ProjectorSource.HDMI
+    assert status.lamp_hours == 1234.0 and status.errors == () and status.ready
+    assert math.isnan(status.temperature_c)  # ESC/VP21 has no temperature query
+
+
+def test_session_byte_exact() -> None:
+    with ExpectedProtocol(load_transcript(SESSION)) as transport:
+        projector = SerialProjector(projector_config(), transport=transport)
+        assert isinstance(projector, Projector)
+        check_session_status(run_session(projector))
+
+
+def test_expected_protocol_catches_a_wrong_write() -> None:
+    with pytest.raises(AssertionError, match="expected write"):
+        with ExpectedProtocol([(b"PWR OFF\r", b":")]) as transport:
+            SerialProjector(projector_config(), transport=transport).set_power(True)
+
+
+def test_expected_protocol_catches_unused_pairs() -> None:
+    with pytest.raises(AssertionError, match="unused"):
+        with ExpectedProtocol([(b"\r", b":"), (b"PWR OFF\r", b":")]) as transport:
+            SerialProjector(projector_config(), transport=transport).connect()
+
+
+@pytest.mark.parametrize("chunk", [0, 1])
+def test_session_over_pty(chunk: int) -> None:
+    """The real pyserial transport on a pseudo-terminal; chunk=1 delivers replies byte by byte."""
+    with PtyProjectorEmulator(load_transcript(SESSION), chunk=chunk, chunk_delay_s=0.002) as emu:
+        projector = SerialProjector(projector_config(emu.port))
+        try:
+            check_session_status(run_session(projector))
+        finally:
+            projector.close()
+        emu.assert_done()
+
+
+def test_recorded_transcript_round_trips(tmp_path: Path) -> None:
+    """Recording the session through RecordingTransport gives back the served transcript, byte for byte."""
+    served = load_transcript(SESSION)
+    with PtyProjectorEmulator(served, chunk=3, chunk_delay_s=0.002) as emu:
+        recorder = RecordingTransport(PySerialTransport(emu.port))
+        projector = SerialProjector(projector_config(emu.port), transport=recorder)
+        run_session(projector)
+        recorder.close()
+    save_transcript(tmp_path / "t.yaml", recorder.transcript, device="test", source="recorded over a pty")
+    assert load_transcript(tmp_path / "t.yaml") == served
+
+
+FAULTS = [
+    # (name, served exchanges, expected error, attempts used)
+    ("silent", [(b"PWR?\r", None)] * 2, DeviceTimeout, 2),
+    ("garbage-no-prompt", [(b"PWR?\r", b"\x8f\x03zz\x00")] * 2, DeviceProtocolError, 2),
+    ("garbage-framed", [(b"PWR?\r", b"#$%\r:")] * 2, DeviceProtocolError, 2),
+    ("wrong-echo", [(b"PWR?\r", b"LAMP=1234\r:")] * 2, DeviceProtocolError, 2),
+    ("refused", [(b"PWR?\r", b"ERR\r:")], DeviceFault, 1),
+]
+
+
+@pytest.mark.parametrize("name,served,error,attempts", FAULTS, ids=[f[0] for f in FAULTS])
+def test_fault_gives_typed_error_within_timeout(name: str, served: list, error: type, attempts: int) -> None:
+    with PtyProjectorEmulator(served) as emu:
+        projector = SerialProjector(projector_config(emu.port))
+        projector._transport = PySerialTransport(emu.port)  # skip the ping: the fault is on the query
+        t0 = time.monotonic()
+        with pytest.raises(error) as info:
+            projector.status()
+        elapsed = time.monotonic() - t0
+        projector._transport.close()
+        emu.assert_done()  # the refusal is not retried; timeouts and garbage are retried exactly once
+    assert info.value.device == "projector" and "PWR?" in str(info.value)
+    assert elapsed < attempts * TIMEOUT_S + 0.5
+
+
+def test_retry_recovers_after_one_silent_attempt() -> None:
+    with PtyProjectorEmulator(
+        [(b"PWR?\r", None), (b"PWR?\r", b"PWR=00\r:"), (b"ERR?\r", b"ERR=04\r:"), (b"LAMP?\r", b"LAMP=7\r:")]
+    ) as emu:
+        projector = SerialProjector(projector_config(emu.port))
+        projector._transport = PySerialTransport(emu.port)
+        status = projector.status()
+        projector._transport.close()
+        emu.assert_done()
+    # PWR=00 standby: input not queried; ERR=04 is the high-temperature code of the profile
+    assert not status.powered and status.source is ProjectorSource.INTERNAL and status.lamp_hours == 7.0
+    assert status.errors == ("high internal temperature",) and not status.ready
+
+
+def test_missing_port_is_a_device_fault() -> None:
+    projector = SerialProjector(projector_config("/dev/does-not-exist-ttyUSB9"))
+    with pytest.raises(DeviceFault, match="cannot open serial port"):
+        projector.connect()
+
+
+def test_show_checks_shape_and_needs_a_display() -> None:
+    import numpy as np
+
+    projector = SerialProjector(projector_config())
+    w, h = projector.resolution
+    with pytest.raises(DeviceProtocolError, match="uint8 of shape"):
+        projector.show(np.zeros((h, w + 1), np.uint8))
+    with pytest.raises(DeviceFault, match="no HDMI pattern display"):
+        projector.show(np.zeros((h, w), np.uint8))
+
+
+def test_profile_errors_name_the_problem(tmp_path: Path) -> None:
+    text = (ROOT / "drivers" / "profiles" / "epson_escvp21.yaml").read_text()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text.replace("lamp_query:", "lamp_hours_query:"))
+    with pytest.raises(ConfigError, match="unknown command name"):
+        load_profile(bad)
+    assert load_profile("epson_escvp21").serial.baudrate == 9600
