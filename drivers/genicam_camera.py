@@ -71,8 +71,12 @@ def to_numpy(data: np.ndarray, width: int, height: int, data_format: str) -> np.
 class GenICamCamera:
     """Camera contract over harvesters. Frames are copied out and the buffer requeued at once."""
 
-    def __init__(self, config: CameraConfig) -> None:
+    def __init__(self, config: CameraConfig, *, harvester_pool: dict[str, Any] | None = None) -> None:
+        """``harvester_pool``: Harvesters shared by producer file. A GenTL producer initialises once per
+        process (a second Harvester on the same .cti lists no device), so cameras opened together share one;
+        a shared Harvester is left open on close (its owner resets it)."""
         self.name = config.name
+        self._pool = harvester_pool
         self._config = config
         self.options = validate(GenICamOptions, dict(config.options), f"camera '{config.name}' options")
         self._harvester: Any = None
@@ -111,9 +115,14 @@ class GenICamCamera:
         cti = self.options.cti or (str(viky_cti()) if viky_cti() else None)
         if not cti or not Path(cti).is_file():
             raise DeviceFault(self.name, f"GenTL producer {cti!r} not found; set sensor.camera.options.cti")
-        h = Harvester()
-        h.add_file(cti)
-        h.update()
+        if self._pool is not None and cti in self._pool:
+            h = self._pool[cti]
+        else:
+            h = Harvester()
+            h.add_file(cti)
+            h.update()
+            if self._pool is not None:
+                self._pool[cti] = h
         key = (
             {"user_defined_name": self.options.user_id}
             if self.options.user_id
@@ -122,10 +131,14 @@ class GenICamCamera:
         found = [i for i, d in enumerate(h.device_info_list) if self._matches(d, key)]
         if not found:
             seen = [self._info(d, "serial_number") for d in h.device_info_list]
-            h.reset()
+            if self._pool is None:
+                h.reset()
             raise DeviceFault(self.name, f"no camera with {key} on {cti}; serials seen: {seen}")
         self._harvester = h
-        self._ia = h.create(found[0])
+        try:
+            self._ia = h.create(found[0])
+        except Exception as exc:  # harvesters/GenTL raise their own types, e.g. for a device in use
+            raise DeviceFault(self.name, f"cannot open camera {key} on {cti}: {exc}") from exc
         self._ia.num_buffers = self.options.buffers
         self._model = self._info(h.device_info_list[found[0]], "model") or self._model
         nm = self._ia.remote_device.node_map
@@ -158,7 +171,8 @@ class GenICamCamera:
             self._ia.destroy()
             self._ia = None
         if self._harvester is not None:
-            self._harvester.reset()
+            if self._pool is None:
+                self._harvester.reset()
             self._harvester = None
 
     def _node(self, name: str) -> Any | None:

@@ -1,8 +1,9 @@
 """A projector controlled over RS-232 by a command set from a YAML profile (e.g. Epson ESC/VP21).
 
 Control (power, input, status) goes over the serial line; the pixels go over HDMI through a separate
-:class:`PatternDisplay` (injected; an HDMI full-screen display is not written yet), because the two are
-different links on the real device.
+:class:`PatternDisplay`, because the two are different links on the real device. The display is injected
+(``display=``) or built from ``options.display`` (a :class:`drivers.hdmi_display.HdmiDisplay` full-screen
+window); it opens with :meth:`SerialProjector.connect` and must have the projector's resolution.
 Every exchange is framed by the profile's prompt, bounded by its timeout and retried a bounded number of
 times after a timeout or a garbled reply; a refusal (``ERR``) is a DeviceFault and is not retried.
 """
@@ -21,6 +22,7 @@ from pydantic import Field
 from cell.config import ProjectorConfig, Strict, validate
 from cell.contracts import ProjectorSource, ProjectorStatus
 from cell.errors import DeviceError, DeviceFault, DeviceProtocolError, DeviceTimeout
+from drivers.hdmi_display import HdmiDisplay, HdmiDisplayOptions
 from drivers.projector_profile import ProjectorProfile, load_profile
 from drivers.serial_transport import PySerialTransport, Transport, read_frame
 
@@ -28,7 +30,14 @@ from drivers.serial_transport import PySerialTransport, Transport, read_frame
 class PatternDisplay(Protocol):
     """Where the pixels go: a full-screen output on the projector's HDMI input."""
 
-    def show(self, image: NDArray[np.uint8]) -> None: ...
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) of the output, px; valid once open."""
+        ...
+
+    def open(self) -> None: ...
+
+    def show(self, image: NDArray[np.uint8]) -> object: ...
 
     def close(self) -> None: ...
 
@@ -40,6 +49,9 @@ class SerialProjectorOptions(Strict):
     profile: str = Field("epson_escvp21", description="profile name in drivers/profiles/ or a YAML path")
     reply_timeout_s: Annotated[float, Field(gt=0, le=600)] | None = None
     retries: Annotated[int, Field(ge=0, le=10)] | None = None
+    display: HdmiDisplayOptions | None = Field(
+        None, description="the HDMI pattern window (monitor index, mode, ...); None: pass display= instead"
+    )
 
 
 class SerialProjector:
@@ -63,6 +75,8 @@ class SerialProjector:
         self._retries = timing.retries if self.options.retries is None else self.options.retries
         self._transport = transport
         self._owns_transport = transport is None
+        if display is None and self.options.display is not None:
+            display = HdmiDisplay(self.options.display, name=f"{config.name} HDMI")
         self._display = display
         self._sequence: list[NDArray[np.uint8]] = []
         self._next = 0
@@ -73,7 +87,7 @@ class SerialProjector:
         return (self._config.width_px, self._config.height_px)
 
     def connect(self) -> None:
-        """Open the port and check that the projector answers the null command."""
+        """Open the port, check that the projector answers the null command, open the pattern display."""
         if self._transport is None:
             s = self.profile.serial
             try:
@@ -87,6 +101,16 @@ class SerialProjector:
             except Exception as exc:  # pyserial raises SerialException/OSError/ValueError for a bad port
                 raise DeviceFault(self.name, f"cannot open serial port {self.options.port!r}: {exc}") from exc
         self._exchange("ping")
+        if self._display is not None:
+            self._display.open()
+            if tuple(self._display.size) != self.resolution:
+                self._display.close()
+                raise DeviceFault(
+                    self.name,
+                    f"HDMI display mode is {self._display.size[0]}x{self._display.size[1]} but the projector "
+                    f"is {self.resolution[0]}x{self.resolution[1]}; set the output to the projector's native "
+                    "mode (options.display.mode) or fix width_px/height_px",
+                )
 
     def close(self) -> None:
         if self._transport is not None and self._owns_transport:
@@ -206,6 +230,13 @@ class SerialProjector:
         if self._display is None:
             raise DeviceFault(self.name, "no HDMI pattern display attached; pass display= to SerialProjector")
         self._display.show(img)
+
+    @property
+    def current_image(self) -> NDArray[np.uint8]:
+        """The frame last presented on HDMI, read back from the display (AttributeError if it cannot)."""
+        if self._display is None or not hasattr(self._display, "current_image"):
+            raise AttributeError(f"{self.name}: the pattern display cannot read back what it shows")
+        return self._display.current_image
 
     def load_sequence(self, images: Sequence[NDArray[np.uint8]]) -> None:
         self._sequence = [self._check(im).copy() for im in images]

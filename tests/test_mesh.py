@@ -71,7 +71,10 @@ def test_empty_file(tmp_path):
 def test_garbage_bytes(tmp_path, suffix):
     path = tmp_path / f"garbage{suffix}"
     path.write_bytes(np.random.default_rng(7).bytes(500))
-    _refused(path, "unreadable")
+    message = _refused(path)
+    # trimesh reads garbage either as a broken binary file or, where charset_normalizer is installed, as text
+    # without triangles: both must be refused with the file named
+    assert "unreadable" in message or "no triangles" in message, message
 
 
 def test_file_without_triangles(tmp_path):
