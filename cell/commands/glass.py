@@ -45,13 +45,26 @@ def glass_cmd(
     for src, name in inputs:
         run.copy_input(Path(src), name)
     run.log("run_created", part=part, recipe=str(recipe), rig=str(rig_path), actual=str(actual_path))
-    rig = SimGlassRig(cfg, actual_W)
-    summary = run_glass_inspection(run, rec, cfg, rig, rig.place_board, nominal_W, frames, board_frames)
+    if cfg.driver == "sim":
+        rig = SimGlassRig(cfg, actual_W)
+        place_board = rig.place_board
+    else:
+        from drivers.glass_rig import GenICamGlassRig
+
+        rig = GenICamGlassRig(cfg, cfg.options)
+        place_board = _operator_places_board
+    summary = run_glass_inspection(run, rec, cfg, rig, place_board, nominal_W, frames, board_frames)
     dev = summary["deviation"]
     console.print(f"[bold]verdict: {str(summary['verdict']).upper()}[/]  ({summary['n_points']} of "
                   f"{summary['markers']} points accepted; deviation {dev.get('min_mm', float('nan')):.3f} .. "
                   f"{dev.get('max_mm', float('nan')):.3f} mm)")
     console.print(f"report: {run.results_dir / 'report.html'}")
+
+
+def _operator_places_board(height_mm: float | None) -> None:
+    """On a real rig the technician (or a lift) places the dot-grid board at each calibration height."""
+    what = f"the calibration board at {height_mm:g} mm" if height_mm is not None else "the board away"
+    typer.confirm(f"Place {what}, then confirm", abort=True)
 
 
 def register(app: typer.Typer) -> None:

@@ -8,13 +8,14 @@ small angle thresholds of the searches.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
 
-from cell.config import CameraConfig, PoseConfig, Strict, ToleranceConfig, read_yaml, validate
+from cell.config import CameraConfig, PoseConfig, ToleranceConfig, read_yaml, validate
 from cell.errors import ConfigError
+from cell.schema import Strict
 
 PositiveFloat = Annotated[float, Field(gt=0)]
 
@@ -82,6 +83,8 @@ class GlassRigConfig(Strict):
 
     name: str
     description: str = ""
+    driver: Literal["sim", "genicam"] = "sim"
+    options: dict[str, Any] = Field(default_factory=dict)  # genicam: drivers.glass_rig.GlassRigOptions
     cameras: Annotated[list[GlassCameraConfig], Field(min_length=1, max_length=8)]
     screen: ScreenConfig
     board: BoardConfig
