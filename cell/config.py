@@ -204,8 +204,11 @@ class Recipe(Strict):
     name: str = ""
     part: PartConfig
     tolerance: ToleranceConfig
-    min_coverage: Fraction = Field(0.95, description="share of the inspectable surface that must be measured "
-                                   "for a pass/fail verdict; below it the verdict is 'incomplete'")
+    min_coverage: Fraction = Field(
+        0.95,
+        description="share of the inspectable surface that must be measured "
+        "for a pass/fail verdict; below it the verdict is 'incomplete'",
+    )
     plan: PlanSettings = PlanSettings()
 
 
@@ -260,8 +263,11 @@ def load_cell_config(path: str | Path) -> CellConfig:
             continue
         resolved = value if value.is_absolute() else base / value
         if not resolved.exists():
-            raise ConfigError(f"calibration file not found: {resolved}; run `cell calibrate` or remove the entry",
-                              path=str(path), field=f"calibration.{field}")
+            raise ConfigError(
+                f"calibration file not found: {resolved}; run `cell calibrate` or remove the entry",
+                path=str(path),
+                field=f"calibration.{field}",
+            )
         setattr(cfg.calibration, field, resolved)
     return cfg
 

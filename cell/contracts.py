@@ -9,16 +9,17 @@ Units: mm, rad, ms for exposure and timeouts, seconds for timestamps. Poses are 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from enum import Enum
-from typing import Any, Protocol, Sequence, runtime_checkable
+from enum import StrEnum
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
 
 
 # --------------------------------------------------------------------------------------------- projector
-class ProjectorSource(str, Enum):
+class ProjectorSource(StrEnum):
     """Which input the projector shows: the HDMI pattern stream or its internal test/black screen."""
 
     HDMI = "hdmi"
@@ -76,7 +77,7 @@ class Projector(Protocol):
 
 
 # --------------------------------------------------------------------------------------------- camera
-class TriggerMode(str, Enum):
+class TriggerMode(StrEnum):
     """How a camera starts an exposure."""
 
     FREE_RUN = "free_run"
@@ -84,7 +85,7 @@ class TriggerMode(str, Enum):
     HARDWARE = "hardware"  # an external line, e.g. the projector's frame sync
 
 
-class PixelFormat(str, Enum):
+class PixelFormat(StrEnum):
     """Pixel formats the cell uses. MonoN frames arrive as uint8 (N=8) or uint16 (N=10, 12)."""
 
     MONO8 = "Mono8"
@@ -152,7 +153,7 @@ class Camera(Protocol):
 
 
 # --------------------------------------------------------------------------------------------- robot
-class RobotMode(str, Enum):
+class RobotMode(StrEnum):
     """The robot's operating mode, as a UR controller reports it (simplified)."""
 
     DISCONNECTED = "disconnected"

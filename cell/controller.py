@@ -19,10 +19,11 @@ from __future__ import annotations
 import signal
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from transitions.extensions import HierarchicalGraphMachine
@@ -33,12 +34,32 @@ from cell.errors import CellError, DeviceError, DeviceFault, PlanningError
 from cell.planning.motion import Move
 from cell.runs import RunFolder
 
-ACTIVE = ["connecting", "homing", "planning", "scanning", "evaluating", "replanning", "registering", "reporting",
-          "resuming"]
+ACTIVE = [
+    "connecting",
+    "homing",
+    "planning",
+    "scanning",
+    "evaluating",
+    "replanning",
+    "registering",
+    "reporting",
+    "resuming",
+]
 STATES: list[Any] = [
-    "idle", "connecting", "homing", "planning",
+    "idle",
+    "connecting",
+    "homing",
+    "planning",
     {"name": "scanning", "children": ["moving", "capturing", "decoding"]},
-    "evaluating", "replanning", "registering", "reporting", "done", "paused", "faulted", "aborted", "resuming",
+    "evaluating",
+    "replanning",
+    "registering",
+    "reporting",
+    "done",
+    "paused",
+    "faulted",
+    "aborted",
+    "resuming",
 ]
 TERMINAL = {"done", "paused", "faulted", "aborted"}
 
@@ -52,23 +73,41 @@ def _transitions() -> list[dict[str, Any]]:
         {"trigger": "connected", "source": "connecting", "dest": "homing", "conditions": safe},
         # after homing, go to the phase the checkpoint records (first matching condition wins)
         {"trigger": "homed", "source": "homing", "dest": "planning", "conditions": "needs_plan"},
-        {"trigger": "homed", "source": "homing", "dest": "scanning_moving", "conditions": ["views_pending"] + safe},
+        {
+            "trigger": "homed",
+            "source": "homing",
+            "dest": "scanning_moving",
+            "conditions": ["views_pending"] + safe,
+        },
         {"trigger": "homed", "source": "homing", "dest": "evaluating", "conditions": "phase_is_scanning"},
         {"trigger": "homed", "source": "homing", "dest": "registering", "conditions": "phase_is_registering"},
         {"trigger": "homed", "source": "homing", "dest": "reporting", "conditions": "phase_is_reporting"},
         {"trigger": "planned", "source": "planning", "dest": "scanning_moving", "conditions": safe},
         {"trigger": "arrived", "source": "scanning_moving", "dest": "scanning_capturing", "conditions": safe},
-        {"trigger": "captured", "source": "scanning_capturing", "dest": "scanning_moving",
-         "conditions": ["views_pending"] + safe},
+        {
+            "trigger": "captured",
+            "source": "scanning_capturing",
+            "dest": "scanning_moving",
+            "conditions": ["views_pending"] + safe,
+        },
         {"trigger": "captured", "source": "scanning_capturing", "dest": "scanning_decoding"},
         {"trigger": "no_more_views", "source": "scanning_moving", "dest": "scanning_decoding"},
         {"trigger": "decoded", "source": "scanning_decoding", "dest": "evaluating"},
         {"trigger": "needs_views", "source": "evaluating", "dest": "replanning"},
         {"trigger": "qualified", "source": "evaluating", "dest": "registering"},
-        {"trigger": "replanned", "source": "replanning", "dest": "scanning_moving",
-         "conditions": ["views_pending"] + safe},
+        {
+            "trigger": "replanned",
+            "source": "replanning",
+            "dest": "scanning_moving",
+            "conditions": ["views_pending"] + safe,
+        },
         {"trigger": "replanned", "source": "replanning", "dest": "registering"},
-        {"trigger": "registered", "source": "registering", "dest": "reporting", "conditions": "cloud_registered"},
+        {
+            "trigger": "registered",
+            "source": "registering",
+            "dest": "reporting",
+            "conditions": "cloud_registered",
+        },
         {"trigger": "reported", "source": "reporting", "dest": "done"},
         {"trigger": "pause", "source": ACTIVE, "dest": "paused"},
         {"trigger": "fault", "source": "*", "dest": "faulted"},
@@ -100,7 +139,9 @@ class Job(Protocol):
         """Judge the measured views: ``{"qualified": bool, "Q": float, ...}``."""
         ...
 
-    def replan(self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]) -> list[dict[str, Any]]:
+    def replan(
+        self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]
+    ) -> list[dict[str, Any]]:
         """New viewpoints V_k from the defect maps (may be empty)."""
         ...
 
@@ -145,7 +186,7 @@ class Controller:
         robot_limits: tuple[float, float, float, float] = (250.0, 1200.0, 1.0, 3.0),
         home_joints_rad: np.ndarray | None = None,
         motion: Any | None = None,
-        on_progress: Callable[["Controller"], None] | None = None,
+        on_progress: Callable[[Controller], None] | None = None,
     ) -> None:
         self.devices = devices
         self.job = job
@@ -153,9 +194,15 @@ class Controller:
         self.settings = settings or ControllerSettings()
         self.robot_limits = robot_limits  # tcp mm/s, tcp mm/s^2, joint rad/s, joint rad/s^2
         self.home_joints_rad = home_joints_rad
-        self.motion = motion  # cell.planning.motion.MotionPlanner: collision-checked paths; None: straight lines
+        self.motion = (
+            motion  # cell.planning.motion.MotionPlanner: collision-checked paths; None: straight lines
+        )
         self.on_progress = on_progress
-        self.checkpoint: dict[str, Any] = run.load_checkpoint() or {"phase": "new", "views": [], "iteration": 0}
+        self.checkpoint: dict[str, Any] = run.load_checkpoint() or {
+            "phase": "new",
+            "views": [],
+            "iteration": 0,
+        }
         self.message = ""
         self.progress = _Progress()
         self._pause_requested = threading.Event()
@@ -165,8 +212,15 @@ class Controller:
         self._attempts = 0
         self.current_view: int | None = None
         self.machine = HierarchicalGraphMachine(
-            model=self, states=STATES, transitions=_transitions(), initial="idle", auto_transitions=False,
-            queued=True, send_event=False, after_state_change="_journal_state", graph_engine="mermaid",
+            model=self,
+            states=STATES,
+            transitions=_transitions(),
+            initial="idle",
+            auto_transitions=False,
+            queued=True,
+            send_event=False,
+            after_state_change="_journal_state",
+            graph_engine="mermaid",
             title="Inspection cell controller",
         )
 
@@ -230,7 +284,8 @@ class Controller:
 
     # ------------------------------------------------------------------ the run loop
     def execute(self, *, resume: bool = False) -> str:
-        """Run until done, paused, faulted or aborted; returns the final state. Devices are made safe on exit."""
+        """Run until done, paused, faulted or aborted; returns the final state. Devices are made safe on
+        exit."""
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="decode")
         previous = signal.getsignal(signal.SIGINT)
         in_main = threading.current_thread() is threading.main_thread()
@@ -268,8 +323,9 @@ class Controller:
 
     def _handle_error(self, exc: CellError) -> None:
         retryable = isinstance(exc, DeviceError) and exc.retryable
-        self.run.log("error", kind=type(exc).__name__, error=str(exc), attempt=self._attempts + 1,
-                     retryable=retryable)
+        self.run.log(
+            "error", kind=type(exc).__name__, error=str(exc), attempt=self._attempts + 1, retryable=retryable
+        )
         if retryable and self._attempts < self.settings.max_retries:
             self._attempts += 1
             time.sleep(self.settings.retry_delay_s)
@@ -321,11 +377,14 @@ class Controller:
         projector.set_source(ProjectorSource.HDMI)
         self._blank_projector()
         if not self.robot_normal():
-            raise DeviceFault(self.devices.names.get("robot", "robot"),
-                              f"not ready for motion: {self.devices.robot.state()}")
+            raise DeviceFault(
+                self.devices.names.get("robot", "robot"),
+                f"not ready for motion: {self.devices.robot.state()}",
+            )
         if not self.projector_ready():
-            raise DeviceFault(self.devices.names.get("projector", "projector"),
-                              f"not ready: {projector.status()}")
+            raise DeviceFault(
+                self.devices.names.get("projector", "projector"), f"not ready: {projector.status()}"
+            )
         self.connected()
 
     def _do_homing(self) -> None:
@@ -351,7 +410,9 @@ class Controller:
             moves = [Move("linear", target)]
         else:
             try:
-                moves, rejected = self.motion.plan(robot.tool_pose(), robot.joints(), target, self.home_joints_rad)
+                moves, rejected = self.motion.plan(
+                    robot.tool_pose(), robot.joints(), target, self.home_joints_rad
+                )
             except PlanningError as exc:  # this view cannot be reached safely: skip it, say why
                 self.run.log("decision", view=index, reason=f"view skipped: {exc}")
                 self._save(skipped=sorted(set(self.checkpoint.get("skipped", [])) | {index}))
@@ -363,8 +424,14 @@ class Controller:
         v, a, qd, qdd = self.robot_limits
         f = self.settings.speed_fraction
         for move in moves:
-            self.run.log("device", device="robot", command=f"move_{move.kind}", view=index, target=move.target,
-                         speed_scale=move.speed_scale)
+            self.run.log(
+                "device",
+                device="robot",
+                command=f"move_{move.kind}",
+                view=index,
+                target=move.target,
+                speed_scale=move.speed_scale,
+            )
             k = f * move.speed_scale
             if move.kind == "linear":
                 robot.move_linear(move.target, v * k, a * k)
@@ -407,7 +474,9 @@ class Controller:
         for future in list(self._pending.values()):
             try:
                 future.result()
-            except Exception as exc:  # its error is reported by _collect or lost with the pause; view is redone
+            except (
+                Exception
+            ) as exc:  # its error is reported by _collect or lost with the pause; view is redone
                 self.run.log("error", kind="decode", error=repr(exc))
         try:
             self._collect(block=True)
@@ -427,8 +496,11 @@ class Controller:
         last = iteration + 1 >= self.settings.max_iterations
         if evaluation.get("qualified") or spent or last:
             if not evaluation.get("qualified"):
-                self.run.log("decision", reason="view budget or iteration limit reached before the set point",
-                             Q=evaluation.get("Q"))
+                self.run.log(
+                    "decision",
+                    reason="view budget or iteration limit reached before the set point",
+                    Q=evaluation.get("Q"),
+                )
             self._save(phase="registering", evaluation=evaluation)
             self.qualified()
         else:
@@ -467,7 +539,14 @@ def mermaid_diagram() -> str:
         pass
 
     model = _Model()
-    HierarchicalGraphMachine(model=model, states=STATES, transitions=_transitions(), initial="idle",
-                             auto_transitions=False, graph_engine="mermaid", show_conditions=True,
-                             title="Inspection cell controller")
+    HierarchicalGraphMachine(
+        model=model,
+        states=STATES,
+        transitions=_transitions(),
+        initial="idle",
+        auto_transitions=False,
+        graph_engine="mermaid",
+        show_conditions=True,
+        title="Inspection cell controller",
+    )
     return "```mermaid\n" + model.get_graph().draw(None) + "\n```\n"

@@ -67,8 +67,13 @@ def build_devices(
     part_material: MaterialConfig | None = None,
     seed: int | None = None,
 ) -> DeviceBundle:
-    """Devices for ``cfg``. ``part_W`` (world coordinates, mm) is what a simulated cell renders; real cells ignore it."""
-    drivers = {"robot": cfg.robot.driver, "camera": cfg.sensor.camera.driver, "projector": cfg.sensor.projector.driver}
+    """Devices for ``cfg``. ``part_W`` (world coordinates, mm) is what a simulated cell renders; real
+    cells ignore it."""
+    drivers = {
+        "robot": cfg.robot.driver,
+        "camera": cfg.sensor.camera.driver,
+        "projector": cfg.sensor.projector.driver,
+    }
     sim_kinds = [k for k, d in drivers.items() if d == "sim"]
     if sim_kinds and len(sim_kinds) != len(drivers):
         raise ConfigError(
@@ -76,7 +81,11 @@ def build_devices(
             "simulated world; make every driver 'sim' or none",
             field="driver",
         )
-    names = {"robot": cfg.robot.name, "camera": cfg.sensor.camera.name, "projector": cfg.sensor.projector.name}
+    names = {
+        "robot": cfg.robot.name,
+        "camera": cfg.sensor.camera.name,
+        "projector": cfg.sensor.projector.name,
+    }
     if sim_kinds:
         from fakes.sim_cell import build_sim_cell
 

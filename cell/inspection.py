@@ -1,10 +1,11 @@
-"""The lambertian inspection job: what the controller plans, captures, decodes, evaluates, registers and reports.
+"""The lambertian inspection job: what the controller plans, captures, decodes, evaluates, registers, reports.
 
 Each step reads and writes the run folder only, so any step can run again after a resume:
 - plan: CAD-guided viewpoints V0 (cell.planning, chapter 3.1);
 - capture: the GCLS pattern stack at one view (the robot is already there);
-- decode: sub-pixel decoding, triangulation in {C}, the kinematic chain into {W} (eqs 4.1-4.4), the link filter
-  (4.4), and the view's defect regions (shadow, glare, low contrast) on the nominal surface -> views/NNN/;
+- decode: sub-pixel decoding, triangulation in {C}, the kinematic chain into {W} (eqs 4.1-4.4), the
+  link filter (4.4), and the view's defect regions (shadow, glare, low contrast) on the nominal surface
+  -> views/NNN/;
 - evaluate / replan: coverage, accuracy map and Q (eq 3.22) and the feedback viewpoints g_k (3.2-3.3);
 - register / report: all views in the part frame, merged; signed deviations against the nominal; report.
 
@@ -60,18 +61,23 @@ class InspectionSettings:
     min_cluster_px: int = 200
     table_margin_mm: float = 0.5  # points lower than this above the table top (world z) are the table
     crop_mm: float = 5.0  # points farther than this from the nominal surface are background, not part
-    eval_voxel_mm: float = 0.5
-    merge_voxel_mm: float = 0.2
+    eval_voxel_mm: float = 0.5  # coverage and the accuracy map use one point per voxel: ample for 0.5 pt/mm^2
+    merge_voxel_mm: float = 0.2  # views are averaged on this grid (quality-weighted)
     lift_mm: float = 80.0  # retract height between views
-    min_defect_points: int = 10  # out-of-tolerance clusters smaller than this are isolated outliers  # views are averaged on this grid (quality-weighted)  # coverage and the accuracy map use one point per voxel: ample for 0.5 pt/mm^2
+    min_defect_points: int = 10  # out-of-tolerance clusters smaller than this are isolated outliers
     pictures: bool = True
 
 
 class LambertianInspection:
     """The job the controller runs for a recipe on a structured-light cell."""
 
-    def __init__(self, recipe: Recipe, cfg: CellConfig, nominal_W: trimesh.Trimesh,
-                 settings: InspectionSettings | None = None) -> None:
+    def __init__(
+        self,
+        recipe: Recipe,
+        cfg: CellConfig,
+        nominal_W: trimesh.Trimesh,
+        settings: InspectionSettings | None = None,
+    ) -> None:
         self.recipe = recipe
         self.cfg = cfg
         self.nominal_W = nominal_W
@@ -81,13 +87,17 @@ class LambertianInspection:
         self.T_W_B = cfg.robot.T_W_B.matrix()
         self.T_T_C = cfg.sensor.T_T_C.matrix()
         proj = cfg.sensor.projector
-        self.patterns: PatternSet = gcls_patterns(proj.width_px, proj.height_px, 12, n_shifts=12,
-                                                  n_gray=6 if proj.width_px >= 768 else None)
+        self.patterns: PatternSet = gcls_patterns(
+            proj.width_px, proj.height_px, 12, n_shifts=12, n_gray=6 if proj.width_px >= 768 else None
+        )
         self.triangulator = PinholeTriangulator.from_sensor(cfg.sensor)
         self._plan: Plan | None = None
         self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
-        self._nominal_rays = trimesh.ray.ray_triangle.RayMeshIntersector(nominal_W) \
-            if not trimesh.ray.has_embree else trimesh.ray.ray_pyembree.RayMeshIntersector(nominal_W)
+        self._nominal_rays = (
+            trimesh.ray.ray_triangle.RayMeshIntersector(nominal_W)
+            if not trimesh.ray.has_embree
+            else trimesh.ray.ray_pyembree.RayMeshIntersector(nominal_W)
+        )
 
     # ------------------------------------------------------------------ planning
     @property
@@ -99,15 +109,24 @@ class LambertianInspection:
 
     @staticmethod
     def _view_dict(vp: Viewpoint, iteration: int) -> dict[str, Any]:
-        return {"T_W_C": vp.T_W_C.tolist(), "T_B_T": vp.T_B_T.tolist(), "patch": vp.patch, "source": vp.source,
-                "iteration": iteration}
+        return {
+            "T_W_C": vp.T_W_C.tolist(),
+            "T_B_T": vp.T_B_T.tolist(),
+            "patch": vp.patch,
+            "source": vp.source,
+            "iteration": iteration,
+        }
 
     def motion_planner(self, speed_fraction: float) -> MotionPlanner:
         """Collision-checked paths between views against this part and the table (cell.planning.motion)."""
         robot = self.cfg.robot
-        return MotionPlanner(self.plan_model.patch_planner.reach, UR5E, lift_mm=self.settings.lift_mm,
-                             z_max_mm=robot.envelope_max_mm[2] - 1.0,
-                             tcp_speed_mm_s=robot.max_tcp_speed_mm_s * speed_fraction)
+        return MotionPlanner(
+            self.plan_model.patch_planner.reach,
+            UR5E,
+            lift_mm=self.settings.lift_mm,
+            z_max_mm=robot.envelope_max_mm[2] - 1.0,
+            tcp_speed_mm_s=robot.max_tcp_speed_mm_s * speed_fraction,
+        )
 
     def plan(self) -> list[dict[str, Any]]:
         return [self._view_dict(v, 0) for v in self.plan_model.viewpoints]
@@ -116,8 +135,14 @@ class LambertianInspection:
     def prepare(self, devices: DeviceBundle) -> None:
         """Camera settings for the stack: software trigger, the camera's native bit depth."""
         cam = self.cfg.sensor.camera
-        devices.camera.configure(CameraSettings(cam.exposure_ms, cam.gain_db, PixelFormat(f"Mono{cam.bit_depth}")
-                                                if cam.bit_depth != 8 else PixelFormat.MONO8, TriggerMode.SOFTWARE))
+        devices.camera.configure(
+            CameraSettings(
+                cam.exposure_ms,
+                cam.gain_db,
+                PixelFormat(f"Mono{cam.bit_depth}") if cam.bit_depth != 8 else PixelFormat.MONO8,
+                TriggerMode.SOFTWARE,
+            )
+        )
 
     def capture(self, devices: DeviceBundle, view: dict[str, Any], index: int) -> dict[str, Any]:
         if devices.sim is not None:
@@ -133,14 +158,20 @@ class LambertianInspection:
 
     def decode(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         cam = self.cfg.sensor.camera
-        stack = check_stack(captured["images"], self.patterns, (cam.width_px, cam.height_px), cam.bit_depth,
-                            source=f"camera '{captured['camera']}'")
+        stack = check_stack(
+            captured["images"],
+            self.patterns,
+            (cam.width_px, cam.height_px),
+            cam.bit_depth,
+            source=f"camera '{captured['camera']}'",
+        )
         decoded = decode(stack, self.patterns, cam.bit_depth)
         cloud = self.triangulator.triangulate(decoded)
         T_W_C = self.T_W_B @ captured["T_B_T"] @ self.T_T_C
         valid = cloud.valid
-        kept = link_cluster(cloud.points_C, link_mm=self.settings.link_mm,
-                            min_cluster_px=self.settings.min_cluster_px)
+        kept = link_cluster(
+            cloud.points_C, link_mm=self.settings.link_mm, min_cluster_px=self.settings.min_cluster_px
+        )
         keep = valid & kept.keep
         points_W = transform_points(T_W_C, cloud.points_C[keep])
         quality = cloud.contrast[keep].astype(np.float32)
@@ -158,9 +189,11 @@ class LambertianInspection:
         regions = self._defects(T_W_C, cloud.reasons)
         _save_regions(out_dir / "defects.npz", regions)
         summary = {
-            "T_W_C": T_W_C.tolist(), "T_B_T": captured["T_B_T"].tolist(), "points": int(len(points_W)),
-            "decoded": int(valid.sum()), "link_filtered": int((valid & ~kept.keep).sum()),
-            "excluded": {"table": int(on_table.sum()), "background": int((far & ~on_table).sum())},
+            "T_W_C": T_W_C.tolist(),
+            "T_B_T": captured["T_B_T"].tolist(),
+            "points": int(len(points_W)),
+            "decoded": int(valid.sum()),
+            "link_filtered": int((valid & ~kept.keep).sum()),
             "excluded": {"table": int(on_table.sum()), "background": int((far & ~on_table).sum())},
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
         }
@@ -168,7 +201,8 @@ class LambertianInspection:
         return summary
 
     def _defects(self, T_W_C: NDArray[np.float64], reasons: NDArray[np.uint8]) -> list[DefectRegion]:
-        """Hole regions per reason, located on the nominal surface by casting their pixels' rays on the CAD."""
+        """Hole regions per reason, located on the nominal surface by casting their pixels' rays on the
+        CAD."""
         masks = {name: (reasons & np.uint8(bit)) > 0 for name, bit in DEFECT_REASONS.items()}
         holes = np.logical_or.reduce(list(masks.values()))
         nominal = np.full(reasons.shape + (3,), np.nan)
@@ -178,7 +212,9 @@ class LambertianInspection:
             rays_C = np.stack([xn[holes], yn[holes], np.ones(int(holes.sum()))], axis=-1)
             dirs = transform_vectors(T_W_C, rays_C / np.linalg.norm(rays_C, axis=1, keepdims=True))
             origins = np.broadcast_to(T_W_C[:3, 3], dirs.shape)
-            locations, ray_index, _ = self._nominal_rays.intersects_location(origins, dirs, multiple_hits=False)
+            locations, ray_index, _ = self._nominal_rays.intersects_location(
+                origins, dirs, multiple_hits=False
+            )
             hole_points = np.full((int(holes.sum()), 3), np.nan)
             hole_points[ray_index] = locations
             nominal[holes] = hole_points
@@ -192,8 +228,12 @@ class LambertianInspection:
         for i in run.completed_views():
             d = run.view_dir(i)
             meta = json.loads((d / "view.json").read_text())
-            out[i] = MeasuredView(np.asarray(meta["T_W_C"]), np.load(d / "points_eval_W.npy"),
-                                  _load_regions(d / "defects.npz"), deviation_mm=np.load(d / "deviation_eval.npy"))
+            out[i] = MeasuredView(
+                np.asarray(meta["T_W_C"]),
+                np.load(d / "points_eval_W.npy"),
+                _load_regions(d / "defects.npz"),
+                deviation_mm=np.load(d / "deviation_eval.npy"),
+            )
         return out
 
     def evaluate(self, run: RunFolder, views: list[dict[str, Any]], iteration: int) -> dict[str, Any]:
@@ -201,8 +241,9 @@ class LambertianInspection:
         ev = evaluate(fb, list(self._measured(run).values()), first_new=1, ia_before=np.zeros((0, 3)))
         return {**ev.to_json(), "iteration": iteration, "views": len(views)}
 
-    def replan(self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]
-               ) -> list[dict[str, Any]]:
+    def replan(
+        self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]
+    ) -> list[dict[str, Any]]:
         measured = self._measured(run)
         fb = FeedbackPlanner(self.plan_model)
         ev = evaluate(fb, list(measured.values()), first_new=1, ia_before=np.zeros((0, 3)))
@@ -212,7 +253,9 @@ class LambertianInspection:
         proposed = fb.propose(k, latest, ev.covered, ev.ia)
         new = select_new(fb, proposed, [np.asarray(v["T_W_C"]) for v in views])
         for entry in fb.log[start:]:
-            run.log("decision", **{"kind": entry.get("event"), **{k: v for k, v in entry.items() if k != "event"}})
+            run.log(
+                "decision", **{"kind": entry.get("event"), **{k: v for k, v in entry.items() if k != "event"}}
+            )
         return [self._view_dict(v, k + 1) for v in new]
 
     # ------------------------------------------------------------------ results
@@ -228,9 +271,13 @@ class LambertianInspection:
             return {"n_points": 0, "views": len(points)}
         merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
         np.save(run.results_dir / "points_P.npy", merged.points_mm)
-        return {"n_points": int(len(merged.points_mm)), "n_points_views": int(sum(len(p) for p in points)),
-                "views": len(points), "merge_voxel_mm": self.settings.merge_voxel_mm,
-                "method": "kinematic chain (robot pose, hand-eye, part placement); weighted voxel merge"}
+        return {
+            "n_points": int(len(merged.points_mm)),
+            "n_points_views": int(sum(len(p) for p in points)),
+            "views": len(points),
+            "merge_voxel_mm": self.settings.merge_voxel_mm,
+            "method": "kinematic chain (robot pose, hand-eye, part placement); weighted voxel merge",
+        }
 
     def inspectable_coverage(self, run: RunFolder, views: list[dict[str, Any]]) -> Coverage:
         """Coverage of the inspectable nominal surface (what the planner can see: not the underside on the
@@ -241,10 +288,16 @@ class LambertianInspection:
         pts = np.vstack([m.points_W for m in measured.values()]) if measured else np.zeros((0, 3))
         covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
         ins = s.inspectable
-        return Coverage(fraction=coverage_fraction(s, covered), area_mm2=float(s.inspectable_area_mm2),
-                        radius_mm=st.coverage_radius_mm, min_count=1, density_per_mm2=st.point_density_per_mm2,
-                        samples_mm=transform_points(invert(self.T_W_P), s.points[ins]),
-                        sample_face=s.face[ins], covered=covered[ins])
+        return Coverage(
+            fraction=coverage_fraction(s, covered),
+            area_mm2=float(s.inspectable_area_mm2),
+            radius_mm=st.coverage_radius_mm,
+            min_count=1,
+            density_per_mm2=st.point_density_per_mm2,
+            samples_mm=transform_points(invert(self.T_W_P), s.points[ins]),
+            sample_face=s.face[ins],
+            covered=covered[ins],
+        )
 
     def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
         pts_P = np.load(run.results_dir / "points_P.npy")
@@ -261,21 +314,35 @@ class LambertianInspection:
         excluded: dict[str, int] = dict(nominal.excluded)
         excluded["isolated_out_of_tolerance_points"] = int(isolated.sum())
         for i in run.completed_views():
-            for reason, n in json.loads((run.view_dir(i) / "view.json").read_text()).get("excluded", {}).items():
+            for reason, n in (
+                json.loads((run.view_dir(i) / "view.json").read_text()).get("excluded", {}).items()
+            ):
                 excluded[f"{reason}_points"] = excluded.get(f"{reason}_points", 0) + int(n)
         inp = ReportInput(
-            points_mm=pts_P, deviation_mm=deviation, tolerance=band,
-            n_points_input=int(registration.get("n_points_views", len(pts_P))), excluded=excluded,
-            source_face=faces, coverage=self.inspectable_coverage(run, views),
+            points_mm=pts_P,
+            deviation_mm=deviation,
+            tolerance=band,
+            n_points_input=int(registration.get("n_points_views", len(pts_P))),
+            excluded=excluded,
+            source_face=faces,
+            coverage=self.inspectable_coverage(run, views),
             min_coverage=self.recipe.min_coverage,
-            metadata={"part": self.part_name, "cad": Path(self.recipe.part.cad).name,
-                      "views": [{k: v[k] for k in ("patch", "source", "iteration")} for v in views],
-                      "registration": registration, "evaluation": checkpoint.get("evaluation", {}),
-                      "geometry_source": "cell config sensor geometry (no sensor calibration yet)"},
+            metadata={
+                "part": self.part_name,
+                "cad": Path(self.recipe.part.cad).name,
+                "views": [{k: v[k] for k in ("patch", "source", "iteration")} for v in views],
+                "registration": registration,
+                "evaluation": checkpoint.get("evaluation", {}),
+                "geometry_source": "cell config sensor geometry (no sensor calibration yet)",
+            },
         )
         doc = write_report(run.results_dir, inp, pictures=self.settings.pictures)
-        return {"verdict": doc.get("verdict"), "n_points": doc.get("n_points"), "coverage": doc.get("coverage"),
-                "deviation": doc.get("deviation")}
+        return {
+            "verdict": doc.get("verdict"),
+            "n_points": doc.get("n_points"),
+            "coverage": doc.get("coverage"),
+            "deviation": doc.get("deviation"),
+        }
 
 
 def voxel_subsample_index(points: NDArray[np.float64], voxel_mm: float) -> NDArray[np.int64]:
@@ -285,14 +352,18 @@ def voxel_subsample_index(points: NDArray[np.float64], voxel_mm: float) -> NDArr
     cells = np.floor(points / voxel_mm).astype(np.int64)
     cells -= cells.min(axis=0)
     span = cells.max(axis=0) + 1
-    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # one int64 per voxel: a fast 1-D unique
+    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[
+        :, 2
+    ]  # one int64 per voxel: a fast 1-D unique
     _, first = np.unique(key, return_index=True)
     return np.sort(first)
 
 
 def _save_regions(path: Path, regions: list[DefectRegion]) -> None:
-    arrays: dict[str, Any] = {"reasons": np.array([r.reason for r in regions], dtype="U16"),
-                              "pixels": np.array([r.pixels for r in regions], dtype=np.int64)}
+    arrays: dict[str, Any] = {
+        "reasons": np.array([r.reason for r in regions], dtype="U16"),
+        "pixels": np.array([r.pixels for r in regions], dtype=np.int64),
+    }
     for k, r in enumerate(regions):
         arrays[f"boundary_{k}"] = r.boundary_W
         arrays[f"points_{k}"] = r.points_W
@@ -302,5 +373,7 @@ def _save_regions(path: Path, regions: list[DefectRegion]) -> None:
 
 def _load_regions(path: Path) -> list[DefectRegion]:
     with np.load(path) as data:
-        return [DefectRegion(str(reason), data[f"boundary_{k}"], data[f"points_{k}"], int(px))
-                for k, (reason, px) in enumerate(zip(data["reasons"], data["pixels"]))]
+        return [
+            DefectRegion(str(reason), data[f"boundary_{k}"], data[f"points_{k}"], int(px))
+            for k, (reason, px) in enumerate(zip(data["reasons"], data["pixels"]))
+        ]

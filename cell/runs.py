@@ -1,11 +1,11 @@
-"""The run folder: every input, every state change, every view and every result of one job, written as it happens.
+"""The run folder: every input, state change, view and result of one job, written as it happens.
 
 Layout of a run folder::
 
     inputs/          copies of the recipe, the cell config, the CAD files and calibration files the run read
     journal.jsonl    one JSON object per line: state changes, device commands, decisions (append + fsync)
     checkpoint.json  what is done: the plan, the completed views, the current step (atomic replace)
-    views/NNN/       one folder per measured view (pose, cloud, masks), written atomically (rename of a temp dir)
+    views/NNN/       one folder per measured view (pose, cloud, masks), written atomically (a dir rename)
     results/         report.json, report.html, cloud.ply, deviations.csv
 
 Killing the process at any instant leaves a folder from which the job resumes: a view folder exists whole or
@@ -24,7 +24,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -81,20 +81,21 @@ class RunFolder:
 
     # ------------------------------------------------------------------ creation
     @classmethod
-    def create(cls, root: Path, part_name: str, *, name: str | None = None) -> "RunFolder":
+    def create(cls, root: Path, part_name: str, *, name: str | None = None) -> RunFolder:
         """A new, empty run folder under ``root`` named ``<part>-<UTC time>`` unless ``name`` is given."""
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
         path = Path(root) / (name or f"{part_name}-{stamp}")
         if path.exists() and any(path.iterdir()):
-            raise ConfigError("run folder exists and is not empty; choose another --out or `cell resume` it",
-                              path=str(path))
+            raise ConfigError(
+                "run folder exists and is not empty; choose another --out or `cell resume` it", path=str(path)
+            )
         (path / "inputs").mkdir(parents=True, exist_ok=True)
         (path / "views").mkdir(exist_ok=True)
         (path / "results").mkdir(exist_ok=True)
         return cls(path)
 
     @classmethod
-    def open(cls, path: Path) -> "RunFolder":
+    def open(cls, path: Path) -> RunFolder:
         """An existing run folder; ConfigError if it is not one."""
         path = Path(path)
         if not (path / "inputs").is_dir() or not (path / "journal.jsonl").exists():
@@ -204,7 +205,7 @@ class RunIndex:
         return sqlite3.connect(self.path, timeout=10)
 
     def upsert(self, folder: Path, part: str, status: str, **figures: Any) -> None:
-        now = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        now = datetime.now(UTC).isoformat(timespec="seconds")
         with self._connect() as db:
             db.execute(
                 "INSERT INTO runs (folder, part, started, status, updated) VALUES (?, ?, ?, ?, ?) "
@@ -213,8 +214,9 @@ class RunIndex:
             )
             for key in ("verdict", "n_points", "coverage", "dev_min", "dev_max"):
                 if key in figures and figures[key] is not None:
-                    db.execute(f"UPDATE runs SET {key}=? WHERE folder=?",
-                               (figures[key], str(Path(folder).resolve())))
+                    db.execute(
+                        f"UPDATE runs SET {key}=? WHERE folder=?", (figures[key], str(Path(folder).resolve()))
+                    )
 
     def history(self, part: str | None = None) -> list[dict[str, Any]]:
         with self._connect() as db:

@@ -1,7 +1,8 @@
 """The controller end to end on a small simulated cell: states, guards, retries, pauses, resume, limits.
 
-A small box part and the 160x120 test sensor keep each run to a few seconds. Every run's result is compared with
-an uninterrupted reference run: a fault that was retried or resumed must not change a single statistic.
+A small box part and the 160x120 test sensor keep each run to a few seconds. Every run's result is
+compared with an uninterrupted reference run: a fault that was retried or resumed must not change a single
+statistic.
 """
 
 from __future__ import annotations
@@ -35,13 +36,22 @@ def recipe_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     box = trimesh.creation.box(extents=(120.0, 90.0, 40.0))
     box.apply_translation((0.0, 0.0, 20.0))
     box.export(folder / "box.stl")
-    (folder / "box.yaml").write_text(yaml.safe_dump({
-        "name": "box",
-        "part": {"cad": "box.stl"},
-        "tolerance": {"lower": -0.3, "upper": 0.3},
-        "min_coverage": 0.6,  # the robot stands on the -y side: the box's +y face is out of its reach
-        "plan": {"resolution_mm": 1.5, "point_density_per_mm2": 0.2, "view_budget": 8, "max_iterations": 1},
-    }))
+    (folder / "box.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "name": "box",
+                "part": {"cad": "box.stl"},
+                "tolerance": {"lower": -0.3, "upper": 0.3},
+                "min_coverage": 0.6,  # the robot stands on the -y side: the box's +y face is out of its reach
+                "plan": {
+                    "resolution_mm": 1.5,
+                    "point_density_per_mm2": 0.2,
+                    "view_budget": 8,
+                    "max_iterations": 1,
+                },
+            }
+        )
+    )
     return folder / "box.yaml"
 
 
@@ -53,14 +63,27 @@ def make_controller(recipe_path: Path, run_dir: Path, **settings) -> tuple[Contr
     job = LambertianInspection(recipe, cfg, nominal)
     job.settings.pictures = False
     job.settings.min_cluster_px = 20
-    run = RunFolder.open(run_dir) if (run_dir / "journal.jsonl").exists() else RunFolder.create(
-        run_dir.parent, "box", name=run_dir.name)
+    run = (
+        RunFolder.open(run_dir)
+        if (run_dir / "journal.jsonl").exists()
+        else RunFolder.create(run_dir.parent, "box", name=run_dir.name)
+    )
     r = cfg.robot
     ctl_settings = ControllerSettings(retry_delay_s=0.0, **settings)
-    ctl = Controller(devices, job, run, ctl_settings,
-                     robot_limits=(r.max_tcp_speed_mm_s, r.max_tcp_accel_mm_s2, r.max_joint_speed_rad_s,
-                                   r.max_joint_accel_rad_s2),
-                     home_joints_rad=np.deg2rad(r.home_joints_deg), motion=job.motion_planner(ctl_settings.speed_fraction))
+    ctl = Controller(
+        devices,
+        job,
+        run,
+        ctl_settings,
+        robot_limits=(
+            r.max_tcp_speed_mm_s,
+            r.max_tcp_accel_mm_s2,
+            r.max_joint_speed_rad_s,
+            r.max_joint_accel_rad_s2,
+        ),
+        home_joints_rad=np.deg2rad(r.home_joints_deg),
+        motion=job.motion_planner(ctl_settings.speed_fraction),
+    )
     return ctl, devices
 
 
@@ -75,14 +98,28 @@ def reference(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> di
     ctl, devices = make_controller(recipe_path, run_dir)
     assert ctl.execute() == "done", ctl.message
     states = [e["state"] for e in RunFolder.open(run_dir).journal() if e["event"] == "state"]
-    return {"result": result_of(run_dir), "states": states, "log": devices.robot.command_log,
-            "views": len(ctl.checkpoint["views"])}
+    return {
+        "result": result_of(run_dir),
+        "states": states,
+        "log": devices.robot.command_log,
+        "views": len(ctl.checkpoint["views"]),
+    }
 
 
 def test_uninterrupted_run_passes_through_every_phase(reference: dict) -> None:
     states = reference["states"]
-    for expected in ("connecting", "homing", "planning", "scanning_moving", "scanning_capturing",
-                     "scanning_decoding", "evaluating", "registering", "reporting", "done"):
+    for expected in (
+        "connecting",
+        "homing",
+        "planning",
+        "scanning_moving",
+        "scanning_capturing",
+        "scanning_decoding",
+        "evaluating",
+        "registering",
+        "reporting",
+        "done",
+    ):
         assert expected in states
     assert states.index("planning") < states.index("scanning_moving") < states.index("evaluating")
     assert reference["result"]["verdict"] == "pass"  # the simulator renders the nominal box itself
@@ -113,8 +150,9 @@ def test_no_motion_while_projector_is_not_ready(recipe_path: Path, tmp_path: Pat
 
 
 @pytest.mark.parametrize("fault", ["drop_frame", "grab_timeout_once", "connection_loss"])
-def test_retryable_faults_end_in_done_with_identical_results(recipe_path: Path, tmp_path: Path, reference: dict,
-                                                             fault: str) -> None:
+def test_retryable_faults_end_in_done_with_identical_results(
+    recipe_path: Path, tmp_path: Path, reference: dict, fault: str
+) -> None:
     ctl, devices = make_controller(recipe_path, tmp_path / "run")
     if fault == "drop_frame":
         devices.camera.faults.drop_frames = 1
@@ -137,8 +175,9 @@ def test_retryable_faults_end_in_done_with_identical_results(recipe_path: Path, 
 
 
 @pytest.mark.parametrize("fault", ["protective_stop", "lamp_error_mid_run", "operator_pause"])
-def test_pausing_faults_resume_to_identical_results(recipe_path: Path, tmp_path: Path, reference: dict,
-                                                    fault: str) -> None:
+def test_pausing_faults_resume_to_identical_results(
+    recipe_path: Path, tmp_path: Path, reference: dict, fault: str
+) -> None:
     run_dir = tmp_path / "run"
     ctl, devices = make_controller(recipe_path, run_dir)
     if fault == "protective_stop":

@@ -1,4 +1,4 @@
-"""`cell inspect` end to end through the CLI: the demo pillar's dent is found where it is; a killed run resumes.
+"""`cell inspect` end to end through the CLI: the pillar's dent is found where it is; a killed run resumes.
 
 The binned simulated cell (recipes/cells/sim_binned.yaml: the prototype with its camera binned 2x2) keeps a
 full pillar inspection to about half a minute. The kill test uses a small box part for speed.
@@ -27,8 +27,9 @@ pytestmark = pytest.mark.slow
 
 
 def cell(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cell", *args], capture_output=True, text=True, cwd=REPO,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "cell", *args], capture_output=True, text=True, cwd=REPO, timeout=timeout
+    )
 
 
 def report(run: Path) -> dict:
@@ -53,14 +54,18 @@ def test_dented_pillar_fails_with_the_dent_located(tmp_path: Path) -> None:
 
 def test_undented_pillar_passes(tmp_path: Path) -> None:
     ok = REPO / "recipes" / "parts" / "pillar_actual_ok.stl"
-    proc = cell("inspect", str(PILLAR), "--cell", str(BINNED), "--sim-actual", str(ok), "--out", str(tmp_path / "r"))
+    proc = cell(
+        "inspect", str(PILLAR), "--cell", str(BINNED), "--sim-actual", str(ok), "--out", str(tmp_path / "r")
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     doc = report(tmp_path / "r")
     assert doc["verdict"] == "pass", doc["regions"]
     # the undented actual has a 0.05 mm springback bow: the measured deviations must show it, not hide it
     truth = json.loads((REPO / "recipes" / "parts" / "pillar_actual_ok.truth.json").read_text())
     assert truth["max_deviation_mm"] == pytest.approx(0.05, abs=1e-6)
-    assert 0.03 < max(abs(doc["deviation"]["percentiles_mm"]["p1"]), abs(doc["deviation"]["percentiles_mm"]["p99"]))
+    assert 0.03 < max(
+        abs(doc["deviation"]["percentiles_mm"]["p1"]), abs(doc["deviation"]["percentiles_mm"]["p99"])
+    )
 
 
 @pytest.fixture(scope="module")
@@ -72,11 +77,22 @@ def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     box = trimesh.creation.box(extents=(120.0, 90.0, 40.0))
     box.apply_translation((0.0, 0.0, 20.0))
     box.export(folder / "box.stl")
-    (folder / "box.yaml").write_text(yaml.safe_dump({
-        "name": "box", "part": {"cad": "box.stl"}, "tolerance": {"lower": -0.3, "upper": 0.3},
-        "min_coverage": 0.6,
-        "plan": {"resolution_mm": 1.5, "point_density_per_mm2": 0.2, "view_budget": 8, "max_iterations": 1},
-    }))
+    (folder / "box.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "name": "box",
+                "part": {"cad": "box.stl"},
+                "tolerance": {"lower": -0.3, "upper": 0.3},
+                "min_coverage": 0.6,
+                "plan": {
+                    "resolution_mm": 1.5,
+                    "point_density_per_mm2": 0.2,
+                    "view_budget": 8,
+                    "max_iterations": 1,
+                },
+            }
+        )
+    )
     (folder / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
     return folder / "box.yaml", folder / "cell.yaml"
 
@@ -94,8 +110,22 @@ def test_killed_runs_resume_to_the_same_result(box_inputs: tuple[Path, Path], tm
         if kills == 20:
             break
         run = tmp_path / f"k{k}"
-        proc = subprocess.Popen([sys.executable, "-m", "cell", "inspect", str(recipe), "--cell", str(cell_file),
-                                 "--out", str(run)], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "cell",
+                "inspect",
+                str(recipe),
+                "--cell",
+                str(cell_file),
+                "--out",
+                str(run),
+            ],
+            cwd=REPO,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         time.sleep(instant)
         if proc.poll() is None:
             os.kill(proc.pid, signal.SIGKILL)
@@ -104,7 +134,8 @@ def test_killed_runs_resume_to_the_same_result(box_inputs: tuple[Path, Path], tm
         if not run.exists():  # killed before the run folder was complete: the run never started
             done = cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(run))
         elif (run / "results" / "report.json").exists() and json.loads(
-                (run / "checkpoint.json").read_text()).get("phase") == "done":
+            (run / "checkpoint.json").read_text()
+        ).get("phase") == "done":
             done = ref
         else:
             done = cell("resume", str(run))

@@ -1,4 +1,5 @@
-"""Planner building blocks against independent truth: analytic geometry, brute force, the dissertation's eqs."""
+"""Planner building blocks against independent truth: analytic geometry, brute force, the dissertation's
+eqs."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""The planner against the simulator's ground truth (renderer hit/lit masks), the simulated robot, and bad input."""
+"""The planner against the simulator's ground truth (renderer hit/lit masks), the simulated robot, and
+bad input."""
 
 from __future__ import annotations
 
@@ -27,9 +28,16 @@ CFG = load_cell_config(DEFAULT_CELL)
 def small_camera_cfg(f: int = 4):
     """Same field of view with 1/f of the pixels: keeps ground-truth renders fast."""
     cam = CFG.sensor.camera
-    cam2 = cam.model_copy(update=dict(width_px=cam.width_px // f, height_px=cam.height_px // f,
-                                      fx_px=cam.fx_px / f, fy_px=cam.fy_px / f,
-                                      cx_px=(cam.cx_px + 0.5) / f - 0.5, cy_px=(cam.cy_px + 0.5) / f - 0.5))
+    cam2 = cam.model_copy(
+        update=dict(
+            width_px=cam.width_px // f,
+            height_px=cam.height_px // f,
+            fx_px=cam.fx_px / f,
+            fy_px=cam.fy_px / f,
+            cx_px=(cam.cx_px + 0.5) / f - 0.5,
+            cy_px=(cam.cy_px + 0.5) / f - 0.5,
+        )
+    )
     return CFG.model_copy(update=dict(sensor=CFG.sensor.model_copy(update=dict(camera=cam2))))
 
 
@@ -57,6 +65,7 @@ def test_pillar_plan_covers_the_part_in_the_simulator(pillar_plan):
 def test_every_planned_pose_passes_the_simulated_robot(pillar_plan):
     from cell.planning.kinematics import UR5E
     from fakes.sim_cell import sensor_body_T
+
     sim = build_sim_cell(CFG, pillar_plan.surface.mesh)
     body = sensor_body_T(CFG)
     for v in pillar_plan.viewpoints:
@@ -71,8 +80,13 @@ def test_glare_holes_are_filled_by_g_kR():
     plate = trimesh.creation.box((260, 200, 6))
     plate.apply_translation([0, 0, 3])
     glossy = MaterialConfig(albedo=0.35, specular=4.0, shininess=400.0)
-    plan = plan_initial(plate, CFG, PlanSettings(aim="bisector", samples=4000, view_budget=20, max_iterations=2,
-                                                 q_setpoint_fraction=0.001))
+    plan = plan_initial(
+        plate,
+        CFG,
+        PlanSettings(
+            aim="bisector", samples=4000, view_budget=20, max_iterations=2, q_setpoint_fraction=0.001
+        ),
+    )
     res = run_loop(plan, truth_measure(plate, glossy))
     first = [e for e in plan.log if e["event"] == "evaluate"]
     assert first[0]["glare_regions"] > 0 and first[0]["coverage"] < 0.995
@@ -80,7 +94,10 @@ def test_glare_holes_are_filled_by_g_kR():
     assert res.coverage[-1] > res.coverage[0] + 0.03
     # every glare spot of the first pass is measured at the end (its nominal points lie near measured points)
     from scipy.spatial import cKDTree
-    spots = np.vstack([r.points_W for mv in res.views[:first[0]["views"]] for r in mv.defects if r.reason == "glare"])
+
+    spots = np.vstack(
+        [r.points_W for mv in res.views[: first[0]["views"]] for r in mv.defects if r.reason == "glare"]
+    )
     measured = np.vstack([mv.points_W for mv in res.views])
     d, _ = cKDTree(measured).query(spots)
     assert np.mean(d < 2.0) > 0.99
@@ -97,14 +114,18 @@ def _recipe(tmp_path: Path, mesh: trimesh.Trimesh | None, raw: bytes | None = No
     return rec
 
 
-@pytest.mark.parametrize("case,match", [
-    ("empty", "empty"),
-    ("metres", "metres"),
-    ("too_large", "larger than the working volume"),
-    ("non_manifold", "non-manifold"),
-])
+@pytest.mark.parametrize(
+    "case,match",
+    [
+        ("empty", "empty"),
+        ("metres", "metres"),
+        ("too_large", "larger than the working volume"),
+        ("non_manifold", "non-manifold"),
+    ],
+)
 def test_bad_cad_is_refused_and_nothing_written(tmp_path, case, match):
     from cell.cli import main
+
     box = trimesh.creation.box((200, 100, 40))
     box.apply_translation([0, 0, 20])
     if case == "empty":
@@ -114,8 +135,10 @@ def test_bad_cad_is_refused_and_nothing_written(tmp_path, case, match):
     elif case == "too_large":
         rec = _recipe(tmp_path, trimesh.creation.box((3000, 500, 40)))
     else:
-        fin = trimesh.Trimesh(np.vstack([box.vertices, [[0, 0, 200]]]),
-                              np.vstack([box.faces, [[box.faces[0][0], box.faces[0][1], len(box.vertices)]]]))
+        fin = trimesh.Trimesh(
+            np.vstack([box.vertices, [[0, 0, 200]]]),
+            np.vstack([box.faces, [[box.faces[0][0], box.faces[0][1], len(box.vertices)]]]),
+        )
         rec = _recipe(tmp_path, fin)
     with pytest.raises(ConfigError, match=match):
         make_plan(rec, DEFAULT_CELL)
@@ -126,6 +149,7 @@ def test_bad_cad_is_refused_and_nothing_written(tmp_path, case, match):
 
 def test_cli_writes_plan_and_picture(tmp_path):
     from cell.cli import main
+
     box = trimesh.creation.box((180, 120, 40))
     box.apply_translation([0, 0, 20])
     rec = _recipe(tmp_path, box)

@@ -20,7 +20,11 @@ def describe(kind: str, device: Any) -> str:
     if isinstance(device, Robot):
         state = device.state()
         x, y, z = device.tool_pose()[:3, 3]
-        stops = [n for n, on in (("protective stop", state.protective_stop), ("E-stop", state.emergency_stop)) if on]
+        stops = [
+            n
+            for n, on in (("protective stop", state.protective_stop), ("E-stop", state.emergency_stop))
+            if on
+        ]
         return f"mode {state.mode.value}; flange at ({x:.1f}, {y:.1f}, {z:.1f}) mm" + (
             f"; {', '.join(stops)}" if stops else ""
         )
@@ -49,8 +53,11 @@ def register(app: typer.Typer) -> None:
         table = Table(title=f"cell '{cfg.name}' ({cell})")
         for column in ("device", "kind", "driver", "status"):
             table.add_column(column)
-        drivers = {"robot": cfg.robot.driver, "camera": cfg.sensor.camera.driver,
-                   "projector": cfg.sensor.projector.driver}
+        drivers = {
+            "robot": cfg.robot.driver,
+            "camera": cfg.sensor.camera.driver,
+            "projector": cfg.sensor.projector.driver,
+        }
         failures: list[str] = []
         for kind, device in bundle.items():
             name = bundle.names[kind]

@@ -57,8 +57,9 @@ def _start_run(recipe_path: Path, cell_path: Path, out: Path | None, sim_actual:
     part = recipe.name or recipe.part.cad.stem
     final = out if out else REPO / "runs" / f"{part}-{time.strftime('%Y%m%dT%H%M%S')}"
     if final.exists() and any(final.iterdir()):
-        raise ConfigError("run folder exists and is not empty; choose another --out or `cell resume` it",
-                          path=str(final))
+        raise ConfigError(
+            "run folder exists and is not empty; choose another --out or `cell resume` it", path=str(final)
+        )
     # the folder appears under its name only once every input is copied: a run killed before that never
     # started, and leaves nothing that `cell resume` could mistake for a run
     run = RunFolder.create(final.parent, part, name=f".{final.name}.partial-{os.getpid()}")
@@ -67,8 +68,12 @@ def _start_run(recipe_path: Path, cell_path: Path, out: Path | None, sim_actual:
         "cell": run.copy_input(cell_path, "cell.yaml").name,
         "cad": run.copy_input(recipe.part.cad, "nominal" + recipe.part.cad.suffix).name,
         "actual": run.copy_input(actual, "actual" + Path(actual).suffix).name if actual else None,
-        "sources": {"recipe": str(recipe_path), "cell": str(cell_path), "cad": str(recipe.part.cad),
-                    "actual": str(actual) if actual else None},
+        "sources": {
+            "recipe": str(recipe_path),
+            "cell": str(cell_path),
+            "cad": str(recipe.part.cad),
+            "actual": str(actual) if actual else None,
+        },
     }
     write_json_atomic(run.path / "inputs" / "manifest.json", manifest)
     run.log("run_created", part=part, **manifest["sources"])
@@ -107,9 +112,18 @@ def _execute(run: RunFolder, *, resume: bool, settings: ControllerSettings, seed
     r = cfg.robot
 
     ctl = Controller(
-        devices, job, run, settings,
-        robot_limits=(r.max_tcp_speed_mm_s, r.max_tcp_accel_mm_s2, r.max_joint_speed_rad_s, r.max_joint_accel_rad_s2),
-        home_joints_rad=np.deg2rad(r.home_joints_deg), motion=job.motion_planner(settings.speed_fraction),
+        devices,
+        job,
+        run,
+        settings,
+        robot_limits=(
+            r.max_tcp_speed_mm_s,
+            r.max_tcp_accel_mm_s2,
+            r.max_joint_speed_rad_s,
+            r.max_joint_accel_rad_s2,
+        ),
+        home_joints_rad=np.deg2rad(r.home_joints_deg),
+        motion=job.motion_planner(settings.speed_fraction),
         on_progress=_progress,
     )
     index = RunIndex(run.path.parent)
@@ -117,16 +131,26 @@ def _execute(run: RunFolder, *, resume: bool, settings: ControllerSettings, seed
     state = ctl.execute(resume=resume)
     summary = (run.load_checkpoint() or {}).get("summary", {})
     dev = summary.get("deviation") or {}
-    index.upsert(run.path, job.part_name, state, verdict=summary.get("verdict"), n_points=summary.get("n_points"),
-                 coverage=summary.get("coverage"), dev_min=dev.get("min_mm"), dev_max=dev.get("max_mm"))
+    index.upsert(
+        run.path,
+        job.part_name,
+        state,
+        verdict=summary.get("verdict"),
+        n_points=summary.get("n_points"),
+        coverage=summary.get("coverage"),
+        dev_min=dev.get("min_mm"),
+        dev_max=dev.get("max_mm"),
+    )
     _finish_message(run, state, ctl.message, summary)
     return state
 
 
 def _finish_message(run: RunFolder, state: str, message: str, summary: dict[str, Any]) -> None:
     if state == "done":
-        console.print(f"[bold]verdict: {str(summary.get('verdict')).upper()}[/]  "
-                      f"({summary.get('n_points')} points, coverage {summary.get('coverage')})")
+        console.print(
+            f"[bold]verdict: {str(summary.get('verdict')).upper()}[/]  "
+            f"({summary.get('n_points')} points, coverage {summary.get('coverage')})"
+        )
         console.print(f"report: {run.results_dir / 'report.html'}")
         return
     if state == "paused":
@@ -142,7 +166,9 @@ def register(app: typer.Typer) -> None:
         recipe: Path = typer.Argument(..., help="inspection recipe YAML"),
         cell: Path = typer.Option(DEFAULT_CELL, "--cell", help="cell config YAML"),
         out: Path = typer.Option(None, "--out", help="run folder to create (default: runs/<part>-<time>)"),
-        sim_actual: Path = typer.Option(None, "--sim-actual", help="simulation: mesh rendered as the made part"),
+        sim_actual: Path = typer.Option(
+            None, "--sim-actual", help="simulation: mesh rendered as the made part"
+        ),
         seed: int = typer.Option(None, "--seed", help="simulation noise seed (default: the cell's sim.seed)"),
         pipelining: bool = typer.Option(True, help="decode view k while moving to view k+1"),
     ) -> None:
@@ -158,7 +184,9 @@ def register(app: typer.Typer) -> None:
         """Finish an interrupted or paused run from its last checkpoint."""
         run = RunFolder.open(run_dir)
         if (run.load_checkpoint() or {}).get("phase") == "done":
-            raise ConfigError("this run is already done; `cell report` rebuilds its report", path=str(run_dir))
+            raise ConfigError(
+                "this run is already done; `cell report` rebuilds its report", path=str(run_dir)
+            )
         _execute(run, resume=True, settings=ControllerSettings(), seed=seed)
 
     @app.command("report")
@@ -187,12 +215,31 @@ def register(app: typer.Typer) -> None:
 
         rows = RunIndex(runs).history(part)
         table = Table(title=f"runs of {part or 'all parts'} in {runs}")
-        for column in ("started", "part", "status", "verdict", "points", "coverage", "dev min", "dev max", "folder"):
+        for column in (
+            "started",
+            "part",
+            "status",
+            "verdict",
+            "points",
+            "coverage",
+            "dev min",
+            "dev max",
+            "folder",
+        ):
             table.add_column(column)
         for r in rows:
             fmt = lambda v, f="{:.3f}": "" if v is None else f.format(v)  # noqa: E731
-            table.add_row(r["started"], r["part"], r["status"], r["verdict"] or "", fmt(r["n_points"], "{}"),
-                          fmt(r["coverage"]), fmt(r["dev_min"]), fmt(r["dev_max"]), r["folder"])
+            table.add_row(
+                r["started"],
+                r["part"],
+                r["status"],
+                r["verdict"] or "",
+                fmt(r["n_points"], "{}"),
+                fmt(r["coverage"]),
+                fmt(r["dev_min"]),
+                fmt(r["dev_max"]),
+                r["folder"],
+            )
         console.print(table)
 
     @app.command("diagram")
@@ -200,19 +247,25 @@ def register(app: typer.Typer) -> None:
         """Export the controller's state diagram (Mermaid), generated from its declaration."""
         from cell.controller import mermaid_diagram
 
-        out.write_text("# Controller state machine\n\nGenerated by `cell diagram` from `cell/controller.py`.\n\n"
-                       + mermaid_diagram())
+        out.write_text(
+            "# Controller state machine\n\nGenerated by `cell diagram` from `cell/controller.py`.\n\n"
+            + mermaid_diagram()
+        )
         console.print(f"wrote {out}")
 
     @app.command("demo")
     def demo_cmd(
-        runs: Path = typer.Option(REPO / "runs", "--runs", help="runs root; each demo makes a new run folder"),
+        runs: Path = typer.Option(
+            REPO / "runs", "--runs", help="runs root; each demo makes a new run folder"
+        ),
     ) -> None:
         """A full simulated inspection of the demo pillar (with its dented actual), ending in a report."""
         recipe = load_recipe(DEMO_RECIPE)
         part = recipe.name or recipe.part.cad.stem
         out = runs / f"demo-{part}-{time.strftime('%Y%m%d-%H%M%S')}"
-        console.print(f"simulated inspection of {DEMO_RECIPE.relative_to(REPO)} (actual part: "
-                      f"{recipe.part.actual.name if recipe.part.actual else 'nominal'}) -> {out}")
+        console.print(
+            f"simulated inspection of {DEMO_RECIPE.relative_to(REPO)} (actual part: "
+            f"{recipe.part.actual.name if recipe.part.actual else 'nominal'}) -> {out}"
+        )
         run = _start_run(DEMO_RECIPE, DEFAULT_CELL, out, None)
         _execute(run, resume=False, settings=ControllerSettings(), seed=None)

@@ -64,15 +64,17 @@ def plan_cmd(
     """Plan the initial viewpoints of a recipe's part (CAD-guided, bounding-box method)."""
     plan = make_plan(recipe, cell)
     if not plan.viewpoints:
-        raise PlanningError(f"{recipe}: no reachable viewpoint covers any of the part; check part.T_W_P and the "
-                            "cell's robot envelope")
+        raise PlanningError(
+            f"{recipe}: no reachable viewpoint covers any of the part; check part.T_W_P and the "
+            "cell's robot envelope"
+        )
     write_plan(plan, out)
-    typer.echo(f"{len(plan.viewpoints)} viewpoints, predicted coverage {100 * plan.coverage:.2f}% of "
-               f"{plan.surface.inspectable_area_mm2:.0f} mm^2 inspectable, planned in {plan.planning_time_s:.2f} s "
-               f"-> {out / 'plan.json'}")
+    typer.echo(
+        f"{len(plan.viewpoints)} viewpoints, predicted coverage {100 * plan.coverage:.2f}% of "
+        f"{plan.surface.inspectable_area_mm2:.0f} mm^2 inspectable, planned in {plan.planning_time_s:.2f} s "
+        f"-> {out / 'plan.json'}"
+    )
 
 
 def register(app: typer.Typer) -> None:
     app.command("plan")(plan_cmd)
-
-

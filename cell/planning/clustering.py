@@ -1,4 +1,4 @@
-"""Single-linkage clustering of 3D points (the hierarchical clustering of section 3.3.1, cut at a link length).
+"""Single-linkage clustering of 3D points (section 3.3.1's hierarchical clustering, cut at a link length).
 
 Single linkage cut at distance r equals the connected components of the graph joining points closer than r;
 SciPy's KD-tree pair query and sparse connected components compute that in O(n log n), where

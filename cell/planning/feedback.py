@@ -6,8 +6,9 @@ budget is spent. Every decision is appended to the plan's log with its reason.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,12 +46,18 @@ def _boxes_overlap(a: Array, b: Array) -> bool:
     return bool(np.all(a.min(axis=0) <= b.max(axis=0)) and np.all(b.min(axis=0) <= a.max(axis=0)))
 
 
-def accuracy_map(views: list[MeasuredView], normals_at: Callable[[Array], Array], tol_mm: float,
-                 link_mm: float = 0.5, first_new: int = 1) -> Array:
+def accuracy_map(
+    views: list[MeasuredView],
+    normals_at: Callable[[Array], Array],
+    tol_mm: float,
+    link_mm: float = 0.5,
+    first_new: int = 1,
+) -> Array:
     """IA (eq 3.9): points of a view that disagree along the surface normal by more than ``tol_mm`` with the
     nearest point (within ``link_mm``) of an earlier overlapping view. Pairs whose nominal normals differ by
-    more than 10 deg (across an edge or a thin sheet) are not compared. Normals: the views' own when they carry
-    them, else the nominal normal at the point; views that carry their points' deviations from the nominal are
+    more than 10 deg (across an edge or a thin sheet) are not compared. Normals: the views' own when they
+    carry them, else the nominal normal at the point; views that carry their points' deviations from the
+    nominal are
     compared by those instead. Only views from index ``first_new`` on are compared (with every
     earlier one), so each iteration checks what it added."""
     out = []
@@ -74,15 +81,18 @@ def accuracy_map(views: list[MeasuredView], normals_at: Callable[[Array], Array]
                 same = np.ones(len(gap), dtype=bool)
             else:
                 nj = views[j].normals_W[near] if views[j].normals_W is not None else normals_at(pj[near])
-                ni = views[i].normals_W[k[near]] if views[i].normals_W is not None else normals_at(pi[k[near]])
+                ni = (
+                    views[i].normals_W[k[near]] if views[i].normals_W is not None else normals_at(pi[k[near]])
+                )
                 same = np.einsum("ij,ij->i", nj, ni) > np.cos(np.deg2rad(10.0))
                 gap = np.abs(np.einsum("ij,ij->i", pj[near] - pi[k[near]], nj))
             out.append(_consistent(pj[near][same], gap[same] > tol_mm))
     return np.vstack(out) if out else np.zeros((0, 3))
 
 
-def _consistent(points: Array, flagged: NDArray[np.bool_], radius_mm: float = 1.0, share: float = 0.5,
-                min_points: int = 5) -> Array:
+def _consistent(
+    points: Array, flagged: NDArray[np.bool_], radius_mm: float = 1.0, share: float = 0.5, min_points: int = 5
+) -> Array:
     """The flagged points whose neighbourhood (``radius_mm``) is mostly flagged too: a real disagreement
     between two views covers an area, while isolated mixed pixels at sheet edges do not."""
     if not flagged.any():
@@ -119,8 +129,9 @@ class FeedbackPlanner:
         return np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hits]))
 
     def g_kR(self, region: DefectRegion, T_W_C: Pose, name: str) -> Viewpoint | None:
-        """Glare spot: rotate the sensor about the spot centre by beta = theta/2 + margin (eqs 3.24-3.26) in the
-        plane of the view and incident rays, toward whichever side is reachable and predicted glare-free."""
+        """Glare spot: rotate the sensor about the spot centre by beta = theta/2 + margin (eqs 3.24-3.26)
+        in the plane of the view and incident rays, toward whichever side is reachable and predicted
+        glare-free."""
         sensor, s = self.plan.sensor, self.plan.surface
         p = region.points_W.mean(axis=0)
         T_W_P = sensor.projector_pose(T_W_C)
@@ -148,18 +159,30 @@ class FeedbackPlanner:
             if best is None or frac > best[1]:
                 best = (T, frac, sign, idx[meas & clear])
         if best is None or best[1] == 0:
-            self.log.append({"event": "g_kR_failed", "patch": name, "reason": "no rotation side is reachable and "
-                             "measures the spot"})
+            self.log.append(
+                {
+                    "event": "g_kR_failed",
+                    "patch": name,
+                    "reason": "no rotation side is reachable and measures the spot",
+                }
+            )
             return None
         T, frac, sign, meas = best
-        self.log.append({"event": "viewpoint", "source": "g_kR", "patch": name,
-                         "reason": f"glare spot of {region.pixels} px: theta = {np.rad2deg(theta):.1f} deg, rotate "
-                         f"beta = {np.rad2deg(beta):.1f} deg > theta/2 ({'forward' if sign > 0 else 'backward'})",
-                         "spot_fraction": round(frac, 3)})
+        self.log.append(
+            {
+                "event": "viewpoint",
+                "source": "g_kR",
+                "patch": name,
+                "reason": f"glare spot of {region.pixels} px: theta = {np.rad2deg(theta):.1f} deg, rotate "
+                f"beta = {np.rad2deg(beta):.1f} deg > theta/2 ({'forward' if sign > 0 else 'backward'})",
+                "spot_fraction": round(frac, 3),
+            }
+        )
         return Viewpoint(T, self.plan.patch_planner.reach.target(T), name, "g_kR", frac, meas)
 
-    def propose(self, k: int, new_views: list[MeasuredView], covered: NDArray[np.bool_], ia: Array
-                ) -> list[Viewpoint]:
+    def propose(
+        self, k: int, new_views: list[MeasuredView], covered: NDArray[np.bool_], ia: Array
+    ) -> list[Viewpoint]:
         s = self.plan.surface
         out: list[Viewpoint] = []
         glare_owned = np.zeros(len(s.points), dtype=bool)
@@ -175,16 +198,27 @@ class FeedbackPlanner:
         holes = np.flatnonzero(s.inspectable & ~covered & ~glare_owned)
         shadow_pts = [r.boundary_W for mv in new_views for r in mv.defects if r.reason == "shadow"]
         if shadow_pts and len(np.vstack(shadow_pts)):
-            self.log.append({"event": "shadow_map", "reason": "IS: boundary points of shadow regions",
-                             "points": int(sum(len(p) for p in shadow_pts))})
+            self.log.append(
+                {
+                    "event": "shadow_map",
+                    "reason": "IS: boundary points of shadow regions",
+                    "points": int(sum(len(p) for p in shadow_pts)),
+                }
+            )
         out += fill_holes(self.plan.patch_planner, holes, f"S{k}.", "g_kS", self.log)
         if len(ia):
             lab = cluster_points(ia, 5.0)
             for c in range(int(lab.max()) + 1):
                 idx = self.samples_near(ia[lab == c], 2.0)
                 if s.area[idx].sum() >= self.st.min_patch_area_mm2:
-                    self.log.append({"event": "accuracy", "patch": f"A{k}.{c}", "reason": "IA: overlapping views "
-                                     f"disagree by > {self.st.accuracy_tol_mm} mm; add a redundant view"})
+                    self.log.append(
+                        {
+                            "event": "accuracy",
+                            "patch": f"A{k}.{c}",
+                            "reason": "IA: overlapping views "
+                            f"disagree by > {self.st.accuracy_tol_mm} mm; add a redundant view",
+                        }
+                    )
                     out += self.plan.patch_planner.plan(idx, f"A{k}.{c}", "g_kA")
         return out
 
@@ -215,8 +249,14 @@ class Evaluation:
         return self.q <= self.setpoint
 
     def to_json(self) -> dict[str, Any]:
-        return {"qualified": self.qualified, "coverage": round(self.coverage, 5), "u_mm2": round(self.u_mm2, 1),
-                "v_mm2": round(self.v_mm2, 1), "Q": round(self.q, 1), "setpoint": round(self.setpoint, 1)}
+        return {
+            "qualified": self.qualified,
+            "coverage": round(self.coverage, 5),
+            "u_mm2": round(self.u_mm2, 1),
+            "v_mm2": round(self.v_mm2, 1),
+            "Q": round(self.q, 1),
+            "setpoint": round(self.setpoint, 1),
+        }
 
 
 def evaluate(fb: FeedbackPlanner, views: list[MeasuredView], first_new: int, ia_before: Array) -> Evaluation:
@@ -229,8 +269,15 @@ def evaluate(fb: FeedbackPlanner, views: list[MeasuredView], first_new: int, ia_
     ia = np.vstack([ia_before, accuracy_map(views, fb.normals_at, st.accuracy_tol_mm, first_new=first_new)])
     v_area = float(s.area[fb.samples_near(ia, 1.0)].sum()) if len(ia) else 0.0
     q = cost_q(u, v_area, st.hole_weight)
-    return Evaluation(covered, coverage_fraction(s, covered), u, v_area, q,
-                      st.q_setpoint_fraction * s.inspectable_area_mm2, ia)
+    return Evaluation(
+        covered,
+        coverage_fraction(s, covered),
+        u,
+        v_area,
+        q,
+        st.q_setpoint_fraction * s.inspectable_area_mm2,
+        ia,
+    )
 
 
 def select_new(fb: FeedbackPlanner, proposed: list[Viewpoint], done: list[Pose]) -> list[Viewpoint]:
@@ -238,7 +285,9 @@ def select_new(fb: FeedbackPlanner, proposed: list[Viewpoint], done: list[Pose])
     pending: list[Viewpoint] = []
     for vp in proposed:
         if is_duplicate(vp.T_W_C, done + [p.T_W_C for p in pending]):
-            fb.log.append({"event": "duplicate", "patch": vp.patch, "reason": "an equal pose was already measured"})
+            fb.log.append(
+                {"event": "duplicate", "patch": vp.patch, "reason": "an equal pose was already measured"}
+            )
             continue
         if len(done) + len(pending) >= fb.st.view_budget:
             fb.log.append({"event": "budget", "patch": vp.patch, "reason": "view budget spent"})
@@ -266,15 +315,27 @@ def run_loop(plan: Plan, measure: Callable[[Pose], MeasuredView]) -> LoopResult:
         ia = ev.ia
         coverage.append(ev.coverage)
         costs.append(ev.q)
-        log.append({"event": "evaluate", "iteration": k, "views": len(done), **ev.to_json(),
-                    "glare_regions": sum(r.reason == "glare" for mv in new for r in mv.defects),
-                    "shadow_regions": sum(r.reason == "shadow" for mv in new for r in mv.defects),
-                    "reason": "Q at or under the set point: stop" if ev.qualified else "Q above the set point"})
+        log.append(
+            {
+                "event": "evaluate",
+                "iteration": k,
+                "views": len(done),
+                **ev.to_json(),
+                "glare_regions": sum(r.reason == "glare" for mv in new for r in mv.defects),
+                "shadow_regions": sum(r.reason == "shadow" for mv in new for r in mv.defects),
+                "reason": "Q at or under the set point: stop" if ev.qualified else "Q above the set point",
+            }
+        )
         if ev.qualified:
             break
         if len(done) >= st.view_budget or k == st.max_iterations:
-            log.append({"event": "stop", "reason": "view budget or iteration limit reached with Q above the set "
-                        "point", "Q": round(ev.q, 1)})
+            log.append(
+                {
+                    "event": "stop",
+                    "reason": "view budget or iteration limit reached with Q above the set point",
+                    "Q": round(ev.q, 1),
+                }
+            )
             break
         pending = select_new(fb, fb.propose(k, new, ev.covered, ev.ia), [d.T_W_C for d in done])
         if not pending:

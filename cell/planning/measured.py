@@ -1,8 +1,9 @@
 """The measured-view record the feedback planner consumes, and how to build it from per-pixel masks.
 
 Whatever produces a view (the scan pipeline, or the simulator's ground truth with a glare criterion in tests)
-hands over: the camera pose, the measured points in {W}, and per reason (shadow, glare, low contrast) a mask of
-pixels that gave no point together with each pixel's *nominal* surface point (the camera ray cast on the CAD).
+hands over: the camera pose, the measured points in {W}, and per reason (shadow, glare, low contrast) a
+mask of pixels that gave no point together with each pixel's *nominal* surface point (the camera ray cast on
+the CAD).
 Each connected masked region becomes a :class:`DefectRegion` whose boundary points form the shadow map IS or
 the reflection map IR (eqs 3.7-3.8).
 """
@@ -44,12 +45,16 @@ class MeasuredView:
     deviation_mm: NDArray[np.float64] | None = None
 
 
-def defect_regions(mask: NDArray[np.bool_], nominal_W: Array, reason: str, min_pixels: int) -> list[DefectRegion]:
+def defect_regions(
+    mask: NDArray[np.bool_], nominal_W: Array, reason: str, min_pixels: int
+) -> list[DefectRegion]:
     """Connected regions (8-connected, OpenCV) of ``mask`` with at least ``min_pixels`` pixels whose nominal
     point is known; the boundary is the region minus its 3x3 erosion."""
     m = (mask & np.isfinite(nominal_W).all(axis=-1)).astype(np.uint8)
     n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
-    edge = m & ~cv2.erode(m, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    edge = m & ~cv2.erode(m, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(
+        bool
+    )
     out = []
     for k in range(1, n):
         if stats[k, cv2.CC_STAT_AREA] < min_pixels:
@@ -57,15 +62,24 @@ def defect_regions(mask: NDArray[np.bool_], nominal_W: Array, reason: str, min_p
         inside = lab == k
         pts = nominal_W[inside]
         stride = max(1, len(pts) // MAX_REGION_POINTS)
-        out.append(DefectRegion(reason, nominal_W[inside & edge.astype(bool)], pts[::stride], int(inside.sum())))
+        out.append(
+            DefectRegion(reason, nominal_W[inside & edge.astype(bool)], pts[::stride], int(inside.sum()))
+        )
     return out
 
 
-def measured_view_from_masks(T_W_C: Pose, points_W: Array, valid: NDArray[np.bool_],
-                             reason_masks: dict[str, NDArray[np.bool_]], nominal_W: Array,
-                             min_region_px: int = 20, normals_W: Array | None = None) -> MeasuredView:
-    """Build the record from image-shaped arrays: ``points_W`` (H, W, 3) with ``valid`` (H, W) measured pixels,
-    per-reason masks (H, W) and the nominal surface point of every pixel (H, W, 3; NaN off the part)."""
+def measured_view_from_masks(
+    T_W_C: Pose,
+    points_W: Array,
+    valid: NDArray[np.bool_],
+    reason_masks: dict[str, NDArray[np.bool_]],
+    nominal_W: Array,
+    min_region_px: int = 20,
+    normals_W: Array | None = None,
+) -> MeasuredView:
+    """Build the record from image-shaped arrays: ``points_W`` (H, W, 3) with ``valid`` (H, W) measured
+    pixels, per-reason masks (H, W) and the nominal surface point of every pixel (H, W, 3; NaN off the
+    part)."""
     regions: list[DefectRegion] = []
     for reason, mask in reason_masks.items():
         regions += defect_regions(mask, nominal_W, reason, min_region_px)

@@ -1,8 +1,9 @@
 """Collision-checked motion between viewpoints.
 
 A straight line or a joint-space move between two clear sensor poses can still sweep the 430 mm sensor bar
-through the part or the table (a wrist that flips, a tilted view close to the table). Before the cell moves, it
-simulates the candidate paths against the nominal CAD and the table with the robot's own kinematics and takes
+through the part or the table (a wrist that flips, a tilted view close to the table). Before the cell
+moves, it simulates the candidate paths against the nominal CAD and the table with the robot's own kinematics
+and takes
 the first that stays clear:
 
 1. a straight line to the target;
@@ -60,8 +61,15 @@ def linear_samples(T_a: Pose, T_b: Pose) -> NDArray[np.float64]:
 class MotionPlanner:
     """Chooses a clear path between flange poses for one cell and one part."""
 
-    def __init__(self, reach: ReachChecker, kinematics: URKinematics, lift_mm: float, z_max_mm: float,
-                 tcp_speed_mm_s: float, joint_speed_limit_rad_s: float = np.pi) -> None:
+    def __init__(
+        self,
+        reach: ReachChecker,
+        kinematics: URKinematics,
+        lift_mm: float,
+        z_max_mm: float,
+        tcp_speed_mm_s: float,
+        joint_speed_limit_rad_s: float = np.pi,
+    ) -> None:
         self.reach = reach
         self.kin = kinematics
         self.lift_mm = lift_mm
@@ -101,8 +109,9 @@ class MotionPlanner:
         qs = q_a + np.linspace(0.0, 1.0, n)[:, None] * (q_b - q_a)
         return self.reach.path_clear(self.kin.fk(qs))
 
-    def plan(self, T_from: Pose, q_from: NDArray[np.float64], T_to: Pose,
-             q_home: NDArray[np.float64] | None = None) -> tuple[list[Move], list[str]]:
+    def plan(
+        self, T_from: Pose, q_from: NDArray[np.float64], T_to: Pose, q_home: NDArray[np.float64] | None = None
+    ) -> tuple[list[Move], list[str]]:
         """Moves from the current flange pose (and joints) to ``T_to``, and why earlier options were dropped.
         Raises PlanningError naming every option's reason when none is clear."""
         rejected: list[str] = []
@@ -131,8 +140,10 @@ class MotionPlanner:
                 if not ok:
                     rejected.append(f"joint move home: {why}")
                     continue
-            for name, T_joint, then_down in (("above the target, then down", across, True),
-                                             ("to the target", T_to, False)):
+            for name, T_joint, then_down in (
+                ("above the target, then down", across, True),
+                ("to the target", T_to, False),
+            ):
                 try:
                     q_goal = self.kin.ik_nearest(T_joint, q_start)
                     ok, why = self._joint_ok(q_start, q_goal)

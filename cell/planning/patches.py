@@ -2,8 +2,9 @@
 
 Region growing over shared edges: a triangle joins the patch when the angle between its normal and the
 patch's area-weighted mean normal (eq 3.1) is within the patch cone, and within the cone of the seed's normal
-too so a slowly curving surface cannot drift around a corner. Seeds are taken largest triangle first. Written by
-hand because no well-kept library offers constrained region growing on meshes (trimesh's ``facets`` only
+too so a slowly curving surface cannot drift around a corner. Seeds are taken largest triangle first.
+Written by hand because no well-kept library offers constrained region growing on meshes (trimesh's ``facets``
+only
 groups exactly coplanar faces); the per-face work is a queue pop and a dot product.
 """
 
@@ -23,13 +24,15 @@ def face_neighbours(mesh: trimesh.Trimesh) -> tuple[NDArray[np.int64], NDArray[n
     n = len(mesh.faces)
     if len(adj) == 0:
         return np.zeros(n + 1, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    m = coo_matrix((np.ones(2 * len(adj)), (np.r_[adj[:, 0], adj[:, 1]], np.r_[adj[:, 1], adj[:, 0]])),
-                   shape=(n, n)).tocsr()
+    m = coo_matrix(
+        (np.ones(2 * len(adj)), (np.r_[adj[:, 0], adj[:, 1]], np.r_[adj[:, 1], adj[:, 0]])), shape=(n, n)
+    ).tocsr()
     return m.indptr.astype(np.int64), m.indices.astype(np.int64)
 
 
-def cluster_patches(mesh: trimesh.Trimesh, cone_rad: float, eligible: NDArray[np.bool_] | None = None
-                    ) -> NDArray[np.int64]:
+def cluster_patches(
+    mesh: trimesh.Trimesh, cone_rad: float, eligible: NDArray[np.bool_] | None = None
+) -> NDArray[np.int64]:
     """Patch label per face (-1 for faces not ``eligible``, e.g. those facing the table)."""
     normals = np.asarray(mesh.face_normals)
     areas = np.asarray(mesh.area_faces)
@@ -50,7 +53,7 @@ def cluster_patches(mesh: trimesh.Trimesh, cone_rad: float, eligible: NDArray[np
         queue = deque([seed])
         while queue:
             f = queue.popleft()
-            for g in indices[indptr[f]:indptr[f + 1]]:
+            for g in indices[indptr[f] : indptr[f + 1]]:
                 if not todo[g]:
                     continue
                 ng = normals[g]

@@ -49,10 +49,18 @@ class Plan:
             "planning_time_s": self.planning_time_s,
             "inspectable_area_mm2": self.surface.inspectable_area_mm2,
             "viewpoints": [
-                {"index": k, "patch": v.patch, "source": v.source, "T_W_C": v.T_W_C.tolist(),
-                 "T_B_T": v.T_B_T.tolist(), "patch_fraction": v.patch_fraction,
-                 "predicted_coverage": float(self.surface.area[self.predicted[k]].sum()
-                                             / max(self.surface.inspectable_area_mm2, 1e-12))}
+                {
+                    "index": k,
+                    "patch": v.patch,
+                    "source": v.source,
+                    "T_W_C": v.T_W_C.tolist(),
+                    "T_B_T": v.T_B_T.tolist(),
+                    "patch_fraction": v.patch_fraction,
+                    "predicted_coverage": float(
+                        self.surface.area[self.predicted[k]].sum()
+                        / max(self.surface.inspectable_area_mm2, 1e-12)
+                    ),
+                }
                 for k, v in enumerate(self.viewpoints)
             ],
             "log": self.log,
@@ -65,19 +73,35 @@ def plan_initial(mesh_W: trimesh.Trimesh, cfg: CellConfig, settings: PlanSetting
     st = settings or PlanSettings()
     sensor = SensorModel.from_config(cfg, st)
     surface = sample_surface(mesh_W, st.samples, st.seed, sensor.standoff_mm, np.deg2rad(st.theta_camera_deg))
-    log: list[dict[str, Any]] = [{"event": "surface", "reason": "sampled the nominal surface",
-                                  "samples": len(surface.points),
-                                  "inspectable_area_mm2": round(surface.inspectable_area_mm2, 1),
-                                  "area_mm2": round(float(mesh_W.area), 1)}]
+    log: list[dict[str, Any]] = [
+        {
+            "event": "surface",
+            "reason": "sampled the nominal surface",
+            "samples": len(surface.points),
+            "inspectable_area_mm2": round(surface.inspectable_area_mm2, 1),
+            "area_mm2": round(float(mesh_W.area), 1),
+        }
+    ]
     reach = ReachChecker(cfg, np.vstack([mesh_W.vertices, surface.points]), st.clearance_mm)
     pp = PatchPlanner(sensor, surface, reach, log)
     face_patch = cluster_patches(mesh_W, np.deg2rad(st.patch_cone_deg))
     sample_patch = np.where(surface.inspectable, face_patch[surface.face], -1)
     labels, counts = np.unique(sample_patch[sample_patch >= 0], return_counts=True)
-    log.append({"event": "patches", "reason": f"eqs 3.1-3.2 with a {st.patch_cone_deg:.0f} deg cone",
-                "patches": int(len(labels)),
-                "planned": int((np.bincount(np.maximum(sample_patch, 0), weights=np.where(sample_patch >= 0,
-                               surface.area, 0.0))[labels] >= SMALL_PATCH_SHARE * np.prod(sensor.fov_mm)).sum())})
+    log.append(
+        {
+            "event": "patches",
+            "reason": f"eqs 3.1-3.2 with a {st.patch_cone_deg:.0f} deg cone",
+            "patches": int(len(labels)),
+            "planned": int(
+                (
+                    np.bincount(
+                        np.maximum(sample_patch, 0), weights=np.where(sample_patch >= 0, surface.area, 0.0)
+                    )[labels]
+                    >= SMALL_PATCH_SHARE * np.prod(sensor.fov_mm)
+                ).sum()
+            ),
+        }
+    )
     views: list[Viewpoint] = []
     small = SMALL_PATCH_SHARE * np.prod(sensor.fov_mm)
     areas = np.bincount(np.maximum(sample_patch, 0), weights=np.where(sample_patch >= 0, surface.area, 0.0))
@@ -87,8 +111,13 @@ def plan_initial(mesh_W: trimesh.Trimesh, cfg: CellConfig, settings: PlanSetting
             continue  # small patches (fillets, edges) are covered by neighbours or by the fill pass
         todo = np.flatnonzero((sample_patch == lab) & ~masks.any(axis=0))
         if surface.area[todo].sum() < small:
-            log.append({"event": "patch_covered", "patch": f"P{lab}", "reason": "viewpoints of larger patches "
-                        "already measure all but a small share of it"})
+            log.append(
+                {
+                    "event": "patch_covered",
+                    "patch": f"P{lab}",
+                    "reason": "viewpoints of larger patches already measure all but a small share of it",
+                }
+            )
             continue
         added = pp.plan(todo, f"P{lab}", "f0")
         views += added
@@ -104,13 +133,21 @@ def plan_initial(mesh_W: trimesh.Trimesh, cfg: CellConfig, settings: PlanSetting
     views, masks = order_views(views, masks, cfg)
     cov = coverage_fraction(surface, masks.any(axis=0))
     dt = time.perf_counter() - t0
-    log.append({"event": "plan", "reason": "initial plan f0 done", "viewpoints": len(views),
-                "predicted_coverage": round(cov, 4), "planning_time_s": round(dt, 3)})
+    log.append(
+        {
+            "event": "plan",
+            "reason": "initial plan f0 done",
+            "viewpoints": len(views),
+            "predicted_coverage": round(cov, 4),
+            "planning_time_s": round(dt, 3),
+        }
+    )
     return Plan(views, masks, cov, dt, log, surface, sensor, pp, face_patch)
 
 
-def fill_holes(pp: PatchPlanner, holes: NDArray[np.int64], prefix: str, source: str,
-               log: list[dict[str, Any]]) -> list[Viewpoint]:
+def fill_holes(
+    pp: PatchPlanner, holes: NDArray[np.int64], prefix: str, source: str, log: list[dict[str, Any]]
+) -> list[Viewpoint]:
     """Cluster hole samples (link = 3 x the mean sample spacing) and plan viewpoints for clusters that are
     larger than ``min_patch_area_mm2``."""
     s = pp.surface
@@ -123,17 +160,35 @@ def fill_holes(pp: PatchPlanner, holes: NDArray[np.int64], prefix: str, source: 
         idx = holes[lab == k]
         a = float(s.area[idx].sum())
         if a < pp.sensor.settings.min_patch_area_mm2:
-            log.append({"event": "hole_ignored", "patch": f"{prefix}{k}", "area_mm2": round(a, 1),
-                        "reason": "hole smaller than min_patch_area_mm2"})
+            log.append(
+                {
+                    "event": "hole_ignored",
+                    "patch": f"{prefix}{k}",
+                    "area_mm2": round(a, 1),
+                    "reason": "hole smaller than min_patch_area_mm2",
+                }
+            )
             continue
-        log.append({"event": "hole", "patch": f"{prefix}{k}", "area_mm2": round(a, 1), "source": source,
-                    "reason": "uncovered inspectable surface: plan a viewpoint for it"})
+        log.append(
+            {
+                "event": "hole",
+                "patch": f"{prefix}{k}",
+                "area_mm2": round(a, 1),
+                "source": source,
+                "reason": "uncovered inspectable surface: plan a viewpoint for it",
+            }
+        )
         out += pp.plan(idx, f"{prefix}{k}", source)
     return out
 
 
-def prune(views: list[Viewpoint], masks: NDArray[np.bool_], area: NDArray[np.float64], min_area: float,
-          log: list[dict[str, Any]]) -> tuple[list[Viewpoint], NDArray[np.bool_]]:
+def prune(
+    views: list[Viewpoint],
+    masks: NDArray[np.bool_],
+    area: NDArray[np.float64],
+    min_area: float,
+    log: list[dict[str, Any]],
+) -> tuple[list[Viewpoint], NDArray[np.bool_]]:
     """Drop views whose unique contribution is under ``min_area`` mm^2, least useful first."""
     keep = np.ones(len(views), dtype=bool)
     for k in np.argsort(masks @ area, kind="stable"):
@@ -141,18 +196,26 @@ def prune(views: list[Viewpoint], masks: NDArray[np.bool_], area: NDArray[np.flo
         unique = float(area[masks[k] & ~others].sum())
         if unique < min_area:
             keep[k] = False
-            log.append({"event": "pruned", "patch": views[k].patch, "unique_area_mm2": round(unique, 1),
-                        "reason": "other viewpoints already measure what this one would"})
+            log.append(
+                {
+                    "event": "pruned",
+                    "patch": views[k].patch,
+                    "unique_area_mm2": round(unique, 1),
+                    "reason": "other viewpoints already measure what this one would",
+                }
+            )
     return [v for v, k in zip(views, keep) if k], masks[keep]
 
 
-def order_views(views: list[Viewpoint], masks: NDArray[np.bool_], cfg: CellConfig
-                ) -> tuple[list[Viewpoint], NDArray[np.bool_]]:
+def order_views(
+    views: list[Viewpoint], masks: NDArray[np.bool_], cfg: CellConfig
+) -> tuple[list[Viewpoint], NDArray[np.bool_]]:
     """Tour from the view nearest the robot's home pose: nearest neighbour + 2-opt."""
     if len(views) < 2:
         return views, masks
-    home_T_W_C: Pose = (cfg.robot.T_W_B.matrix() @ UR5E.fk(np.deg2rad(cfg.robot.home_joints_deg))
-                        @ cfg.sensor.T_T_C.matrix())
+    home_T_W_C: Pose = (
+        cfg.robot.T_W_B.matrix() @ UR5E.fk(np.deg2rad(cfg.robot.home_joints_deg)) @ cfg.sensor.T_T_C.matrix()
+    )
     cost = pose_costs([home_T_W_C] + [v.T_W_C for v in views])
     tour = [i - 1 for i in order_tour(cost, 0)[1:]]
     return [views[i] for i in tour], masks[tour]

@@ -1,8 +1,9 @@
 """Can the robot put the sensor at a viewpoint? IK within joint limits away from the wrist singularity, flange
 inside the configured envelope, and the sensor body clear of table and part.
 
-The sensor body is approximated by points in the flange frame {T}: the flange, the camera and projector centres
-and points along the bar joining them; each must stay ``clearance_mm`` above the table (z = 0 of {W}) and away
+The sensor body is approximated by points in the flange frame {T}: the flange, the camera and projector
+centres and points along the bar joining them; each must stay ``clearance_mm`` above the table (z = 0 of {W})
+and away
 from the part surface (nearest-neighbour distance to the part's vertices and surface samples, SciPy KD-tree).
 """
 
@@ -32,8 +33,9 @@ def sensor_body_points_T(cfg: CellConfig, n_bar: int = 8) -> Array:
 class ReachChecker:
     """Reachability of camera poses T_W_C for one cell and one part (surface points in world mm)."""
 
-    def __init__(self, cfg: CellConfig, part_points_W: Array, clearance_mm: float,
-                 kinematics: URKinematics = UR5E):
+    def __init__(
+        self, cfg: CellConfig, part_points_W: Array, clearance_mm: float, kinematics: URKinematics = UR5E
+    ):
         self.T_W_B = cfg.robot.T_W_B.matrix()
         self.T_B_W = invert(self.T_W_B)
         self.T_C_T = invert(cfg.sensor.T_T_C.matrix())
@@ -74,8 +76,14 @@ class ReachChecker:
         body_W = np.einsum("nij,mj->nmi", T_W_T[:, :3, :3], self.body_T) + T_W_T[:, None, :3, 3]
         low = body_W[..., 2].min()
         if low < self.clearance:
-            return False, f"sensor body {low:.1f} mm above the table on the way, needs {self.clearance:.0f} mm"
+            return (
+                False,
+                f"sensor body {low:.1f} mm above the table on the way, needs {self.clearance:.0f} mm",
+            )
         d, _ = self.tree.query(body_W.reshape(-1, 3))
         if d.min() < self.clearance:
-            return False, f"sensor body {d.min():.1f} mm from the part on the way, needs {self.clearance:.0f} mm"
+            return (
+                False,
+                f"sensor body {d.min():.1f} mm from the part on the way, needs {self.clearance:.0f} mm",
+            )
         return True, "clear"

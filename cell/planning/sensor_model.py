@@ -2,8 +2,9 @@
 points one viewpoint measures (the task constraints TC of eq 3.4 applied point by point).
 
 A viewpoint is the camera pose ``T_W_C`` (OpenCV optical frame, +z along the view). The projector sits at
-``T_W_C @ T_C_P``. Constraints are tested projector first, then camera (section 3.1.1): a point is measured when
-it is lit (inside the projector frustum, normal within theta_th1 of the ray to the projector, not shadowed,
+``T_W_C @ T_C_P``. Constraints are tested projector first, then camera (section 3.1.1): a point is
+measured when it is lit (inside the projector frustum, normal within theta_th1 of the ray to the projector,
+not shadowed,
 projector point density met) and seen (inside the image, within the focus range, normal within theta_th2 of
 the ray to the camera, pixel footprint <= resolution, camera point density met, not occluded). Lens distortion
 is ignored here; ``fov_margin`` keeps the planned patch away from the image border where it matters.
@@ -24,8 +25,18 @@ from cell.planning.settings import PlanSettings
 Array = NDArray[np.float64]
 
 # Order in which measurable() tests the constraints; the first failing one is the reason a point is lost.
-REASONS = ("projector_frustum", "projector_angle", "projector_density", "camera_frustum", "focus",
-           "camera_angle", "resolution", "camera_density", "shadow", "camera_occluded")
+REASONS = (
+    "projector_frustum",
+    "projector_angle",
+    "projector_density",
+    "camera_frustum",
+    "focus",
+    "camera_angle",
+    "resolution",
+    "camera_density",
+    "shadow",
+    "camera_occluded",
+)
 
 
 @dataclass(frozen=True)
@@ -44,17 +55,28 @@ class SensorModel:
     settings: PlanSettings
 
     @classmethod
-    def from_config(cls, cfg: CellConfig, settings: PlanSettings) -> "SensorModel":
+    def from_config(cls, cfg: CellConfig, settings: PlanSettings) -> SensorModel:
         s = cfg.sensor
-        return cls(s.camera.K(), (s.camera.width_px, s.camera.height_px), s.projector.K(),
-                   (s.projector.width_px, s.projector.height_px), s.projector.T_C_P.matrix(),
-                   s.T_T_C.matrix(), cfg.robot.T_W_B.matrix(), s.standoff_mm, s.depth_of_field_mm, settings)
+        return cls(
+            s.camera.K(),
+            (s.camera.width_px, s.camera.height_px),
+            s.projector.K(),
+            (s.projector.width_px, s.projector.height_px),
+            s.projector.T_C_P.matrix(),
+            s.T_T_C.matrix(),
+            cfg.robot.T_W_B.matrix(),
+            s.standoff_mm,
+            s.depth_of_field_mm,
+            settings,
+        )
 
     @property
     def fov_mm(self) -> tuple[float, float]:
         """Field of view (width along camera x, height along y) at the stand-off, mm."""
-        return (self.cam_size[0] * self.standoff_mm / self.K_cam[0, 0],
-                self.cam_size[1] * self.standoff_mm / self.K_cam[1, 1])
+        return (
+            self.cam_size[0] * self.standoff_mm / self.K_cam[0, 0],
+            self.cam_size[1] * self.standoff_mm / self.K_cam[1, 1],
+        )
 
     @property
     def triangulation_angle(self) -> float:
@@ -81,8 +103,8 @@ class SensorModel:
         return T
 
     def bisector_pose(self, T_W_C: Pose, target_W: Array) -> Pose:
-        """Rotate the sensor about ``target_W`` (about the camera y axis) so that the original view axis bisects
-        the rays to camera and projector: half the triangulation angle toward the projector."""
+        """Rotate the sensor about ``target_W`` (about the camera y axis) so that the original view axis
+        bisects the rays to camera and projector: half the triangulation angle toward the projector."""
         from scipy.spatial.transform import Rotation
 
         R = Rotation.from_rotvec(T_W_C[:3, 1] * (0.5 * self.triangulation_angle)).as_matrix()
@@ -107,8 +129,9 @@ class SensorModel:
         """Flange target ``T_B_T = inv(T_W_B) @ T_W_C @ inv(T_T_C)``."""
         return invert(self.T_W_B) @ T_W_C @ invert(self.T_T_C)
 
-    def measurable(self, T_W_C: Pose, points: Array, normals: Array, occluder: Occluder | None,
-                   with_reason: bool = False) -> NDArray[np.bool_] | tuple[NDArray[np.bool_], NDArray[np.int8]]:
+    def measurable(
+        self, T_W_C: Pose, points: Array, normals: Array, occluder: Occluder | None, with_reason: bool = False
+    ) -> NDArray[np.bool_] | tuple[NDArray[np.bool_], NDArray[np.int8]]:
         """Which points (N, 3) with unit normals (N, 3), world mm, this viewpoint measures.
 
         With ``with_reason`` also returns, per point, the index into REASONS of the first failed constraint
@@ -127,22 +150,29 @@ class SensorModel:
         with np.errstate(divide="ignore", invalid="ignore"):
             up = self.K_proj[0, 0] * pp[:, 0] / pp[:, 2] + self.K_proj[0, 2]
             vp = self.K_proj[1, 1] * pp[:, 1] / pp[:, 2] + self.K_proj[1, 2]
-        fail(~((pp[:, 2] > 0) & (up >= 0) & (up < self.proj_size[0]) & (vp >= 0) & (vp < self.proj_size[1])),
-             "projector_frustum")
+        fail(
+            ~((pp[:, 2] > 0) & (up >= 0) & (up < self.proj_size[0]) & (vp >= 0) & (vp < self.proj_size[1])),
+            "projector_frustum",
+        )
         to_p = T_W_P[:3, 3] - points
         r_p = np.linalg.norm(to_p, axis=1)
         l_p = to_p / r_p[:, None]
         cos_p = np.einsum("ij,ij->i", normals, l_p)
         fail(cos_p < np.cos(np.deg2rad(st.theta_projector_deg)), "projector_angle")
         # projector pixels per mm^2 on the surface: (f / r)^2 * cos(incidence)
-        fail((self.K_proj[0, 0] / r_p) ** 2 * np.maximum(cos_p, 0) < st.point_density_per_mm2, "projector_density")
+        fail(
+            (self.K_proj[0, 0] / r_p) ** 2 * np.maximum(cos_p, 0) < st.point_density_per_mm2,
+            "projector_density",
+        )
         # then the camera
         pc = (points - T_W_C[:3, 3]) @ T_W_C[:3, :3]
         with np.errstate(divide="ignore", invalid="ignore"):
             uc = self.K_cam[0, 0] * pc[:, 0] / pc[:, 2] + self.K_cam[0, 2]
             vc = self.K_cam[1, 1] * pc[:, 1] / pc[:, 2] + self.K_cam[1, 2]
-        fail(~((pc[:, 2] > 0) & (uc >= 0) & (uc < self.cam_size[0]) & (vc >= 0) & (vc < self.cam_size[1])),
-             "camera_frustum")
+        fail(
+            ~((pc[:, 2] > 0) & (uc >= 0) & (uc < self.cam_size[0]) & (vc >= 0) & (vc < self.cam_size[1])),
+            "camera_frustum",
+        )
         half = 0.5 * self.dof_mm
         fail(np.abs(pc[:, 2] - self.standoff_mm) > half, "focus")
         to_c = T_W_C[:3, 3] - points
@@ -152,7 +182,9 @@ class SensorModel:
         fail(cos_c < np.cos(np.deg2rad(st.theta_camera_deg)), "camera_angle")
         footprint = r_c / self.K_cam[0, 0] / np.maximum(cos_c, 1e-6)  # pixel length along the steepest slope
         fail(footprint > st.resolution_mm, "resolution")
-        fail((self.K_cam[0, 0] / r_c) ** 2 * np.maximum(cos_c, 0) < st.point_density_per_mm2, "camera_density")
+        fail(
+            (self.K_cam[0, 0] / r_c) ** 2 * np.maximum(cos_c, 0) < st.point_density_per_mm2, "camera_density"
+        )
         if occluder is not None:
             cand = np.flatnonzero(reason < 0)
             if len(cand):
@@ -165,7 +197,8 @@ class SensorModel:
         return (ok, reason) if with_reason else ok
 
     def mirror_angle(self, T_W_C: Pose, points: Array, normals: Array) -> Array:
-        """Angle (rad) between the mirror direction of the projector light and the ray to the camera, per point:
+        """Angle (rad) between the mirror direction of the projector light and the ray to the camera, per
+        point:
         0 means the camera looks straight into the specular reflection (the glare geometry of eq 3.23)."""
         T_W_P = self.projector_pose(T_W_C)
         l_p = T_W_P[:3, 3] - points

@@ -3,8 +3,8 @@ are inspectable at all.
 
 Samples (not triangles) carry coverage, so planning cost does not grow with the CAD's triangle count. A sample
 is *inspectable* when some direction within theta_th2 of its normal that points up from the table (z >= 0.1)
-reaches it unoccluded from the stand-off distance: faces lying on the table, the inside of a closed hat section
-and undercuts are not, and coverage is reported over the inspectable area only.
+reaches it unoccluded from the stand-off distance: faces lying on the table, the inside of a closed hat
+section and undercuts are not, and coverage is reported over the inspectable area only.
 """
 
 from __future__ import annotations
@@ -37,20 +37,29 @@ class PartSurface:
         return float(self.area[self.inspectable].sum())
 
 
-def sample_surface(mesh: trimesh.Trimesh, count: int, seed: int, standoff_mm: float,
-                   max_view_angle_rad: float) -> PartSurface:
+def sample_surface(
+    mesh: trimesh.Trimesh, count: int, seed: int, standoff_mm: float, max_view_angle_rad: float
+) -> PartSurface:
     """Sample ``count`` points evenly by area (trimesh, seeded) and mark the inspectable ones."""
     points, face = trimesh.sample.sample_surface(mesh, count, seed=seed)
     points = np.array(points, dtype=np.float64)  # plain arrays: trimesh's tracked arrays are slow to slice
     normals = np.array(mesh.face_normals, dtype=np.float64)[face]
     area = np.full(len(points), float(mesh.area) / len(points))
     occ = Occluder(mesh)
-    return PartSurface(mesh, occ, points, normals, np.asarray(face, dtype=np.int64), area,
-                       inspectable_mask(occ, points, normals, standoff_mm, max_view_angle_rad))
+    return PartSurface(
+        mesh,
+        occ,
+        points,
+        normals,
+        np.asarray(face, dtype=np.int64),
+        area,
+        inspectable_mask(occ, points, normals, standoff_mm, max_view_angle_rad),
+    )
 
 
-def inspectable_mask(occ: Occluder, points: Array, normals: Array, standoff_mm: float,
-                     max_view_angle_rad: float) -> NDArray[np.bool_]:
+def inspectable_mask(
+    occ: Occluder, points: Array, normals: Array, standoff_mm: float, max_view_angle_rad: float
+) -> NDArray[np.bool_]:
     """Try view directions tilted from the normal toward world +z (0, 1/3 ... 1 of the allowed angle, and
     straight up): inspectable if one of them is within the angle, points up and is unoccluded."""
     up = np.array([0.0, 0.0, 1.0])
@@ -64,7 +73,11 @@ def inspectable_mask(occ: Occluder, points: Array, normals: Array, standoff_mm: 
         ang = to_up if frac is None else np.minimum(frac * max_view_angle_rad, to_up)
         # Rodrigues: n rotated by ang about axis (axis is perpendicular to n)
         d = normals * np.cos(ang)[:, None] + np.cross(axis, normals) * np.sin(ang)[:, None]
-        good = (~ok) & (d[:, 2] >= 0.1) & (np.einsum("ij,ij->i", d, normals) >= np.cos(max_view_angle_rad) - 1e-9)
+        good = (
+            (~ok)
+            & (d[:, 2] >= 0.1)
+            & (np.einsum("ij,ij->i", d, normals) >= np.cos(max_view_angle_rad) - 1e-9)
+        )
         idx = np.flatnonzero(good)
         if len(idx):
             ok[idx[~occ.occluded(points[idx], normals[idx], d[idx], np.full(len(idx), standoff_mm))]] = True

@@ -4,9 +4,9 @@ Given the ground truth of one camera pose (hit points, normals, part and lit mas
 ``fakes.sim.render.SceneRenderer.ground_truth`` returns them) and the radiometry of the cell, a pixel is
 measured when it sees the part, is lit by the projector, lies within the focus range, and its white-pattern
 signal is neither saturated (glare: ambient + Lambert + Phong specular reach the full well, eq 3.23) nor too
-weak (low contrast). Shadowed pixels (inside the projector frustum, not lit) form the shadow masks. Used by tests
-and benchmarks where the real scan pipeline would run; it lives here so that the feedback loop can be exercised
-without importing the simulator.
+weak (low contrast). Shadowed pixels (inside the projector frustum, not lit) form the shadow masks. Used
+by tests and benchmarks where the real scan pipeline would run; it lives here so that the feedback loop can be
+exercised without importing the simulator.
 """
 
 from __future__ import annotations
@@ -22,9 +22,11 @@ from cell.planning.measured import MeasuredView, measured_view_from_masks
 LOW_SIGNAL_SHARE = 0.03  # white-pattern signal under this share of the full well: too little stripe contrast
 
 
-def measure_from_truth(gt: Any, T_W_C: Pose, cfg: CellConfig, material: MaterialConfig,
-                       nominal_W: np.ndarray | None = None) -> MeasuredView:
-    """MeasuredView of one pose from ground truth ``gt``; ``nominal_W`` (H, W, 3) defaults to the hit points."""
+def measure_from_truth(
+    gt: Any, T_W_C: Pose, cfg: CellConfig, material: MaterialConfig, nominal_W: np.ndarray | None = None
+) -> MeasuredView:
+    """MeasuredView of one pose from ground truth ``gt``; ``nominal_W`` (H, W, 3) defaults to the hit
+    points."""
     cam, proj = cfg.sensor.camera, cfg.sensor.projector
     part = gt.part
     P = gt.points_W
@@ -41,8 +43,11 @@ def measure_from_truth(gt: Any, T_W_C: Pose, cfg: CellConfig, material: Material
         cos_i = np.clip(np.einsum("...k,...k->...", n, l_p), 0, 1)
         mirror = 2 * cos_i[..., None] * n - l_p
         cos_a = np.clip(np.einsum("...k,...k->...", mirror, l_c), 0, 1)
-        rate = proj.irradiance_e_per_ms * (proj.focus_distance_mm / r) ** 2 * (
-            material.albedo * cos_i + material.specular * cos_a ** material.shininess)
+        rate = (
+            proj.irradiance_e_per_ms
+            * (proj.focus_distance_mm / r) ** 2
+            * (material.albedo * cos_i + material.specular * cos_a**material.shininess)
+        )
         signal = cam.exposure_ms * (rate + cfg.sim.ambient_e_per_ms * material.albedo)
     glare = part & gt.lit & (signal >= cam.full_well_e)
     low = part & gt.lit & ~glare & (signal < LOW_SIGNAL_SHARE * cam.full_well_e)
@@ -51,5 +56,6 @@ def measure_from_truth(gt: Any, T_W_C: Pose, cfg: CellConfig, material: Material
     valid = part & gt.lit & in_focus & ~glare & ~low
     nominal = P if nominal_W is None else nominal_W
     nominal = np.where(part[..., None], nominal, np.nan)
-    return measured_view_from_masks(T_W_C, P, valid, {"shadow": shadow, "glare": glare, "low_contrast": low},
-                                    nominal, normals_W=n)
+    return measured_view_from_masks(
+        T_W_C, P, valid, {"shadow": shadow, "glare": glare, "low_contrast": low}, nominal, normals_W=n
+    )

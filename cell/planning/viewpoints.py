@@ -4,8 +4,8 @@ A patch's samples are boxed in a frame whose w axis is the patch's mean normal (
 points in the tangent plane). The box is tested against the task constraints: its footprint (L x W) must fit
 the field of view for some roll about the view axis, its height H the focus range. Candidate viewpoints sit on
 the box's centre line at the stand-off, looking along -w, at 8 rolls (the roll decides on which side the
-projector stands, so it decides self-shadowing); each candidate is scored by the share of the patch it measures
-(projector constraints first, then camera, with ray-cast occlusion for both). When no roll measures
+projector stands, so it decides self-shadowing); each candidate is scored by the share of the patch it
+measures (projector constraints first, then camera, with ray-cast occlusion for both). When no roll measures
 ``patch_accept`` of the patch, or the box is too large, the patch is split in two across its longest axis and
 each half is searched again (Fig. 3.5). Unreachable candidates are re-posed: other rolls first, then the view
 direction tilted by 15 and 30 degrees about the box centre.
@@ -79,7 +79,9 @@ def bounding_box(points: Array, normals: Array, weights: Array) -> Box:
 class PatchPlanner:
     """Finds viewpoints for patches of one part, logging each decision (dicts with a ``reason``)."""
 
-    def __init__(self, sensor: SensorModel, surface: PartSurface, reach: ReachChecker, log: list[dict[str, Any]]):
+    def __init__(
+        self, sensor: SensorModel, surface: PartSurface, reach: ReachChecker, log: list[dict[str, Any]]
+    ):
         self.sensor = sensor
         self.surface = surface
         self.reach = reach
@@ -105,24 +107,47 @@ class PatchPlanner:
         fits = self.roll_fits(box)
         too_deep = box.extents[2] > self.dof
         if (not fits.any() or too_deep) and can_split:
-            why = "footprint exceeds the field of view" if not fits.any() else "height exceeds the focus range"
-            self.log.append({"event": "split", "patch": name, "reason": why,
-                             "box_mm": np.round(box.extents, 1).tolist()})
+            why = (
+                "footprint exceeds the field of view" if not fits.any() else "height exceeds the focus range"
+            )
+            self.log.append(
+                {"event": "split", "patch": name, "reason": why, "box_mm": np.round(box.extents, 1).tolist()}
+            )
             return self._split(idx, box, name, source)
         best = self._best_pose(idx, box, fits if fits.any() else np.ones(len(ROLLS), bool))
         accept = self.sensor.settings.patch_accept
         if best is not None and (best[1] >= accept or not can_split):
             T, frac, meas, how = best
-            self.log.append({"event": "viewpoint", "patch": name, "source": source, "reason": how,
-                             "patch_fraction": round(frac, 4), "samples": int(len(idx))})
+            self.log.append(
+                {
+                    "event": "viewpoint",
+                    "patch": name,
+                    "source": source,
+                    "reason": how,
+                    "patch_fraction": round(frac, 4),
+                    "samples": int(len(idx)),
+                }
+            )
             return [Viewpoint(T, self.reach.target(T), name, source, frac, idx[meas])]
         if can_split:
             got = 0.0 if best is None else best[1]
-            self.log.append({"event": "split", "patch": name, "reason": f"best reachable viewpoint measures "
-                             f"{got:.2f} of the patch < {accept:.2f}", "box_mm": np.round(box.extents, 1).tolist()})
+            self.log.append(
+                {
+                    "event": "split",
+                    "patch": name,
+                    "reason": f"best reachable viewpoint measures {got:.2f} of the patch < {accept:.2f}",
+                    "box_mm": np.round(box.extents, 1).tolist(),
+                }
+            )
             return self._split(idx, box, name, source)
-        self.log.append({"event": "unplanned", "patch": name, "reason": "no reachable viewpoint measures any "
-                         "of this small patch", "area_mm2": round(total, 1)})
+        self.log.append(
+            {
+                "event": "unplanned",
+                "patch": name,
+                "reason": "no reachable viewpoint measures any of this small patch",
+                "area_mm2": round(total, 1),
+            }
+        )
         return []
 
     def _split(self, idx: NDArray[np.int64], box: Box, name: str, source: str) -> list[Viewpoint]:
@@ -144,8 +169,9 @@ class PatchPlanner:
             out += self.plan(idx[part == k], f"{name}.{k}", source)
         return out
 
-    def _best_pose(self, idx: NDArray[np.int64], box: Box, rolls_ok: NDArray[np.bool_]
-                   ) -> tuple[Pose, float, NDArray[np.bool_], str] | None:
+    def _best_pose(
+        self, idx: NDArray[np.int64], box: Box, rolls_ok: NDArray[np.bool_]
+    ) -> tuple[Pose, float, NDArray[np.bool_], str] | None:
         """Best reachable (pose, patch fraction, measured mask, how) over rolls, then tilts if needed."""
         s, sensor = self.surface, self.sensor
         pts, nrm, area = s.points[idx], s.normals[idx], s.area[idx]
@@ -185,5 +211,7 @@ class PatchPlanner:
                 if best is not None and best[1] >= accept:
                     break
         if best is None and unreachable:
-            self.log.append({"event": "unreachable", "reason": unreachable[0], "candidates": len(unreachable)})
+            self.log.append(
+                {"event": "unreachable", "reason": unreachable[0], "candidates": len(unreachable)}
+            )
         return best
