@@ -32,6 +32,7 @@ from cell.analysis.regions import Coverage
 from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
 from cell.config import CellConfig, Recipe
 from cell.contracts import CameraSettings, PixelFormat, TriggerMode
+from cell.controller import Controller, ControllerSettings
 from cell.devices import DeviceBundle
 from cell.errors import DeviceFault
 from cell.geometry import invert, transform_points, transform_vectors
@@ -377,3 +378,17 @@ def _load_regions(path: Path) -> list[DefectRegion]:
             DefectRegion(str(reason), data[f"boundary_{k}"], data[f"points_{k}"], int(px))
             for k, (reason, px) in enumerate(zip(data["reasons"], data["pixels"]))
         ]
+
+
+def inspection_controller(devices: DeviceBundle, job: LambertianInspection, run: RunFolder,
+                          settings: ControllerSettings, on_progress: Any = None) -> Controller:
+    """The controller for ``job`` on its cell: the robot config's limits and home, checked motion."""
+    r = job.cfg.robot
+    return Controller(
+        devices, job, run, settings,
+        robot_limits=(r.max_tcp_speed_mm_s, r.max_tcp_accel_mm_s2, r.max_joint_speed_rad_s,
+                      r.max_joint_accel_rad_s2),
+        home_joints_rad=np.deg2rad(r.home_joints_deg),
+        motion=job.motion_planner(settings.speed_fraction),
+        on_progress=on_progress,
+    )

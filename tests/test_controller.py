@@ -13,46 +13,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-import yaml
 
-from cell.config import DEFAULT_CELL, CellConfig, load_cell_config, load_recipe
+from cell.config import load_recipe
 from cell.controller import Controller, ControllerSettings
 from cell.devices import DeviceBundle, build_devices
-from cell.inspection import LambertianInspection
+from cell.inspection import LambertianInspection, inspection_controller
 from cell.runs import RunFolder
-from fakes.sim.testing import small_sensor
-
-
-def small_cell() -> CellConfig:
-    cfg = load_cell_config(DEFAULT_CELL)
-    sensor = small_sensor(bit_depth=8).model_dump()
-    sensor["T_T_C"] = cfg.sensor.T_T_C.model_dump()
-    return CellConfig.model_validate({**cfg.model_dump(), "sensor": sensor})
+from tests.box_part import small_cell, write_box_recipe
 
 
 @pytest.fixture(scope="module")
 def recipe_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("box")
-    box = trimesh.creation.box(extents=(120.0, 90.0, 40.0))
-    box.apply_translation((0.0, 0.0, 20.0))
-    box.export(folder / "box.stl")
-    (folder / "box.yaml").write_text(
-        yaml.safe_dump(
-            {
-                "name": "box",
-                "part": {"cad": "box.stl"},
-                "tolerance": {"lower": -0.3, "upper": 0.3},
-                "min_coverage": 0.6,  # the robot stands on the -y side: the box's +y face is out of its reach
-                "plan": {
-                    "resolution_mm": 1.5,
-                    "point_density_per_mm2": 0.2,
-                    "view_budget": 8,
-                    "max_iterations": 1,
-                },
-            }
-        )
-    )
-    return folder / "box.yaml"
+    return write_box_recipe(tmp_path_factory.mktemp("box"))
 
 
 def make_controller(recipe_path: Path, run_dir: Path, **settings) -> tuple[Controller, DeviceBundle]:
@@ -68,22 +40,7 @@ def make_controller(recipe_path: Path, run_dir: Path, **settings) -> tuple[Contr
         if (run_dir / "journal.jsonl").exists()
         else RunFolder.create(run_dir.parent, "box", name=run_dir.name)
     )
-    r = cfg.robot
-    ctl_settings = ControllerSettings(retry_delay_s=0.0, **settings)
-    ctl = Controller(
-        devices,
-        job,
-        run,
-        ctl_settings,
-        robot_limits=(
-            r.max_tcp_speed_mm_s,
-            r.max_tcp_accel_mm_s2,
-            r.max_joint_speed_rad_s,
-            r.max_joint_accel_rad_s2,
-        ),
-        home_joints_rad=np.deg2rad(r.home_joints_deg),
-        motion=job.motion_planner(ctl_settings.speed_fraction),
-    )
+    ctl = inspection_controller(devices, job, run, ControllerSettings(retry_delay_s=0.0, **settings))
     return ctl, devices
 
 

@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import trimesh
 import yaml
+
+from tests.box_part import small_cell, write_box_recipe
 
 REPO = Path(__file__).resolve().parent.parent
 BINNED = REPO / "recipes" / "cells" / "sim_binned.yaml"
@@ -71,30 +72,10 @@ def test_undented_pillar_passes(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """A small box recipe and a cell config with the 160x120 test sensor, written as files for the CLI."""
-    from tests.test_controller import small_cell
-
     folder = tmp_path_factory.mktemp("boxcli")
-    box = trimesh.creation.box(extents=(120.0, 90.0, 40.0))
-    box.apply_translation((0.0, 0.0, 20.0))
-    box.export(folder / "box.stl")
-    (folder / "box.yaml").write_text(
-        yaml.safe_dump(
-            {
-                "name": "box",
-                "part": {"cad": "box.stl"},
-                "tolerance": {"lower": -0.3, "upper": 0.3},
-                "min_coverage": 0.6,
-                "plan": {
-                    "resolution_mm": 1.5,
-                    "point_density_per_mm2": 0.2,
-                    "view_budget": 8,
-                    "max_iterations": 1,
-                },
-            }
-        )
-    )
+    recipe = write_box_recipe(folder)
     (folder / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
-    return folder / "box.yaml", folder / "cell.yaml"
+    return recipe, folder / "cell.yaml"
 
 
 def test_killed_runs_resume_to_the_same_result(box_inputs: tuple[Path, Path], tmp_path: Path) -> None:

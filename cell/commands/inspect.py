@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import typer
 from rich.console import Console
 
@@ -100,7 +99,7 @@ def _load_run_inputs(run: RunFolder) -> tuple[Recipe, Any, Path | None]:
 
 def _execute(run: RunFolder, *, resume: bool, settings: ControllerSettings, seed: int | None) -> str:
     from cell.devices import build_devices
-    from cell.inspection import LambertianInspection
+    from cell.inspection import LambertianInspection, inspection_controller
     from cell.mesh import load_mesh
 
     recipe, cfg, actual_path = _load_run_inputs(run)
@@ -109,23 +108,7 @@ def _execute(run: RunFolder, *, resume: bool, settings: ControllerSettings, seed
     actual_W = load_mesh(actual_path).apply_transform(T_W_P) if actual_path else nominal_W
     devices = build_devices(cfg, part_W=actual_W, part_material=recipe.part.material, seed=seed)
     job = LambertianInspection(recipe, cfg, nominal_W)
-    r = cfg.robot
-
-    ctl = Controller(
-        devices,
-        job,
-        run,
-        settings,
-        robot_limits=(
-            r.max_tcp_speed_mm_s,
-            r.max_tcp_accel_mm_s2,
-            r.max_joint_speed_rad_s,
-            r.max_joint_accel_rad_s2,
-        ),
-        home_joints_rad=np.deg2rad(r.home_joints_deg),
-        motion=job.motion_planner(settings.speed_fraction),
-        on_progress=_progress,
-    )
+    ctl = inspection_controller(devices, job, run, settings, on_progress=_progress)
     index = RunIndex(run.path.parent)
     index.upsert(run.path, job.part_name, "running")
     state = ctl.execute(resume=resume)

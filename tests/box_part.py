@@ -1,0 +1,35 @@
+"""A small box part, its recipe and a small simulated cell: fast end-to-end runs of the controller and CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import trimesh
+import yaml
+
+from cell.config import DEFAULT_CELL, CellConfig, load_cell_config
+from fakes.sim.testing import small_sensor
+
+
+def small_cell() -> CellConfig:
+    """The default simulated cell with the 160x120 test sensor (same robot, hand-eye and scene)."""
+    cfg = load_cell_config(DEFAULT_CELL)
+    sensor = small_sensor(bit_depth=8).model_dump()
+    sensor["T_T_C"] = cfg.sensor.T_T_C.model_dump()
+    return CellConfig.model_validate({**cfg.model_dump(), "sensor": sensor})
+
+
+def write_box_recipe(folder: Path) -> Path:
+    """A 120 x 90 x 40 mm box on the table at the world origin and its recipe; returns the recipe path."""
+    box = trimesh.creation.box(extents=(120.0, 90.0, 40.0))
+    box.apply_translation((0.0, 0.0, 20.0))
+    box.export(folder / "box.stl")
+    recipe = {
+        "name": "box",
+        "part": {"cad": "box.stl"},
+        "tolerance": {"lower": -0.3, "upper": 0.3},
+        "min_coverage": 0.6,  # the robot stands on the -y side: the box's +y face is out of its reach
+        "plan": {"resolution_mm": 1.5, "point_density_per_mm2": 0.2, "view_budget": 8, "max_iterations": 1},
+    }
+    (folder / "box.yaml").write_text(yaml.safe_dump(recipe))
+    return folder / "box.yaml"
