@@ -161,6 +161,8 @@ class CalibrationFiles(Strict):
     sensor: Path | None = Field(None, description="per-pixel d, S, alpha (cell calibrate sensor)")
     gamma: Path | None = Field(None, description="projector response LUT (cell calibrate gamma)")
     hand_eye: Path | None = Field(None, description="T_T_C; overrides sensor.T_T_C (cell calibrate handeye)")
+    intrinsics: Path | None = Field(None, description="camera K and distortion (cell calibrate intrinsics)")
+    projector: Path | None = Field(None, description="projector K and T_C_P (cell calibrate projector)")
 
 
 class CellConfig(Strict):
@@ -257,7 +259,7 @@ def load_cell_config(path: str | Path) -> CellConfig:
     """Load and validate a cell config YAML; calibration paths become absolute and must exist."""
     cfg = validate(CellConfig, read_yaml(path), path)
     base = Path(path).resolve().parent
-    for field in ("sensor", "gamma", "hand_eye"):
+    for field in CalibrationFiles.model_fields:
         value = getattr(cfg.calibration, field)
         if value is None:
             continue
