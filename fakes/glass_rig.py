@@ -75,6 +75,7 @@ class SimGlassRig:
         self._cameras = [SimGlassCamera(self, c) for c in cfg.cameras]
         self._rng = np.random.default_rng(cfg.seed) if cfg.noise else None
         self._board_height: float | None = None
+        self._screen_position = 0
         self._radiance: dict[str, NDArray[np.float64]] = {}  # noise-free signal per camera, per placement
 
     @property
@@ -83,8 +84,22 @@ class SimGlassRig:
 
     @property
     def screen(self) -> MarkerScreen:
+        """The marker screen at its current position (see :meth:`move_screen`)."""
         s = self.cfg.screen
-        return MarkerScreen(s.T_W_S.matrix(), s.dots_mm(), s.dot_diameter_mm)
+        pose = s.T_W_S if self._screen_position == 0 else s.second_T_W_S
+        return MarkerScreen(pose.matrix(), s.dots_mm(), s.dot_diameter_mm)
+
+    def move_screen(self, position: int) -> MarkerScreen:
+        """Simulation of the screen's motion stage for the multi-projection method (2.4): position 0 is
+        ``screen.T_W_S``, 1 is ``screen.second_T_W_S``. Returns the screen there."""
+        if position not in (0, 1) or (position == 1 and self.cfg.screen.second_T_W_S is None):
+            raise DeviceError(self.name, f"no screen position {position}; the rig config defines "
+                              "screen.T_W_S (0) and, for a second position, screen.second_T_W_S (1)")
+        self._screen_position = position
+        if self._scene is not None:
+            self._scene.T_W_S = self.screen.T_W_S
+        self._radiance.clear()
+        return self.screen
 
     def connect(self) -> None:
         for c in self._cameras:

@@ -65,7 +65,7 @@ def test_board_pose_solvers_recover_hand_eye(cfg):
         uv = project_points(cam, transform_points(T_C_Bd, obj)) + rng.normal(0, 0.05, (len(obj), 2))
         flange.append(T_B_T)
         board.append(board_pose_from_corners(obj, uv, cam.K(), cam.distortion.as_array()))
-    for method in ("tsai", "park"):
+    for method in ("tsai", "park", "daniilidis"):
         dt, dr = pose_error(handeye_from_board_poses(flange, board, method), T_T_C)
         assert dt < 0.05 and dr < 0.01, (method, dt, dr)
 

@@ -17,10 +17,12 @@ from scipy.ndimage import map_coordinates
 from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
+from cell.analysis.report import Tolerance, out_of_tolerance_regions
 from cell.cli import app
 from cell.glass.calibration import ViewVectorCalibration
 from cell.glass.config import GlassSearchConfig, load_glass_recipe, load_glass_rig
-from cell.glass.inspect import measure
+from cell.glass.inspect import find_markers, measure
+from cell.glass.job import glass_link_radius_mm, grab_mean
 from cell.glass.markers import detect_dots
 from cell.glass.surface import SmoothSurface, unit
 from cell.mesh import load_mesh
@@ -171,3 +173,82 @@ def test_sag_recovered_feedback_and_rejection(rig_data):
     near = acc & (np.hypot(four.points[:, 0] - cx, four.points[:, 1] - cy) < 8)
     assert near.sum() >= 3
     assert abs(-np.median(dev[near]) - TRUTH["sag_depth_mm"]) < 0.1 * TRUTH["sag_depth_mm"]
+
+
+def _true_layer(cfg, mesh, cam, uv):  # noqa: ANN001, ANN202
+    """Per centroid: nearest screen dot of the true top reflection, distance to it, that of the bottom."""
+    truth = GlassScene(cfg, mesh).trace(cam)
+
+    def at(m):  # noqa: ANN001, ANN202
+        return np.column_stack([map_coordinates(m[..., i], [uv[:, 1], uv[:, 0]], order=1) for i in range(2)])
+
+    tree = cKDTree(cfg.screen.dots_mm())
+    d_top, dot = tree.query(np.nan_to_num(at(truth.screen_top), nan=1e6))
+    d_bot = tree.query(np.nan_to_num(at(truth.screen_bottom), nan=1e6))[0]
+    return dot, d_top, d_bot
+
+
+def test_clear_thick_glass_bottom_copy_rejected_geometrically(rig_data):
+    """Clear 8 mm glass: the bottom copies are nearly as dark as the top dots, so the threshold is raised to
+    detect both and only the geometric test (cell.glass.bottom) tells them apart."""
+    cfg0, _, cals, cad = rig_data
+    cfg = cfg0.model_copy(deep=True)
+    cfg.glass.thickness_mm, cfg.glass.absorption_per_mm = 8.0, 0.0
+    sag = load_mesh(GLASS / "panes" / "pane_sag.stl")
+    rig = SimGlassRig(cfg, sag)
+    rig.connect()
+    images = grab_mean(rig, 4)
+    search = load_glass_recipe(RECIPE).search.model_copy(update={"dark_fraction": 0.7,
+                                                                 "pane_thickness_mm": 8.0})
+    cam = cfg.cameras[0]
+    raw = detect_dots(images[0], dark_fraction=0.7, full_profile_px=1)
+    _, d_top_raw, d_bot_raw = _true_layer(cfg, sag, cam, raw.centroids_px)
+    assert np.sum(d_bot_raw < d_top_raw) > 0.3 * len(raw)  # the detector alone takes many bottom copies
+    m = find_markers(images[0], cals[0], cad, rig.screen, search)
+    ok = m.dot >= 0
+    dot, d_top, d_bot = _true_layer(cfg, sag, cam, m.detections.centroids_px[ok])
+    assert ok.sum() > 200  # 263: the sag moves some markers beyond the identification gate
+    assert np.all(d_top < d_bot)  # the bottom reflection is never taken for the marker
+    assert np.all(dot == m.dot[ok]) and np.percentile(d_top, 99) < 0.25  # right dot, unbiased centroid
+    g = measure(images, cals, cad, rig.screen, search)
+    err = g.points[:, 2] - SAG(g.points[:, 0], g.points[:, 1])
+    assert g.accepted.sum() > 0.6 * len(err)  # 0.75: cam3 sees every dot merged with its copy, none used
+    assert np.sqrt(np.mean(err[g.accepted] ** 2)) <= 0.05  # issue check on clear thick glass
+
+
+def test_multi_projection_without_cad_normal(rig_data):
+    """Multi-projection (2.4) with the screen moved 60 mm: one camera, no feedback, no CAD-normal assumption,
+    recovers the sag that the single-camera golden-section search cannot (depth-normal ambiguity)."""
+    cfg, images, cals, cad = rig_data
+    rig = SimGlassRig(cfg, load_mesh(GLASS / "panes" / "pane_sag.stl"))
+    rig.connect()
+    screen = rig.screen
+    screen2 = rig.move_screen(1)
+    second = (grab_mean(rig, 4), screen2)
+    search = load_glass_recipe(RECIPE).search
+    golden = measure(images, cals, cad, screen, search, max_cameras=1)
+    mp = measure(images, cals, cad, screen, search.model_copy(update={"method": "multi_projection"}),
+                 max_cameras=1, second=second)
+    assert len(mp.points) > 0.95 * len(golden.points)
+    err_g = golden.points[:, 2] - SAG(golden.points[:, 0], golden.points[:, 1])
+    err_m = mp.points[:, 2] - SAG(mp.points[:, 0], mp.points[:, 1])
+    assert np.sqrt(np.mean(err_m**2)) <= 0.05  # measured 0.030 mm
+    assert np.sqrt(np.mean(err_m**2)) < 0.1 * np.sqrt(np.mean(err_g**2))
+    x, y, h = mp.points[:, 0], mp.points[:, 1], 1e-3
+    n_true = unit(np.column_stack([-(SAG(x + h, y) - SAG(x - h, y)) / (2 * h),
+                                   -(SAG(x, y + h) - SAG(x, y - h)) / (2 * h), np.ones(len(x))]))
+    assert np.median(np.linalg.norm(np.cross(mp.normals, n_true), axis=1)) < 200e-6
+
+
+def test_sag_is_one_region_with_a_marker_spaced_link_radius(sag_run):
+    """Glass points are one per marker, so the report's default link radius (3x the median spacing of the
+    merged cameras' clouds) splits the sag; linking at the marker spacing of one camera keeps it whole."""
+    z = np.load(sag_run / "results" / "glass_points.npz")
+    acc = z["accepted"]
+    pts, dev = z["points_W"][acc], z["points_W"][acc][:, 2] - BASE(z["points_W"][acc][:, 0],
+                                                                    z["points_W"][acc][:, 1])
+    radius = glass_link_radius_mm(z["points_W"], z["camera"])
+    regions = out_of_tolerance_regions(pts, dev, Tolerance(-0.3, 0.3), link_radius_mm=radius)
+    n_bad = int(np.sum(np.abs(dev) > 0.3))
+    assert regions[0]["n_points"] >= 0.95 * n_bad and regions[0]["kind"] == "dent"  # the sag: one region
+    assert abs(-regions[0]["extreme_mm"] - TRUTH["sag_depth_mm"]) < 0.1 * TRUTH["sag_depth_mm"]

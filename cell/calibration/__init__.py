@@ -1,6 +1,11 @@
 """Calibration routines for the technician (dissertation 2.2, 4.1, 5.1.1): per-pixel sensor model, camera and
 projector intrinsics, projector response, hand-eye, and the validation tests that judge them."""
 
-from cell.calibration.active import active_hand_eye, active_triangulator
+from cell.calibration.active import (
+    active_hand_eye,
+    active_sensor_config,
+    active_triangulator,
+    calibration_source,
+)
 
-__all__ = ["active_hand_eye", "active_triangulator"]
+__all__ = ["active_hand_eye", "active_sensor_config", "active_triangulator", "calibration_source"]

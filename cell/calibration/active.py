@@ -3,22 +3,100 @@ section, or the config's nominal geometry when none is set."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from cell.calibration.sensor import load_sensor_model
-from cell.calibration.store import load_calibration
-from cell.config import CellConfig
+from cell.calibration.store import load_calibration, load_metadata
+from cell.config import CellConfig, Distortion, PoseConfig, SensorConfig
 from cell.errors import ConfigError
 from cell.geometry import Pose
 from cell.sensing.triangulate import PinholeTriangulator, Triangulator
 
+NO_CALIBRATION = "config geometry (no calibration)"
+
+
+def _rigid(T: NDArray, path: Path, name: str) -> Pose:
+    T = np.asarray(T, dtype=np.float64)
+    if (
+        T.shape != (4, 4)
+        or not np.allclose(T[3], (0, 0, 0, 1))
+        or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6)
+    ):
+        raise ConfigError(f"calibration file holds no rigid 4x4 {name}", path=str(path), field=name)
+    return T
+
+
+def _pose_config(T: Pose) -> PoseConfig:
+    """The config's xyz + fixed-axis rpy (degrees) of a 4x4 pose (inverse of PoseConfig.matrix)."""
+    rpy = np.degrees(Rotation.from_matrix(T[:3, :3]).as_euler("xyz"))
+    return PoseConfig(xyz_mm=tuple(T[:3, 3].tolist()), rpy_deg=tuple(rpy.tolist()))
+
+
+def _check_device(meta: dict, key: str, path: Path, serial: str, size: tuple[int, int]) -> None:
+    """A calibration belongs to one device: same resolution and, when recorded, the same serial."""
+    dev = meta.get(key, {})
+    if list(dev.get("resolution", size)) != list(size):
+        raise ConfigError(
+            f"calibration is for a {dev['resolution']} {key}, the cell's is {size[0]}x{size[1]}: "
+            "resolution mismatch; recalibrate or remove the entry",
+            path=str(path),
+            field=f"{key}.resolution",
+        )
+    if dev.get("serial", serial) != serial:
+        raise ConfigError(
+            f"calibration was made for {key} serial '{dev['serial']}', the cell's {key} is '{serial}'; "
+            "recalibrate or remove the entry",
+            path=str(path),
+            field=f"{key}.serial",
+        )
+
+
+def _pinhole_update(K: NDArray) -> dict[str, float]:
+    (fx, _, cx), (_, fy, cy) = np.asarray(K, dtype=np.float64)[:2].tolist()
+    return {"fx_px": fx, "fy_px": fy, "cx_px": cx, "cy_px": cy}
+
+
+def active_sensor_config(cfg: CellConfig) -> SensorConfig:
+    """``cfg.sensor`` with the calibrated values put in (a copy; ``cfg`` is not changed):
+
+    * ``calibration.intrinsics`` (cell calibrate intrinsics): camera fx, fy, cx, cy and distortion;
+    * ``calibration.projector`` (cell calibrate projector): projector fx, fy, cx, cy and T_C_P (its fitted
+      lens distortion is not carried: the pinhole model treats the projector as distortion-free);
+    * ``calibration.hand_eye`` (cell calibrate handeye): T_T_C.
+
+    Each file must be of the right kind and made for the configured device (resolution, serial)."""
+    s = cfg.sensor.model_copy(deep=True)
+    cal = cfg.calibration
+    cam, proj = s.camera, s.projector
+    if cal.intrinsics is not None:
+        meta, a = load_calibration(cal.intrinsics, "camera_intrinsics")
+        _check_device(meta, "camera", cal.intrinsics, cam.serial, (cam.width_px, cam.height_px))
+        dist = np.zeros(5)
+        dist[: min(5, np.size(a["dist"]))] = np.ravel(a["dist"])[:5]
+        lens = Distortion(**dict(zip(Distortion.model_fields, dist.tolist())))
+        cam = cam.model_copy(update={**_pinhole_update(a["K"]), "distortion": lens})
+    if cal.projector is not None:
+        meta, a = load_calibration(cal.projector, "projector")
+        _check_device(meta, "projector", cal.projector, proj.serial, (proj.width_px, proj.height_px))
+        T_C_P = _rigid(a["T_C_P"], cal.projector, "T_C_P")
+        proj = proj.model_copy(update={**_pinhole_update(a["K"]), "T_C_P": _pose_config(T_C_P)})
+    update: dict = {"camera": cam, "projector": proj}
+    if cal.hand_eye is not None:
+        update["T_T_C"] = _pose_config(active_hand_eye(cfg))
+    return s.model_copy(update=update)
+
 
 def active_triangulator(cfg: CellConfig) -> Triangulator:
     """The calibrated per-pixel reference-plane model when ``cfg.calibration.sensor`` is set (checked against
-    the camera's resolution), else the pinhole model from the config's camera/projector geometry."""
+    the camera's resolution), else the pinhole model from :func:`active_sensor_config` (the calibrated camera
+    and projector when their files are set, else the config's geometry)."""
     if cfg.calibration.sensor is not None:
         return load_sensor_model(cfg.calibration.sensor, cfg.sensor.camera)
-    return PinholeTriangulator.from_sensor(cfg.sensor)
+    return PinholeTriangulator.from_sensor(active_sensor_config(cfg))
 
 
 def active_hand_eye(cfg: CellConfig) -> Pose:
@@ -27,13 +105,25 @@ def active_hand_eye(cfg: CellConfig) -> Pose:
     if cfg.calibration.hand_eye is None:
         return cfg.sensor.T_T_C.matrix()
     _, arrays = load_calibration(cfg.calibration.hand_eye, "hand_eye")
-    T = np.asarray(arrays["T_T_C"], dtype=np.float64)
-    if (
-        T.shape != (4, 4)
-        or not np.allclose(T[3], (0, 0, 0, 1))
-        or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6)
-    ):
-        raise ConfigError(
-            "hand-eye file holds no rigid 4x4 T_T_C", path=str(cfg.calibration.hand_eye), field="T_T_C"
-        )
-    return T
+    return _rigid(arrays["T_T_C"], cfg.calibration.hand_eye, "T_T_C")
+
+
+def calibration_source(cfg: CellConfig) -> str:
+    """One line saying what the measurements rest on, for reports: the active calibration files (name and
+    creation date) and what still comes from the config's nominal geometry."""
+    cal = cfg.calibration
+    parts = []
+    for field in ("sensor", "intrinsics", "projector", "hand_eye", "gamma"):
+        path = getattr(cal, field)
+        if path is not None:
+            created = load_metadata(path).get("created_utc", "undated")
+            parts.append(f"{field}: {Path(path).name} ({created})")
+    if not parts:
+        return NO_CALIBRATION
+    if cal.sensor is None:
+        missing = [f for f in ("intrinsics", "projector") if getattr(cal, f) is None]
+        if missing:
+            parts.append(f"{' and '.join(missing)}: config geometry")
+    if cal.hand_eye is None:
+        parts.append("hand_eye: config sensor.T_T_C")
+    return "; ".join(parts)

@@ -2,11 +2,11 @@
 
 Two methods:
 
-* :func:`handeye_from_board_poses` -- the classic AX = XB solvers (Tsai-Lenz, Park-Martin) from flange poses
-  ``T_B_T`` and board poses in the camera ``T_C_Bd`` (from cv2.solvePnP). OpenCV's ``cv2.calibrateHandEye`` is
-  used when the installed OpenCV exposes it; the OpenCV 5.0.0 Python wheel does not (opencv/opencv#29565,
-  fixed by PR #29584 after the 5.0.0.93 release), so the two closed forms are written here as a fallback,
-  following the published algorithms that OpenCV implements.
+* :func:`handeye_from_board_poses` -- the classic AX = XB solvers (Tsai-Lenz, Park-Martin, Daniilidis)
+  from flange poses ``T_B_T`` and board poses in the camera ``T_C_Bd`` (from cv2.solvePnP). OpenCV's
+  ``cv2.calibrateHandEye`` is used when the installed OpenCV exposes it; the OpenCV 5.0.0 Python wheel does
+  not (opencv/opencv#29565, fixed by PR #29584 after the 5.0.0.93 release), so the three closed forms are
+  written here as a fallback, following the published algorithms that OpenCV implements.
 * :func:`handeye_icp` -- the dissertation's method (4.1.3): scan a gauge of known CAD, find the closest point
 of
   every measured point on the CAD triangles (point-to-plane foot points), solve the rigid transform in closed
@@ -32,8 +32,12 @@ from cell.analysis.registration import horn_quaternion
 from cell.errors import CalibrationError
 from cell.geometry import Pose, invert, make_pose, transform_points
 
-Method = Literal["tsai", "park"]
-_CV_METHODS = {"tsai": "CALIB_HAND_EYE_TSAI", "park": "CALIB_HAND_EYE_PARK"}
+Method = Literal["tsai", "park", "daniilidis"]
+_CV_METHODS = {
+    "tsai": "CALIB_HAND_EYE_TSAI",
+    "park": "CALIB_HAND_EYE_PARK",
+    "daniilidis": "CALIB_HAND_EYE_DANIILIDIS",
+}
 MIN_POSES = 3
 
 
@@ -86,6 +90,51 @@ def _tsai(A: list[Pose], B: list[Pose]) -> Pose:
     return make_pose(R, _translation(A, B, R))
 
 
+def _qmul(p: NDArray, q: NDArray) -> NDArray:
+    """Hamilton product of quaternions stored scalar first (w, x, y, z)."""
+    return np.r_[p[0] * q[0] - p[1:] @ q[1:], p[0] * q[1:] + q[0] * p[1:] + np.cross(p[1:], q[1:])]
+
+
+def _dual_quaternion(T: Pose) -> tuple[NDArray, NDArray]:
+    """(real, dual) unit dual quaternion of a rigid motion, scalar first; real part with w >= 0 (so that the
+    real scalar parts of A and B, cos(theta/2) of the same screw angle, agree in sign)."""
+    x, y, z, w = Rotation.from_matrix(T[:3, :3]).as_quat()
+    q = np.array([w, x, y, z]) * (1.0 if w >= 0 else -1.0)
+    return q, 0.5 * _qmul(np.r_[0.0, T[:3, 3]], q)
+
+
+def _skew(v: NDArray) -> NDArray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def _daniilidis(A: list[Pose], B: list[Pose]) -> Pose:
+    """Daniilidis (1999), "Hand-eye calibration using dual quaternions": rotation and translation together.
+
+    With dual quaternions a = x b x^-1 per motion, i.e. a x - x b = 0. Its vector parts are linear in the 8
+    unknowns (q, q') of x: [[a - b, [a + b]x, 0, 0], [a' - b', [a' + b']x, a - b, [a + b]x]] (6 rows per
+    motion; vector parts of the real and dual parts of a and b). The null space of the stacked matrix is
+    spanned by the two right singular vectors of the smallest singular values, v7 and v8; x = l1 v7 + l2 v8
+    with the unit constraints q.q = 1 and q.q' = 0 (a quadratic in l1/l2; the root with the larger q.q is
+    taken). Written by hand because the installed OpenCV wheel lacks cv2.calibrateHandEye (module doc)."""
+    rows = []
+    for a, b in zip(A, B):
+        (qa, da), (qb, db) = _dual_quaternion(a), _dual_quaternion(b)
+        top = np.hstack([(qa - qb)[1:, None], _skew(qa[1:] + qb[1:]), np.zeros((3, 4))])
+        bottom = np.hstack(
+            [(da - db)[1:, None], _skew(da[1:] + db[1:]), (qa - qb)[1:, None], _skew(qa[1:] + qb[1:])]
+        )
+        rows += [top, bottom]
+    v = np.linalg.svd(np.vstack(rows))[2]
+    (u1, v1), (u2, v2) = (v[6, :4], v[6, 4:]), (v[7, :4], v[7, 4:])
+    roots = np.roots([u1 @ v1, u1 @ v2 + u2 @ v1, u2 @ v2]).real
+    norms = [s * s * (u1 @ u1) + 2 * s * (u1 @ u2) + u2 @ u2 for s in roots]
+    s = roots[int(np.argmax(norms))]
+    l2 = 1.0 / np.sqrt(max(norms))
+    q, qd = l2 * (s * u1 + u2), l2 * (s * v1 + v2)
+    t = 2 * _qmul(qd, q * np.array([1.0, -1.0, -1.0, -1.0]))[1:]
+    return make_pose(Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix(), t)
+
+
 def handeye_from_board_poses(T_B_T: Sequence[Pose], T_C_Bd: Sequence[Pose], method: Method = "park") -> Pose:
     """``T_T_C`` from N >= 3 flange poses ``T_B_T`` and the board poses ``T_C_Bd`` seen at them (mm).
 
@@ -116,7 +165,7 @@ def handeye_from_board_poses(T_B_T: Sequence[Pose], T_C_Bd: Sequence[Pose], meth
             method=getattr(cv2, _CV_METHODS[method]),
         )
         return make_pose(R, np.ravel(t))
-    return _park(A, B) if method == "park" else _tsai(A, B)
+    return {"park": _park, "tsai": _tsai, "daniilidis": _daniilidis}[method](A, B)
 
 
 # --------------------------------------------------------------------------------------------- ICP method

@@ -38,7 +38,7 @@ from cell.errors import CalibrationError, ConfigError
 from cell.sensing.decode import Decoded
 from cell.sensing.triangulate import ReferencePlaneTriangulator, normalized_coords, reference_table
 
-MIN_STEPS = 3
+MIN_STEPS = 4  # the reference plane + 3 steps: eq 2.7 has 2 unknowns, and 1 degree of freedom judges the fit
 
 
 @dataclass
@@ -52,6 +52,7 @@ class SensorCalibration:
     alpha_rad: NDArray[np.float64]
     residual_mm: NDArray[np.float64]  # (N,) RMS of h_k - L'_k S/(d + L'_k) over the steps
     heights_mm: NDArray[np.float64]
+    height_sigma_mm: float  # median predicted height standard error at eval_height_mm (the quality figure)
     figures: dict[str, Any] = field(default_factory=dict)
 
 
@@ -84,11 +85,13 @@ class SensorCalibrator:
         K: NDArray | None = None,
         dist: NDArray | None = None,
         reject_k: float = 5.0,
+        eval_height_mm: float = 30.0,
     ):
         self.camera, self.projector = camera, projector
         self.S0 = float(reference_depth_mm)
         self.n_points = n_points
         self.reject_k = reject_k  # robust sigmas beyond which samples and points are rejected (rejection.py)
+        self.eval_height_mm = eval_height_mm  # where the quality figure is judged (predicted_height_sigma)
         self.K = camera.K() if K is None else np.asarray(K, float)
         self.dist = camera.distortion.as_array() if dist is None else np.asarray(dist, float)
         self.heights: list[float] = []
@@ -153,7 +156,10 @@ class SensorCalibrator:
         compares 4096, 16384 and 65536 points from one set of images this way."""
         n = len(self.heights)
         if n < MIN_STEPS:
-            raise CalibrationError(f"sensor calibration: {n} steps; at least {MIN_STEPS} (30 recommended)")
+            raise CalibrationError(
+                f"sensor calibration: the reference plane and {n - 1} steps; at least {MIN_STEPS - 1} steps "
+                "are needed (30 recommended)"
+            )
         h = np.asarray(self.heights)
         side = int(round(np.sqrt(len(self.codes))))
         sel = np.zeros((side, side), bool)
@@ -185,6 +191,7 @@ class SensorCalibrator:
             & np.isfinite(alpha_eff)
             & (np.sum(np.isfinite(L), 0) >= MIN_STEPS)
         )
+        sigma_h = predicted_height_sigma(h, L, np.where(ok, d, np.nan), S, self.eval_height_mm)
         if ok.sum() < 16:
             raise CalibrationError(f"sensor calibration: only {int(ok.sum())} encoded points could be fitted")
         with warnings.catch_warnings():
@@ -214,9 +221,11 @@ class SensorCalibrator:
             "S_mm": _stats(S[ok]),
             "alpha_deg": _stats(np.degrees(alpha_diss[ok])),
             "residual_mm": _stats(res[ok]),
+            "height_sigma_mm": {"at_height_mm": self.eval_height_mm, **_stats(sigma_h[ok])},
             "rejected": rejected,
         }
-        return SensorCalibration(model, pos, d, S, alpha_eff, res, h, figures)
+        quality = float(np.nanmedian(sigma_h[ok]))
+        return SensorCalibration(model, pos, d, S, alpha_eff, res, h, quality, figures)
 
 
 def _stats(x: NDArray) -> dict[str, float]:
@@ -230,18 +239,37 @@ def _stats(x: NDArray) -> dict[str, float]:
     }
 
 
-def _standard_error(cal: SensorCalibration) -> float:
-    """Median over the encoded points of the fit's standard error of height, residual / sqrt(steps - 2): the
-    figure by which a new calibration is compared with the active one (fewer steps fit closer but know
-    less)."""
-    return float(np.nanmedian(cal.residual_mm) / np.sqrt(max(len(cal.heights_mm) - 2, 1)))
+def predicted_height_sigma(h: NDArray, L: NDArray, d: NDArray, S: NDArray, eval_height_mm: float) -> NDArray:
+    """Per point (N,): standard error (mm) of the height the fitted model h = L S/(d + L) gives at
+    ``eval_height_mm`` above the reference plane, propagated from the covariance of the eq 2.7 fit.
+
+    Eq 2.7 is linear least squares [h_k, -L_k][d, S]^T = -h_k L_k, so Cov(d, S) = s^2 (A^T A)^-1 with the
+    row residual variance s^2 pooled over all points (sum of squared residuals / sum of degrees of freedom;
+    a point of 3 steps has 1). The height's gradient at L_e = h_e d/(S - h_e) is (-L_e S, L_e (d + L_e)) /
+    (d + L_e)^2. This is the figure by which calibrations are ranked: a short or narrow run fits its own
+    steps closely but extrapolates poorly, and this says so, where residual / sqrt(steps - 2) did not.
+    ``h`` (n,) step heights, ``L`` (n, N) mm (NaN where not seen), ``d``, ``S`` (N,) (NaN: not fitted)."""
+    ok = np.isfinite(L) & np.isfinite(d) & np.isfinite(S)
+    hk = np.where(ok, h[:, None], 0.0)
+    Lk = np.where(ok, L, 0.0)
+    a11, a12, a22 = (hk * hk).sum(0), -(hk * Lk).sum(0), (Lk * Lk).sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(ok, hk * (d + Lk) - Lk * S, 0.0)  # eq 2.7 row residuals
+        informative = (ok & (h[:, None] != 0)).sum(0)  # the reference row (h = L = 0) holds no information
+        fitted = np.isfinite(d) & np.isfinite(S) & (informative > 2)
+        s2 = (r[:, fitted] ** 2).sum() / max(int((informative[fitted] - 2).sum()), 1)
+        Le = eval_height_mm * d / (S - eval_height_mm)
+        gd, gS = -Le * S / (d + Le) ** 2, Le / (d + Le)
+        var = s2 * (gd * gd * a22 - 2 * gd * gS * a12 + gS * gS * a11) / (a11 * a22 - a12 * a12)
+    return np.where(fitted, np.sqrt(var), np.nan)
 
 
 def save_sensor_calibration(
     cal: SensorCalibration, path: Path, camera: CameraConfig, projector: ProjectorConfig, force: bool = False
 ) -> Path:
     """Versioned file of the per-pixel model (see :mod:`cell.calibration.store`); worse-than-existing files
-    (by :func:`_standard_error`) are refused unless ``force``. Writes d/S/alpha maps as PNG beside it."""
+    (by :attr:`SensorCalibration.height_sigma_mm`, :func:`predicted_height_sigma`) are refused unless
+    ``force``. Writes d/S/alpha maps as PNG beside it."""
     m = cal.model
     arrays = {
         "d": m.d,
@@ -262,15 +290,16 @@ def save_sensor_calibration(
             "K": camera.K().tolist(),
             "dist": camera.distortion.as_array().tolist(),
         },
-        "projector": {"serial": projector.name, "resolution": [projector.width_px, projector.height_px]},
+        "projector": {"serial": projector.serial, "resolution": [projector.width_px, projector.height_px]},
         "model": {"u0": m.u0, "du": m.du, "res_mm": m.res_mm, "sign": m.sign},
         "figures": cal.figures,
         "quality": {
             "median_residual_mm": float(np.nanmedian(cal.residual_mm)),
-            "standard_error_mm": _standard_error(cal),
+            "height_sigma_mm": cal.height_sigma_mm,
+            "height_sigma_at_mm": cal.figures.get("height_sigma_mm", {}).get("at_height_mm"),
         },
     }
-    out = save_calibration(path, "sensor_per_pixel", arrays, meta, "quality.standard_error_mm", force)
+    out = save_calibration(path, "sensor_per_pixel", arrays, meta, "quality.height_sigma_mm", force)
     stem = Path(path).with_suffix("")
     for name, arr in (("d", m.d), ("S", m.S), ("alpha", m.alpha)):
         save_map_png(stem.parent / f"{stem.name}_{name}.png", arr)

@@ -101,6 +101,29 @@ def fit_plane(points: NDArray) -> dict[str, Any]:
     }
 
 
+def sphere_test(
+    points: NDArray, radius_mm: float, centre_mm: NDArray, band_mm: float = 1.0
+) -> dict[str, Any]:
+    """A sphere of known radius (the plane/sphere test): the measured points (N, 3, mm) within ``band_mm``
+    of the nominal sphere (``centre_mm``, the frame of ``points``) are fitted with :func:`fit_sphere`; reports
+    the radius error, the sphere-fit residual sigma and how far the fitted centre lies from the nominal (mm).
+    Leave out the surface the sphere stands on before calling (its points touch the sphere)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    near = np.abs(np.linalg.norm(p - centre_mm, axis=1) - radius_mm) < band_mm
+    if near.sum() < 100:
+        raise CalibrationError(
+            f"sphere test: only {int(near.sum())} points within {band_mm} mm of the {radius_mm} mm sphere; "
+            "is the sphere in view and lit?"
+        )
+    fit = fit_sphere(p[near])
+    return {
+        "true_radius_mm": float(radius_mm),
+        **fit,
+        "radius_error_mm": fit["radius_mm"] - float(radius_mm),
+        "centre_offset_mm": float(np.linalg.norm(np.asarray(fit["centre_mm"]) - centre_mm)),
+    }
+
+
 def fit_sphere(points: NDArray) -> dict[str, Any]:
     """Least-squares sphere of (N, 3) points (algebraic start, then geometric refinement with SciPy)."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)

@@ -79,6 +79,7 @@ def sensor_cmd(
 ) -> None:
     """Per-pixel calibration: step the reference board STEPS x STEP_MM toward the sensor (dissertation
     5.1.1)."""
+    from cell.calibration.active import active_sensor_config
     from cell.calibration.sensor import SensorCalibrator, save_sensor_calibration
     from cell.sensing.decode import decode
     from cell.sensing.patterns import gcls_patterns
@@ -91,7 +92,10 @@ def sensor_cmd(
     ps = gcls_patterns(
         proj.width_px, proj.height_px, 12, 6, "both", n_gray=6 if proj.width_px >= 768 else None
     )
-    cal = SensorCalibrator(cam, proj, cfg.sensor.standoff_mm, n_points=points)
+    cam = active_sensor_config(cfg).camera  # the calibrated lens when calibration.intrinsics is set
+    cal = SensorCalibrator(
+        cam, proj, cfg.sensor.standoff_mm, n_points=points, eval_height_mm=cfg.sensor.depth_of_field_mm / 2
+    )
     rng = np.random.default_rng(seed)
     for k in range(steps + 1):
         found = cal.add_step(k * step_mm, decode(rig.capture(k * step_mm, ps.frames, rng), ps, cam.bit_depth))
@@ -119,23 +123,6 @@ def _board_scene(cfg: CellConfig, squares: tuple[int, int], square_mm: float, ma
     tex, ppm = board_texture(board)
     renderer = SceneRenderer(cfg.sensor, cfg.sim, Scene.from_meshes(trimesh.creation.box((1, 1, 1)), cfg.sim))
     return board, tex, ppm, renderer
-
-
-def _pinhole_lines(prefix: str, K: np.ndarray, dist: np.ndarray | None) -> str:
-    lines = [
-        f"{prefix}:",
-        f"  fx_px: {K[0, 0]:.3f}",
-        f"  fy_px: {K[1, 1]:.3f}",
-        f"  cx_px: {K[0, 2]:.3f}",
-        f"  cy_px: {K[1, 2]:.3f}",
-    ]
-    if dist is not None:
-        lines.append(
-            "  distortion: {"
-            + ", ".join(f"{n}: {v:.6g}" for n, v in zip(("k1", "k2", "p1", "p2", "k3"), dist, strict=True))
-            + "}"
-        )
-    return "\n".join(lines)
 
 
 @calibrate_app.command("intrinsics")
@@ -186,7 +173,7 @@ def intrinsics_cmd(
         run,
         "calibration.json",
         {"kind": "camera_intrinsics", "file": str(path), "summary": figs},
-        _pinhole_lines("sensor.camera", res.K, res.dist),
+        _calibration_lines("intrinsics", path),
     )
 
 
@@ -196,14 +183,15 @@ def projector_cmd(
     out: Path = OutOpt,
     views: int = typer.Option(6, min=1),
     intrinsics: Path | None = typer.Option(
-        None, help="camera intrinsics file (cell calibrate intrinsics); default: the cell config's camera"
+        None,
+        help="camera intrinsics file (cell calibrate intrinsics); default: the cell's active camera "
+        "(calibration.intrinsics, else the configured lens)",
     ),
     force: bool = typer.Option(False, "--force", help="replace a better existing calibration"),
     seed: int = 1,
 ) -> None:
     """Projector K and T_C_P (Moreno-Taubin local homographies at the ChArUco corners, stereoCalibrate)."""
-    from scipy.spatial.transform import Rotation
-
+    from cell.calibration.active import active_sensor_config
     from cell.calibration.intrinsics import detect_charuco
     from cell.calibration.projector import calibrate_projector, corners_in_projector
     from cell.calibration.store import load_calibration, save_calibration
@@ -214,7 +202,8 @@ def projector_cmd(
     cfg = _sim_cell(cell)
     run = _folder(out, cell)
     cam, proj = cfg.sensor.camera, cfg.sensor.projector
-    K, dist = cam.K(), cam.distortion.as_array()
+    active_cam = active_sensor_config(cfg).camera
+    K, dist = active_cam.K(), active_cam.distortion.as_array()
     if intrinsics is not None:
         _, arrays = load_calibration(intrinsics, "camera_intrinsics")
         K, dist = arrays["K"], arrays["dist"]
@@ -236,7 +225,6 @@ def projector_cmd(
     res = calibrate_projector(
         found, proj_px, valid, board, K, dist, (cam.width_px, cam.height_px), (proj.width_px, proj.height_px)
     )
-    xyz, rpy = res.T_C_P[:3, 3], Rotation.from_matrix(res.T_C_P[:3, :3]).as_euler("xyz")  # config's rpy
     figs = {
         "views": res.views,
         "corners": res.corners,
@@ -258,15 +246,12 @@ def projector_cmd(
         "quality.rms_px",
         force,
     )
-    lines = (
-        _pinhole_lines("sensor.projector", res.K, None)
-        + "\n  T_C_P: {xyz_mm: ["
-        + ", ".join(f"{x:.3f}" for x in xyz)
-        + "], rpy_deg: ["
-        + ", ".join(f"{np.degrees(a):.4f}" for a in rpy)
-        + "]}"
+    _finish(
+        run,
+        "calibration.json",
+        {"kind": "projector", "file": str(path), "summary": figs},
+        _calibration_lines("projector", path),
     )
-    _finish(run, "calibration.json", {"kind": "projector", "file": str(path), "summary": figs}, lines)
 
 
 @calibrate_app.command("gamma")
@@ -313,17 +298,18 @@ def validate_cmd(
     cell: Path = CellOpt,
     out: Path = OutOpt,
     height_mm: float = 12.5,
+    sphere_radius_mm: float = typer.Option(12.5, min=1.0, help="radius of the sphere of the sphere test"),
     seed: int = 2,
 ) -> None:
-    """Flat test at a known height (Table 5.1 figures) and the gauge slot test with a saved sensor
-    calibration."""
+    """Flat test at a known height (Table 5.1 figures), plane and sphere fits (a sphere of known radius on the
+    reference board) and the gauge slot test with a saved sensor calibration."""
     from cell.calibration.sensor import load_sensor_model
-    from cell.calibration.validation import fit_plane, flat_test, slot_test
+    from cell.calibration.validation import fit_plane, flat_test, slot_test, sphere_test
     from cell.geometry import transform_points
     from cell.mesh import load_mesh
     from cell.sensing.decode import decode
     from cell.sensing.patterns import gcls_patterns
-    from fakes.sim.board import BOARD_BASE_Z_MM, SteppedReferenceBoard
+    from fakes.sim.board import BOARD_BASE_Z_MM, SteppedReferenceBoard, sphere_on_board
 
     cfg = _sim_cell(cell)
     run = _folder(out, cell)
@@ -337,6 +323,19 @@ def validate_cmd(
     cloud = model.triangulate(decode(rig.capture(height_mm, ps.frames, rng), ps, cam.bit_depth))
     flat = flat_test(cloud, model.res_mm, height_mm)
     plane = fit_plane(cloud.points_C[cloud.valid])
+    ball, centre_W = sphere_on_board(sphere_radius_mm)
+    sc = model.triangulate(
+        decode(
+            rig.renderer(0.0, ball).render_stack(
+                rig.T_W_C, list(ps.frames), cam.exposure_ms, cam.gain_db, rng
+            ),
+            ps,
+            cam.bit_depth,
+        )
+    )
+    sp = transform_points(rig.T_W_C, sc.points_C[sc.valid])
+    # the board around the foot of the sphere touches it: keep what stands a quarter radius above the board
+    sphere = sphere_test(sp[sp[:, 2] > BOARD_BASE_Z_MM + 0.25 * sphere_radius_mm], sphere_radius_mm, centre_W)
     truth = json.loads(GAUGE.with_suffix(".truth.json").read_text())
     lift = np.array([0.0, 0.0, BOARD_BASE_Z_MM - truth["top_z_mm"] / 2])
     gauge = load_mesh(GAUGE).apply_translation(lift)
@@ -351,7 +350,10 @@ def validate_cmd(
     _finish(
         run,
         "validation.json",
-        {"calibration": str(calibration), "summary": {"flat": flat, "plane": plane, "slots": slots}},
+        {
+            "calibration": str(calibration),
+            "summary": {"flat": flat, "plane": plane, "sphere": sphere, "slots": slots},
+        },
     )
 
 

@@ -22,8 +22,11 @@ def glass_cmd(
     sim_actual: Path = typer.Option(None, "--sim-actual", help="simulation: mesh rendered as the made pane"),
     frames: int = typer.Option(4, "--frames", min=1, help="grabs averaged per camera for the measurement"),
     board_frames: int = typer.Option(8, "--board-frames", min=1, help="grabs averaged per board height"),
+    method: str = typer.Option(None, "--method", help="override the recipe's search.method: golden_section "
+                               "or multi_projection (2.4; the rig must define screen.second_T_W_S)"),
 ) -> None:
     """Measure a glass pane: view vectors, marker search, multi-camera feedback, error map and report."""
+    from cell.errors import ConfigError
     from cell.glass.config import load_glass_recipe, load_glass_rig
     from cell.glass.job import run_glass_inspection
     from cell.mesh import load_mesh
@@ -31,8 +34,15 @@ def glass_cmd(
     from fakes.glass_rig import SimGlassRig
 
     rec = load_glass_recipe(recipe)
+    if method is not None:
+        if method not in ("golden_section", "multi_projection"):
+            raise ConfigError(f"--method {method!r}: use golden_section or multi_projection", field="method")
+        rec.search.method = method  # type: ignore[assignment]
     rig_path = cell or rec.rig
     cfg = load_glass_rig(rig_path)
+    if rec.search.method == "multi_projection" and cfg.screen.second_T_W_S is None:
+        raise ConfigError("the multi-projection method needs the screen's second known position: add "
+                          "screen.second_T_W_S to the rig config", path=str(rig_path), field="screen")
     T_W_P = rec.part.T_W_P.matrix()
     nominal_W = load_mesh(rec.part.cad, what="nominal pane").apply_transform(T_W_P)
     actual_path = sim_actual or rec.part.actual or rec.part.cad
@@ -48,12 +58,15 @@ def glass_cmd(
     if cfg.driver == "sim":
         rig = SimGlassRig(cfg, actual_W)
         place_board = rig.place_board
+        move_screen = rig.move_screen
     else:
         from drivers.glass_rig import GenICamGlassRig
 
         rig = GenICamGlassRig(cfg, cfg.options)
         place_board = _operator_places_board
-    summary = run_glass_inspection(run, rec, cfg, rig, place_board, nominal_W, frames, board_frames)
+        move_screen = None
+    summary = run_glass_inspection(run, rec, cfg, rig, place_board, nominal_W, frames, board_frames,
+                                   move_screen)
     dev = summary["deviation"]
     console.print(f"[bold]verdict: {str(summary['verdict']).upper()}[/]  ({summary['n_points']} of "
                   f"{summary['markers']} points accepted; deviation {dev.get('min_mm', float('nan')):.3f} .. "

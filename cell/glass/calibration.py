@@ -75,6 +75,8 @@ class ViewVectorCalibration:
 
     def project(self, points_W: NDArray[np.float64]) -> NDArray[np.float64]:
         """Pixels (N, 2) of world points (N, 3) through the fitted OpenCV model."""
+        if len(points_W) == 0:  # cv2.projectPoints returns None for no points
+            return np.zeros((0, 2))
         T_C_W = np.linalg.inv(self.T_W_C)
         rvec, _ = cv2.Rodrigues(T_C_W[:3, :3])
         uv, _ = cv2.projectPoints(np.asarray(points_W, np.float64).reshape(-1, 1, 3), rvec, T_C_W[:3, 3],
@@ -136,6 +138,8 @@ class LocalQuadratic:
         A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=-1)
         AtA = np.einsum("nki,nkj->nij", A, A)
         Atb = np.einsum("nki,nkc->nic", A, self.xy[idx])
+        # a tiny ridge keeps near-collinear neighbourhoods (few markers) solvable; offsets are scaled to ~1
+        AtA += 1e-9 * np.eye(6)
         coef = np.linalg.solve(AtA, Atb)  # (n, 6, 2); the constant term is the value at the query
         out = coef[:, 0, :]
         out[dist[:, 0] > self.max_dist] = np.nan

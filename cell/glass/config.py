@@ -51,9 +51,11 @@ class DotGridConfig(Strict):
 
 
 class ScreenConfig(DotGridConfig):
-    """The diffuse marker screen; its plane is z=0 of {S}."""
+    """The diffuse marker screen; its plane is z=0 of {S}. ``second_T_W_S``: its second known position for
+    the multi-projection method (2.4), if the rig can move it there."""
 
     T_W_S: PoseConfig
+    second_T_W_S: PoseConfig | None = None
 
 
 class BoardConfig(DotGridConfig):
@@ -104,6 +106,9 @@ class GlassRigConfig(Strict):
 class GlassSearchConfig(Strict):
     """Parameters of marker identification, the reflection search and the multi-camera feedback."""
 
+    method: Literal["golden_section", "multi_projection"] = Field(
+        "golden_section", description="surface point per marker: the CAD-seeded golden-section search "
+        "(2.3.4) or the multi-projection method (2.4, needs screen.second_T_W_S in the rig)")
     max_surface_error_mm: PositiveFloat = Field(3.0, description="Delta of eq 2.13: largest expected error")
     angle_tol_urad: PositiveFloat = Field(2.0, description="stop when the offset angle is below this")
     length_tol_mm: PositiveFloat = Field(2e-4, description="stop when the search interval is this short")
@@ -116,6 +121,10 @@ class GlassSearchConfig(Strict):
     centroid_profile_px: Annotated[int, Field(ge=0, le=5)] = Field(
         1, description="0: eq 2.14 weights below the threshold only; >0: the whole dot profile grown by this "
         "many pixels (cell.glass.markers.detect_dots)")
+    pane_thickness_mm: Annotated[float, Field(gt=0.5, lt=30)] | None = Field(
+        4.7, description="nominal pane thickness for the geometric rejection of bottom-skin copies "
+        "(cell.glass.bottom); null: rely on the intensity threshold alone")
+    pane_refractive_index: Annotated[float, Field(gt=1.0, lt=3.0)] = 1.52
     outlier_alpha: Annotated[float, Field(gt=0, lt=0.5)] = Field(
         1e-3, description="reject a point whose cameras' normals disagree at this chi-square tail level")
     max_depth_sigma_mm: PositiveFloat = Field(

@@ -3,7 +3,8 @@
 Each camera in turn is the primary for the markers it identified; the others confirm or correct its points
 (3.4). Identification predicts, for every detected dot, the screen point its view ray reaches when reflected
 by the nominal CAD, and takes the nearest screen dot within a gate (robust to missing dots; the weaker
-bottom-skin copies were already dropped by the detector's threshold and would be ~thickness away).
+bottom-skin copies are dropped before it: by the detector's threshold where the tint makes them weaker,
+and geometrically by :mod:`cell.glass.bottom` from the pane's thickness and index).
 """
 
 from __future__ import annotations
@@ -14,11 +15,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.contracts import MarkerScreen
+from cell.glass.bottom import blob_area_ok, bottom_copies, predict_copies
 from cell.glass.calibration import LocalQuadratic, ViewVectorCalibration
 from cell.glass.config import GlassSearchConfig
 from cell.glass.consistency import check_consistency
 from cell.glass.feedback import FeedbackCamera, feedback
 from cell.glass.markers import DotDetections, detect_dots, identify
+from cell.glass.multiprojection import multi_projection
 from cell.glass.reflection import RaySearchProblem, ReflectionLaw, golden_section
 from cell.glass.surface import SmoothSurface, plane_hits, reflect
 
@@ -64,6 +67,12 @@ def find_markers(image: NDArray, calib: ViewVectorCalibration, cad: SmoothSurfac
                  search: GlassSearchConfig) -> CameraMarkers:
     """Detect, ray and identify one camera's marker dots."""
     det = detect_dots(image, dark_fraction=search.dark_fraction, full_profile_px=search.centroid_profile_px)
+    if search.pane_thickness_mm is not None and len(det):
+        pred = predict_copies(det.centroids_px, calib.rays_at, cad, screen.T_W_S, search.pane_thickness_mm,
+                              search.pane_refractive_index)
+        keep = blob_area_ok(det.area_px, pred, screen.dot_diameter_mm)
+        keep &= ~bottom_copies(det.centroids_px, pred, screen.dots_mm)
+        det = DotDetections(det.centroids_px[keep], det.area_px[keep], det.depth[keep])
     o, d = calib.rays_at(det.centroids_px)
     hit = cad.cast(np.nan_to_num(o), np.nan_to_num(d, nan=1.0 / np.sqrt(3)))
     pred = plane_hits(np.nan_to_num(hit.point), reflect(d, np.nan_to_num(hit.normal)), screen.T_W_S)
@@ -81,12 +90,17 @@ def screen_point_W(screen: MarkerScreen, dot: NDArray[np.int64]) -> NDArray[np.f
 
 
 def measure(images: list[NDArray], calibs: list[ViewVectorCalibration], cad: SmoothSurface,
-            screen: MarkerScreen, search: GlassSearchConfig,
-            max_cameras: int | None = None) -> GlassMeasurement:
+            screen: MarkerScreen, search: GlassSearchConfig, max_cameras: int | None = None,
+            second: tuple[list[NDArray], MarkerScreen] | None = None) -> GlassMeasurement:
     """Measure the pane from one frame per camera. ``max_cameras`` caps the cameras per point (1 = no
     feedback; None = until the normal settles below ``search.feedback_tol_urad``, or all when forced by
-    ``max_cameras``)."""
+    ``max_cameras``). ``second``: the frames with the screen at its second position and that screen, which
+    ``search.method`` = "multi_projection" needs."""
+    if search.method == "multi_projection" and second is None:
+        raise ValueError("the multi-projection method needs the frames at the second screen position")
     markers = [find_markers(img, cal, cad, screen, search) for img, cal in zip(images, calibs)]
+    markers2 = ([find_markers(img, cal, cad, second[1], search) for img, cal in zip(second[0], calibs)]
+                if search.method == "multi_projection" and second is not None else None)
     fb_cams = []
     for m, cal in zip(markers, calibs):
         ok = m.dot >= 0
@@ -99,8 +113,14 @@ def measure(images: list[NDArray], calibs: list[ViewVectorCalibration], cad: Smo
         ok = (m.dot >= 0) & np.all(np.isfinite(m.dirs), axis=1)
         prob = RaySearchProblem(m.origins[ok], m.dirs[ok], screen_point_W(screen, m.dot[ok]))
         law = ReflectionLaw(prob, cad)
-        res = golden_section(law, search.max_surface_error_mm, search.angle_tol_urad * 1e-6,
-                             search.length_tol_mm)
+        if markers2 is not None and second is not None:
+            m2 = markers2[c]
+            ok2 = m2.dot >= 0
+            res = multi_projection(law, m.detections.centroids_px[ok], m2.detections.centroids_px[ok2],
+                                   second[1].dots_mm[m2.dot[ok2]], second[1])
+        else:
+            res = golden_section(law, search.max_surface_error_mm, search.angle_tol_urad * 1e-6,
+                                 search.length_tol_mm)
         others = [fb for j, fb in enumerate(fb_cams) if j != c]
         if forced:
             others = others[: max(max_cameras - 1, 0)]

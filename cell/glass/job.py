@@ -18,11 +18,12 @@ from typing import Any
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.report import ReportInput, Tolerance, write_report
-from cell.contracts import GlassRig
-from cell.errors import CalibrationError
+from cell.contracts import GlassRig, MarkerScreen
+from cell.errors import CalibrationError, ConfigError
 from cell.geometry import invert, transform_points
 from cell.glass.calibration import ViewVectorCalibration, calibrate_view_vectors
 from cell.glass.config import GlassRecipe, GlassRigConfig
@@ -31,6 +32,7 @@ from cell.glass.surface import SmoothSurface
 from cell.runs import RunFolder
 
 BoardPlacer = Callable[[float | None], None]
+ScreenMover = Callable[[int], MarkerScreen]  # moves the screen to position 0 or 1, returns it there
 
 
 def grab_mean(rig: GlassRig, frames: int) -> list[NDArray[np.float32]]:
@@ -70,9 +72,16 @@ def load_calibrations(directory: Path, cfg: GlassRigConfig) -> list[ViewVectorCa
 
 def run_glass_inspection(run: RunFolder, recipe: GlassRecipe, cfg: GlassRigConfig, rig: GlassRig,
                          place_board: BoardPlacer, nominal_W: trimesh.Trimesh, frames: int = 4,
-                         board_frames: int = 8) -> dict[str, Any]:
-    """Calibrate or load, grab, measure and report; returns the summary (verdict, counts, statistics)."""
+                         board_frames: int = 8, move_screen: ScreenMover | None = None) -> dict[str, Any]:
+    """Calibrate or load, grab, measure and report; returns the summary (verdict, counts, statistics).
+    The multi-projection method (``recipe.search.method``) also grabs with the screen moved by
+    ``move_screen`` to its second position."""
     t0 = time.monotonic()
+    multi = recipe.search.method == "multi_projection"
+    if multi and (move_screen is None or cfg.screen.second_T_W_S is None):
+        raise ConfigError("the multi-projection method needs a rig that moves its screen to a second known "
+                          "position: set screen.second_T_W_S in the rig config (simulated rig only)",
+                          field="search.method")
     rig.connect()
     try:
         cal_dir = recipe.calibration_dir
@@ -85,14 +94,22 @@ def run_glass_inspection(run: RunFolder, recipe: GlassRecipe, cfg: GlassRigConfi
                 cal.save(cal_dir)
             source = f"calibrated in this run, saved to {cal_dir}"
         run.log("calibration", source=source, model_rms_px=[c.meta.get("model_rms_px") for c in cals])
+        screen = rig.screen
         images = grab_mean(rig, frames)
+        second = None
+        if multi and move_screen is not None:
+            screen2 = move_screen(1)
+            second = (grab_mean(rig, frames), screen2)
+            move_screen(0)
     finally:
         rig.close()
     for cam, img in zip(cfg.cameras, images):
         np.save(run.path / "views" / f"{cam.name}.npy", img)
     run.log("grabbed", cameras=len(images), frames=frames)
-    screen = rig.screen
-    m = measure(images, cals, SmoothSurface(nominal_W), screen, recipe.search)
+    if second is not None:
+        for cam, img in zip(cfg.cameras, second[0]):
+            np.save(run.path / "views" / f"{cam.name}.screen2.npy", img)
+    m = measure(images, cals, SmoothSurface(nominal_W), screen, recipe.search, second=second)
     run.log("measured", points=len(m.points), accepted=int(m.accepted.sum()))
     return _report(run, recipe, nominal_W, m, {"calibration": source, "frames": frames,
                                                "cameras": [c.name for c in cfg.cameras],
@@ -116,6 +133,7 @@ def _report(run: RunFolder, recipe: GlassRecipe, nominal_W: trimesh.Trimesh, m: 
         "part": recipe.name or recipe.part.cad.stem, "cad": str(recipe.part.cad),
         "method": "back-imaging glass (reflection search seeded by the CAD, multi-camera feedback, "
                   "chi-square consistency test)",
+        "search_method": recipe.search.method,
         "markers": int(len(m.points)), "accepted": int(acc.sum()),
         "normal_sigma_urad": round(m.normal_sigma_rad * 1e6, 2),
         "depth_sigma_median_mm": float(np.median(m.depth_sigma_mm[acc])) if acc.any() else None, **meta,
@@ -133,6 +151,17 @@ def _report(run: RunFolder, recipe: GlassRecipe, nominal_W: trimesh.Trimesh, m: 
                "deviation": doc["deviation"]}
     run.log("reported", **summary)
     return summary
+
+
+def glass_link_radius_mm(points: NDArray[np.float64], camera: NDArray[np.int64],
+                         factor: float = 1.5) -> float:
+    """Link radius (mm) for grouping out-of-tolerance glass points into regions: ``factor`` x the median
+    nearest-neighbour spacing within one camera's points (one point per marker). The report's default, 3x
+    the spacing of the merged cloud, is set by the near-coincident points of different cameras and splits
+    one defect into many regions."""
+    gaps = [cKDTree(points[camera == c]).query(points[camera == c], k=2)[0][:, 1]
+            for c in np.unique(camera) if np.sum(camera == c) > 1]
+    return factor * float(np.median(np.concatenate(gaps))) if gaps else 0.0
 
 
 def write_normals_ply(path: Path, points: NDArray[np.float64], normals: NDArray[np.float64],
