@@ -44,7 +44,9 @@ def schema_page(title: str, root: type[BaseModel], intro: str) -> str:
         out.append(f"\n## `{model.__name__}`\n\n{(model.__doc__ or '').strip()}\n\n")
         out.append("| field | type | default | meaning |\n| --- | --- | --- | --- |\n")
         for name, field in model.model_fields.items():
-            default = "required" if field.is_required() else repr(field.get_default(call_default_factory=True))
+            default = (
+                "required" if field.is_required() else repr(field.get_default(call_default_factory=True))
+            )
             if len(default) > 40:
                 default = "see below" if isinstance(field.default, BaseModel) else default[:37] + "..."
             doc = (field.description or "").replace("|", "/")
@@ -56,16 +58,21 @@ def pages() -> dict[str, str]:
     """File name (under docs/) -> content."""
     return {
         "recipe-schema.md": schema_page(
-            "Recipe schema", Recipe,
-            "An inspection recipe (YAML). Only `part.cad` (relative to the recipe file) and `tolerance` are "
-            "required; everything else has defaults. Unknown keys are errors. See docs/recipes.md for examples.\n",
+            "Recipe schema",
+            Recipe,
+            "An inspection recipe (YAML). Only `part.cad` (relative to the recipe file) and `tolerance` "
+            "are required; everything else has defaults. Unknown keys are errors. See docs/recipes.md for "
+            "examples.\n",
         ),
         "cell-config-schema.md": schema_page(
-            "Cell config schema", CellConfig,
-            "A cell config (YAML): the robot, the sensor and, for simulated cells, the scene. Degrees in this "
-            "file, radians inside the code. See recipes/cells/sim.yaml for a commented example.\n",
+            "Cell config schema",
+            CellConfig,
+            "A cell config (YAML): the robot, the sensor and, for simulated cells, the scene. Degrees in "
+            "this file, radians inside the code. See recipes/cells/sim.yaml for a commented example.\n",
         ),
-        "state-machine.md": "# Controller state machine\n\n" + GENERATED
-        + "States and transitions of `cell/controller.py`, with the guards (conditions) on each transition.\n\n"
+        "state-machine.md": "# Controller state machine\n\n"
+        + GENERATED
+        + "States and transitions of `cell/controller.py`, with the guards (conditions) on each "
+        "transition.\n\n"
         + mermaid_diagram(),
     }

@@ -9,8 +9,9 @@ Each step reads and writes the run folder only, so any step can run again after 
 - evaluate / replan: coverage, accuracy map and Q (eq 3.22) and the feedback viewpoints g_k (3.2-3.3);
 - register / report: all views in the part frame, merged; signed deviations against the nominal; report.
 
-Until the calibration routines land, triangulation uses the cell config's sensor geometry (for the simulated
-cell, the simulator's truth) and the report says so.
+Triangulation and hand-eye come from the cell's active calibration files (cell.calibration.active); without
+them, from the cell config's nominal geometry (for the simulated cell, the simulator's truth). The report says
+which.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from cell.analysis.linkfilter import link_cluster
 from cell.analysis.merge import merge_views
 from cell.analysis.regions import Coverage
 from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
+from cell.calibration import active_hand_eye, active_sensor_config, active_triangulator, calibration_source
 from cell.config import CellConfig, Recipe
 from cell.contracts import CameraSettings, PixelFormat, TriggerMode
 from cell.controller import Controller, ControllerSettings
@@ -48,7 +50,7 @@ from cell.sensing.decode import Reason, decode
 from cell.sensing.patterns import PatternSet, gcls_patterns
 from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
-from cell.sensing.triangulate import PinholeTriangulator, normalized_coords
+from cell.sensing.triangulate import normalized_coords
 
 # which decode reasons become which defect map of chapter 3 (IS: shadow, IR: glare)
 DEFECT_REASONS = {"shadow": Reason.DARK, "glare": Reason.SATURATED, "low_contrast": Reason.LOW_CONTRAST}
@@ -86,12 +88,14 @@ class LambertianInspection:
         self.part_name = recipe.name or Path(recipe.part.cad).stem
         self.T_W_P = recipe.part.T_W_P.matrix()
         self.T_W_B = cfg.robot.T_W_B.matrix()
-        self.T_T_C = cfg.sensor.T_T_C.matrix()
+        self.T_T_C = active_hand_eye(cfg)
+        self.sensor = active_sensor_config(cfg)  # the calibrated geometry where calibration files exist
         proj = cfg.sensor.projector
         self.patterns: PatternSet = gcls_patterns(
             proj.width_px, proj.height_px, 12, n_shifts=12, n_gray=6 if proj.width_px >= 768 else None
         )
-        self.triangulator = PinholeTriangulator.from_sensor(cfg.sensor)
+        self.triangulator = active_triangulator(cfg)
+        self.geometry_source = calibration_source(cfg)
         self._plan: Plan | None = None
         self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
         self._nominal_rays = (
@@ -208,7 +212,7 @@ class LambertianInspection:
         holes = np.logical_or.reduce(list(masks.values()))
         nominal = np.full(reasons.shape + (3,), np.nan)
         if holes.any():
-            cam = self.cfg.sensor.camera
+            cam = self.sensor.camera
             xn, yn = normalized_coords(cam.K(), cam.distortion.as_array(), cam.width_px, cam.height_px)
             rays_C = np.stack([xn[holes], yn[holes], np.ones(int(holes.sum()))], axis=-1)
             dirs = transform_vectors(T_W_C, rays_C / np.linalg.norm(rays_C, axis=1, keepdims=True))
@@ -334,7 +338,7 @@ class LambertianInspection:
                 "views": [{k: v[k] for k in ("patch", "source", "iteration")} for v in views],
                 "registration": registration,
                 "evaluation": checkpoint.get("evaluation", {}),
-                "geometry_source": "cell config sensor geometry (no sensor calibration yet)",
+                "geometry_source": self.geometry_source,
             },
         )
         doc = write_report(run.results_dir, inp, pictures=self.settings.pictures)

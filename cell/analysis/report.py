@@ -46,6 +46,7 @@ class ReportInput:
     regions: list[Region] = field(default_factory=list)
     coverage: Coverage | None = None
     min_coverage: float | None = None
+    link_radius_mm: float | None = None  # out-of-tolerance points closer than this form one region
 
 
 def _default_link_radius(points_mm: NDArray) -> float:
@@ -135,7 +136,7 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
         }
     cov = inp.coverage
     coverage = cov.fraction if cov is not None else None
-    regions = out_of_tolerance_regions(inp.points_mm, d, tol)
+    regions = out_of_tolerance_regions(inp.points_mm, d, tol, link_radius_mm=inp.link_radius_mm)
     user = region_verdicts(inp.regions, inp.points_mm, d, inp.source_face, tol, cov, inp.min_coverage)
     # Points in a region with a band of its own are judged by that band (in region_verdicts), the rest by
     # the report's band; any failing region fails the part, any unmeasured one makes it incomplete.

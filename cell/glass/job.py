@@ -141,7 +141,8 @@ def _report(run: RunFolder, recipe: GlassRecipe, nominal_W: trimesh.Trimesh, m: 
     r = run.results_dir
     tol = Tolerance(recipe.tolerance.lower, recipe.tolerance.upper)
     inp = ReportInput(points_mm=pts_P, deviation_mm=dev, tolerance=tol, n_points_input=int(len(m.points)),
-                      excluded=excluded, metadata=metadata)
+                      excluded=excluded, metadata=metadata,
+                      link_radius_mm=glass_link_radius_mm(m.points[acc], m.camera[acc]) or None)
     doc = write_report(r, inp)
     write_normals_ply(r / "normals.ply", pts_P, normals_P, dev)
     np.savez_compressed(r / "glass_points.npz", points_W=m.points, normals_W=m.normals, accepted=acc,
