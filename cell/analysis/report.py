@@ -204,7 +204,7 @@ def _png(fig: Any) -> str:
 
 
 def _pictures(
-    points: NDArray, dev: NDArray, tol: Tolerance, max_points: int = 200_000
+    points: NDArray, dev: NDArray, tol: Tolerance, max_points: int = 100_000
 ) -> tuple[list, str | None]:
     """Colour error-map pictures from several view directions and a histogram (base64 PNG)."""
     try:
@@ -214,9 +214,14 @@ def _pictures(
         import matplotlib.pyplot as plt
     except ImportError:
         return [], None
-    if len(points) > max_points:
-        sel = np.random.default_rng(0).choice(len(points), max_points, replace=False)
+    hist_dev = dev
+    if len(points) > max_points:  # a sample for drawing, but every out-of-tolerance point stays visible
+        bad = (dev < tol.lower_mm) | (dev > tol.upper_mm)
+        rest = np.flatnonzero(~bad)
+        keep = np.random.default_rng(0).choice(rest, min(len(rest), max_points), replace=False)
+        sel = np.sort(np.concatenate([keep, np.flatnonzero(bad)]))
         points, dev = points[sel], dev[sel]
+    extent = np.maximum(np.ptp(points, axis=0), 1e-6) if len(points) else np.ones(3)
     lim = max(abs(tol.lower_mm), abs(tol.upper_mm)) * 2
     views = [("top (-z)", 90, -90), ("front", 0, -90), ("side", 0, 0), ("iso", 30, -60)]
     images = []
@@ -225,13 +230,14 @@ def _pictures(
         ax = fig.add_subplot(projection="3d")
         sc = ax.scatter(*points.T, c=dev, cmap="jet", vmin=-lim, vmax=lim, s=0.5, linewidths=0)
         ax.view_init(elev=elev, azim=azim)
+        ax.set_box_aspect(extent)  # true proportions: mm are mm on every axis
         ax.set_title(name)
         ax.set_axis_off()
         fig.colorbar(sc, ax=ax, shrink=0.7, label="deviation (mm)")
         images.append({"name": name, "elev_deg": elev, "azim_deg": azim, "png": _png(fig)})
         plt.close(fig)
     fig, ax = plt.subplots(figsize=(6, 3))
-    ax.hist(dev, bins=100, color="0.4")
+    ax.hist(hist_dev, bins=100, color="0.4")
     for t in (tol.lower_mm, tol.upper_mm):
         ax.axvline(t, color="r")
     ax.set_xlabel("deviation (mm)")
