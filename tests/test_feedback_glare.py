@@ -2,8 +2,8 @@
 
 A glossy plate (Phong specular 4, shininess 400), planned with the camera/projector bisector on the patch
 normal (the mirror geometry), scanned by the simulated cell with the structured-light decoder: the first pass
-must show saturated (glare) regions, the feedback must add g_kR views that rotate away from the specular direction
-(eqs 3.24-3.26), those views must be glare-free, and the coverage must rise.
+must show saturated (glare) regions, the feedback must add g_kR views that rotate away from the specular
+direction (eqs 3.24-3.26), those views must be glare-free, and the coverage must rise.
 """
 
 from __future__ import annotations
