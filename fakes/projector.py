@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from cell.config import ProjectorConfig
 from cell.contracts import ProjectorSource, ProjectorStatus
-from cell.errors import ConfigError, DeviceFault
+from cell.errors import ConfigError, DeviceFault, DeviceProtocolError, DeviceTimeout
 
 AMBIENT_TEMPERATURE_C = 25.0
 RUNNING_TEMPERATURE_C = 42.0  # a DLP projector's reported temperature once warm
@@ -18,9 +18,13 @@ RUNNING_TEMPERATURE_C = 42.0  # a DLP projector's reported temperature once warm
 
 @dataclass
 class ProjectorFaults:
-    """Faults a test can inject: a lamp failure (status error, no light reaches the scene)."""
+    """Faults a test can inject: a lamp failure (status error, no light reaches the scene), and on the serial
+    control port (power, source, status) the next ``serial_timeouts`` commands get no reply and the next
+    ``garbled_replies`` an unparsable one, as a real ESC/VP21 line does when it is noisy or unplugged."""
 
     lamp_error: bool = False
+    serial_timeouts: int = 0
+    garbled_replies: int = 0
 
 
 class SimProjector:
@@ -57,16 +61,26 @@ class SimProjector:
         if not self._connected:
             raise DeviceFault(self.name, "not connected; call connect() first")
 
-    def set_power(self, on: bool) -> None:
+    def _control(self, command: str) -> None:
+        """A command over the serial control port: connected, and any injected line fault."""
         self._require_connection()
+        if self.faults.serial_timeouts > 0:
+            self.faults.serial_timeouts -= 1
+            raise DeviceTimeout(self.name, f"no reply to '{command}' on the serial control port")
+        if self.faults.garbled_replies > 0:
+            self.faults.garbled_replies -= 1
+            raise DeviceProtocolError(self.name, f"garbled reply to '{command}' on the serial control port")
+
+    def set_power(self, on: bool) -> None:
+        self._control("PWR")
         self._powered = bool(on)
 
     def set_source(self, source: ProjectorSource) -> None:
-        self._require_connection()
+        self._control("SOURCE")
         self._source = ProjectorSource(source)
 
     def status(self) -> ProjectorStatus:
-        self._require_connection()
+        self._control("PWR?")
         errors = ("lamp failure: replace the lamp",) if self.faults.lamp_error else ()
         temp = RUNNING_TEMPERATURE_C if self._powered else AMBIENT_TEMPERATURE_C
         return ProjectorStatus(self._powered, self._source, self._lamp_hours, temp, errors)

@@ -106,7 +106,9 @@ def test_no_motion_while_projector_is_not_ready(recipe_path: Path, tmp_path: Pat
     assert not [e for e in devices.robot.command_log if e["command"].startswith("move")]
 
 
-@pytest.mark.parametrize("fault", ["drop_frame", "grab_timeout_once", "connection_loss"])
+@pytest.mark.parametrize(
+    "fault", ["drop_frame", "grab_timeout_once", "connection_loss", "serial_timeout", "garbled_reply"]
+)
 def test_retryable_faults_end_in_done_with_identical_results(
     recipe_path: Path, tmp_path: Path, reference: dict, fault: str
 ) -> None:
@@ -123,8 +125,22 @@ def test_retryable_faults_end_in_done_with_identical_results(
             return original(timeout_ms)
 
         devices.camera.grab = flaky_grab
-    else:
+    elif fault == "connection_loss":
         devices.robot.inject_fault("connection_loss")
+    else:  # the projector's serial line fails while the stack is captured (status is read after the stack)
+        original_trigger = devices.camera.trigger
+        triggers = {"n": 0}
+
+        def trigger_then_line_fault() -> None:
+            triggers["n"] += 1
+            if triggers["n"] == 10:
+                if fault == "serial_timeout":
+                    devices.projector.faults.serial_timeouts = 1
+                else:
+                    devices.projector.faults.garbled_replies = 1
+            original_trigger()
+
+        devices.camera.trigger = trigger_then_line_fault
     assert ctl.execute() == "done", ctl.message
     errors = [e for e in ctl.run.journal() if e["event"] == "error"]
     assert errors and all(e["retryable"] for e in errors)
