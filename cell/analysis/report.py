@@ -247,6 +247,10 @@ def _pictures(
     return images, hist
 
 
+def _percent(fraction: float | None) -> str:
+    return "not measured" if fraction is None else f"{100 * fraction:.2f} % of the inspectable surface"
+
+
 def _html(doc: dict[str, Any], images: list, hist: str | None) -> str:
     colour = {"pass": "#2a2", "fail": "#c22", "incomplete": "#d80"}.get(doc["verdict"], "#888")
     st = doc["deviation"]
@@ -274,7 +278,7 @@ table{{border-collapse:collapse}}
 .v{{font-size:2em;color:white;background:{colour};padding:.3em;display:inline-block}}</style>
 </head><body><div class="v">{doc["verdict"].upper()}</div>
 <p>tolerance {tol["lower_mm"]:+.3f} .. {tol["upper_mm"]:+.3f} mm; {doc["n_points"]} points,
-{doc["n_out_of_tolerance"]} out of tolerance; coverage {doc["coverage"]}</p>
+{doc["n_out_of_tolerance"]} out of tolerance; coverage {_percent(doc["coverage"])}</p>
 <h2>Error map (mm, + outside the material)</h2>{pics}<h2>Histogram</h2>{hist_html}
 <h2>Regions</h2><table><tr><th>region</th><th>verdict</th><th>points</th><th>out</th><th>tolerance mm</th>
 <th>coverage</th></tr>{user_rows}</table><h2>Out-of-tolerance clusters</h2>

@@ -132,7 +132,7 @@ def _finish_message(run: RunFolder, state: str, message: str, summary: dict[str,
     if state == "done":
         console.print(
             f"[bold]verdict: {str(summary.get('verdict')).upper()}[/]  "
-            f"({summary.get('n_points')} points, coverage {summary.get('coverage')})"
+            f"({summary.get('n_points')} points, coverage {100 * (summary.get('coverage') or 0):.2f} %)"
         )
         console.print(f"report: {run.results_dir / 'report.html'}")
         return
