@@ -134,6 +134,14 @@ class RecordingProxy:
     def envelope(self) -> Any:
         return self._device.envelope
 
+    @property
+    def cameras(self) -> Any:
+        return self._device.cameras
+
+    @property
+    def screen(self) -> Any:
+        return self._device.screen
+
     def save(self, path: str | Path) -> Path:
         """Write ``path/fixture.yaml`` and ``path/arrays.npz``; returns the directory."""
         out = Path(path)

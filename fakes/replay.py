@@ -9,13 +9,22 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import yaml
 
-from cell.contracts import CameraSettings, Envelope, Frame, ProjectorSource, ProjectorStatus, RobotState
+from cell.contracts import (
+    CameraSettings,
+    Envelope,
+    Frame,
+    MarkerScreen,
+    ProjectorSource,
+    ProjectorStatus,
+    RobotState,
+)
 from cell.errors import ConfigError, DeviceProtocolError
+from cell.glass.config import GlassCameraConfig, GlassRigConfig
 from drivers.recording import FIXTURE_FORMAT, decode
 
 DEFAULT_DIR = Path(__file__).resolve().parent / "fixtures" / "replay"
@@ -172,3 +181,77 @@ class ReplayRobot(ReplayDevice):
 
     def stop(self) -> None:
         self._replay("stop")
+
+
+class ReplayRigCamera:
+    """A camera of a replayed glass rig: its identity comes from the rig config, since the fixture holds the
+    rig's own calls only (connect, close, grab_all). Driving the camera directly was never recorded, so every
+    call on it raises DeviceProtocolError."""
+
+    def __init__(self, rig: str, cfg: GlassCameraConfig) -> None:
+        self.name = cfg.name
+        self._rig = rig
+        self._cfg = cfg
+
+    @property
+    def serial(self) -> str:
+        return self._cfg.serial
+
+    @property
+    def model(self) -> str:
+        return self._cfg.model
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return (self._cfg.width_px, self._cfg.height_px)
+
+    def _unrecorded(self, method: str) -> NoReturn:
+        raise DeviceProtocolError(
+            self.name,
+            f"{method}() on a camera of the replayed rig '{self._rig}' was not recorded; "
+            "the rig fixture replays connect, close and grab_all only",
+        )
+
+    def connect(self) -> None:
+        self._unrecorded("connect")
+
+    def close(self) -> None:
+        self._unrecorded("close")
+
+    def configure(self, settings: CameraSettings) -> CameraSettings:
+        self._unrecorded("configure")
+
+    def trigger(self) -> None:
+        self._unrecorded("trigger")
+
+    def grab(self, timeout_ms: float) -> Frame:
+        self._unrecorded("grab")
+
+
+class ReplayGlassRig(ReplayDevice):
+    """A GlassRig served from a ``glass_rig`` fixture; cameras and screen from ``config`` (the rig config the
+    fixture was recorded with: fixture format 1 stores only the rig's name among its properties)."""
+
+    kind = "glass_rig"
+
+    def __init__(self, config: GlassRigConfig, *, fixture: str | Path | None = None) -> None:
+        super().__init__(config, fixture=fixture)
+        if self.name != config.name:
+            raise ConfigError(
+                f"fixture recorded rig '{self.name}' but the config is rig '{config.name}'",
+                path=str(self._path / "fixture.yaml"),
+            )
+        self._cameras = [ReplayRigCamera(config.name, c) for c in config.cameras]
+        s = config.screen
+        self._screen = MarkerScreen(s.T_W_S.matrix(), s.dots_mm(), s.dot_diameter_mm)
+
+    @property
+    def cameras(self) -> list[ReplayRigCamera]:
+        return self._cameras
+
+    @property
+    def screen(self) -> MarkerScreen:
+        return self._screen
+
+    def grab_all(self, timeout_ms: float) -> list[Frame]:
+        return list(self._replay("grab_all", timeout_ms))

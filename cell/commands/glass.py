@@ -59,10 +59,15 @@ def glass_cmd(
         rig = SimGlassRig(cfg, actual_W)
         place_board = rig.place_board
         move_screen = rig.move_screen
-    else:
+    elif cfg.driver == "genicam":
         from drivers.glass_rig import GenICamGlassRig
 
         rig = GenICamGlassRig(cfg, cfg.options)
+        place_board = _operator_places_board
+    else:
+        from fakes.replay import ReplayGlassRig
+
+        rig = ReplayGlassRig(cfg)
         place_board = _operator_places_board
         move_screen = None
     summary = run_glass_inspection(run, rec, cfg, rig, place_board, nominal_W, frames, board_frames,

@@ -85,7 +85,7 @@ class GlassRigConfig(Strict):
 
     name: str
     description: str = ""
-    driver: Literal["sim", "genicam"] = "sim"
+    driver: Literal["sim", "genicam", "replay"] = "sim"
     options: dict[str, Any] = Field(default_factory=dict)  # genicam: drivers.glass_rig.GlassRigOptions
     cameras: Annotated[list[GlassCameraConfig], Field(min_length=1, max_length=8)]
     screen: ScreenConfig
