@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-from embreex import rtcore_scene
-from embreex.mesh_construction import TriangleMesh
 from numpy.typing import NDArray
+
+from cell.raycast import RayCaster
 
 
 @dataclass(frozen=True)
@@ -44,41 +44,19 @@ class SmoothSurface:
         self.faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
         vn = np.asarray(mesh.vertex_normals if vertex_normals is None else vertex_normals, dtype=np.float64)
         self.vertex_normals = vn / np.linalg.norm(vn, axis=1, keepdims=True)
-        tri = self.vertices[self.faces]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        norm = np.linalg.norm(n, axis=1, keepdims=True)
-        if np.any(norm == 0):
-            raise ValueError("surface has degenerate (zero-area) triangles; clean the mesh first")
-        self._fn = n / norm
-        self._plane_d = np.einsum("ij,ij->i", self._fn, tri[:, 0])
-        self._tri = tri
-        # Embree sees coordinates relative to the centre, where float32 has the most resolution.
-        self._origin = 0.5 * (self.vertices.min(axis=0) + self.vertices.max(axis=0))
-        self._scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(scene=self._scene, vertices=(self.vertices - self._origin).astype(np.float32),
-                     indices=self.faces.astype(np.int32))
+        self._caster = RayCaster(self.vertices, self.faces, what="surface")
+        self._tri = self._caster.triangles
 
     def cast(self, origins: NDArray[np.float64], dirs: NDArray[np.float64]) -> SurfaceHits:
         """First hit of rays (N, 3) from ``origins`` along unit ``dirs`` (world mm)."""
-        o = np.ascontiguousarray(np.broadcast_to(np.asarray(origins, np.float64).reshape(-1, 3),
-                                                 np.asarray(dirs).reshape(-1, 3).shape))
-        d = np.ascontiguousarray(np.asarray(dirs, dtype=np.float64).reshape(-1, 3))
-        tri = np.asarray(self._scene.run((o - self._origin).astype(np.float32), d.astype(np.float32),
-                                         output=1)["primID"]).astype(np.int64)
-        n_rays = len(d)
-        distance = np.full(n_rays, np.inf)
-        point = np.full((n_rays, 3), np.nan)
-        normal = np.full((n_rays, 3), np.nan)
+        tri, distance, o, d = self._caster.first_hits(origins, dirs)
         hit = tri >= 0
+        point = np.full((len(d), 3), np.nan)
+        normal = np.full((len(d), 3), np.nan)
+        point[hit] = o[hit] + distance[hit, None] * d[hit]
         if np.any(hit):
-            t = tri[hit]
-            fn = self._fn[t]
-            dist = (self._plane_d[t] - np.einsum("ij,ij->i", o[hit], fn)) / np.einsum("ij,ij->i", d[hit], fn)
-            p = o[hit] + dist[:, None] * d[hit]
-            distance[hit] = dist
-            point[hit] = p
-            normal[hit] = self.normals_at(p, t)
-        return SurfaceHits(distance, point, normal, np.where(hit, tri, -1))
+            normal[hit] = self.normals_at(point[hit], tri[hit])
+        return SurfaceHits(distance, point, normal, tri)
 
     def normals_at(self, points: NDArray[np.float64], triangles: NDArray[np.int64]) -> NDArray[np.float64]:
         """Phong normals at points lying on the given triangles: barycentric blend of the vertex normals."""

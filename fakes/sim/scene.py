@@ -11,11 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-from embreex import rtcore_scene
-from embreex.mesh_construction import TriangleMesh
 from numpy.typing import NDArray
 
 from cell.config import MaterialConfig, SimConfig
+from cell.raycast import RayCaster
 
 
 @dataclass(frozen=True)
@@ -51,21 +50,8 @@ class Scene:
         self.albedo = np.asarray(albedo, dtype=np.float32)
         self.specular = np.asarray(specular, dtype=np.float32)
         self.shininess = np.asarray(shininess, dtype=np.float32)
-        tri = self.vertices[self.faces]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        norm = np.linalg.norm(n, axis=1, keepdims=True)
-        if np.any(norm == 0):
-            raise ValueError("scene has degenerate (zero-area) triangles; clean the mesh first")
-        self.face_normals = n / norm
-        self._plane_d = np.einsum("ij,ij->i", self.face_normals, tri[:, 0])  # n . x = d on each triangle
-        # Embree sees coordinates relative to the scene centre, where float32 has the most resolution.
-        self._origin = 0.5 * (self.vertices.min(axis=0) + self.vertices.max(axis=0))
-        self._embree = rtcore_scene.EmbreeScene()
-        TriangleMesh(
-            scene=self._embree,
-            vertices=(self.vertices - self._origin).astype(np.float32),
-            indices=self.faces.astype(np.int32),
-        )
+        self._caster = RayCaster(self.vertices, self.faces, what="scene")
+        self.face_normals = self._caster.face_normals
         self.scale_mm = float(np.linalg.norm(self.vertices.max(axis=0) - self.vertices.min(axis=0)))
 
     @classmethod
@@ -94,34 +80,18 @@ class Scene:
             np.array([m.shininess for m in mats]),
         )
 
-    def _run(self, origins: NDArray[np.float64], dirs: NDArray[np.float64], **kw):  # noqa: ANN003
-        o = (np.asarray(origins, dtype=np.float64) - self._origin).astype(np.float32)
-        return self._embree.run(o, np.asarray(dirs, dtype=np.float32), **kw)
-
     def cast(self, origins: NDArray[np.float64], dirs: NDArray[np.float64]) -> Hits:
         """First hit of rays (N, 3) from ``origins`` along unit ``dirs`` (world mm)."""
-        origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
-        dirs = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
-        if len(origins) == 1 and len(dirs) > 1:
-            origins = np.broadcast_to(origins, dirs.shape)
-        tri = self._run(origins, dirs, output=1)["primID"].astype(np.int64)
+        tri, distance, _, dirs = self._caster.first_hits(origins, dirs)
         hit = tri >= 0
-        distance = np.full(len(dirs), np.inf)
         normal = np.full((len(dirs), 3), np.nan)
-        t = tri[hit]
-        n = self.face_normals[t]
-        d = dirs[hit]
-        dn = np.einsum("ij,ij->i", d, n)
-        # exact float64 ray/plane intersection on the triangle Embree found
-        distance[hit] = (self._plane_d[t] - np.einsum("ij,ij->i", origins[hit], n)) / dn
-        normal[hit] = np.where((dn > 0)[:, None], -n, n)
+        n = self.face_normals[tri[hit]]
+        facing_away = np.einsum("ij,ij->i", dirs[hit], n) > 0
+        normal[hit] = np.where(facing_away[:, None], -n, n)
         return Hits(distance, tri, normal, hit & self.is_part[np.maximum(tri, 0)])
 
     def occluded(
         self, origins: NDArray[np.float64], dirs: NDArray[np.float64], max_distance: NDArray[np.float64]
     ) -> NDArray[np.bool_]:
         """True where something lies on the ray closer than ``max_distance`` (mm): the shadow test."""
-        if len(origins) == 0:
-            return np.zeros(0, dtype=bool)
-        res = self._run(origins, dirs, dists=np.asarray(max_distance, dtype=np.float32), query="OCCLUDED")
-        return np.asarray(res) != -1
+        return self._caster.occluded(origins, dirs, max_distance)
