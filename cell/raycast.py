@@ -1,7 +1,7 @@
 """First-hit ray casting on a triangle mesh: Embree finds the triangle, float64 geometry gives the distance.
 
-Embree (through embreex, the binding trimesh uses) is the fastest ray caster available, but it works in float32:
-a hit 400 mm away is only known to ~0.03 um... and worse far from the origin. The cell needs micrometres, so
+Embree (through embreex, the binding trimesh uses) is the fastest ray caster available, but it computes in
+float32, whose intersection error grows with the distance from the origin. The cell needs micrometres, so
 Embree is used only to find *which* triangle a ray hits (in coordinates centred on the mesh, where float32 has
 the most resolution) and the distance is recomputed exactly as the intersection with that triangle's plane.
 """
