@@ -65,30 +65,37 @@ TERMINAL = {"done", "paused", "faulted", "aborted"}
 
 
 def _transitions() -> list[dict[str, Any]]:
-    safe = ["robot_normal", "projector_ready"]  # no motion while either is false
+    # Every trigger after which the robot may move is declared first with the ``unsafe`` guard into
+    # ``paused`` (the first matching transition wins): when the robot is not in a normal mode or the projector
+    # is not ready, the run stops for the operator; it never falls through to a transition that skips views.
+    unsafe = {"conditions": "unsafe", "dest": "paused", "before": "_explain_unsafe"}
+    moving = [
+        ("connected", "connecting"),
+        ("homed", "homing"),
+        ("planned", "planning"),
+        ("arrived", "scanning_moving"),
+        ("captured", "scanning_capturing"),
+        ("replanned", "replanning"),
+    ]
     return [
         {"trigger": "start", "source": "idle", "dest": "connecting"},
         {"trigger": "resume", "source": ["idle", "paused"], "dest": "resuming"},
         {"trigger": "resumed", "source": "resuming", "dest": "connecting"},
-        {"trigger": "connected", "source": "connecting", "dest": "homing", "conditions": safe},
+        *({"trigger": trigger, "source": source, **unsafe} for trigger, source in moving),
+        {"trigger": "connected", "source": "connecting", "dest": "homing"},
         # after homing, go to the phase the checkpoint records (first matching condition wins)
         {"trigger": "homed", "source": "homing", "dest": "planning", "conditions": "needs_plan"},
-        {
-            "trigger": "homed",
-            "source": "homing",
-            "dest": "scanning_moving",
-            "conditions": ["views_pending"] + safe,
-        },
+        {"trigger": "homed", "source": "homing", "dest": "scanning_moving", "conditions": "views_pending"},
         {"trigger": "homed", "source": "homing", "dest": "evaluating", "conditions": "phase_is_scanning"},
         {"trigger": "homed", "source": "homing", "dest": "registering", "conditions": "phase_is_registering"},
         {"trigger": "homed", "source": "homing", "dest": "reporting", "conditions": "phase_is_reporting"},
-        {"trigger": "planned", "source": "planning", "dest": "scanning_moving", "conditions": safe},
-        {"trigger": "arrived", "source": "scanning_moving", "dest": "scanning_capturing", "conditions": safe},
+        {"trigger": "planned", "source": "planning", "dest": "scanning_moving"},
+        {"trigger": "arrived", "source": "scanning_moving", "dest": "scanning_capturing"},
         {
             "trigger": "captured",
             "source": "scanning_capturing",
             "dest": "scanning_moving",
-            "conditions": ["views_pending"] + safe,
+            "conditions": "views_pending",
         },
         {"trigger": "captured", "source": "scanning_capturing", "dest": "scanning_decoding"},
         {"trigger": "no_more_views", "source": "scanning_moving", "dest": "scanning_decoding"},
@@ -99,15 +106,10 @@ def _transitions() -> list[dict[str, Any]]:
             "trigger": "replanned",
             "source": "replanning",
             "dest": "scanning_moving",
-            "conditions": ["views_pending"] + safe,
+            "conditions": "views_pending",
         },
         {"trigger": "replanned", "source": "replanning", "dest": "registering"},
-        {
-            "trigger": "registered",
-            "source": "registering",
-            "dest": "reporting",
-            "conditions": "cloud_registered",
-        },
+        {"trigger": "registered", "source": "registering", "dest": "reporting"},
         {"trigger": "reported", "source": "reporting", "dest": "done"},
         {"trigger": "pause", "source": ACTIVE, "dest": "paused"},
         {"trigger": "fault", "source": "*", "dest": "faulted"},
@@ -231,6 +233,16 @@ class Controller:
     def projector_ready(self) -> bool:
         return self.devices.projector.status().ready
 
+    def unsafe(self) -> bool:
+        """True when motion must not be commanded: the robot is not normal or the projector is not ready."""
+        return not (self.robot_normal() and self.projector_ready())
+
+    def _explain_unsafe(self) -> None:
+        self.message = (
+            f"stopped for the operator: robot {self.devices.robot.state()}, "
+            f"projector {self.devices.projector.status()}; fix it, then `cell resume`"
+        )
+
     def needs_plan(self) -> bool:
         return not self.checkpoint["views"]
 
@@ -245,9 +257,6 @@ class Controller:
 
     def phase_is_reporting(self) -> bool:
         return self.checkpoint["phase"] == "reporting"
-
-    def cloud_registered(self) -> bool:
-        return bool(self._registration and self._registration.get("n_points", 0) > 0)
 
     # ------------------------------------------------------------------ bookkeeping
     def _journal_state(self) -> None:
@@ -306,6 +315,7 @@ class Controller:
                 signal.signal(signal.SIGINT, previous)
             self._make_safe()
             self._executor.shutdown(wait=True, cancel_futures=False)
+            self._close_devices()
             self.run.log("exit", state=self.state, message=self.message)
         return self.state
 
@@ -348,8 +358,15 @@ class Controller:
                 device.close()
                 device.connect()
                 self.run.log("device", device=name, command="reconnect")
-            except CellError as exc:  # the retry itself will report what is wrong
+            except Exception as exc:  # the retry itself will report what is wrong
                 self.run.log("error", kind=type(exc).__name__, error=str(exc), during="reconnect")
+
+    def _close_devices(self) -> None:
+        for kind, device in self.devices.items():
+            try:
+                device.close()
+            except Exception as exc:  # closing must not hide how the run ended
+                self.run.log("close_failed", device=self.devices.names.get(kind, kind), error=repr(exc))
 
     def _make_safe(self) -> None:
         """Stop the robot and blank the projector; never raises (this runs on every exit path)."""
@@ -389,14 +406,28 @@ class Controller:
 
     def _do_homing(self) -> None:
         if self.home_joints_rad is not None:
-            _, _, qd, qdd = self.robot_limits
-            f = self.settings.speed_fraction
-            self.devices.robot.move_joint(self.home_joints_rad, qd * f, qdd * f)
-            self.run.log("device", device="robot", command="move_joint", target=self.home_joints_rad)
+            robot = self.devices.robot
+            if self.motion is None:
+                moves = [Move("joint", np.asarray(self.home_joints_rad, dtype=np.float64))]
+            else:  # from wherever a killed run left the sensor: a checked path, never a blind joint move
+                home = self.motion.kin.fk(np.asarray(self.home_joints_rad, dtype=np.float64))
+                try:
+                    moves, _ = self.motion.plan(robot.tool_pose(), robot.joints(), home, None)
+                except PlanningError as exc:
+                    raise DeviceFault(
+                        self.devices.names.get("robot", "robot"),
+                        f"no collision-free path home ({exc}); jog the robot clear, then resume",
+                    ) from exc
+            self._execute_moves(moves, view=None)
         self.homed()
 
     def _do_planning(self) -> None:
         views = self.job.plan()
+        if not views:
+            raise PlanningError(
+                "no reachable viewpoint measures any of the part; check the part placement "
+                "(part.T_W_P) and the robot envelope"
+            )
         self.run.log("plan", n_views=len(views), views=views)
         self._save(phase="scanning", views=views, iteration=0)
         self.planned()
@@ -421,24 +452,28 @@ class Controller:
                 return
             if rejected:
                 self.run.log("decision", view=index, reason="path options dropped: " + "; ".join(rejected))
+        self._execute_moves(moves, view=index)
+        self.current_view = index
+        self.arrived()
+
+    def _execute_moves(self, moves: list[Move], view: int | None) -> None:
+        """Send the moves at the settings' fraction of the configured speeds (times each move's own scale)."""
+        robot = self.devices.robot
         v, a, qd, qdd = self.robot_limits
-        f = self.settings.speed_fraction
         for move in moves:
+            k = self.settings.speed_fraction * move.speed_scale
             self.run.log(
                 "device",
                 device="robot",
                 command=f"move_{move.kind}",
-                view=index,
+                view=view,
                 target=move.target,
                 speed_scale=move.speed_scale,
             )
-            k = f * move.speed_scale
             if move.kind == "linear":
                 robot.move_linear(move.target, v * k, a * k)
             else:
                 robot.move_joint(move.target, qd * k, qdd * k)
-        self.current_view = index
-        self.arrived()
 
     def _do_scanning_capturing(self) -> None:
         index = self.current_view
@@ -471,17 +506,14 @@ class Controller:
             self.run.log("view", view=index, summary=summary)
 
     def _drain_decodes(self) -> None:
-        for future in list(self._pending.values()):
+        """Wait for every decode before a pause or fault: finished views are journalled, failed ones logged
+        (their folders do not exist, so a resume measures them again)."""
+        for index in sorted(self._pending):
             try:
-                future.result()
-            except (
-                Exception
-            ) as exc:  # its error is reported by _collect or lost with the pause; view is redone
-                self.run.log("error", kind="decode", error=repr(exc))
-        try:
-            self._collect(block=True)
-        except Exception:
-            self._pending.clear()
+                self.run.log("view", view=index, summary=self._pending[index].result())
+            except Exception as exc:  # recorded here; the view is redone on resume
+                self.run.log("error", kind="decode", view=index, error=repr(exc))
+        self._pending.clear()
 
     def _do_scanning_decoding(self) -> None:
         self._collect(block=True)
@@ -519,7 +551,7 @@ class Controller:
     def _do_registering(self) -> None:
         self._registration = self.job.register(self.run, self.checkpoint["views"])
         self.run.log("registration", **self._registration)
-        if not self.cloud_registered():
+        if not self._registration.get("n_points", 0):
             raise CellError("registration produced no points: nothing to report")
         self._save(phase="reporting", registration=self._registration)
         self.registered()

@@ -131,6 +131,7 @@ class LambertianInspection:
             lift_mm=self.settings.lift_mm,
             z_max_mm=robot.envelope_max_mm[2] - 1.0,
             tcp_speed_mm_s=robot.max_tcp_speed_mm_s * speed_fraction,
+            joint_speed_limit_rad_s=robot.max_joint_speed_rad_s,  # lines near a singularity slow down to it
         )
 
     def plan(self) -> list[dict[str, Any]]:

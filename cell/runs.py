@@ -100,7 +100,17 @@ class RunFolder:
         path = Path(path)
         if not (path / "inputs").is_dir() or not (path / "journal.jsonl").exists():
             raise ConfigError("not a run folder (no inputs/ or journal.jsonl)", path=str(path))
-        return cls(path)
+        run = cls(path)
+        run._drop_torn_journal_line()
+        return run
+
+    def _drop_torn_journal_line(self) -> None:
+        """A process killed mid-write leaves a last line without its newline; cut it off so that the next
+        entry starts on a line of its own (journal() skips torn lines, but not one glued to a good one)."""
+        with open(self.journal_path, "rb+") as f:
+            data = f.read()
+            if data and not data.endswith(b"\n"):
+                f.truncate(data.rfind(b"\n") + 1)
 
     # ------------------------------------------------------------------ inputs
     def copy_input(self, source: Path, name: str | None = None) -> Path:

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from cell.config import CellConfig, MaterialConfig
 from cell.contracts import Robot
+from cell.planning.reach import sensor_body_points_T
 from fakes.camera import SimCamera
 from fakes.clock import SimClock
 from fakes.projector import SimProjector
@@ -46,14 +47,6 @@ class SimCell:
         self.camera.rng = np.random.default_rng([self.seed, *key])
 
 
-def sensor_body_T(cfg: CellConfig) -> NDArray[np.float64]:
-    """Points of the sensor in the flange frame {T} (mm) the robot keeps clear of table and part: the camera
-    and projector centres."""
-    T_T_C = cfg.sensor.T_T_C.matrix()
-    T_T_P = T_T_C @ cfg.sensor.projector.T_C_P.matrix()
-    return np.vstack([T_T_C[:3, 3], T_T_P[:3, 3]])
-
-
 def build_sim_cell(
     cfg: CellConfig,
     part_W: trimesh.Trimesh | None,
@@ -65,7 +58,7 @@ def build_sim_cell(
     scene = Scene.from_meshes(part_W, cfg.sim, part_material)
     renderer = SceneRenderer(cfg.sensor, cfg.sim, scene)
     clock = SimClock()
-    robot = SimRobot(cfg.robot, clock=clock, obstacles_W=part_W, tool_body_T=sensor_body_T(cfg))
+    robot = SimRobot(cfg.robot, clock=clock, obstacles_W=part_W, tool_body_T=sensor_body_points_T(cfg))
     projector = SimProjector(cfg.sensor.projector)
     T_W_B, T_T_C = cfg.robot.T_W_B.matrix(), cfg.sensor.T_T_C.matrix()
 

@@ -64,10 +64,10 @@ def test_pillar_plan_covers_the_part_in_the_simulator(pillar_plan):
 
 def test_every_planned_pose_passes_the_simulated_robot(pillar_plan):
     from cell.planning.kinematics import UR5E
-    from fakes.sim_cell import sensor_body_T
+    from cell.planning.reach import sensor_body_points_T
 
     sim = build_sim_cell(CFG, pillar_plan.surface.mesh)
-    body = sensor_body_T(CFG)
+    body = sensor_body_points_T(CFG)
     for v in pillar_plan.viewpoints:
         assert sim.robot.envelope.contains(v.T_B_T[:3, 3])
         assert UR5E.reachable(v.T_B_T)[0]

@@ -41,6 +41,9 @@ def test_torn_journal_line_is_skipped(tmp_path: Path) -> None:
     entries = run.journal()
     assert [e["event"] for e in entries] == ["state", "view"]
     assert entries[1]["pose"] == np.eye(4).tolist()
+    reopened = RunFolder.open(run.path)  # what `cell resume` does: the next entry must not be glued on
+    reopened.log("state", state="resuming")
+    assert [e["event"] for e in reopened.journal()] == ["state", "view", "state"]
 
 
 def test_checkpoint_round_trip_and_reopen(tmp_path: Path) -> None:

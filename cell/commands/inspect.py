@@ -8,18 +8,20 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import typer
+import yaml
 from rich.console import Console
 
 from cell.config import DEFAULT_CELL, PartConfig, Recipe, load_cell_config, load_recipe, read_yaml, validate
 from cell.controller import Controller, ControllerSettings
 from cell.errors import ConfigError
-from cell.runs import RunFolder, RunIndex, write_json_atomic
+from cell.runs import RunFolder, RunIndex, write_atomic, write_json_atomic
 
 REPO = Path(__file__).resolve().parents[2]
 DEMO_RECIPE = REPO / "recipes" / "pillar.yaml"
@@ -41,13 +43,24 @@ def _progress(ctl: Controller) -> None:
     console.print(f"[{elapsed:6.1f} s] {ctl.state}{view}{remaining}", highlight=False)
 
 
-def _start_run(recipe_path: Path, cell_path: Path, out: Path | None, sim_actual: Path | None) -> RunFolder:
-    """Validate every input, then create the run folder and copy the inputs into it (nothing before that)."""
+def _start_run(
+    recipe_path: Path,
+    cell_path: Path,
+    out: Path | None,
+    sim_actual: Path | None,
+    seed: int | None = None,
+    pipelining: bool = True,
+) -> RunFolder:
+    """Validate every input, then create the run folder and copy the inputs into it (nothing before that).
+    The run's settings (seed, pipelining) are recorded so that `cell resume` continues it as it started."""
     cfg = load_cell_config(cell_path)
     recipe = load_recipe(recipe_path)
+    from cell.calibration import active_sensor_config, active_triangulator
     from cell.commands.plan import load_part_W
 
     load_part_W(recipe, recipe_path, cfg)  # refuses a part that is invalid or does not fit the cell
+    active_sensor_config(cfg)  # refuses calibration files of the wrong kind or for another camera
+    active_triangulator(cfg)
     actual = sim_actual or recipe.part.actual
     if sim_actual is not None:
         from cell.mesh import load_mesh
@@ -64,7 +77,9 @@ def _start_run(recipe_path: Path, cell_path: Path, out: Path | None, sim_actual:
     run = RunFolder.create(final.parent, part, name=f".{final.name}.partial-{os.getpid()}")
     manifest: dict[str, Any] = {
         "recipe": run.copy_input(recipe_path, "recipe.yaml").name,
-        "cell": run.copy_input(cell_path, "cell.yaml").name,
+        "cell_as_given": run.copy_input(cell_path, "cell.original.yaml").name,
+        "cell": _copy_cell_with_calibration(run, cell_path, cfg),
+        "settings": {"seed": seed, "pipelining": pipelining},
         "cad": run.copy_input(recipe.part.cad, "nominal" + recipe.part.cad.suffix).name,
         "actual": run.copy_input(actual, "actual" + Path(actual).suffix).name if actual else None,
         "sources": {
@@ -82,6 +97,32 @@ def _start_run(recipe_path: Path, cell_path: Path, out: Path | None, sim_actual:
     return RunFolder.open(final)
 
 
+def _copy_cell_with_calibration(run: RunFolder, cell_path: Path, cfg: Any) -> str:
+    """Copy the cell config with its calibration files into inputs/, the copy pointing at the copies: a
+    calibration redone or moved after the run started cannot change how the run is finished."""
+    data = read_yaml(cell_path)
+    target = run.path / "inputs" / "calibration"
+    for field, source in cfg.calibration.model_dump().items():
+        if source is None:
+            continue
+        source = Path(source)
+        dest = target / field / source.name
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        if source.is_dir():
+            shutil.copytree(source, dest)
+        else:
+            shutil.copy2(source, dest)
+        data.setdefault("calibration", {})[field] = str(dest.relative_to(run.path / "inputs"))
+    write_atomic(run.path / "inputs" / "cell.yaml", yaml.safe_dump(data, sort_keys=False).encode())
+    return "cell.yaml"
+
+
+def run_settings(run: RunFolder) -> dict[str, Any]:
+    """The settings a run was started with (seed, pipelining)."""
+    manifest = json.loads((run.path / "inputs" / "manifest.json").read_text())
+    return manifest.get("settings", {"seed": None, "pipelining": True})
+
+
 def _load_run_inputs(run: RunFolder) -> tuple[Recipe, Any, Path | None]:
     """The recipe and cell config as copied into the run, with the part paths pointing at the copies."""
     inputs = run.path / "inputs"
@@ -97,7 +138,11 @@ def _load_run_inputs(run: RunFolder) -> tuple[Recipe, Any, Path | None]:
     return recipe, cfg, actual
 
 
-def _execute(run: RunFolder, *, resume: bool, settings: ControllerSettings, seed: int | None) -> str:
+def _execute(run: RunFolder, *, resume: bool) -> str:
+    """Run (or resume) a run folder with the settings it was started with."""
+    started = run_settings(run)
+    seed = started.get("seed")
+    settings = ControllerSettings(pipelining=bool(started.get("pipelining", True)))
     from cell.devices import build_devices
     from cell.inspection import LambertianInspection, inspection_controller
     from cell.mesh import load_mesh
@@ -156,21 +201,18 @@ def register(app: typer.Typer) -> None:
         pipelining: bool = typer.Option(True, help="decode view k while moving to view k+1"),
     ) -> None:
         """Run an inspection recipe end to end; Ctrl-C pauses safely (resume with `cell resume DIR`)."""
-        run = _start_run(recipe, cell, out, sim_actual)
-        _execute(run, resume=False, settings=ControllerSettings(pipelining=pipelining), seed=seed)
+        run = _start_run(recipe, cell, out, sim_actual, seed=seed, pipelining=pipelining)
+        _execute(run, resume=False)
 
     @app.command("resume")
-    def resume_cmd(
-        run_dir: Path = typer.Argument(..., help="run folder of an interrupted run"),
-        seed: int = typer.Option(None, "--seed", help="the seed the run was started with, if one was given"),
-    ) -> None:
-        """Finish an interrupted or paused run from its last checkpoint."""
+    def resume_cmd(run_dir: Path = typer.Argument(..., help="run folder of an interrupted run")) -> None:
+        """Finish an interrupted or paused run from its last checkpoint, with the settings it started with."""
         run = RunFolder.open(run_dir)
         if (run.load_checkpoint() or {}).get("phase") == "done":
             raise ConfigError(
                 "this run is already done; `cell report` rebuilds its report", path=str(run_dir)
             )
-        _execute(run, resume=True, settings=ControllerSettings(), seed=seed)
+        _execute(run, resume=True)
 
     @app.command("report")
     def report_cmd(run_dir: Path = typer.Argument(..., help="run folder")) -> None:
@@ -240,4 +282,4 @@ def register(app: typer.Typer) -> None:
             f"{recipe.part.actual.name if recipe.part.actual else 'nominal'}) -> {out}"
         )
         run = _start_run(DEMO_RECIPE, DEFAULT_CELL, out, None)
-        _execute(run, resume=False, settings=ControllerSettings(), seed=None)
+        _execute(run, resume=False)
