@@ -333,6 +333,7 @@ class LambertianInspection:
             source_face=faces,
             coverage=self.inspectable_coverage(run, views),
             min_coverage=self.recipe.min_coverage,
+            warnings=[w for w in (nominal.sign_warning(),) if w],
             metadata={
                 "part": self.part_name,
                 "cad": Path(self.recipe.part.cad).name,

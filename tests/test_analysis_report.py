@@ -81,3 +81,34 @@ def test_nan_points_are_excluded_and_reported(plate, tmp_path: Path) -> None:
     np.savetxt(cloud, pts)
     doc = run_compare(nominal, cloud, tmp_path / "o", pictures=False)
     assert doc["excluded"]["non_finite_points"] == 7 and doc["n_points"] == len(pts) - 7
+
+
+def test_isolated_spikes_are_outliers_but_a_defect_is_a_region() -> None:
+    """Single-point spikes 3 mm apart on a 0.1 mm grid are isolated outliers; a 2 mm dent is one region."""
+    from cell.analysis.report import Tolerance, isolated_out_of_tolerance, out_of_tolerance_regions
+
+    g = np.stack(np.meshgrid(np.arange(0, 60, 0.1), np.arange(0, 60, 0.1)), -1).reshape(-1, 2)
+    pts = np.c_[g, np.zeros(len(g))]
+    dev = np.zeros(len(pts))
+    spikes = np.flatnonzero((np.abs(g[:, 0] % 3) < 1e-6) & (np.abs(g[:, 1] % 3) < 1e-6))[:30]
+    dev[spikes] = 1.0
+    dent = np.linalg.norm(g - 45.05, axis=1) < 1.0
+    dev[dent] = -0.5
+    tol = Tolerance(-0.3, 0.3)
+    isolated = isolated_out_of_tolerance(pts, dev, tol, min_points=10)
+    assert set(np.flatnonzero(isolated)) == set(spikes)
+    regions = out_of_tolerance_regions(pts[~isolated], dev[~isolated], tol)
+    assert len(regions) == 1 and regions[0]["kind"] == "dent" and regions[0]["n_points"] == int(dent.sum())
+
+
+def test_open_nominal_is_reported_as_a_warning(tmp_path) -> None:
+    import trimesh
+
+    from cell.analysis.errormap import NominalMesh
+
+    closed = NominalMesh.from_trimesh(trimesh.creation.box(extents=(10, 10, 10)))
+    assert closed.sign_warning() is None
+    box = trimesh.creation.box(extents=(10, 10, 10))
+    open_box = trimesh.Trimesh(box.vertices, box.faces[:-1], process=False)  # one face missing
+    warning = NominalMesh.from_trimesh(open_box).sign_warning()
+    assert warning is not None and "3 edge(s)" in warning

@@ -49,6 +49,7 @@ class NominalMesh:
     source_face: NDArray[np.int64] | None = None  # (F,) index of each face in the mesh as given
     excluded: dict[str, int] = field(default_factory=dict)
     watertight: bool = True
+    open_edges: int = 0  # edges not shared by exactly two faces: open boundary, T-junction or non-manifold
 
     @classmethod
     def from_trimesh(cls, mesh: trimesh.Trimesh, min_area_mm2: float = 1e-12) -> NominalMesh:
@@ -98,7 +99,7 @@ class NominalMesh:
         aa = np.einsum("ij,ij->i", ab, ab)
         cc = np.einsum("ij,ij->i", ac, ac)
         abac = np.einsum("ij,ij->i", ab, ac)
-        denom = aa * cc - abac * abac
+        denom = dbl_area * dbl_area  # = aa * cc - abac**2 exactly, without its cancellation on slivers
         lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
         start, items, boxes = build_grid(lo, hi, origin, h, dims)
         tri = np.column_stack([a, ab, ac, fn, aa, abac, cc, 1.0 / denom, lo, hi])
@@ -118,7 +119,19 @@ class NominalMesh:
             source_face=source_face,
             excluded=excluded,
             watertight=bool((n_use == 2).all()),
+            open_edges=int((n_use != 2).sum()),
         )
+
+    def sign_warning(self) -> str | None:
+        """Why deviation signs may be wrong near some edges, or None for a closed mesh. The sign at an edge or
+        vertex comes from its pseudo-normal, which needs both faces of the edge (Baerentzen-Aanaes)."""
+        if self.watertight:
+            return None
+        dropped = self.excluded.get("degenerate_triangles", 0)
+        after = f" after excluding {dropped} zero-area triangle(s)" if dropped else ""
+        return (f"the nominal mesh is not closed: {self.open_edges} edge(s){after} are open, T-junctions or "
+                "non-manifold; deviation signs of points whose closest nominal point lies on such an edge "
+                "are unreliable (repair the CAD export)")
 
     @property
     def extent_mm(self) -> float:

@@ -7,6 +7,7 @@ Out-of-tolerance points are grouped into regions by a radius graph (cKDTree pair
 from __future__ import annotations
 
 import base64
+import html
 import io
 import json
 from dataclasses import dataclass, field
@@ -23,7 +24,7 @@ from cell.analysis.regions import Coverage, Region, Tolerance, region_verdicts, 
 
 __all__ = ["ReportInput", "Tolerance", "out_of_tolerance_regions", "summarise", "write_report"]
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
 
 
@@ -47,13 +48,22 @@ class ReportInput:
     coverage: Coverage | None = None
     min_coverage: float | None = None
     link_radius_mm: float | None = None  # out-of-tolerance points closer than this form one region
+    warnings: list[str] = field(default_factory=list)  # what the reader must know before trusting the map
 
 
 def _default_link_radius(points_mm: NDArray) -> float:
-    """3x the cloud's median point spacing (estimated on a subsample, scaled back to the full density)."""
-    stride = max(1, len(points_mm) // 20000)
-    sub = points_mm[::stride]
-    return 3.0 * float(np.median(cKDTree(sub).query(sub, k=2)[0][:, 1])) * stride**0.5
+    """3x the cloud's median nearest-neighbour spacing: queried for a random sample of points against the
+    whole cloud (a thinned cloud would overstate the spacing), duplicates (zero distances) left out."""
+    if len(points_mm) < 2:
+        return 0.0
+    tree = cKDTree(points_mm)
+    sample = points_mm[
+        np.random.default_rng(0).choice(len(points_mm), min(len(points_mm), 20000), replace=False)
+    ]
+    d = tree.query(sample, k=8)[0]
+    d = np.where(d > 0, d, np.inf).min(axis=1)  # nearest other point, duplicates and self left out
+    d = d[np.isfinite(d)]
+    return 3.0 * float(np.median(d)) if len(d) else 0.0
 
 
 def out_of_tolerance_clusters(
@@ -166,6 +176,7 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
         "region_verdicts": user,
         "excluded": inp.excluded,
         "views": views or [],
+        "warnings": list(inp.warnings),
         "metadata": inp.metadata,
     }
 
@@ -279,6 +290,7 @@ table{{border-collapse:collapse}}
 </head><body><div class="v">{doc["verdict"].upper()}</div>
 <p>tolerance {tol["lower_mm"]:+.3f} .. {tol["upper_mm"]:+.3f} mm; {doc["n_points"]} points,
 {doc["n_out_of_tolerance"]} out of tolerance; coverage {_percent(doc["coverage"])}</p>
+{"".join(f'<p style="color:#c22"><b>warning:</b> {html.escape(w)}</p>' for w in doc["warnings"])}
 <h2>Error map (mm, + outside the material)</h2>{pics}<h2>Histogram</h2>{hist_html}
 <h2>Regions</h2><table><tr><th>region</th><th>verdict</th><th>points</th><th>out</th><th>tolerance mm</th>
 <th>coverage</th></tr>{user_rows}</table><h2>Out-of-tolerance clusters</h2>

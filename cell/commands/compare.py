@@ -20,6 +20,8 @@ def load_cloud(path: Path) -> np.ndarray:
     try:
         if suffix == ".ply":
             loaded = trimesh.load(path, process=False)
+            if not hasattr(loaded, "vertices"):  # trimesh gives an empty Scene for a PLY without vertices
+                raise ConfigError("the cloud has no points", path=str(path))
             pts = np.asarray(loaded.vertices, dtype=np.float64)
         elif suffix in (".xyz", ".txt", ".csv"):
             delim = "," if suffix == ".csv" else None
@@ -98,9 +100,11 @@ def run_compare(
     if len(pts) == 0:
         raise ConfigError("the cloud has no finite points (empty or all NaN)", path=str(cloud_path))
     ratio = np.linalg.norm(np.ptp(pts, 0)) / nominal.extent_mm
-    if len(pts) > 10 and not 1 / 30 < ratio < 30:
+    inches = any(abs(ratio * k - 1) < 0.1 for k in (25.4, 1 / 25.4))
+    if len(pts) >= 3 and (not 1 / 30 < ratio < 30 or inches):
+        hint = " (a factor of 25.4: inches?)" if inches else ""
         raise ConfigError(
-            f"the cloud is {ratio:.3g}x the size of the nominal: wrong units? (both must be in mm)",
+            f"the cloud is {ratio:.3g}x the size of the nominal{hint}: wrong units? (both must be in mm)",
             path=str(cloud_path),
         )
     T = np.eye(4)
@@ -146,6 +150,7 @@ def run_compare(
         regions=user_regions,
         coverage=cov,
         min_coverage=min_coverage,
+        warnings=[w for w in (meta["warning"], nominal.sign_warning()) if w],
     )
     return write_report(out, inp, pictures=pictures)
 

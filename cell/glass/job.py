@@ -142,7 +142,8 @@ def _report(run: RunFolder, recipe: GlassRecipe, nominal_W: trimesh.Trimesh, m: 
     tol = Tolerance(recipe.tolerance.lower, recipe.tolerance.upper)
     inp = ReportInput(points_mm=pts_P, deviation_mm=dev, tolerance=tol, n_points_input=int(len(m.points)),
                       excluded=excluded, metadata=metadata,
-                      link_radius_mm=glass_link_radius_mm(m.points[acc], m.camera[acc]) or None)
+                      link_radius_mm=glass_link_radius_mm(m.points[acc], m.camera[acc]) or None,
+                      warnings=[w for w in (nominal.sign_warning(),) if w])
     doc = write_report(r, inp)
     write_normals_ply(r / "normals.ply", pts_P, normals_P, dev)
     np.savez_compressed(r / "glass_points.npz", points_W=m.points, normals_W=m.normals, accepted=acc,
