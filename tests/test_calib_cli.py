@@ -32,14 +32,14 @@ def _run(args):
     return exc.value.code
 
 
-def test_sensor_and_gamma_commands(tmp_path, small_cell):
-    out = tmp_path / "cal"
+def _calibrate_sensor(cell, out) -> None:
+    """`cell calibrate sensor` on the small rig: 6 steps of 4 mm, 256 code points."""
     main(
         [
             "calibrate",
             "sensor",
             "--cell",
-            str(small_cell),
+            str(cell),
             "--out",
             str(out),
             "--steps",
@@ -50,6 +50,11 @@ def test_sensor_and_gamma_commands(tmp_path, small_cell):
             "256",
         ]
     )
+
+
+def test_sensor_and_gamma_commands(tmp_path, small_cell):
+    out = tmp_path / "cal"
+    _calibrate_sensor(small_cell, out)
     report = json.loads((out / "calibration.json").read_text())
     assert report["kind"] == "sensor_per_pixel"
     assert report["summary"]["d_mm"]["mean"] == pytest.approx(300.0, rel=0.03)  # small_sensor's baseline
@@ -134,22 +139,7 @@ def test_active_calibration_from_cell_config(tmp_path, small_cell):
     assert calibration_source(cfg) == "config geometry (no calibration)"
     np.testing.assert_array_equal(active_hand_eye(cfg), cfg.sensor.T_T_C.matrix())
     out = tmp_path / "cal"
-    main(
-        [
-            "calibrate",
-            "sensor",
-            "--cell",
-            str(small_cell),
-            "--out",
-            str(out),
-            "--steps",
-            "6",
-            "--step-mm",
-            "4",
-            "--points",
-            "256",
-        ]
-    )
+    _calibrate_sensor(small_cell, out)
     T = np.eye(4)
     T[:3, 3] = (1.0, -61.0, 80.5)
     save_calibration(tmp_path / "handeye", "hand_eye", {"T_T_C": T}, {})
