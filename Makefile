@@ -25,6 +25,7 @@ bench: $(STAMP)
 
 lint: $(STAMP)
 	$(PY) -m ruff check cell drivers fakes tests bench recipes
+	$(PY) -m ruff format --check cell drivers fakes tests bench recipes
 
 parts: $(STAMP)
 	$(PY) recipes/parts/make_parts.py

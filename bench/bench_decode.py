@@ -69,8 +69,13 @@ def bench(W: int, H: int, repeats: int = 5) -> dict[str, float]:
     T_C_P = np.eye(4)
     T_C_P[:3, 3] = (429.3, 0, 0)
     T_C_P[:3, :3] = cv2.Rodrigues(np.array([0, -0.8285, 0]))[0]
-    tri = PinholeTriangulator(K, np.array([-0.08, 0.12, 0, 0, 0]), (W, H),
-                              np.array([[2600.0, 0, 511.5], [0, 2600, 383.5], [0, 0, 1]]), T_C_P)
+    tri = PinholeTriangulator(
+        K,
+        np.array([-0.08, 0.12, 0, 0, 0]),
+        (W, H),
+        np.array([[2600.0, 0, 511.5], [0, 2600, 383.5], [0, 0, 1]]),
+        T_C_P,
+    )
     tri.triangulate(decode(np.ascontiguousarray(stack[:, :64]), ps))  # warm-up: numba cache / compile
     rss0 = _rss_mib("VmRSS")
     _reset_peak_rss()
@@ -85,8 +90,12 @@ def bench(W: int, H: int, repeats: int = 5) -> dict[str, float]:
         del dec, cloud
     peak = _rss_mib("VmHWM") - rss0
     cloud = tri.triangulate(decode(stack, ps))
-    res = {"gcls_decode_s": t_dec, "gcls_decode_triangulate_s": t_all, "peak_extra_MiB": peak,
-           "valid_frac": float(cloud.valid.mean())}
+    res = {
+        "gcls_decode_s": t_dec,
+        "gcls_decode_triangulate_s": t_all,
+        "peak_extra_MiB": peak,
+        "valid_frac": float(cloud.valid.mean()),
+    }
     # plain NumPy integer Gray decode of a 10-bit Gray set with inverses
     gp = cv2.structured_light.GrayCodePattern.create(1024, 768)
     _, cv_patterns = gp.generate()
@@ -96,7 +105,8 @@ def bench(W: int, H: int, repeats: int = 5) -> dict[str, float]:
     black, white = synth([np.zeros((768, 1024), np.uint8), np.full((768, 1024), 255, np.uint8)], W, H, 2)
     # two cameras, as the issue measured; slow, so best of 2
     res["opencv_graycode_decode_s"] = min(
-        _timed(lambda: gp.decode([gimgs, gimgs], None, [black, black], [white, white])) for _ in range(2))
+        _timed(lambda: gp.decode([gimgs, gimgs], None, [black, black], [white, white])) for _ in range(2)
+    )
     return res
 
 
@@ -131,9 +141,12 @@ def _plate_scan(ps, cam: dict, proj: dict, sim: dict, noise: bool):  # noqa: ANN
 
     tilt = make_pose(trimesh.transformations.rotation_matrix(0.2, [1, 0.3, 0])[:3, :3], [0, 0, 30.0])
     plate = trimesh.creation.box((400, 300, 4), transform=tilt)
-    rig = small_rig(part_W=plate, bit_depth=8, camera=cam, projector=proj,
-                    sim=SimConfig(seed=21, noise=noise, **sim))
-    rig.projector.connect(); rig.projector.set_power(True); rig.camera.connect()  # noqa: E702
+    rig = small_rig(
+        part_W=plate, bit_depth=8, camera=cam, projector=proj, sim=SimConfig(seed=21, noise=noise, **sim)
+    )
+    rig.projector.connect()
+    rig.projector.set_power(True)
+    rig.camera.connect()  # noqa: E702
     rig.camera.configure(CameraSettings(exposure_ms=10.0, pixel_format=PixelFormat.MONO8))
     v = scan_view(rig.camera, rig.projector, ps, PinholeTriangulator.from_sensor(rig.sensor), bit_depth=8)
     return rig, v
@@ -147,8 +160,10 @@ def _blur_px(rig) -> tuple[float, float]:  # noqa: ANN001
     gt = rig.renderer.ground_truth(rig.T_W_C)
     P = gt.points_C[gt.hit]
     P_P = transform_points(np.linalg.inv(rig.sensor.projector.T_C_P.matrix()), P)
-    return (float(np.median(blur_sigma_px(rig.sensor.camera, P[:, 2]))),
-            float(np.median(blur_sigma_px(rig.sensor.projector, P_P[:, 2]))))
+    return (
+        float(np.median(blur_sigma_px(rig.sensor.camera, P[:, 2]))),
+        float(np.median(blur_sigma_px(rig.sensor.projector, P_P[:, 2]))),
+    )
 
 
 def noise_sweep() -> list[tuple]:
@@ -159,16 +174,17 @@ def noise_sweep() -> list[tuple]:
     projector blur px, then per codec: sigma um, noise-free sigma um, valid %)."""
     from cell.sensing.patterns import gcls_patterns, gcps_patterns
 
-    conditions = [("default (read 12 e, ambient 5 e/ms)", {}, {}, {}),
-                  ("read noise 60 e", {"read_noise_e": 60.0}, {}, {}),
-                  ("read noise 150 e", {"read_noise_e": 150.0}, {}, {}),
-                  ("camera defocus (16 mm f/1.4 focused at 300 mm)", CAMERA_DEFOCUS, {}, {}),
-                  ("projector defocus (14 mm f/1 focused at 350 mm)", {}, PROJECTOR_DEFOCUS, {}),
-                  ("both defocused", CAMERA_DEFOCUS, PROJECTOR_DEFOCUS, {}),
-                  ("both defocused + read noise 60 e", {**CAMERA_DEFOCUS, "read_noise_e": 60.0},
-                   PROJECTOR_DEFOCUS, {}),
-                  ("ambient 200 e/ms", {}, {}, {"ambient_e_per_ms": 200.0}),
-                  ("ambient 600 e/ms", {}, {}, {"ambient_e_per_ms": 600.0})]
+    conditions = [
+        ("default (read 12 e, ambient 5 e/ms)", {}, {}, {}),
+        ("read noise 60 e", {"read_noise_e": 60.0}, {}, {}),
+        ("read noise 150 e", {"read_noise_e": 150.0}, {}, {}),
+        ("camera defocus (16 mm f/1.4 focused at 300 mm)", CAMERA_DEFOCUS, {}, {}),
+        ("projector defocus (14 mm f/1 focused at 350 mm)", {}, PROJECTOR_DEFOCUS, {}),
+        ("both defocused", CAMERA_DEFOCUS, PROJECTOR_DEFOCUS, {}),
+        ("both defocused + read noise 60 e", {**CAMERA_DEFOCUS, "read_noise_e": 60.0}, PROJECTOR_DEFOCUS, {}),
+        ("ambient 200 e/ms", {}, {}, {"ambient_e_per_ms": 200.0}),
+        ("ambient 600 e/ms", {}, {}, {"ambient_e_per_ms": 600.0}),
+    ]
     rows = []
     for name, cam, proj, sim in conditions:
         row: list = [name]
@@ -190,25 +206,35 @@ if __name__ == "__main__":
     import sys
 
     if "--noise-sweep" in sys.argv:
-        print("| condition | blur sigma cam / proj px | GCLS sigma (um) | GCLS noise-free | GCLS valid % "
-              "| GCPS sigma (um) | GCPS noise-free | GCPS valid % |")
+        print(
+            "| condition | blur sigma cam / proj px | GCLS sigma (um) | GCLS noise-free | GCLS valid % "
+            "| GCPS sigma (um) | GCPS noise-free | GCPS valid % |"
+        )
         print("|---|---|---|---|---|---|---|---|")
         for r in noise_sweep():
-            print(f"| {r[0]} | {r[1]:.2f} / {r[2]:.2f} | {r[3]:.1f} | {r[4]:.1f} | {r[5]:.1f} | {r[6]:.1f} "
-                  f"| {r[7]:.1f} | {r[8]:.1f} |")
+            print(
+                f"| {r[0]} | {r[1]:.2f} / {r[2]:.2f} | {r[3]:.1f} | {r[4]:.1f} | {r[5]:.1f} | {r[6]:.1f} "
+                f"| {r[7]:.1f} | {r[8]:.1f} |"
+            )
         sys.exit(0)
     cv2.setNumThreads(1)  # GrayCodePattern single-threaded as in the issue; GCLS kernels use numba threads
     import os
 
     import numba
 
-    cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")),
-               platform.machine())
-    print(f"machine: {cpu}, nproc {os.cpu_count()}, numba threads {numba.get_num_threads()}, "
-          f"load average {os.getloadavg()[0]:.2f}, numpy {np.__version__}, OpenCV {cv2.__version__}, "
-          f"numba {numba.__version__}")
+    cpu = next(
+        (ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")),
+        platform.machine(),
+    )
+    print(
+        f"machine: {cpu}, nproc {os.cpu_count()}, numba threads {numba.get_num_threads()}, "
+        f"load average {os.getloadavg()[0]:.2f}, numpy {np.__version__}, OpenCV {cv2.__version__}, "
+        f"numba {numba.__version__}"
+    )
     for W, H in ((1024, 768), (2448, 2048)):
         r = bench(W, H)
         print(f"{W}x{H}: " + ", ".join(f"{k} {v:.3f}" for k, v in r.items()))
-    print(f"load average after {os.getloadavg()[0]:.2f}; "
-          f"max RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+    print(
+        f"load average after {os.getloadavg()[0]:.2f}; "
+        f"max RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB"
+    )

@@ -23,8 +23,10 @@ def main() -> None:
         t = time.perf_counter()
         plan = plan_initial(mesh, cfg)
         dt = time.perf_counter() - t
-        print(f"{name}: {len(mesh.faces)} triangles, {len(plan.viewpoints)} viewpoints, predicted coverage "
-              f"{100 * plan.coverage:.2f}%, planning {dt:.2f} s")
+        print(
+            f"{name}: {len(mesh.faces)} triangles, {len(plan.viewpoints)} viewpoints, predicted coverage "
+            f"{100 * plan.coverage:.2f}%, planning {dt:.2f} s"
+        )
 
 
 if __name__ == "__main__":

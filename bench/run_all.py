@@ -10,8 +10,14 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-BENCHES = ["bench_render.py", "bench_decode.py", "bench_plan.py", "bench_errormap.py", "bench_glass.py",
-           "bench_inspect.py"]
+BENCHES = [
+    "bench_render.py",
+    "bench_decode.py",
+    "bench_plan.py",
+    "bench_errormap.py",
+    "bench_glass.py",
+    "bench_inspect.py",
+]
 
 
 def main() -> int:

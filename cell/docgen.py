@@ -73,6 +73,5 @@ def pages() -> dict[str, str]:
         "state-machine.md": "# Controller state machine\n\n"
         + GENERATED
         + "States and transitions of `cell/controller.py`, with the guards (conditions) on each "
-        "transition.\n\n"
-        + mermaid_diagram(),
+        "transition.\n\n" + mermaid_diagram(),
     }

@@ -386,14 +386,26 @@ def _load_regions(path: Path) -> list[DefectRegion]:
         ]
 
 
-def inspection_controller(devices: DeviceBundle, job: LambertianInspection, run: RunFolder,
-                          settings: ControllerSettings, on_progress: Any = None) -> Controller:
+def inspection_controller(
+    devices: DeviceBundle,
+    job: LambertianInspection,
+    run: RunFolder,
+    settings: ControllerSettings,
+    on_progress: Any = None,
+) -> Controller:
     """The controller for ``job`` on its cell: the robot config's limits and home, checked motion."""
     r = job.cfg.robot
     return Controller(
-        devices, job, run, settings,
-        robot_limits=(r.max_tcp_speed_mm_s, r.max_tcp_accel_mm_s2, r.max_joint_speed_rad_s,
-                      r.max_joint_accel_rad_s2),
+        devices,
+        job,
+        run,
+        settings,
+        robot_limits=(
+            r.max_tcp_speed_mm_s,
+            r.max_tcp_accel_mm_s2,
+            r.max_joint_speed_rad_s,
+            r.max_joint_accel_rad_s2,
+        ),
         home_joints_rad=np.deg2rad(r.home_joints_deg),
         motion=job.motion_planner(settings.speed_fraction),
         on_progress=on_progress,

@@ -76,8 +76,10 @@ def marker_image(
     w, h = size
     centres = screen.dots_mm() / pitch_mm + np.array([(w - 1) / 2, (h - 1) / 2])
     radius = screen.dot_diameter_mm / 2 / pitch_mm
-    if centres.min(axis=0)[0] - radius < 0 or centres.min(axis=0)[1] - radius < 0 or (
-        centres[:, 0].max() + radius > w - 1 or centres[:, 1].max() + radius > h - 1
+    if (
+        centres.min(axis=0)[0] - radius < 0
+        or centres.min(axis=0)[1] - radius < 0
+        or (centres[:, 0].max() + radius > w - 1 or centres[:, 1].max() + radius > h - 1)
     ):
         raise ConfigError(
             f"the {screen.cols}x{screen.rows} dot grid ({screen.pitch_mm} mm pitch) needs "

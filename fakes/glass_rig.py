@@ -93,8 +93,11 @@ class SimGlassRig:
         """Simulation of the screen's motion stage for the multi-projection method (2.4): position 0 is
         ``screen.T_W_S``, 1 is ``screen.second_T_W_S``. Returns the screen there."""
         if position not in (0, 1) or (position == 1 and self.cfg.screen.second_T_W_S is None):
-            raise DeviceError(self.name, f"no screen position {position}; the rig config defines "
-                              "screen.T_W_S (0) and, for a second position, screen.second_T_W_S (1)")
+            raise DeviceError(
+                self.name,
+                f"no screen position {position}; the rig config defines "
+                "screen.T_W_S (0) and, for a second position, screen.second_T_W_S (1)",
+            )
         self._screen_position = position
         if self._scene is not None:
             self._scene.T_W_S = self.screen.T_W_S

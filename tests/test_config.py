@@ -103,7 +103,10 @@ def test_cli_exits_2_on_bad_config_and_writes_nothing(tmp_path: Path) -> None:
     before = set(tmp_path.iterdir())
     proc = subprocess.run(
         [sys.executable, "-m", "cell", "devices", "--cell", str(path)],
-        capture_output=True, text=True, cwd=REPO, timeout=120,
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=120,
     )
     assert proc.returncode == 2
     assert "robot.max_tcp_speed_mm_s" in proc.stderr and str(path) in proc.stderr.replace("\n", "")

@@ -33,8 +33,15 @@ def rig_config(serials: tuple[str, ...] = ("0", "1", "2")) -> GlassRigConfig:
     for i, serial in enumerate(serials):
         w, h = SIZES[serial]
         cam = base.cameras[i].model_dump()
-        cam.update(driver="genicam", serial=serial, width_px=w, height_px=h, cx_px=(w - 1) / 2,
-                   cy_px=(h - 1) / 2, options={"ignore_missing": ["ExposureTime", "Gain"]})
+        cam.update(
+            driver="genicam",
+            serial=serial,
+            width_px=w,
+            height_px=h,
+            cx_px=(w - 1) / 2,
+            cy_px=(h - 1) / 2,
+            options={"ignore_missing": ["ExposureTime", "Gain"]},
+        )
         cams.append(cam)
     return GlassRigConfig.model_validate({**base.model_dump(), "cameras": cams})
 

@@ -154,8 +154,11 @@ def test_readback_off_hides_current_image() -> None:
 # ------------------------------------------------------------------------- SerialProjector + HDMI contract
 def _status(powered: bool, muted: bool) -> list[tuple[bytes, bytes]]:
     """What an ESC/VP21 projector answers to the driver's status() queries (profile reference replies)."""
-    out = [(b"PWR?\r", b"PWR=01\r:" if powered else b"PWR=00\r:"), (b"ERR?\r", b"ERR=00\r:"),
-           (b"LAMP?\r", b"LAMP=1234\r:")]
+    out = [
+        (b"PWR?\r", b"PWR=01\r:" if powered else b"PWR=00\r:"),
+        (b"ERR?\r", b"ERR=00\r:"),
+        (b"LAMP?\r", b"LAMP=1234\r:"),
+    ]
     if powered:  # input and mute are not queried in standby
         out += [(b"MUTE?\r", b"MUTE=ON\r:" if muted else b"MUTE=OFF\r:"), (b"SOURCE?\r", b"SOURCE=30\r:")]
     return out
@@ -168,8 +171,15 @@ CONTRACT_TRANSCRIPTS: dict[str, list[tuple[bytes, bytes]]] = {
     "test_is_a_projector": [],
     "test_connect_and_close_are_idempotent": [PING, PING, PING],
     "test_power_and_source_show_in_status": [
-        PING, ON, *HDMI, *_status(True, False), (b"MUTE ON\r", b":"), *_status(True, True), OFF,
-        *_status(False, True), *_status(False, True),
+        PING,
+        ON,
+        *HDMI,
+        *_status(True, False),
+        (b"MUTE ON\r", b":"),
+        *_status(True, True),
+        OFF,
+        *_status(False, True),
+        *_status(False, True),
     ],
     "test_show_is_pixel_exact": [PING, ON],
     "test_show_refuses_wrong_shape_or_dtype": [PING],

@@ -75,8 +75,15 @@ def test_cli_reports_the_sag(sag_run):
     rec = np.frombuffer(body, dtype=[*((k, "<f8") for k in ("x", "y", "z", "nx", "ny", "nz")), ("d", "<f4")])
     assert len(rec) == doc["n_points"]
     x, y, h = rec["x"], rec["y"], 1e-3
-    n_true = unit(np.column_stack([-(SAG(x + h, y) - SAG(x - h, y)) / (2 * h),
-                                   -(SAG(x, y + h) - SAG(x, y - h)) / (2 * h), np.ones(len(x))]))
+    n_true = unit(
+        np.column_stack(
+            [
+                -(SAG(x + h, y) - SAG(x - h, y)) / (2 * h),
+                -(SAG(x, y + h) - SAG(x, y - h)) / (2 * h),
+                np.ones(len(x)),
+            ]
+        )
+    )
     n = np.column_stack([rec["nx"], rec["ny"], rec["nz"]])
     assert np.median(np.linalg.norm(np.cross(n, n_true), axis=1)) < 100e-6  # rad
 
@@ -109,8 +116,9 @@ def test_view_vectors_match_true_pixel_rays(rig_data, tmp_path):
     cam, cal = cfg.cameras[0], cals[0]
     uv = np.random.default_rng(1).uniform([60, 60], [450, 320], (500, 2))
     o, d = cal.rays_at(uv)
-    xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K(), cam.distortion.as_array(), None, None, None,
-                             (3, 30, 1e-15)).reshape(-1, 2)
+    xy = cv2.undistortPoints(
+        uv.reshape(-1, 1, 2), cam.K(), cam.distortion.as_array(), None, None, None, (3, 30, 1e-15)
+    ).reshape(-1, 2)
     T = cam.T_W_C.matrix()
     d_true = unit(np.column_stack([xy, np.ones(len(xy))]) @ T[:3, :3].T)
     ang = np.linalg.norm(np.cross(d, d_true), axis=1)
@@ -198,8 +206,9 @@ def test_clear_thick_glass_bottom_copy_rejected_geometrically(rig_data):
     rig = SimGlassRig(cfg, sag)
     rig.connect()
     images = grab_mean(rig, 4)
-    search = load_glass_recipe(RECIPE).search.model_copy(update={"dark_fraction": 0.7,
-                                                                 "pane_thickness_mm": 8.0})
+    search = load_glass_recipe(RECIPE).search.model_copy(
+        update={"dark_fraction": 0.7, "pane_thickness_mm": 8.0}
+    )
     cam = cfg.cameras[0]
     raw = detect_dots(images[0], dark_fraction=0.7, full_profile_px=1)
     _, d_top_raw, d_bot_raw = _true_layer(cfg, sag, cam, raw.centroids_px)
@@ -227,16 +236,30 @@ def test_multi_projection_without_cad_normal(rig_data):
     second = (grab_mean(rig, 4), screen2)
     search = load_glass_recipe(RECIPE).search
     golden = measure(images, cals, cad, screen, search, max_cameras=1)
-    mp = measure(images, cals, cad, screen, search.model_copy(update={"method": "multi_projection"}),
-                 max_cameras=1, second=second)
+    mp = measure(
+        images,
+        cals,
+        cad,
+        screen,
+        search.model_copy(update={"method": "multi_projection"}),
+        max_cameras=1,
+        second=second,
+    )
     assert len(mp.points) > 0.95 * len(golden.points)
     err_g = golden.points[:, 2] - SAG(golden.points[:, 0], golden.points[:, 1])
     err_m = mp.points[:, 2] - SAG(mp.points[:, 0], mp.points[:, 1])
     assert np.sqrt(np.mean(err_m**2)) <= 0.05  # measured 0.030 mm
     assert np.sqrt(np.mean(err_m**2)) < 0.1 * np.sqrt(np.mean(err_g**2))
     x, y, h = mp.points[:, 0], mp.points[:, 1], 1e-3
-    n_true = unit(np.column_stack([-(SAG(x + h, y) - SAG(x - h, y)) / (2 * h),
-                                   -(SAG(x, y + h) - SAG(x, y - h)) / (2 * h), np.ones(len(x))]))
+    n_true = unit(
+        np.column_stack(
+            [
+                -(SAG(x + h, y) - SAG(x - h, y)) / (2 * h),
+                -(SAG(x, y + h) - SAG(x, y - h)) / (2 * h),
+                np.ones(len(x)),
+            ]
+        )
+    )
     assert np.median(np.linalg.norm(np.cross(mp.normals, n_true), axis=1)) < 200e-6
 
 
@@ -245,8 +268,10 @@ def test_sag_is_one_region_with_a_marker_spaced_link_radius(sag_run):
     merged cameras' clouds) splits the sag; linking at the marker spacing of one camera keeps it whole."""
     z = np.load(sag_run / "results" / "glass_points.npz")
     acc = z["accepted"]
-    pts, dev = z["points_W"][acc], z["points_W"][acc][:, 2] - BASE(z["points_W"][acc][:, 0],
-                                                                    z["points_W"][acc][:, 1])
+    pts, dev = (
+        z["points_W"][acc],
+        z["points_W"][acc][:, 2] - BASE(z["points_W"][acc][:, 0], z["points_W"][acc][:, 1]),
+    )
     radius = glass_link_radius_mm(z["points_W"], z["camera"])
     regions = out_of_tolerance_regions(pts, dev, Tolerance(-0.3, 0.3), link_radius_mm=radius)
     n_bad = int(np.sum(np.abs(dev) > 0.3))

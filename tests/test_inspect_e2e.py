@@ -19,6 +19,7 @@ import pytest
 import yaml
 
 from tests.box_part import small_cell, write_box_recipe
+from tests.same_result import assert_same_result
 
 REPO = Path(__file__).resolve().parent.parent
 BINNED = REPO / "recipes" / "cells" / "sim_binned.yaml"
@@ -121,8 +122,5 @@ def test_killed_runs_resume_to_the_same_result(box_inputs: tuple[Path, Path], tm
         else:
             done = cell("resume", str(run))
         assert done.returncode == 0, f"kill {k} at {instant:.2f} s: {done.stdout}{done.stderr}"
-        got = report(run)
-        assert got["verdict"] == expected["verdict"], k
-        assert got["n_points"] == expected["n_points"], k
-        assert got["deviation"] == expected["deviation"], k
+        assert_same_result(report(run), expected, f"kill {k} at {instant:.2f} s")
     assert kills == 20

@@ -37,12 +37,23 @@ def offset_projector(beta: float) -> dict:
 @pytest.fixture(scope="module")
 def offset_scan():  # noqa: ANN201
     tilt = make_pose(trimesh.transformations.rotation_matrix(0.2, [1, 0.3, 0])[:3, :3], [0, 0, 30.0])
-    rig = small_rig(part_W=trimesh.creation.box((400, 300, 4), transform=tilt), bit_depth=8,
-                    sim=SimConfig(seed=11), projector=offset_projector(BETA))
-    rig.projector.connect(); rig.projector.set_power(True); rig.camera.connect()  # noqa: E702
+    rig = small_rig(
+        part_W=trimesh.creation.box((400, 300, 4), transform=tilt),
+        bit_depth=8,
+        sim=SimConfig(seed=11),
+        projector=offset_projector(BETA),
+    )
+    rig.projector.connect()
+    rig.projector.set_power(True)
+    rig.camera.connect()  # noqa: E702
     rig.camera.configure(CameraSettings(exposure_ms=10.0, pixel_format=PixelFormat.MONO8))
-    view = scan_view(rig.camera, rig.projector, gcls_patterns(128, 96, 8, 8),
-                     PinholeTriangulator.from_sensor(rig.sensor), bit_depth=8)
+    view = scan_view(
+        rig.camera,
+        rig.projector,
+        gcls_patterns(128, 96, 8, 8),
+        PinholeTriangulator.from_sensor(rig.sensor),
+        bit_depth=8,
+    )
     return rig, view, reference_model_from_geometry(rig.sensor)
 
 

@@ -27,14 +27,14 @@ def test_every_coded_frame_is_the_inverse_of_its_partner_and_gray_codes_are_uniq
             code = ps.code("columns" if name.startswith("col") else "rows")
             inside = np.zeros_like(a, bool)
             if code.axis == "columns":
-                inside[:, code.offset_px:code.offset_px + code.extent_px] = True
+                inside[:, code.offset_px : code.offset_px + code.extent_px] = True
             else:
-                inside[code.offset_px:code.offset_px + code.extent_px, :] = True
+                inside[code.offset_px : code.offset_px + code.extent_px, :] = True
             assert np.all((a + b)[inside] == 255), name
     # Gray bits along a row: consecutive stripes differ in exactly one bit, and all stripes differ.
     code = ps.code("columns")
     bits = np.stack([ps.frames[ps.index(f"col_gray{b}")][0] > 0 for b in range(code.n_gray)])
-    per_stripe = bits[:, code.offset_px::code.stripe_px][:, : 1 << code.n_gray]
+    per_stripe = bits[:, code.offset_px :: code.stripe_px][:, : 1 << code.n_gray]
     assert np.all(np.abs(np.diff(per_stripe.astype(int), axis=1)).sum(0) == 1)
     assert len({tuple(c) for c in per_stripe.T}) == 1 << code.n_gray
 

@@ -20,8 +20,9 @@ PARTS = Path(__file__).resolve().parent.parent / "recipes" / "parts"
 @pytest.mark.skipif(not (PARTS / "gauge.stl").is_file(), reason="gauge block not built")
 def test_scan_writes_cloud_masks_and_summary(tmp_path: Path) -> None:
     out = tmp_path / "scan"
-    res = CliRunner().invoke(app, ["scan", "--cell", str(DEFAULT_CELL), "--part", str(PARTS / "gauge.stl"),
-                                   "--out", str(out)])
+    res = CliRunner().invoke(
+        app, ["scan", "--cell", str(DEFAULT_CELL), "--part", str(PARTS / "gauge.stl"), "--out", str(out)]
+    )
     assert res.exit_code == 0, res.output
     summary = json.loads((out / "scan.json").read_text())
     assert "simulator" in summary["geometry_source"] and summary["n_images"] == 38

@@ -58,9 +58,12 @@ def test_reference_model_from_geometry_recovers_the_prototype_baseline_and_stand
 @pytest.fixture(scope="module")
 def plate_scan():  # noqa: ANN201
     tilt = make_pose(trimesh.transformations.rotation_matrix(0.2, [1, 0.3, 0])[:3, :3], [0, 0, 30.0])
-    rig = small_rig(part_W=trimesh.creation.box((400, 300, 4), transform=tilt), bit_depth=8,
-                    sim=SimConfig(seed=11))
-    rig.projector.connect(); rig.projector.set_power(True); rig.camera.connect()  # noqa: E702
+    rig = small_rig(
+        part_W=trimesh.creation.box((400, 300, 4), transform=tilt), bit_depth=8, sim=SimConfig(seed=11)
+    )
+    rig.projector.connect()
+    rig.projector.set_power(True)
+    rig.camera.connect()  # noqa: E702
     rig.camera.configure(CameraSettings(exposure_ms=10.0, pixel_format=PixelFormat.MONO8))
     ps = gcls_patterns(128, 96, 8, 8)
     view = scan_view(rig.camera, rig.projector, ps, PinholeTriangulator.from_sensor(rig.sensor), bit_depth=8)
@@ -108,11 +111,15 @@ def _gauge_view(seed: int = 4):  # noqa: ANN202
     renderer = SceneRenderer(cfg.sensor, cfg.sim, Scene.from_meshes(part, cfg.sim))
     T_W_C = look_at((0.0, 0.0, 30.0 + cfg.sensor.standoff_mm), (0.0, 0.0, 30.0), up=(0.0, 1.0, 0.0))
     projector = SimProjector(cfg.sensor.projector)
-    camera = SimCamera(cfg.sensor.camera, renderer, projector, lambda: T_W_C, SimClock(),
-                       np.random.default_rng(seed))
-    projector.connect(); projector.set_power(True); camera.connect()  # noqa: E702
-    view = scan_view(camera, projector, dissertation_gcls(), PinholeTriangulator.from_sensor(cfg.sensor),
-                     bit_depth=8)
+    camera = SimCamera(
+        cfg.sensor.camera, renderer, projector, lambda: T_W_C, SimClock(), np.random.default_rng(seed)
+    )
+    projector.connect()
+    projector.set_power(True)
+    camera.connect()  # noqa: E702
+    view = scan_view(
+        camera, projector, dissertation_gcls(), PinholeTriangulator.from_sensor(cfg.sensor), bit_depth=8
+    )
     return transform_points(T_W_C, view.cloud.points_C), view
 
 

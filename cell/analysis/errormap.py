@@ -129,9 +129,11 @@ class NominalMesh:
             return None
         dropped = self.excluded.get("degenerate_triangles", 0)
         after = f" after excluding {dropped} zero-area triangle(s)" if dropped else ""
-        return (f"the nominal mesh is not closed: {self.open_edges} edge(s){after} are open, T-junctions or "
-                "non-manifold; deviation signs of points whose closest nominal point lies on such an edge "
-                "are unreliable (repair the CAD export)")
+        return (
+            f"the nominal mesh is not closed: {self.open_edges} edge(s){after} are open, T-junctions or "
+            "non-manifold; deviation signs of points whose closest nominal point lies on such an edge "
+            "are unreliable (repair the CAD export)"
+        )
 
     @property
     def extent_mm(self) -> float:

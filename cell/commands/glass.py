@@ -22,8 +22,12 @@ def glass_cmd(
     sim_actual: Path = typer.Option(None, "--sim-actual", help="simulation: mesh rendered as the made pane"),
     frames: int = typer.Option(4, "--frames", min=1, help="grabs averaged per camera for the measurement"),
     board_frames: int = typer.Option(8, "--board-frames", min=1, help="grabs averaged per board height"),
-    method: str = typer.Option(None, "--method", help="override the recipe's search.method: golden_section "
-                               "or multi_projection (2.4; the rig must define screen.second_T_W_S)"),
+    method: str = typer.Option(
+        None,
+        "--method",
+        help="override the recipe's search.method: golden_section "
+        "or multi_projection (2.4; the rig must define screen.second_T_W_S)",
+    ),
 ) -> None:
     """Measure a glass pane: view vectors, marker search, multi-camera feedback, error map and report."""
     from cell.errors import ConfigError
@@ -41,17 +45,24 @@ def glass_cmd(
     rig_path = cell or rec.rig
     cfg = load_glass_rig(rig_path)
     if rec.search.method == "multi_projection" and cfg.screen.second_T_W_S is None:
-        raise ConfigError("the multi-projection method needs the screen's second known position: add "
-                          "screen.second_T_W_S to the rig config", path=str(rig_path), field="screen")
+        raise ConfigError(
+            "the multi-projection method needs the screen's second known position: add "
+            "screen.second_T_W_S to the rig config",
+            path=str(rig_path),
+            field="screen",
+        )
     T_W_P = rec.part.T_W_P.matrix()
     nominal_W = load_mesh(rec.part.cad, what="nominal pane").apply_transform(T_W_P)
     actual_path = sim_actual or rec.part.actual or rec.part.cad
     actual_W = load_mesh(actual_path, what="simulated actual pane").apply_transform(T_W_P)
     part = rec.name or rec.part.cad.stem
     run = RunFolder.create(out.parent, part, name=out.name)
-    inputs = ((recipe, "recipe.yaml"), (rig_path, "rig.yaml"),
-              (rec.part.cad, "nominal" + rec.part.cad.suffix),
-              (actual_path, "actual" + Path(actual_path).suffix))
+    inputs = (
+        (recipe, "recipe.yaml"),
+        (rig_path, "rig.yaml"),
+        (rec.part.cad, "nominal" + rec.part.cad.suffix),
+        (actual_path, "actual" + Path(actual_path).suffix),
+    )
     for src, name in inputs:
         run.copy_input(Path(src), name)
     run.log("run_created", part=part, recipe=str(recipe), rig=str(rig_path), actual=str(actual_path))
@@ -70,12 +81,15 @@ def glass_cmd(
         rig = ReplayGlassRig(cfg)
         place_board = _operator_places_board
         move_screen = None
-    summary = run_glass_inspection(run, rec, cfg, rig, place_board, nominal_W, frames, board_frames,
-                                   move_screen)
+    summary = run_glass_inspection(
+        run, rec, cfg, rig, place_board, nominal_W, frames, board_frames, move_screen
+    )
     dev = summary["deviation"]
-    console.print(f"[bold]verdict: {str(summary['verdict']).upper()}[/]  ({summary['n_points']} of "
-                  f"{summary['markers']} points accepted; deviation {dev.get('min_mm', float('nan')):.3f} .. "
-                  f"{dev.get('max_mm', float('nan')):.3f} mm)")
+    console.print(
+        f"[bold]verdict: {str(summary['verdict']).upper()}[/]  ({summary['n_points']} of "
+        f"{summary['markers']} points accepted; deviation {dev.get('min_mm', float('nan')):.3f} .. "
+        f"{dev.get('max_mm', float('nan')):.3f} mm)"
+    )
     console.print(f"report: {run.results_dir / 'report.html'}")
 
 

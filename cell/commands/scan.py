@@ -24,18 +24,23 @@ def _parse_pose(text: str):  # noqa: ANN202 - returns a 4x4 pose or None for aut
     except ValueError:
         values = []
     if len(values) != 6:
-        raise ConfigError(f"--pose '{text}': give 'auto' or six numbers x,y,z,rx,ry,rz (camera pose T_W_C: "
-                          "mm and a rotation vector in rad)", field="--pose")
+        raise ConfigError(
+            f"--pose '{text}': give 'auto' or six numbers x,y,z,rx,ry,rz (camera pose T_W_C: "
+            "mm and a rotation vector in rad)",
+            field="--pose",
+        )
     return pose_from_xyz_rotvec(values[:3], values[3:])
 
 
 def scan_cmd(
     out: Path = typer.Option(..., "--out", help="output folder (created)"),
     cell: Path = typer.Option(None, "--cell", help="cell config YAML (default: recipes/cells/sim.yaml)"),
-    part: Path = typer.Option(None, "--part",
-                              help="part mesh in world coordinates, mm (default: empty table)"),
-    pose: str = typer.Option("auto", "--pose", help="'auto' or x,y,z,rx,ry,rz of the camera frame in {W} "
-                             "(mm, rotation vector rad)"),
+    part: Path = typer.Option(
+        None, "--part", help="part mesh in world coordinates, mm (default: empty table)"
+    ),
+    pose: str = typer.Option(
+        "auto", "--pose", help="'auto' or x,y,z,rx,ry,rz of the camera frame in {W} (mm, rotation vector rad)"
+    ),
     codec: str = typer.Option("gcls", "--codec", help="gcls or gcps"),
     model: str = typer.Option("pinhole", "--model", help="triangulation: pinhole or reference (eq 2.8)"),
     seed: int = typer.Option(None, "--seed", help="noise seed (default: the cell's sim.seed)"),

@@ -44,8 +44,13 @@ class CopyPrediction:
     mm2_per_px: NDArray[np.float64]
 
 
-def bottom_exit(points: NDArray[np.float64], normals: NDArray[np.float64], dirs: NDArray[np.float64],
-                thickness_mm: float, refractive_index: float) -> NDArray[np.float64]:
+def bottom_exit(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    dirs: NDArray[np.float64],
+    thickness_mm: float,
+    refractive_index: float,
+) -> NDArray[np.float64]:
     """Where the bottom-skin path of view rays ``dirs`` entering at ``points`` (unit ``normals`` facing the
     camera) leaves the top skin again (N, 3, world mm), skins taken as parallel planes."""
     cos_i = -np.einsum("ij,ij->i", dirs, normals)
@@ -56,8 +61,14 @@ def bottom_exit(points: NDArray[np.float64], normals: NDArray[np.float64], dirs:
     return points + (2.0 * thickness_mm / cos_t)[:, None] * (d_in + cos_t[:, None] * normals)
 
 
-def predict_copies(pixels: NDArray[np.float64], rays, cad, T_W_S: NDArray[np.float64],  # noqa: ANN001
-                   thickness_mm: float, refractive_index: float) -> CopyPrediction:
+def predict_copies(
+    pixels: NDArray[np.float64],
+    rays,
+    cad,
+    T_W_S: NDArray[np.float64],  # noqa: ANN001
+    thickness_mm: float,
+    refractive_index: float,
+) -> CopyPrediction:
     """Top and bottom screen hypotheses of detections at ``pixels`` (N, 2) and their bottom copies' pixel
     offsets. ``rays(pixels) -> (origins, dirs)`` is the view-vector calibration, ``cad`` the nominal
     :class:`cell.glass.surface.SmoothSurface`, ``T_W_S`` the screen pose."""
@@ -86,16 +97,25 @@ def predict_copies(pixels: NDArray[np.float64], rays, cad, T_W_S: NDArray[np.flo
     return CopyPrediction(top[0], bottom, du, area)
 
 
-def blob_area_ok(area_px: NDArray[np.int64], pred: CopyPrediction, dot_diameter_mm: float,
-                 area_range: tuple[float, float] = (0.3, 1.5)) -> NDArray[np.bool_]:
+def blob_area_ok(
+    area_px: NDArray[np.int64],
+    pred: CopyPrediction,
+    dot_diameter_mm: float,
+    area_range: tuple[float, float] = (0.3, 1.5),
+) -> NDArray[np.bool_]:
     """Detections whose pixel area is within ``area_range`` x the area a single dot covers there."""
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = area_px * pred.mm2_per_px / (np.pi * dot_diameter_mm**2 / 4)
     return (ratio >= area_range[0]) & (ratio <= area_range[1])
 
 
-def bottom_copies(pixels: NDArray[np.float64], pred: CopyPrediction, dots_mm: NDArray[np.float64],
-                  pair_tol: float = 0.3, k_local: int = 8) -> NDArray[np.bool_]:
+def bottom_copies(
+    pixels: NDArray[np.float64],
+    pred: CopyPrediction,
+    dots_mm: NDArray[np.float64],
+    pair_tol: float = 0.3,
+    k_local: int = 8,
+) -> NDArray[np.bool_]:
     """Mask of detections taken for bottom-skin copies (see the module docstring).
 
     Pairs: detection j lies within ``pair_tol`` x |du_i| of u_i + du_i. Unpaired detections: the shape

@@ -79,8 +79,9 @@ class ViewVectorCalibration:
             return np.zeros((0, 2))
         T_C_W = np.linalg.inv(self.T_W_C)
         rvec, _ = cv2.Rodrigues(T_C_W[:3, :3])
-        uv, _ = cv2.projectPoints(np.asarray(points_W, np.float64).reshape(-1, 1, 3), rvec, T_C_W[:3, 3],
-                                  self.K, self.dist)
+        uv, _ = cv2.projectPoints(
+            np.asarray(points_W, np.float64).reshape(-1, 1, 3), rvec, T_C_W[:3, 3], self.K, self.dist
+        )
         return uv.reshape(-1, 2)
 
     # ------------------------------------------------------------------------------------------- storage
@@ -90,11 +91,25 @@ class ViewVectorCalibration:
         d.mkdir(parents=True, exist_ok=True)
         version = max(_versions(d, self.camera), default=0) + 1
         path = d / f"{self.camera}.v{version}.npz"
-        np.savez_compressed(path, pixels0=self.pixels[0], board0=self.board_xy[0], pixels1=self.pixels[1],
-                            board1=self.board_xy[1], K=self.K, dist=self.dist, T_W_C=self.T_W_C)
-        meta = {"camera": self.camera, "serial": self.serial, "version": version,
-                "resolution": list(self.resolution), "heights_mm": list(self.heights_mm),
-                "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), **self.meta}
+        np.savez_compressed(
+            path,
+            pixels0=self.pixels[0],
+            board0=self.board_xy[0],
+            pixels1=self.pixels[1],
+            board1=self.board_xy[1],
+            K=self.K,
+            dist=self.dist,
+            T_W_C=self.T_W_C,
+        )
+        meta = {
+            "camera": self.camera,
+            "serial": self.serial,
+            "version": version,
+            "resolution": list(self.resolution),
+            "heights_mm": list(self.heights_mm),
+            "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+            **self.meta,
+        }
         path.with_suffix(".yaml").write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
         return path
 
@@ -104,16 +119,26 @@ class ViewVectorCalibration:
         d = Path(directory)
         versions = _versions(d, camera)
         if not versions:
-            raise CalibrationError(f"{d}: no view-vector calibration for camera '{camera}'; run the "
-                                   "calibration (cell glass calibrate) first")
+            raise CalibrationError(
+                f"{d}: no view-vector calibration for camera '{camera}'; run the "
+                "calibration (cell glass calibrate) first"
+            )
         path = d / f"{camera}.v{max(versions)}.npz"
         meta = yaml.safe_load(path.with_suffix(".yaml").read_text(encoding="utf-8"))
         z = np.load(path)
-        extra = {k: v for k, v in meta.items()
-                 if k not in ("camera", "serial", "resolution", "heights_mm")}
-        return cls(camera, meta["serial"], tuple(meta["resolution"]), tuple(meta["heights_mm"]),
-                   [z["pixels0"], z["pixels1"]], [z["board0"], z["board1"]], z["K"], z["dist"], z["T_W_C"],
-                   extra)
+        extra = {k: v for k, v in meta.items() if k not in ("camera", "serial", "resolution", "heights_mm")}
+        return cls(
+            camera,
+            meta["serial"],
+            tuple(meta["resolution"]),
+            tuple(meta["heights_mm"]),
+            [z["pixels0"], z["pixels1"]],
+            [z["board0"], z["board1"]],
+            z["K"],
+            z["dist"],
+            z["T_W_C"],
+            extra,
+        )
 
 
 class LocalQuadratic:
@@ -121,8 +146,9 @@ class LocalQuadratic:
     fitted to the ``k`` nearest correspondences (moving least squares, uniform weights). NaN where the query
     lies farther from its nearest correspondence than ``max_gap`` times the median dot spacing."""
 
-    def __init__(self, pixels: NDArray[np.float64], xy: NDArray[np.float64], k: int = 20,
-                 max_gap: float = 1.5) -> None:
+    def __init__(
+        self, pixels: NDArray[np.float64], xy: NDArray[np.float64], k: int = 20, max_gap: float = 1.5
+    ) -> None:
         self.pixels = np.asarray(pixels, np.float64)
         self.xy = np.asarray(xy, np.float64)
         self.k = min(k, len(self.pixels))
@@ -157,8 +183,9 @@ def _versions(directory: Path, camera: str) -> list[int]:
     return out
 
 
-def board_correspondences(image: NDArray, board: BoardConfig, height_mm: float, cam: GlassCameraConfig,
-                          gate_fraction: float = 0.35) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def board_correspondences(
+    image: NDArray, board: BoardConfig, height_mm: float, cam: GlassCameraConfig, gate_fraction: float = 0.35
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Detected board dots and their board-plane (X, Y) in {W} (mm), identified by the nominal camera model
     of the config: a detection is the dot whose predicted pixel is nearest, within ``gate_fraction`` of the
     local dot spacing in the image."""
@@ -179,8 +206,9 @@ def board_correspondences(image: NDArray, board: BoardConfig, height_mm: float, 
     return pix_ok[single], dots[idx_ok[single]]
 
 
-def calibrate_view_vectors(images: tuple[NDArray, NDArray], board: BoardConfig,
-                           cam: GlassCameraConfig) -> ViewVectorCalibration:
+def calibrate_view_vectors(
+    images: tuple[NDArray, NDArray], board: BoardConfig, cam: GlassCameraConfig
+) -> ViewVectorCalibration:
     """Vector calibration of ``cam`` from its images of ``board`` at ``board.heights_mm`` (low, high).
 
     The config's camera model (intrinsics, pose) is used only to identify the dots; the result comes from
@@ -190,20 +218,35 @@ def calibrate_view_vectors(images: tuple[NDArray, NDArray], board: BoardConfig,
     for img, z in zip(images, board.heights_mm):
         p, xy = board_correspondences(img, board, z, cam)
         if len(p) < 50:
-            raise CalibrationError(f"camera '{cam.name}': only {len(p)} board dots identified at z={z} mm "
-                                   "(need 50); check the board placement and the camera's nominal pose")
+            raise CalibrationError(
+                f"camera '{cam.name}': only {len(p)} board dots identified at z={z} mm "
+                "(need 50); check the board placement and the camera's nominal pose"
+            )
         pixels.append(p)
         board_xy.append(xy)
     obj = np.vstack([np.column_stack([xy, np.full(len(xy), z)]) for xy, z in zip(board_xy, board.heights_mm)])
     img_pts = np.vstack(pixels)
     flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-        [obj.astype(np.float32)], [img_pts.astype(np.float32)], (cam.width_px, cam.height_px), cam.K().copy(),
-        np.zeros(5), flags=flags)
+        [obj.astype(np.float32)],
+        [img_pts.astype(np.float32)],
+        (cam.width_px, cam.height_px),
+        cam.K().copy(),
+        np.zeros(5),
+        flags=flags,
+    )
     R, _ = cv2.Rodrigues(rvecs[0])
     T_C_W = np.eye(4)
     T_C_W[:3, :3], T_C_W[:3, 3] = R, tvecs[0].ravel()
-    return ViewVectorCalibration(cam.name, cam.serial, (cam.width_px, cam.height_px),
-                                 tuple(board.heights_mm), pixels, board_xy, K, dist.ravel(),
-                                 np.linalg.inv(T_C_W), {"model_rms_px": float(rms),
-                                                        "dots": [len(p) for p in pixels]})
+    return ViewVectorCalibration(
+        cam.name,
+        cam.serial,
+        (cam.width_px, cam.height_px),
+        tuple(board.heights_mm),
+        pixels,
+        board_xy,
+        K,
+        dist.ravel(),
+        np.linalg.inv(T_C_W),
+        {"model_rms_px": float(rms), "dots": [len(p) for p in pixels]},
+    )

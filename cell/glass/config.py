@@ -77,7 +77,8 @@ class GlassMaterialConfig(Strict):
     refractive_index: Annotated[float, Field(gt=1.0, lt=3.0)] = 1.52
     thickness_mm: Annotated[float, Field(gt=0.5, lt=30)] = 4.7
     absorption_per_mm: Annotated[float, Field(ge=0, lt=5)] = Field(
-        0.035, description="intensity attenuation coefficient of the tinted glass (1/mm)")
+        0.035, description="intensity attenuation coefficient of the tinted glass (1/mm)"
+    )
 
 
 class GlassRigConfig(Strict):
@@ -107,29 +108,41 @@ class GlassSearchConfig(Strict):
     """Parameters of marker identification, the reflection search and the multi-camera feedback."""
 
     method: Literal["golden_section", "multi_projection"] = Field(
-        "golden_section", description="surface point per marker: the CAD-seeded golden-section search "
-        "(2.3.4) or the multi-projection method (2.4, needs screen.second_T_W_S in the rig)")
+        "golden_section",
+        description="surface point per marker: the CAD-seeded golden-section search "
+        "(2.3.4) or the multi-projection method (2.4, needs screen.second_T_W_S in the rig)",
+    )
     max_surface_error_mm: PositiveFloat = Field(3.0, description="Delta of eq 2.13: largest expected error")
     angle_tol_urad: PositiveFloat = Field(2.0, description="stop when the offset angle is below this")
     length_tol_mm: PositiveFloat = Field(2e-4, description="stop when the search interval is this short")
     feedback_tol_urad: PositiveFloat = Field(
-        20.0, description="stop adding cameras when the normal moves less")
+        20.0, description="stop adding cameras when the normal moves less"
+    )
     gate_fraction: Annotated[float, Field(gt=0, lt=0.5)] = Field(
-        0.4, description="identification gate as a fraction of the screen pitch")
+        0.4, description="identification gate as a fraction of the screen pitch"
+    )
     dark_fraction: Annotated[float, Field(gt=0.1, lt=0.9)] = Field(
-        0.5, description="a pixel is a top-layer dot below this fraction of the local background")
+        0.5, description="a pixel is a top-layer dot below this fraction of the local background"
+    )
     centroid_profile_px: Annotated[int, Field(ge=0, le=5)] = Field(
-        1, description="0: eq 2.14 weights below the threshold only; >0: the whole dot profile grown by this "
-        "many pixels (cell.glass.markers.detect_dots)")
+        1,
+        description="0: eq 2.14 weights below the threshold only; >0: the whole dot profile grown by this "
+        "many pixels (cell.glass.markers.detect_dots)",
+    )
     pane_thickness_mm: Annotated[float, Field(gt=0.5, lt=30)] | None = Field(
-        4.7, description="nominal pane thickness for the geometric rejection of bottom-skin copies "
-        "(cell.glass.bottom); null: rely on the intensity threshold alone")
+        4.7,
+        description="nominal pane thickness for the geometric rejection of bottom-skin copies "
+        "(cell.glass.bottom); null: rely on the intensity threshold alone",
+    )
     pane_refractive_index: Annotated[float, Field(gt=1.0, lt=3.0)] = 1.52
     outlier_alpha: Annotated[float, Field(gt=0, lt=0.5)] = Field(
-        1e-3, description="reject a point whose cameras' normals disagree at this chi-square tail level")
+        1e-3, description="reject a point whose cameras' normals disagree at this chi-square tail level"
+    )
     max_depth_sigma_mm: PositiveFloat = Field(
-        0.05, description="reject a point whose depth standard error (from the cameras' geometry and the "
-        "normal noise) exceeds this accuracy target (mm)")
+        0.05,
+        description="reject a point whose depth standard error (from the cameras' geometry and the "
+        "normal noise) exceeds this accuracy target (mm)",
+    )
 
 
 class GlassPartConfig(Strict):

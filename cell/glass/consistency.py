@@ -49,9 +49,14 @@ def normal_noise(residual: NDArray[np.float64], n_cameras: NDArray[np.int64]) ->
     return float(np.sqrt(np.median(residual[ok] / chi2.ppf(0.5, dof[ok]))))
 
 
-def check_consistency(residual: NDArray[np.float64], curvature: NDArray[np.float64],
-                      n_cameras: NDArray[np.int64], cos_incidence: NDArray[np.float64], alpha: float,
-                      max_depth_sigma_mm: float) -> Consistency:
+def check_consistency(
+    residual: NDArray[np.float64],
+    curvature: NDArray[np.float64],
+    n_cameras: NDArray[np.int64],
+    cos_incidence: NDArray[np.float64],
+    alpha: float,
+    max_depth_sigma_mm: float,
+) -> Consistency:
     """Judge every point (see the module docstring); ``cos_incidence`` = |ray . normal| per point."""
     sigma = normal_noise(residual, n_cameras)
     dof = residual_dof(n_cameras)

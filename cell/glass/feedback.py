@@ -74,9 +74,16 @@ def _spread(normals: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.nansum(np.einsum("cni,cni->cn", d, d), axis=0)
 
 
-def feedback(law: ReflectionLaw, primary: SearchResult, cameras: list[FeedbackCamera],
-             T_W_S: NDArray[np.float64], max_error_mm: float, tol_rad: float,
-             length_tol_mm: float = 2e-4, curvature_step_mm: float = 0.05) -> FeedbackResult:
+def feedback(
+    law: ReflectionLaw,
+    primary: SearchResult,
+    cameras: list[FeedbackCamera],
+    T_W_S: NDArray[np.float64],
+    max_error_mm: float,
+    tol_rad: float,
+    length_tol_mm: float = 2e-4,
+    curvature_step_mm: float = 0.05,
+) -> FeedbackResult:
     """Confirm/correct the primary camera's points with ``cameras`` in order (3.4). The curvature of the
     cost is a central difference over +-``curvature_step_mm`` (the cost is quadratic near its minimum)."""
     origins, dirs = law.p.origins, law.p.dirs
@@ -95,8 +102,9 @@ def feedback(law: ReflectionLaw, primary: SearchResult, cameras: list[FeedbackCa
         step = active & sees
         used = cameras[: k + 1]
 
-        def normals_at(tt: NDArray[np.float64], idx: NDArray[np.int64],
-                       used: list[FeedbackCamera] = used) -> NDArray[np.float64]:
+        def normals_at(
+            tt: NDArray[np.float64], idx: NDArray[np.int64], used: list[FeedbackCamera] = used
+        ) -> NDArray[np.float64]:
             m = origins[idx] + tt[:, None] * dirs[idx]
             return np.stack([law.required_normal(tt, idx)] + [c.normals(m, T_W_S) for c in used])
 
@@ -115,5 +123,6 @@ def feedback(law: ReflectionLaw, primary: SearchResult, cameras: list[FeedbackCa
         n_cams[idx] = np.sum(np.all(np.isfinite(ns), axis=2), axis=0)
         active[idx[delta < tol_rad]] = False  # settled: no more cameras for these points
         history.append(origins + t[:, None] * dirs)
-    return FeedbackResult(origins + t[:, None] * dirs, normal, n_cams, change, residual, curvature,
-                          np.stack(history))
+    return FeedbackResult(
+        origins + t[:, None] * dirs, normal, n_cams, change, residual, curvature, np.stack(history)
+    )

@@ -63,13 +63,24 @@ class GlassMeasurement:
         return np.sqrt(self.residual / np.maximum(self.n_cameras, 1))
 
 
-def find_markers(image: NDArray, calib: ViewVectorCalibration, cad: SmoothSurface, screen: MarkerScreen,
-                 search: GlassSearchConfig) -> CameraMarkers:
+def find_markers(
+    image: NDArray,
+    calib: ViewVectorCalibration,
+    cad: SmoothSurface,
+    screen: MarkerScreen,
+    search: GlassSearchConfig,
+) -> CameraMarkers:
     """Detect, ray and identify one camera's marker dots."""
     det = detect_dots(image, dark_fraction=search.dark_fraction, full_profile_px=search.centroid_profile_px)
     if search.pane_thickness_mm is not None and len(det):
-        pred = predict_copies(det.centroids_px, calib.rays_at, cad, screen.T_W_S, search.pane_thickness_mm,
-                              search.pane_refractive_index)
+        pred = predict_copies(
+            det.centroids_px,
+            calib.rays_at,
+            cad,
+            screen.T_W_S,
+            search.pane_thickness_mm,
+            search.pane_refractive_index,
+        )
         keep = blob_area_ok(det.area_px, pred, screen.dot_diameter_mm)
         keep &= ~bottom_copies(det.centroids_px, pred, screen.dots_mm)
         det = DotDetections(det.centroids_px[keep], det.area_px[keep], det.depth[keep])
@@ -89,9 +100,15 @@ def screen_point_W(screen: MarkerScreen, dot: NDArray[np.int64]) -> NDArray[np.f
     return xy[:, 0:1] * T[:3, 0] + xy[:, 1:2] * T[:3, 1] + T[:3, 3]
 
 
-def measure(images: list[NDArray], calibs: list[ViewVectorCalibration], cad: SmoothSurface,
-            screen: MarkerScreen, search: GlassSearchConfig, max_cameras: int | None = None,
-            second: tuple[list[NDArray], MarkerScreen] | None = None) -> GlassMeasurement:
+def measure(
+    images: list[NDArray],
+    calibs: list[ViewVectorCalibration],
+    cad: SmoothSurface,
+    screen: MarkerScreen,
+    search: GlassSearchConfig,
+    max_cameras: int | None = None,
+    second: tuple[list[NDArray], MarkerScreen] | None = None,
+) -> GlassMeasurement:
     """Measure the pane from one frame per camera. ``max_cameras`` caps the cameras per point (1 = no
     feedback; None = until the normal settles below ``search.feedback_tol_urad``, or all when forced by
     ``max_cameras``). ``second``: the frames with the screen at its second position and that screen, which
@@ -99,8 +116,11 @@ def measure(images: list[NDArray], calibs: list[ViewVectorCalibration], cad: Smo
     if search.method == "multi_projection" and second is None:
         raise ValueError("the multi-projection method needs the frames at the second screen position")
     markers = [find_markers(img, cal, cad, screen, search) for img, cal in zip(images, calibs)]
-    markers2 = ([find_markers(img, cal, cad, second[1], search) for img, cal in zip(second[0], calibs)]
-                if search.method == "multi_projection" and second is not None else None)
+    markers2 = (
+        [find_markers(img, cal, cad, second[1], search) for img, cal in zip(second[0], calibs)]
+        if search.method == "multi_projection" and second is not None
+        else None
+    )
     fb_cams = []
     for m, cal in zip(markers, calibs):
         ok = m.dot >= 0
@@ -116,11 +136,17 @@ def measure(images: list[NDArray], calibs: list[ViewVectorCalibration], cad: Smo
         if markers2 is not None and second is not None:
             m2 = markers2[c]
             ok2 = m2.dot >= 0
-            res = multi_projection(law, m.detections.centroids_px[ok], m2.detections.centroids_px[ok2],
-                                   second[1].dots_mm[m2.dot[ok2]], second[1])
+            res = multi_projection(
+                law,
+                m.detections.centroids_px[ok],
+                m2.detections.centroids_px[ok2],
+                second[1].dots_mm[m2.dot[ok2]],
+                second[1],
+            )
         else:
-            res = golden_section(law, search.max_surface_error_mm, search.angle_tol_urad * 1e-6,
-                                 search.length_tol_mm)
+            res = golden_section(
+                law, search.max_surface_error_mm, search.angle_tol_urad * 1e-6, search.length_tol_mm
+            )
         others = [fb for j, fb in enumerate(fb_cams) if j != c]
         if forced:
             others = others[: max(max_cameras - 1, 0)]
@@ -138,11 +164,33 @@ def measure(images: list[NDArray], calibs: list[ViewVectorCalibration], cad: Smo
         out["cos_incidence"].append(np.abs(np.einsum("ij,ij->i", prob.dirs, fb.normals))[keep])
         out["points_single"].append(res.points[keep])
     cat = {k: np.concatenate(v) for k, v in out.items()}
-    c = check_consistency(cat["residual"], cat["curvature"], cat["n_cameras"], cat["cos_incidence"],
-                          search.outlier_alpha, search.max_depth_sigma_mm)
-    return GlassMeasurement(**cat, accepted=c.accepted, p_value=c.p_value, depth_sigma_mm=c.depth_sigma_mm,
-                            normal_sigma_rad=c.sigma_rad)
+    c = check_consistency(
+        cat["residual"],
+        cat["curvature"],
+        cat["n_cameras"],
+        cat["cos_incidence"],
+        search.outlier_alpha,
+        search.max_depth_sigma_mm,
+    )
+    return GlassMeasurement(
+        **cat,
+        accepted=c.accepted,
+        p_value=c.p_value,
+        depth_sigma_mm=c.depth_sigma_mm,
+        normal_sigma_rad=c.sigma_rad,
+    )
 
 
-_PER_CAMERA = ("points", "normals", "camera", "dot", "n_cameras", "theta", "iterations", "residual",
-               "curvature", "cos_incidence", "points_single")
+_PER_CAMERA = (
+    "points",
+    "normals",
+    "camera",
+    "dot",
+    "n_cameras",
+    "theta",
+    "iterations",
+    "residual",
+    "curvature",
+    "cos_incidence",
+    "points_single",
+)

@@ -43,16 +43,19 @@ def grab_mean(rig: GlassRig, frames: int) -> list[NDArray[np.float32]]:
     return [(a / frames).astype(np.float32) for a in acc]
 
 
-def calibrate_rig(rig: GlassRig, cfg: GlassRigConfig, place_board: BoardPlacer,
-                  frames: int) -> list[ViewVectorCalibration]:
+def calibrate_rig(
+    rig: GlassRig, cfg: GlassRigConfig, place_board: BoardPlacer, frames: int
+) -> list[ViewVectorCalibration]:
     """Vector calibration of every camera (2.6): the board at its two heights, ``frames`` grabs averaged."""
     boards = []
     for h in cfg.board.heights_mm:
         place_board(h)
         boards.append(grab_mean(rig, frames))
     place_board(None)
-    return [calibrate_view_vectors((boards[0][k], boards[1][k]), cfg.board, cam)
-            for k, cam in enumerate(cfg.cameras)]
+    return [
+        calibrate_view_vectors((boards[0][k], boards[1][k]), cfg.board, cam)
+        for k, cam in enumerate(cfg.cameras)
+    ]
 
 
 def load_calibrations(directory: Path, cfg: GlassRigConfig) -> list[ViewVectorCalibration] | None:
@@ -66,22 +69,33 @@ def load_calibrations(directory: Path, cfg: GlassRigConfig) -> list[ViewVectorCa
             raise CalibrationError(
                 f"{directory}: the calibration of '{cam.name}' is for serial {cal.serial} at "
                 f"{cal.resolution}, the rig has {cam.serial} at {(cam.width_px, cam.height_px)}; "
-                "recalibrate into an empty calibration_dir")
+                "recalibrate into an empty calibration_dir"
+            )
     return cals
 
 
-def run_glass_inspection(run: RunFolder, recipe: GlassRecipe, cfg: GlassRigConfig, rig: GlassRig,
-                         place_board: BoardPlacer, nominal_W: trimesh.Trimesh, frames: int = 4,
-                         board_frames: int = 8, move_screen: ScreenMover | None = None) -> dict[str, Any]:
+def run_glass_inspection(
+    run: RunFolder,
+    recipe: GlassRecipe,
+    cfg: GlassRigConfig,
+    rig: GlassRig,
+    place_board: BoardPlacer,
+    nominal_W: trimesh.Trimesh,
+    frames: int = 4,
+    board_frames: int = 8,
+    move_screen: ScreenMover | None = None,
+) -> dict[str, Any]:
     """Calibrate or load, grab, measure and report; returns the summary (verdict, counts, statistics).
     The multi-projection method (``recipe.search.method``) also grabs with the screen moved by
     ``move_screen`` to its second position."""
     t0 = time.monotonic()
     multi = recipe.search.method == "multi_projection"
     if multi and (move_screen is None or cfg.screen.second_T_W_S is None):
-        raise ConfigError("the multi-projection method needs a rig that moves its screen to a second known "
-                          "position: set screen.second_T_W_S in the rig config (simulated rig only)",
-                          field="search.method")
+        raise ConfigError(
+            "the multi-projection method needs a rig that moves its screen to a second known "
+            "position: set screen.second_T_W_S in the rig config (simulated rig only)",
+            field="search.method",
+        )
     rig.connect()
     try:
         cal_dir = recipe.calibration_dir
@@ -111,13 +125,23 @@ def run_glass_inspection(run: RunFolder, recipe: GlassRecipe, cfg: GlassRigConfi
             np.save(run.path / "views" / f"{cam.name}.screen2.npy", img)
     m = measure(images, cals, SmoothSurface(nominal_W), screen, recipe.search, second=second)
     run.log("measured", points=len(m.points), accepted=int(m.accepted.sum()))
-    return _report(run, recipe, nominal_W, m, {"calibration": source, "frames": frames,
-                                               "cameras": [c.name for c in cfg.cameras],
-                                               "seconds": round(time.monotonic() - t0, 2)})
+    return _report(
+        run,
+        recipe,
+        nominal_W,
+        m,
+        {
+            "calibration": source,
+            "frames": frames,
+            "cameras": [c.name for c in cfg.cameras],
+            "seconds": round(time.monotonic() - t0, 2),
+        },
+    )
 
 
-def _report(run: RunFolder, recipe: GlassRecipe, nominal_W: trimesh.Trimesh, m: GlassMeasurement,
-            meta: dict[str, Any]) -> dict[str, Any]:
+def _report(
+    run: RunFolder, recipe: GlassRecipe, nominal_W: trimesh.Trimesh, m: GlassMeasurement, meta: dict[str, Any]
+) -> dict[str, Any]:
     T_P_W = invert(recipe.part.T_W_P.matrix())
     nominal = NominalMesh.from_trimesh(nominal_W.copy().apply_transform(T_P_W))
     acc = m.accepted
@@ -126,60 +150,96 @@ def _report(run: RunFolder, recipe: GlassRecipe, nominal_W: trimesh.Trimesh, m: 
     dev = signed_distance(nominal, pts_P).deviation_mm
     unconfirmed = m.n_cameras < 2
     inconsistent = ~unconfirmed & ~acc & (m.p_value <= recipe.search.outlier_alpha)
-    excluded = {"unconfirmed_single_camera": int(unconfirmed.sum()),
-                "inconsistent_normals": int(inconsistent.sum()),
-                "depth_uncertain": int((~acc & ~unconfirmed & ~inconsistent).sum()), **nominal.excluded}
+    excluded = {
+        "unconfirmed_single_camera": int(unconfirmed.sum()),
+        "inconsistent_normals": int(inconsistent.sum()),
+        "depth_uncertain": int((~acc & ~unconfirmed & ~inconsistent).sum()),
+        **nominal.excluded,
+    }
     metadata = {
-        "part": recipe.name or recipe.part.cad.stem, "cad": str(recipe.part.cad),
+        "part": recipe.name or recipe.part.cad.stem,
+        "cad": str(recipe.part.cad),
         "method": "back-imaging glass (reflection search seeded by the CAD, multi-camera feedback, "
-                  "chi-square consistency test)",
+        "chi-square consistency test)",
         "search_method": recipe.search.method,
-        "markers": int(len(m.points)), "accepted": int(acc.sum()),
+        "markers": int(len(m.points)),
+        "accepted": int(acc.sum()),
         "normal_sigma_urad": round(m.normal_sigma_rad * 1e6, 2),
-        "depth_sigma_median_mm": float(np.median(m.depth_sigma_mm[acc])) if acc.any() else None, **meta,
+        "depth_sigma_median_mm": float(np.median(m.depth_sigma_mm[acc])) if acc.any() else None,
+        **meta,
     }
     r = run.results_dir
     tol = Tolerance(recipe.tolerance.lower, recipe.tolerance.upper)
-    inp = ReportInput(points_mm=pts_P, deviation_mm=dev, tolerance=tol, n_points_input=int(len(m.points)),
-                      excluded=excluded, metadata=metadata,
-                      link_radius_mm=glass_link_radius_mm(m.points[acc], m.camera[acc]) or None,
-                      warnings=[w for w in (nominal.sign_warning(),) if w])
+    inp = ReportInput(
+        points_mm=pts_P,
+        deviation_mm=dev,
+        tolerance=tol,
+        n_points_input=int(len(m.points)),
+        excluded=excluded,
+        metadata=metadata,
+        link_radius_mm=glass_link_radius_mm(m.points[acc], m.camera[acc]) or None,
+        warnings=[w for w in (nominal.sign_warning(),) if w],
+    )
     doc = write_report(r, inp)
     write_normals_ply(r / "normals.ply", pts_P, normals_P, dev)
-    np.savez_compressed(r / "glass_points.npz", points_W=m.points, normals_W=m.normals, accepted=acc,
-                        camera=m.camera, dot=m.dot, n_cameras=m.n_cameras, p_value=m.p_value,
-                        depth_sigma_mm=m.depth_sigma_mm, points_single_W=m.points_single)
-    summary = {"verdict": doc["verdict"], "n_points": doc["n_points"], "markers": int(len(m.points)),
-               "deviation": doc["deviation"]}
+    np.savez_compressed(
+        r / "glass_points.npz",
+        points_W=m.points,
+        normals_W=m.normals,
+        accepted=acc,
+        camera=m.camera,
+        dot=m.dot,
+        n_cameras=m.n_cameras,
+        p_value=m.p_value,
+        depth_sigma_mm=m.depth_sigma_mm,
+        points_single_W=m.points_single,
+    )
+    summary = {
+        "verdict": doc["verdict"],
+        "n_points": doc["n_points"],
+        "markers": int(len(m.points)),
+        "deviation": doc["deviation"],
+    }
     run.log("reported", **summary)
     return summary
 
 
-def glass_link_radius_mm(points: NDArray[np.float64], camera: NDArray[np.int64],
-                         factor: float = 1.5) -> float:
+def glass_link_radius_mm(
+    points: NDArray[np.float64], camera: NDArray[np.int64], factor: float = 1.5
+) -> float:
     """Link radius (mm) for grouping out-of-tolerance glass points into regions: ``factor`` x the median
     nearest-neighbour spacing within one camera's points (one point per marker). The report's default, 3x
     the spacing of the merged cloud, is set by the near-coincident points of different cameras and splits
     one defect into many regions."""
-    gaps = [cKDTree(points[camera == c]).query(points[camera == c], k=2)[0][:, 1]
-            for c in np.unique(camera) if np.sum(camera == c) > 1]
+    gaps = [
+        cKDTree(points[camera == c]).query(points[camera == c], k=2)[0][:, 1]
+        for c in np.unique(camera)
+        if np.sum(camera == c) > 1
+    ]
     return factor * float(np.median(np.concatenate(gaps))) if gaps else 0.0
 
 
-def write_normals_ply(path: Path, points: NDArray[np.float64], normals: NDArray[np.float64],
-                      deviation: Sequence[float] | NDArray[np.float64]) -> None:
+def write_normals_ply(
+    path: Path,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    deviation: Sequence[float] | NDArray[np.float64],
+) -> None:
     """Binary little-endian PLY: x, y, z, nx, ny, nz (double) and ``deviation`` (float) per vertex.
 
     Written with a numpy structured array (a dozen lines) rather than trimesh, whose point-cloud export
     drops normals and custom scalar fields.
     """
-    rec = np.empty(len(points), dtype=[*((k, "<f8") for k in ("x", "y", "z", "nx", "ny", "nz")),
-                                       ("deviation", "<f4")])
+    rec = np.empty(
+        len(points), dtype=[*((k, "<f8") for k in ("x", "y", "z", "nx", "ny", "nz")), ("deviation", "<f4")]
+    )
     for i, k in enumerate(("x", "y", "z")):
         rec[k] = points[:, i]
         rec["n" + k] = normals[:, i]
     rec["deviation"] = np.asarray(deviation, np.float32)
     props = "".join(f"property double {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz"))
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n{props}"
-              "property float deviation\nend_header\n")
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n{props}"
+        "property float deviation\nend_header\n"
+    )
     path.write_bytes(header.encode("ascii") + rec.tobytes())

@@ -39,9 +39,15 @@ def local_background(image: NDArray, window_px: int) -> NDArray[np.float32]:
     return cv2.blur(bright, (window_px, window_px))
 
 
-def detect_dots(image: NDArray, dark_fraction: float = 0.5, window_px: int = 25, min_area_px: int = 4,
-                max_area_px: int = 2000, min_background: float = 20.0,
-                full_profile_px: int = 0) -> DotDetections:
+def detect_dots(
+    image: NDArray,
+    dark_fraction: float = 0.5,
+    window_px: int = 25,
+    min_area_px: int = 4,
+    max_area_px: int = 2000,
+    min_background: float = 20.0,
+    full_profile_px: int = 0,
+) -> DotDetections:
     """Find dark dots on a bright background and their intensity-weighted centroids (eq 2.14).
 
     A pixel belongs to a dot when it is below ``dark_fraction`` of the local background (``window_px`` must
@@ -88,8 +94,9 @@ def detect_dots(image: NDArray, dark_fraction: float = 0.5, window_px: int = 25,
     return DotDetections(np.column_stack([cu, cv])[keep], area[keep].astype(np.int64), 1 - darkest[keep])
 
 
-def identify(predicted_mm: NDArray[np.float64], dots_mm: NDArray[np.float64],
-             gate_mm: float) -> NDArray[np.int64]:
+def identify(
+    predicted_mm: NDArray[np.float64], dots_mm: NDArray[np.float64], gate_mm: float
+) -> NDArray[np.int64]:
     """Which dot each detection is: the dot nearest to the detection's predicted plane position (N, 2), if
     within ``gate_mm``; -1 otherwise. When several detections claim one dot only the closest keeps it."""
     ids = np.full(len(predicted_mm), -1, dtype=np.int64)

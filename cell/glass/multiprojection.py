@@ -26,8 +26,9 @@ def screen_points_W(T_W_S: NDArray[np.float64], xy: NDArray[np.float64]) -> NDAr
     return xy[:, 0:1] * T_W_S[:3, 0] + xy[:, 1:2] * T_W_S[:3, 1] + T_W_S[:3, 3]
 
 
-def closest_approach_t(o: NDArray[np.float64], u: NDArray[np.float64], a: NDArray[np.float64],
-                       w: NDArray[np.float64]) -> NDArray[np.float64]:
+def closest_approach_t(
+    o: NDArray[np.float64], u: NDArray[np.float64], a: NDArray[np.float64], w: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """Parameter t on the lines o + t u where they pass closest to the lines a + s w (N each)."""
     r = o - a
     uu, uw, ww = (np.einsum("ij,ij->i", x, y) for x, y in ((u, u), (u, w), (w, w)))
@@ -37,8 +38,13 @@ def closest_approach_t(o: NDArray[np.float64], u: NDArray[np.float64], a: NDArra
         return (uw * wr - ww * ur) / den
 
 
-def multi_projection(law: ReflectionLaw, pixels: NDArray[np.float64], second_pixels: NDArray[np.float64],
-                     second_xy: NDArray[np.float64], second: MarkerScreen) -> SearchResult:
+def multi_projection(
+    law: ReflectionLaw,
+    pixels: NDArray[np.float64],
+    second_pixels: NDArray[np.float64],
+    second_xy: NDArray[np.float64],
+    second: MarkerScreen,
+) -> SearchResult:
     """Surface points of ``law``'s markers (seen at ``pixels``, N x 2) from the second screen position:
     ``second_pixels`` / ``second_xy`` are the markers identified in that image (pixel, screen mm in {S}).
     ``ok`` is False where the second image has no markers around the pixel. ``iterations`` is 0 (no search);

@@ -84,12 +84,25 @@ class ReflectionLaw:
         return np.nan_to_num(np.arctan2(s, c), nan=np.inf)
 
     def result(self, t: NDArray[np.float64], iterations: NDArray[np.int64]) -> SearchResult:
-        return SearchResult(t, self.p.origins + t[:, None] * self.p.dirs, self.required_normal(t),
-                            self.theta(t), iterations, self.ok.copy())
+        return SearchResult(
+            t,
+            self.p.origins + t[:, None] * self.p.dirs,
+            self.required_normal(t),
+            self.theta(t),
+            iterations,
+            self.ok.copy(),
+        )
 
 
-def golden_minimize(f, a: NDArray[np.float64], b: NDArray[np.float64], active: NDArray[np.bool_],
-                    length_tol: float, value_tol: float = 0.0, max_iter: int = 80):  # noqa: ANN001
+def golden_minimize(
+    f,
+    a: NDArray[np.float64],
+    b: NDArray[np.float64],
+    active: NDArray[np.bool_],
+    length_tol: float,
+    value_tol: float = 0.0,
+    max_iter: int = 80,
+):  # noqa: ANN001
     """Vectorised golden-section minimisation of ``f(t, idx)`` on [a, b] for every active entry; an entry
     stops when its interval is shorter than ``length_tol`` or its best value is below ``value_tol``.
     Returns the best t and the number of evaluations of f per entry."""
@@ -119,8 +132,13 @@ def golden_minimize(f, a: NDArray[np.float64], b: NDArray[np.float64], active: N
     return np.where(fc < fd, c, d), its
 
 
-def golden_section(law: ReflectionLaw, max_error_mm: float, angle_tol_rad: float,
-                   length_tol_mm: float = 2e-4, max_iter: int = 80) -> SearchResult:
+def golden_section(
+    law: ReflectionLaw,
+    max_error_mm: float,
+    angle_tol_rad: float,
+    length_tol_mm: float = 2e-4,
+    max_iter: int = 80,
+) -> SearchResult:
     """Golden-section search of theta on the eq 2.13 interval (2.3.4); each marker stops when theta is below
     ``angle_tol_rad`` or its interval is shorter than ``length_tol_mm``. ``iterations`` counts theta
     evaluations per marker."""
@@ -129,8 +147,13 @@ def golden_section(law: ReflectionLaw, max_error_mm: float, angle_tol_rad: float
     return law.result(t, its)
 
 
-def stepwise(law: ReflectionLaw, step_mm: float, angle_tol_rad: float, length_tol_mm: float = 2e-4,
-             max_iter: int = 5000) -> SearchResult:
+def stepwise(
+    law: ReflectionLaw,
+    step_mm: float,
+    angle_tol_rad: float,
+    length_tol_mm: float = 2e-4,
+    max_iter: int = 5000,
+) -> SearchResult:
     """Step-wise iterative search (2.3.3): walk from the CAD seed in steps of ``step_mm`` while theta falls;
     when it rises, turn back with half the step; stop at theta below ``angle_tol_rad`` or a step below
     ``length_tol_mm``. ``iterations`` counts theta evaluations per marker."""

@@ -92,8 +92,9 @@ def rotate(R: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64
     return v[:, 0:1] * R[:, 0] + v[:, 1:2] * R[:, 1] + v[:, 2:3] * R[:, 2]
 
 
-def plane_hits(origins: NDArray[np.float64], dirs: NDArray[np.float64],
-               T_W_S: NDArray[np.float64]) -> NDArray[np.float64]:
+def plane_hits(
+    origins: NDArray[np.float64], dirs: NDArray[np.float64], T_W_S: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """(N, 2) coordinates (mm) in the plane z=0 of {S} where rays from its front (+z side) meet it; NaN
     where a ray misses, runs away from it or starts behind it."""
     R_S_W = T_W_S[:3, :3].T

@@ -16,8 +16,9 @@ from cell.planning.sensor_model import SensorModel
 from cell.planning.surface import PartSurface
 
 
-def covered_by_points(surface: PartSurface, measured_W: NDArray[np.float64], density_per_mm2: float,
-                      radius_mm: float) -> NDArray[np.bool_]:
+def covered_by_points(
+    surface: PartSurface, measured_W: NDArray[np.float64], density_per_mm2: float, radius_mm: float
+) -> NDArray[np.bool_]:
     """Per sample: enough measured points (world mm) near it."""
     if len(measured_W) == 0:
         return np.zeros(len(surface.points), dtype=bool)

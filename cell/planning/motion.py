@@ -99,8 +99,11 @@ class MotionPlanner:
             # the sample's duration as the robot times it: translation at the TCP speed, rotation at the
             # joint speed limit, whichever takes longer (a pure reorientation is not a singularity)
             turn = float(np.linalg.norm(Rotation.from_matrix(T_prev[:3, :3].T @ T[:3, :3]).as_rotvec()))
-            dt = max(np.linalg.norm(T[:3, 3] - T_prev[:3, 3]) / self.tcp_speed_mm_s,
-                     turn / self.joint_speed_limit, 1e-6)
+            dt = max(
+                np.linalg.norm(T[:3, 3] - T_prev[:3, 3]) / self.tcp_speed_mm_s,
+                turn / self.joint_speed_limit,
+                1e-6,
+            )
             worst = max(worst, float(np.abs(q_next - q).max() / dt))
             q = q_next
         scale = min(1.0, 0.9 * self.joint_speed_limit / worst) if worst > 0 else 1.0

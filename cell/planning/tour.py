@@ -43,7 +43,7 @@ def order_tour(cost: NDArray[np.float64], start: int = 0) -> list[int]:
                 old = cost[a, b] + (cost[c, d] if d is not None else 0.0)
                 new = cost[a, c] + (cost[b, d] if d is not None else 0.0)
                 if new < old - 1e-9:
-                    tour[i:k + 1] = tour[i:k + 1][::-1]
+                    tour[i : k + 1] = tour[i : k + 1][::-1]
                     improved = True
     return tour
 

@@ -54,8 +54,20 @@ def _min_nan(a, b):  # noqa: ANN001, ANN202
 
 
 @nb.njit(cache=True, parallel=True)
-def gcls_axis(stack, gray_idx, shift_idx, base, mod, n_codes, shift_px, offset_px, edge_frac,  # noqa: ANN001
-              u, reasons, sharp):  # noqa: ANN001, ANN201
+def gcls_axis(
+    stack,
+    gray_idx,
+    shift_idx,
+    base,
+    mod,
+    n_codes,
+    shift_px,
+    offset_px,
+    edge_frac,  # noqa: ANN001
+    u,
+    reasons,
+    sharp,
+):  # noqa: ANN001, ANN201
     """Decode one coded axis; rows of the (N, R, C) ``stack`` run along the coded axis.
 
     ``gray_idx`` / ``shift_idx`` (k, 2) frame indices of each pattern and its inverse; ``base`` and ``mod``

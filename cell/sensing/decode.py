@@ -83,8 +83,9 @@ def _diff(stack: NDArray, i: int, j: int) -> NDArray:
     return np.subtract(stack[i], stack[j], dtype=dt)
 
 
-def _gray_stripe(stack: NDArray, ps: PatternSet, code: AxisCode, tag: str, mod_thr: NDArray
-                 ) -> tuple[NDArray[np.int32], NDArray[np.bool_]]:
+def _gray_stripe(
+    stack: NDArray, ps: PatternSet, code: AxisCode, tag: str, mod_thr: NDArray
+) -> tuple[NDArray[np.int32], NDArray[np.bool_]]:
     """Gray stripe index per pixel and whether the pixel is inside the coded range (all but at most one
     Gray pattern show a clear pattern/inverse difference there; only one bit changes at any boundary)."""
     g = np.zeros(stack.shape[1:], np.int32)
@@ -104,14 +105,24 @@ def _unwrap(r: NDArray, period: int, estimate: NDArray) -> NDArray:
     return r + period * np.rint((estimate - r) / period).astype(np.int32)
 
 
-def _decode_gcls_axis(stack: NDArray, ps: PatternSet, code: AxisCode, base: NDArray[np.uint8],
-                      mod: NDArray[np.float32], p: DecodeParams) -> AxisDecode:
+def _decode_gcls_axis(
+    stack: NDArray,
+    ps: PatternSet,
+    code: AxisCode,
+    base: NDArray[np.uint8],
+    mod: NDArray[np.float32],
+    p: DecodeParams,
+) -> AxisDecode:
     """One axis through the compiled per-row kernel (:mod:`cell.sensing._gcls_kernel`), which walks camera
     rows; row stripes are decoded on transposed copies of their frames (contiguous, so the kernel streams
     memory) and the results transposed back."""
     tag = "col" if code.axis == "columns" else "row"
-    names = [f"{tag}_{kind}{k}{inv}" for kind, m in (("gray", code.n_gray), ("shift", code.n_shifts))
-             for k in range(m) for inv in ("", "_inv")]
+    names = [
+        f"{tag}_{kind}{k}{inv}"
+        for kind, m in (("gray", code.n_gray), ("shift", code.n_shifts))
+        for k in range(m)
+        for inv in ("", "_inv")
+    ]
     frames = [ps.index(nm) for nm in names]
     if code.axis == "rows":
         sub = np.empty((len(frames),) + stack.shape[:0:-1], stack.dtype)
@@ -124,16 +135,33 @@ def _decode_gcls_axis(stack: NDArray, ps: PatternSet, code: AxisCode, base: NDAr
     u = np.empty((R, C), np.float32)
     reasons = np.empty((R, C), np.uint8)
     sharp = np.empty((R, C), np.float32)
-    n_edges = _gcls_kernel.gcls_axis(np.ascontiguousarray(stack), pairs[:code.n_gray], pairs[code.n_gray:],
-                                     base, mod, code.n_codes, code.shift_px, code.offset_px,
-                                     np.float32(p.min_edge_frac * 0.5), u, reasons, sharp)
+    n_edges = _gcls_kernel.gcls_axis(
+        np.ascontiguousarray(stack),
+        pairs[: code.n_gray],
+        pairs[code.n_gray :],
+        base,
+        mod,
+        code.n_codes,
+        code.shift_px,
+        code.offset_px,
+        np.float32(p.min_edge_frac * 0.5),
+        u,
+        reasons,
+        sharp,
+    )
     if code.axis == "rows":
         u, reasons, sharp = (np.ascontiguousarray(a.T) for a in (u, reasons, sharp))
     return AxisDecode(code.axis, u, reasons, sharp, int(n_edges))
 
 
-def _decode_gcps_axis(stack: NDArray, ps: PatternSet, code: AxisCode, base: NDArray[np.uint8],
-                      mod: NDArray[np.float32], p: DecodeParams) -> AxisDecode:
+def _decode_gcps_axis(
+    stack: NDArray,
+    ps: PatternSet,
+    code: AxisCode,
+    base: NDArray[np.uint8],
+    mod: NDArray[np.float32],
+    p: DecodeParams,
+) -> AxisDecode:
     tag = "col" if code.axis == "columns" else "row"
     G, coded = _gray_stripe(stack, ps, code, tag, 0.5 * mod)
     N = code.n_phase
@@ -160,14 +188,16 @@ def _decode_gcps_axis(stack: NDArray, ps: PatternSet, code: AxisCode, base: NDAr
     return AxisDecode(code.axis, u, reasons, ratio.astype(np.float32))
 
 
-def decode(stack: NDArray, patterns: PatternSet, bit_depth: int = 8, params: DecodeParams = DecodeParams()
-           ) -> Decoded:
+def decode(
+    stack: NDArray, patterns: PatternSet, bit_depth: int = 8, params: DecodeParams = DecodeParams()
+) -> Decoded:
     """Decode a checked (N, H, W) stack (see :func:`cell.sensing.stack.check_stack`) of ``patterns``."""
     top = 2**bit_depth - 1
     white = stack[patterns.index("white")]
     black = stack[patterns.index("black")]
-    mod, contrast, base = _gcls_kernel.reference_masks(white, black, top, np.float32(params.dark_frac * top),
-                                                       np.float32(params.min_contrast))
+    mod, contrast, base = _gcls_kernel.reference_masks(
+        white, black, top, np.float32(params.dark_frac * top), np.float32(params.min_contrast)
+    )
     axes: dict[str, AxisDecode] = {}
     for code in patterns.codes:
         if patterns.codec == "gcls":
@@ -175,8 +205,14 @@ def decode(stack: NDArray, patterns: PatternSet, bit_depth: int = 8, params: Dec
         elif code.axis == "columns":
             axes[code.axis] = _decode_gcps_axis(stack, patterns, code, base, mod, params)
         else:  # row stripes: phase runs along camera columns; decode the transposed images
-            ad = _decode_gcps_axis(stack.transpose(0, 2, 1), patterns, code, np.ascontiguousarray(base.T),
-                                   np.ascontiguousarray(mod.T), params)
+            ad = _decode_gcps_axis(
+                stack.transpose(0, 2, 1),
+                patterns,
+                code,
+                np.ascontiguousarray(base.T),
+                np.ascontiguousarray(mod.T),
+                params,
+            )
             u, reasons, sharp = (np.ascontiguousarray(a.T) for a in (ad.u, ad.reasons, ad.sharpness))
             axes[code.axis] = AxisDecode("rows", u, reasons, sharp)
     return Decoded(axes, contrast, mod)

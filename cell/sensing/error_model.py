@@ -12,8 +12,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 
-def one_pixel_error(res_mm: ArrayLike, S_mm: ArrayLike, d_mm: ArrayLike, m_px: ArrayLike
-                    ) -> NDArray[np.float64]:
+def one_pixel_error(
+    res_mm: ArrayLike, S_mm: ArrayLike, d_mm: ArrayLike, m_px: ArrayLike
+) -> NDArray[np.float64]:
     """Height error (mm) caused by a one-pixel error in L at pixel distance ``m_px`` (eq 2.5); broadcasts."""
     res = np.asarray(res_mm, dtype=np.float64)
     S = np.asarray(S_mm, dtype=np.float64)
@@ -25,17 +26,30 @@ def one_pixel_error(res_mm: ArrayLike, S_mm: ArrayLike, d_mm: ArrayLike, m_px: A
 # The three tables of the dissertation: (title, varied parameter name, its values, fixed parameters).
 M_ROWS: tuple[int, ...] = (53, 64, 87)
 TABLES: tuple[tuple[str, str, tuple[float, ...], dict[str, float]], ...] = (
-    ("Table 2.1. One-Pix Error Analysis, res=0.151, S=393.7, unit: mm", "d",
-     (114.7, 213.4, 315.6, 429.3), {"res": 0.151, "S": 393.7}),
-    ("Table 2.2. One-Pix Error Analysis, d=429.3, S=393.7, unit: mm", "res",
-     (0.192, 0.174, 0.151, 0.078), {"d": 429.3, "S": 393.7}),
-    ("Table 2.3. One-Pix Error Analysis, d=429.3, res=0.078, unit: mm", "S",
-     (451.6, 434.7, 420.5, 393.7), {"d": 429.3, "res": 0.078}),
+    (
+        "Table 2.1. One-Pix Error Analysis, res=0.151, S=393.7, unit: mm",
+        "d",
+        (114.7, 213.4, 315.6, 429.3),
+        {"res": 0.151, "S": 393.7},
+    ),
+    (
+        "Table 2.2. One-Pix Error Analysis, d=429.3, S=393.7, unit: mm",
+        "res",
+        (0.192, 0.174, 0.151, 0.078),
+        {"d": 429.3, "S": 393.7},
+    ),
+    (
+        "Table 2.3. One-Pix Error Analysis, d=429.3, res=0.078, unit: mm",
+        "S",
+        (451.6, 434.7, 420.5, 393.7),
+        {"d": 429.3, "res": 0.078},
+    ),
 )
 
 
-def error_table(varied: str, values: tuple[float, ...], fixed: dict[str, float],
-                m_rows: tuple[int, ...] = M_ROWS) -> NDArray[np.float64]:
+def error_table(
+    varied: str, values: tuple[float, ...], fixed: dict[str, float], m_rows: tuple[int, ...] = M_ROWS
+) -> NDArray[np.float64]:
     """(len(m_rows), len(values)) array of eq 2.5 with one parameter (``res``, ``S`` or ``d``) varied."""
     params = {k: np.asarray(v, dtype=np.float64) for k, v in fixed.items()}
     params[varied] = np.asarray(values, dtype=np.float64)[None, :]

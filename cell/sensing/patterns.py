@@ -113,8 +113,9 @@ def _axis_frames(code: AxisCode, length: int) -> tuple[list[str], list[NDArray[n
     return names, profiles
 
 
-def _axis_code(axis: Axis, length: int, stripe_px: int, n_gray: int | None, n_shifts: int,
-               n_phase: int) -> AxisCode:
+def _axis_code(
+    axis: Axis, length: int, stripe_px: int, n_gray: int | None, n_shifts: int, n_phase: int
+) -> AxisCode:
     if stripe_px < 2:
         raise ConfigError(f"stripe width {stripe_px} px: must be at least 2 projector pixels")
     if n_shifts and stripe_px % n_shifts:
@@ -123,8 +124,10 @@ def _axis_code(axis: Axis, length: int, stripe_px: int, n_gray: int | None, n_sh
         n_gray = max(1, int(np.ceil(np.log2(length / stripe_px))))
     extent = (1 << n_gray) * stripe_px
     if extent > 2 * length:
-        raise ConfigError(f"{n_gray} Gray patterns of {stripe_px} px stripes span {extent} px, "
-                          f"far more than the projector's {length} px")
+        raise ConfigError(
+            f"{n_gray} Gray patterns of {stripe_px} px stripes span {extent} px, "
+            f"far more than the projector's {length} px"
+        )
     offset = max(0, (length - extent) // 2)  # centre the coded range when it is shorter than the axis
     return AxisCode(axis, n_gray, stripe_px, n_shifts, n_phase, offset)
 
@@ -136,8 +139,9 @@ def _assemble(codec: Codec, width: int, height: int, codes: list[AxisCode]) -> P
         n, profiles = _axis_frames(code, width if code.axis == "columns" else height)
         names += n
         for p in profiles:
-            frames.append(np.broadcast_to(p[None, :] if code.axis == "columns" else p[:, None],
-                                          (height, width)).copy())
+            frames.append(
+                np.broadcast_to(p[None, :] if code.axis == "columns" else p[:, None], (height, width)).copy()
+            )
     return PatternSet(codec, width, height, tuple(codes), tuple(names), np.stack(frames))
 
 
@@ -147,32 +151,49 @@ def _axes(direction: Direction) -> list[Axis]:
     return ["columns", "rows"] if direction == "both" else [direction]  # type: ignore[list-item]
 
 
-def gcls_patterns(width_px: int = 1024, height_px: int = 768, stripe_px: int = 12, n_shifts: int = 12,
-                  direction: Direction = "columns", n_gray: int | None = None) -> PatternSet:
+def gcls_patterns(
+    width_px: int = 1024,
+    height_px: int = 768,
+    stripe_px: int = 12,
+    n_shifts: int = 12,
+    direction: Direction = "columns",
+    n_gray: int | None = None,
+) -> PatternSet:
     """GCLS set: white, black, then per axis Gray patterns and line-shift square waves, each with its inverse.
 
     ``n_gray=None`` picks the fewest Gray patterns whose stripes cover the axis.
     """
     if n_shifts < 1:
         raise ConfigError("GCLS needs at least one line shift")
-    codes = [_axis_code(a, width_px if a == "columns" else height_px, stripe_px, n_gray, n_shifts, 0)
-             for a in _axes(direction)]
+    codes = [
+        _axis_code(a, width_px if a == "columns" else height_px, stripe_px, n_gray, n_shifts, 0)
+        for a in _axes(direction)
+    ]
     return _assemble("gcls", width_px, height_px, codes)
 
 
-def gcps_patterns(width_px: int = 1024, height_px: int = 768, stripe_px: int = 12, n_phase: int = 4,
-                  direction: Direction = "columns", n_gray: int | None = None) -> PatternSet:
+def gcps_patterns(
+    width_px: int = 1024,
+    height_px: int = 768,
+    stripe_px: int = 12,
+    n_phase: int = 4,
+    direction: Direction = "columns",
+    n_gray: int | None = None,
+) -> PatternSet:
     """GCPS baseline: white, black, Gray patterns with inverses, then ``n_phase`` sinusoids of period
     2*stripe."""
     if n_phase < 3:
         raise ConfigError("phase shifting needs at least 3 steps")
-    codes = [_axis_code(a, width_px if a == "columns" else height_px, stripe_px, n_gray, 0, n_phase)
-             for a in _axes(direction)]
+    codes = [
+        _axis_code(a, width_px if a == "columns" else height_px, stripe_px, n_gray, 0, n_phase)
+        for a in _axes(direction)
+    ]
     return _assemble("gcps", width_px, height_px, codes)
 
 
-def dissertation_gcls(spacing: Literal["full", "0.4mm"] = "full", direction: Direction = "columns"
-                      ) -> PatternSet:
+def dissertation_gcls(
+    spacing: Literal["full", "0.4mm"] = "full", direction: Direction = "columns"
+) -> PatternSet:
     """The dissertation's example sets on a 1024x768 projector: 6 Gray patterns -> 64 stripes of 12 px, then
     12 shifts of 1 px (768 codes) or, for 0.4 mm point spacing, 6 shifts of 2 px (384 codes)."""
     return gcls_patterns(1024, 768, 12, 12 if spacing == "full" else 6, direction, n_gray=6)

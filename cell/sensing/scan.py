@@ -32,8 +32,9 @@ class ViewScan:
         return out
 
 
-def capture_stack(camera: Camera, projector: Projector, patterns: PatternSet, timeout_ms: float = 2000.0
-                  ) -> list[NDArray]:
+def capture_stack(
+    camera: Camera, projector: Projector, patterns: PatternSet, timeout_ms: float = 2000.0
+) -> list[NDArray]:
     """Show every frame of ``patterns`` in order and grab one camera image of each (software trigger)."""
     projector.load_sequence(list(patterns.frames))
     images = []
@@ -44,8 +45,16 @@ def capture_stack(camera: Camera, projector: Projector, patterns: PatternSet, ti
     return images
 
 
-def scan_view(camera: Camera, projector: Projector, patterns: PatternSet, triangulator: Triangulator, *,
-              bit_depth: int, params: DecodeParams = DecodeParams(), timeout_ms: float = 2000.0) -> ViewScan:
+def scan_view(
+    camera: Camera,
+    projector: Projector,
+    patterns: PatternSet,
+    triangulator: Triangulator,
+    *,
+    bit_depth: int,
+    params: DecodeParams = DecodeParams(),
+    timeout_ms: float = 2000.0,
+) -> ViewScan:
     """Capture, check, decode and triangulate one view. Devices must be connected, the projector on HDMI and
     the camera in software-trigger mode with ``bit_depth`` pixels."""
     t0 = time.perf_counter()

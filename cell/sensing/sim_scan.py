@@ -56,17 +56,26 @@ def write_ply(path: Path, points: NDArray) -> None:
     trimesh.PointCloud(np.asarray(points, dtype=np.float64)).export(str(path), file_type="ply")
 
 
-def run_sim_scan(cfg: CellConfig, part_path: Path | None, T_W_C: NDArray[np.float64] | None, codec: str,
-                 model: str, out: Path, seed: int | None = None) -> dict[str, Any]:
+def run_sim_scan(
+    cfg: CellConfig,
+    part_path: Path | None,
+    T_W_C: NDArray[np.float64] | None,
+    codec: str,
+    model: str,
+    out: Path,
+    seed: int | None = None,
+) -> dict[str, Any]:
     """Scan ``part_path`` (world mm) from camera pose ``T_W_C`` (None: :func:`auto_pose`); write cloud.ply and
     masks.png to ``out`` and return the scan.json content (timings, counts per reason, poses)."""
     from cell.devices import build_devices
     from cell.mesh import load_mesh
 
     if cfg.sensor.camera.driver != "sim":
-        raise ConfigError("cell scan triangulates with the simulator's known geometry until sensor "
-                          "calibration exists; use a cell whose drivers are all 'sim'",
-                          field="sensor.camera.driver")
+        raise ConfigError(
+            "cell scan triangulates with the simulator's known geometry until sensor "
+            "calibration exists; use a cell whose drivers are all 'sim'",
+            field="sensor.camera.driver",
+        )
     part_W = load_mesh(part_path) if part_path is not None else None
     if T_W_C is None:
         T_W_C = auto_pose(part_W, cfg.sensor.standoff_mm)
@@ -77,8 +86,14 @@ def run_sim_scan(cfg: CellConfig, part_path: Path | None, T_W_C: NDArray[np.floa
     try:
         dev.projector.set_power(True)
         dev.projector.set_source(ProjectorSource.HDMI)
-        dev.camera.configure(CameraSettings(cam_cfg.exposure_ms, cam_cfg.gain_db,
-                                            PixelFormat(f"Mono{cam_cfg.bit_depth}"), TriggerMode.SOFTWARE))
+        dev.camera.configure(
+            CameraSettings(
+                cam_cfg.exposure_ms,
+                cam_cfg.gain_db,
+                PixelFormat(f"Mono{cam_cfg.bit_depth}"),
+                TriggerMode.SOFTWARE,
+            )
+        )
         T_B_T = invert(cfg.robot.T_W_B.matrix()) @ T_W_C @ invert(cfg.sensor.T_T_C.matrix())
         # A joint move: a straight line from home may pass the base axis; IK picks the branch nearest to now.
         q = UR5E.ik_nearest(T_B_T, dev.robot.joints())
@@ -86,10 +101,14 @@ def run_sim_scan(cfg: CellConfig, part_path: Path | None, T_W_C: NDArray[np.floa
         T_W_C_actual = dev.sim.camera_pose()
         make = gcls_patterns if codec == "gcls" else gcps_patterns
         extra = {"n_shifts": 12} if codec == "gcls" else {"n_phase": 24}  # same number of images (38 at XGA)
-        patterns = make(proj_cfg.width_px, proj_cfg.height_px, 12, **extra,
-                        n_gray=6 if proj_cfg.width_px >= 768 else None)
-        tri = (PinholeTriangulator.from_sensor(cfg.sensor) if model == "pinhole"
-               else reference_model_from_geometry(cfg.sensor))
+        patterns = make(
+            proj_cfg.width_px, proj_cfg.height_px, 12, **extra, n_gray=6 if proj_cfg.width_px >= 768 else None
+        )
+        tri = (
+            PinholeTriangulator.from_sensor(cfg.sensor)
+            if model == "pinhole"
+            else reference_model_from_geometry(cfg.sensor)
+        )
         view: ViewScan = scan_view(dev.camera, dev.projector, patterns, tri, bit_depth=cam_cfg.bit_depth)
     finally:
         for _, d in dev.items():
@@ -106,8 +125,11 @@ def run_sim_scan(cfg: CellConfig, part_path: Path | None, T_W_C: NDArray[np.floa
         "triangulation": model,
         "geometry_source": "simulator: the cell config's sensor geometry (no sensor calibration yet)",
         "part": str(part_path) if part_path else None,
-        "pose": {"T_W_C": T_W_C_actual.tolist(), "T_B_T": T_B_T.tolist(),
-                 "camera_xyz_rotvec": pose_to_xyz_rotvec(T_W_C_actual).tolist()},
+        "pose": {
+            "T_W_C": T_W_C_actual.tolist(),
+            "T_B_T": T_B_T.tolist(),
+            "camera_xyz_rotvec": pose_to_xyz_rotvec(T_W_C_actual).tolist(),
+        },
         "counts": view.reason_counts(),
         "mask_colours_bgr": {r.name.lower(): c for r, c in MASK_COLOURS},
         "timings_s": dict(view.timings_s),

@@ -54,8 +54,9 @@ class Triangulator(Protocol):
     def triangulate(self, decoded: Decoded) -> SensorCloud: ...
 
 
-def normalized_coords(K: NDArray[np.float64], dist: NDArray[np.float64], width: int, height: int
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def normalized_coords(
+    K: NDArray[np.float64], dist: NDArray[np.float64], width: int, height: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Undistorted normalised image coordinates (x_n, y_n), each (H, W), of every pixel centre."""
     return _normalized(tuple(K.ravel()), tuple(np.asarray(dist, dtype=np.float64).ravel()), width, height)
 
@@ -64,8 +65,9 @@ def normalized_coords(K: NDArray[np.float64], dist: NDArray[np.float64], width: 
 def _normalized(K: tuple, dist: tuple, width: int, height: int) -> tuple[NDArray, NDArray]:
     u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     pts = np.stack([u, v], axis=-1).reshape(-1, 1, 2)
-    xy = cv2.undistortPoints(pts, np.array(K).reshape(3, 3), np.array(dist), None, None, None,
-                             _UNDISTORT_CRITERIA).reshape(height, width, 2)
+    xy = cv2.undistortPoints(
+        pts, np.array(K).reshape(3, 3), np.array(dist), None, None, None, _UNDISTORT_CRITERIA
+    ).reshape(height, width, 2)
     xn, yn = xy[..., 0].copy(), xy[..., 1].copy()
     xn.setflags(write=False)
     yn.setflags(write=False)
@@ -84,8 +86,9 @@ def _cloud(decoded: Decoded, ad: AxisDecode, X: NDArray, Y: NDArray, Z: NDArray)
 class PinholeTriangulator:
     """Camera ray / projector column-plane (or row-plane) intersection; OpenCV conventions, mm."""
 
-    def __init__(self, K_cam: NDArray, dist_cam: NDArray, size: tuple[int, int], K_proj: NDArray,
-                 T_C_P: NDArray):
+    def __init__(
+        self, K_cam: NDArray, dist_cam: NDArray, size: tuple[int, int], K_proj: NDArray, T_C_P: NDArray
+    ):
         self.K_proj = np.asarray(K_proj, dtype=np.float64)
         self.T_C_P = np.asarray(T_C_P, dtype=np.float64)
         self.xn, self.yn = normalized_coords(np.asarray(K_cam, float), np.asarray(dist_cam, float), *size)
@@ -99,8 +102,9 @@ class PinholeTriangulator:
     @classmethod
     def from_sensor(cls, sensor: SensorConfig) -> PinholeTriangulator:
         cam, proj = sensor.camera, sensor.projector
-        return cls(cam.K(), cam.distortion.as_array(), (cam.width_px, cam.height_px), proj.K(),
-                   proj.T_C_P.matrix())
+        return cls(
+            cam.K(), cam.distortion.as_array(), (cam.width_px, cam.height_px), proj.K(), proj.T_C_P.matrix()
+        )
 
     def depth(self, u: NDArray, axis: str = "columns") -> NDArray[np.float64]:
         """Z (mm) in {C} of every pixel given its projector coordinate ``u`` along ``axis``."""
@@ -116,8 +120,17 @@ class PinholeTriangulator:
         k = 0 if ad.axis == "columns" else 1
         R = self.T_C_P[:3, :3]
         pts, reasons = _cloud_kernel.pinhole_cloud(
-            ad.u, ad.reasons, self.xn, self.yn, float(self.K_proj[k, k]), float(self.K_proj[k, 2]),
-            np.ascontiguousarray(R[:, k]), np.ascontiguousarray(R[:, 2]), self._t_dot[k], self._t_dot[2])
+            ad.u,
+            ad.reasons,
+            self.xn,
+            self.yn,
+            float(self.K_proj[k, k]),
+            float(self.K_proj[k, 2]),
+            np.ascontiguousarray(R[:, k]),
+            np.ascontiguousarray(R[:, 2]),
+            self._t_dot[k],
+            self._t_dot[2],
+        )
         return SensorCloud(pts, reasons, decoded.contrast, ad.sharpness)
 
 
@@ -202,8 +215,9 @@ def reference_table(u_ref: NDArray, xn: NDArray, du: float = 0.25) -> tuple[NDAr
     return table, u0
 
 
-def offset_angle(code_ref: Callable[[NDArray, NDArray], NDArray], xn: NDArray, yn: NDArray,
-                 baseline_C: NDArray) -> NDArray[np.float64]:
+def offset_angle(
+    code_ref: Callable[[NDArray, NDArray], NDArray], xn: NDArray, yn: NDArray, baseline_C: NDArray
+) -> NDArray[np.float64]:
     """Per-pixel offset angle alpha (rad, eq 2.9) of the row look-up: with g the reference plane's code
     gradient (stripe normal) at the pixel, x the row direction and b the baseline direction on the reference
     plane, cos(alpha) = (b.g) / (x.g), so that L' = L sec(alpha) for the row distance L. When the stripes run
@@ -222,8 +236,9 @@ def offset_angle(code_ref: Callable[[NDArray, NDArray], NDArray], xn: NDArray, y
         return np.arccos(np.clip((b[0] * gx + b[1] * gy) / gx, -1.0, 1.0))
 
 
-def reference_model_from_geometry(sensor: SensorConfig, heights_mm: tuple[float, ...] = (-40, -20, 20, 40, 60)
-                                  ) -> ReferencePlaneTriangulator:
+def reference_model_from_geometry(
+    sensor: SensorConfig, heights_mm: tuple[float, ...] = (-40, -20, 20, 40, 60)
+) -> ReferencePlaneTriangulator:
     """Per-pixel (d, S, alpha) from the known sensor geometry, by the calibration procedure of 2.2 run on
     analytic planes: reference plane Z = standoff, planes stepped by ``heights_mm`` toward the camera, L' of
     every pixel and step the displacement of its code along the baseline on the reference plane (what the
@@ -249,8 +264,9 @@ def reference_model_from_geometry(sensor: SensorConfig, heights_mm: tuple[float,
     y_ext = np.broadcast_to(yn.mean(axis=1, keepdims=True), (H, 4 * W))
     table, u0 = reference_table(code(S0, x_ext, y_ext), x_ext)
     alpha = offset_angle(lambda x, y: code(S0, x, y), xn, yn, t[:2])
-    model = ReferencePlaneTriangulator(np.ones((H, W)), np.ones((H, W)), alpha, xn, yn, table, u0, 0.25, S0,
-                                       float(np.sign(t[0]) or 1.0))
+    model = ReferencePlaneTriangulator(
+        np.ones((H, W)), np.ones((H, W)), alpha, xn, yn, table, u0, 0.25, S0, float(np.sign(t[0]) or 1.0)
+    )
     # L' per step as the calibration measures it (cell.calibration.sensor, steps 5-6): how far the pixel's
     # code moves on the reference plane, along the baseline, when the plane rises by h. Here it is exact:
     # A' is where the projector ray through the raised point D meets the reference plane, C' is the pixel's.

@@ -42,12 +42,17 @@ def make_panes(out: Path, spec: PaneSpec = PaneSpec()) -> dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
     base = windshield_height(spec.radius_x_mm, spec.radius_y_mm)
     sag = sag_height(base, spec.sag_depth_mm, spec.sag_centre_mm, spec.sag_sigma_mm)
-    paths = {"nominal": out / "pane_nominal.stl", "sag": out / "pane_sag.stl",
-             "truth": out / "pane_sag.truth.json"}
+    paths = {
+        "nominal": out / "pane_nominal.stl",
+        "sag": out / "pane_sag.stl",
+        "truth": out / "pane_sag.truth.json",
+    }
     heightfield_mesh(base, spec.size_mm, spec.spacing_mm).export(paths["nominal"])
     heightfield_mesh(sag, spec.size_mm, spec.spacing_mm).export(paths["sag"])
-    truth = {"description": "made pane = nominal with a Gaussian sag of the top skin (positive depth = down)",
-             **asdict(spec)}
+    truth = {
+        "description": "made pane = nominal with a Gaussian sag of the top skin (positive depth = down)",
+        **asdict(spec),
+    }
     paths["truth"].write_text(json.dumps(truth, indent=2) + "\n")
     return paths
 
