@@ -191,6 +191,34 @@ class ToleranceConfig(Strict):
         return v
 
 
+class RegionConfig(Strict):
+    """A region of the part judged on its own (verdict, statistics, coverage): nominal faces (indices into the
+    CAD mesh as loaded: file order, less any zero-area triangles the loader warns it removed) or an
+    axis-aligned box in the part frame {P}, mm. ``tolerance_mm`` [lower, upper] replaces the recipe's band
+    inside the region; where such regions overlap, every one of their bands must hold."""
+
+    name: str = Field(min_length=1)
+    faces: list[Annotated[int, Field(ge=0)]] | None = None
+    box_mm: tuple[Vec3, Vec3] | None = None
+    tolerance_mm: tuple[float, float] | None = None
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> RegionConfig:
+        if (self.faces is None) == (self.box_mm is None):
+            raise ValueError("give exactly one of 'faces' or 'box_mm'")
+        if self.faces is not None and not self.faces:
+            raise ValueError("'faces' is empty: list the nominal faces of the region")
+        if self.box_mm is not None and not all(a <= b for a, b in zip(*self.box_mm, strict=True)):
+            raise ValueError("box_mm must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]")
+        if self.tolerance_mm is not None:
+            lower, upper = self.tolerance_mm
+            if not lower < upper:
+                raise ValueError("tolerance_mm must be [lower, upper] with lower < upper")
+            if max(abs(lower), abs(upper)) > 50:
+                raise ValueError(f"{list(self.tolerance_mm)} mm is not a plausible tolerance (units are mm)")
+        return self
+
+
 class PartConfig(Strict):
     """The part to inspect. Paths are relative to the recipe file."""
 
@@ -212,6 +240,21 @@ class Recipe(Strict):
         "for a pass/fail verdict; below it the verdict is 'incomplete'",
     )
     plan: PlanSettings = PlanSettings()
+    regions: list[RegionConfig] = Field(
+        default_factory=list,
+        description="regions judged on their own, optionally with a band of their own (in the report's "
+        "region_verdicts); any failing region fails the part, any region measured below min_coverage makes "
+        "it incomplete",
+    )
+
+    @field_validator("regions")
+    @classmethod
+    def _unique_region_names(cls, regions: list[RegionConfig]) -> list[RegionConfig]:
+        names = [r.name for r in regions]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ValueError(f"region names must be unique; repeated: {', '.join(twice)}")
+        return regions
 
 
 # --------------------------------------------------------------------------------------------- loading

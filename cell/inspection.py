@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.linkfilter import link_cluster
 from cell.analysis.merge import merge_views
-from cell.analysis.regions import Coverage
+from cell.analysis.regions import Coverage, point_bands, region_from_config
 from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
 from cell.calibration import active_hand_eye, active_sensor_config, active_triangulator, calibration_source
 from cell.config import CellConfig, Recipe
@@ -312,9 +312,12 @@ class LambertianInspection:
         em = signed_distance(nominal, pts_P)
         tol = self.recipe.tolerance
         band = Tolerance(tol.lower, tol.upper)
-        isolated = isolated_out_of_tolerance(pts_P, em.deviation_mm, band, self.settings.min_defect_points)
+        regions = [region_from_config(spec) for spec in self.recipe.regions]
+        faces = nominal.source_face[em.face]
+        bands = point_bands(regions, pts_P, faces, band)
+        isolated = isolated_out_of_tolerance(pts_P, em.deviation_mm, bands, self.settings.min_defect_points)
         kept = ~isolated
-        pts_P, deviation, faces = pts_P[kept], em.deviation_mm[kept], nominal.source_face[em.face][kept]
+        pts_P, deviation, faces = pts_P[kept], em.deviation_mm[kept], faces[kept]
         checkpoint = run.load_checkpoint() or {}
         views = checkpoint.get("views", [])
         excluded: dict[str, int] = dict(nominal.excluded)
@@ -331,6 +334,7 @@ class LambertianInspection:
             n_points_input=int(registration.get("n_points_views", len(pts_P))),
             excluded=excluded,
             source_face=faces,
+            regions=regions,
             coverage=self.inspectable_coverage(run, views),
             min_coverage=self.recipe.min_coverage,
             warnings=[w for w in (nominal.sign_warning(),) if w],

@@ -75,8 +75,19 @@ def test_region_verdicts_boxes_faces_and_own_tolerances() -> None:
     assert v["bottom"]["verdict"] == "no_data" and v["bottom"]["n_points"] == 0
     assert d["verdict"] == "fail" and d["regions"][0]["verdict"] == "fail"  # the dent cluster
     # A looser band of its own around the dent passes it, and with it the part (coverage not required).
+    # The dent's points are judged by that band everywhere in the report: not out of tolerance, no cluster.
     loose = [Region("dent-zone", box_mm=((-30, -5, 1), (-20, 5, 3)), tolerance=Tolerance(-1.0, 1.0))]
-    assert doc(loose)["verdict"] == "pass" and doc(loose)["region_verdicts"][0]["verdict"] == "pass"
+    d_loose = doc(loose)
+    assert d_loose["verdict"] == "pass" and d_loose["region_verdicts"][0]["verdict"] == "pass"
+    assert d_loose["n_out_of_tolerance"] == 0 and d_loose["regions"] == []
+    # Overlapping bands of their own: both must hold, so a tight pad inside the loose zone fails the dent.
+    pad = Region("pad", box_mm=((-27, -2, 1), (-23, 2, 3)), tolerance=Tolerance(-0.05, 0.05))
+    in_pad = ((pts >= (-27, -2, 1)) & (pts <= (-23, 2, 3))).all(1)
+    d_both = doc([*loose, pad])
+    v = {r["name"]: r for r in d_both["region_verdicts"]}
+    assert v["dent-zone"]["verdict"] == "pass" and v["pad"]["verdict"] == "fail"
+    assert d_both["verdict"] == "fail" and d_both["n_out_of_tolerance"] == (in_pad & dent).sum() > 0
+    assert d_both["regions"][0]["n_points"] == (in_pad & dent).sum()
     # A tighter band elsewhere fails the part although every point is inside the report's band.
     pts_ok = pts.copy()
     pts_ok[dent, 2] += 0.4  # dent now 0.1 mm deep
@@ -84,7 +95,12 @@ def test_region_verdicts_boxes_faces_and_own_tolerances() -> None:
     face = nm.source_face[em.face]
     tight = [Region("datum-pad", box_mm=((-30, -5, 1), (-20, 5, 3)), tolerance=Tolerance(-0.05, 0.05))]
     d2 = summarise(ReportInput(pts_ok, em.deviation_mm, tol, len(pts), {}, {}, face, tight, cov, None))
-    assert d2["n_out_of_tolerance"] == 0 and d2["verdict"] == "fail"
+    assert d2["verdict"] == "fail" and d2["region_verdicts"][0]["verdict"] == "fail"
+    # the 0.1 mm dent is out of the pad's band, so it is out of tolerance and a located region of the report
+    assert d2["n_out_of_tolerance"] == dent.sum()
+    assert d2["regions"][0]["n_points"] == dent.sum() and d2["regions"][0]["kind"] == "dent"
+    assert np.allclose(d2["regions"][0]["centre_mm"][:2], (-25, 0), atol=0.5)
+    assert d2["regions"][0]["extreme_mm"] == pytest.approx(-0.1, abs=1e-6)
     # Coverage required over the whole part: 23 % measured -> incomplete.
     d3 = summarise(ReportInput(pts_ok, em.deviation_mm, tol, len(pts), {}, {}, face, [], cov, 0.5))
     assert d3["verdict"] == "incomplete" and d3["coverage_detail"]["min_count"] == 8
@@ -117,3 +133,30 @@ def test_compare_with_region_file(tmp_path: Path) -> None:
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"regions": [{"name": "x"}]}))
     with pytest.raises(ConfigError, match="exactly one"):
         run_compare(nominal, cloud, tmp_path / "o2", pictures=False, regions=tmp_path / "bad.yaml")
+
+
+def test_compare_excludes_isolated_spikes_on_request(tmp_path: Path) -> None:
+    """On the plate's dense half: five single-point spikes 10 mm apart are isolated outliers with
+    --min-defect-points 10, the 3 mm dent stays a located region; by default every point counts."""
+    mesh, _, pts = _plate_cloud()
+    pts = pts.copy()
+    dense = np.flatnonzero(pts[:, 0] < -5)
+    spikes = dense[
+        np.isin(np.round(pts[dense, 0], 3), (-45.25, -35.25)) & np.isin(pts[dense, 1], (-20.25, 0.25, 20.25))
+    ]
+    pts[spikes[:5], 2] += 1.0
+    dent = np.hypot(pts[:, 0] + 15, pts[:, 1]) < 3
+    pts[dent, 2] -= 0.5
+    nominal = tmp_path / "plate.stl"
+    mesh.export(nominal)
+    cloud = tmp_path / "c.xyz"
+    np.savetxt(cloud, pts)
+    every = run_compare(nominal, cloud, tmp_path / "a", pictures=False)
+    assert every["n_out_of_tolerance"] == dent.sum() + 5 and len(every["regions"]) == 6
+    filtered = run_compare(nominal, cloud, tmp_path / "b", pictures=False, min_defect_points=10)
+    assert filtered["excluded"]["isolated_out_of_tolerance_points"] == 5
+    assert filtered["n_points"] == len(pts) - 5 and filtered["n_out_of_tolerance"] == dent.sum()
+    (region,) = filtered["regions"]
+    assert region["kind"] == "dent" and np.allclose(region["centre_mm"][:2], (-15, 0), atol=0.3)
+    with pytest.raises(ConfigError, match="min-defect-points"):
+        run_compare(nominal, cloud, tmp_path / "c", pictures=False, min_defect_points=0)

@@ -8,15 +8,19 @@ statistic.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
+import yaml
 
+from cell.commands.plan import load_part_W
 from cell.config import load_recipe
 from cell.controller import Controller, ControllerSettings
 from cell.devices import DeviceBundle, build_devices
+from cell.errors import ConfigError
 from cell.inspection import LambertianInspection, inspection_controller
 from cell.runs import RunFolder
 from tests.box_part import small_cell, write_box_recipe
@@ -61,6 +65,7 @@ def reference(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> di
         "states": states,
         "log": devices.robot.command_log,
         "views": len(ctl.checkpoint["views"]),
+        "run_dir": run_dir,
     }
 
 
@@ -177,3 +182,47 @@ def test_pausing_faults_resume_to_identical_results(
     assert ctl2.execute(resume=True) == "done", ctl2.message
     assert len(ctl2.run.journal()) > journal_before  # nothing of the first part was lost
     assert_same_result(result_of(run_dir), reference["result"], fault)
+
+
+def test_recipe_regions_are_judged_with_their_own_bands(
+    recipe_path: Path, reference: dict, tmp_path: Path
+) -> None:
+    """The reference run (the simulator renders the nominal box, so every point is within a few um of it)
+    reported again with recipe regions: a band of +-0.5 um on the top face must fail on the sensor noise
+    alone, and locate its out-of-tolerance points on the top face (z = 40 mm); a loose band passes."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(reference["run_dir"], run_dir)
+    data = yaml.safe_load(recipe_path.read_text())
+    box = trimesh.load(recipe_path.parent / data["part"]["cad"])
+    sides = [int(i) for i in np.flatnonzero(np.abs(box.face_normals[:, 2]) < 0.5)]
+    data["regions"] = [
+        {"name": "top", "box_mm": [[-61, -46, 39], [61, 46, 41]], "tolerance_mm": [-0.0005, 0.0005]},
+        {"name": "sides", "faces": sides, "tolerance_mm": [-1.0, 1.0]},
+    ]
+    (recipe_path.parent / "box_regions.yaml").write_text(yaml.safe_dump(data))
+    recipe = load_recipe(recipe_path.parent / "box_regions.yaml")
+    job = LambertianInspection(recipe, small_cell(), box)
+    job.settings.pictures = False
+    run = RunFolder.open(run_dir)
+    summary = job.report(run, run.load_checkpoint()["registration"])
+    doc = json.loads((run_dir / "results" / "report.json").read_text())
+    assert reference["result"]["verdict"] == "pass" and summary["verdict"] == "fail"
+    verdicts = {r["name"]: r for r in doc["region_verdicts"]}
+    assert verdicts["top"]["verdict"] == "fail" and verdicts["sides"]["verdict"] == "pass"
+    assert verdicts["top"]["n_points"] > 100 and verdicts["sides"]["n_points"] > 100
+    assert doc["n_out_of_tolerance"] > 0 and doc["regions"]
+    assert all(abs(r["centre_mm"][2] - 40.0) < 1.0 for r in doc["regions"])
+
+
+def test_recipe_region_with_a_face_the_cad_lacks_is_refused(recipe_path: Path) -> None:
+    data = yaml.safe_load(recipe_path.read_text())
+    data["regions"] = [{"name": "pad", "faces": [0, 12]}]  # the box has 12 faces: 0..11
+    bad = recipe_path.parent / "box_bad_region.yaml"
+    bad.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match="face 12") as err:
+        load_part_W(load_recipe(bad), bad, small_cell())
+    assert str(bad) in str(err.value) and "regions.0.faces" in str(err.value)
+    data["regions"] = [{"name": "pad", "faces": [1]}, {"name": "pad", "box_mm": [[0, 0, 0], [1, 1, 1]]}]
+    bad.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match="repeated: pad"):
+        load_recipe(bad)

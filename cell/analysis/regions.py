@@ -23,10 +23,11 @@ import numpy as np
 import trimesh
 import yaml
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, ValidationError
 from scipy.spatial import cKDTree
 
 from cell.analysis.errormap import NominalMesh
+from cell.config import RegionConfig
 from cell.errors import ConfigError
 
 
@@ -56,46 +57,77 @@ class Region:
         return ((points_mm >= lo) & (points_mm <= hi)).all(1)
 
 
-class _RegionSpec(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    name: str
-    faces: list[int] | None = None
-    box_mm: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
-    tolerance_mm: tuple[float, float] | None = None
+@dataclass(frozen=True)
+class PointBands:
+    """The tolerance band each point is judged by (mm, one lower and upper bound per point)."""
 
-    @model_validator(mode="after")
-    def _one_kind(self) -> _RegionSpec:
-        if (self.faces is None) == (self.box_mm is None):
-            raise ValueError("give exactly one of 'faces' or 'box_mm'")
-        if self.box_mm is not None and not all(a <= b for a, b in zip(*self.box_mm, strict=True)):
-            raise ValueError("box_mm must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]")
-        if self.tolerance_mm is not None and not self.tolerance_mm[0] < self.tolerance_mm[1]:
-            raise ValueError("tolerance_mm must be [lower, upper] with lower < upper")
-        return self
+    lower_mm: NDArray[np.float64]
+    upper_mm: NDArray[np.float64]
+
+    def outside(self, deviation_mm: NDArray) -> NDArray[np.bool_]:
+        """Points whose deviation is outside their own band."""
+        return (deviation_mm < self.lower_mm) | (deviation_mm > self.upper_mm)
+
+
+def point_bands(
+    regions: Sequence[Region], points_mm: NDArray, source_face: NDArray | None, tol: Tolerance
+) -> PointBands:
+    """Each point's band: the report's ``tol``, replaced inside user regions with a band of their own; where
+    such regions overlap, their intersection (every region's band must hold there, as each region's verdict
+    requires)."""
+    n = len(points_mm)
+    lower, upper = np.full(n, -np.inf), np.full(n, np.inf)
+    own = np.zeros(n, dtype=bool)
+    for r in regions:
+        if r.tolerance is None:
+            continue
+        if r.faces is not None and source_face is None:
+            raise ConfigError(f"region '{r.name}' is a face set but the error map carries no closest faces")
+        inside = r.contains(points_mm, source_face)
+        lower[inside] = np.maximum(lower[inside], r.tolerance.lower_mm)
+        upper[inside] = np.minimum(upper[inside], r.tolerance.upper_mm)
+        own |= inside
+    lower[~own], upper[~own] = tol.lower_mm, tol.upper_mm
+    return PointBands(lower, upper)
 
 
 class _RegionFile(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    regions: list[_RegionSpec]
+    regions: list[RegionConfig]
 
 
-def load_regions(path: Path) -> list[Region]:
-    """Regions from YAML: ``regions: [{name, faces: [i, ..] | box_mm: [lo, hi], tolerance_mm: [lo, hi]}]``."""
+def region_from_config(spec: RegionConfig) -> Region:
+    """The analysis region of a recipe's or region file's entry."""
+    return Region(
+        name=spec.name,
+        faces=None if spec.faces is None else np.asarray(spec.faces, np.int64),
+        box_mm=spec.box_mm,
+        tolerance=None if spec.tolerance_mm is None else Tolerance(*spec.tolerance_mm),
+    )
+
+
+def check_region_faces(specs: Sequence[RegionConfig], n_faces: int, path: str | Path, prefix: str) -> None:
+    """ConfigError naming the file and field when a face region names a face the nominal does not have."""
+    for i, spec in enumerate(specs):
+        if spec.faces is not None and max(spec.faces) >= n_faces:
+            raise ConfigError(
+                f"region '{spec.name}' names face {max(spec.faces)}, but the nominal mesh has {n_faces} "
+                f"faces (indices 0..{n_faces - 1}); check the region against the CAD file",
+                path=str(path),
+                field=f"{prefix}{i}.faces",
+            )
+
+
+def load_regions(path: Path) -> list[RegionConfig]:
+    """Region specs from YAML (``regions: [{name, faces | box_mm, tolerance_mm}]``), in the schema of a
+    recipe's ``regions``: :class:`cell.config.RegionConfig`."""
     try:
         spec = _RegionFile.model_validate(yaml.safe_load(Path(path).read_text()))
     except (OSError, yaml.YAMLError) as exc:
         raise ConfigError(f"cannot read the region file: {exc}", path=str(path)) from exc
     except ValidationError as exc:
         raise ConfigError(f"invalid region file: {exc}", path=str(path)) from exc
-    return [
-        Region(
-            name=r.name,
-            faces=None if r.faces is None else np.asarray(r.faces, np.int64),
-            box_mm=r.box_mm,
-            tolerance=None if r.tolerance_mm is None else Tolerance(*r.tolerance_mm),
-        )
-        for r in spec.regions
-    ]
+    return list(spec.regions)
 
 
 @dataclass(frozen=True)

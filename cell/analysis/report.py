@@ -20,11 +20,19 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from cell.analysis.regions import Coverage, Region, Tolerance, region_verdicts, verdict
+from cell.analysis.regions import (
+    Coverage,
+    PointBands,
+    Region,
+    Tolerance,
+    point_bands,
+    region_verdicts,
+    verdict,
+)
 
 __all__ = ["ReportInput", "Tolerance", "out_of_tolerance_regions", "summarise", "write_report"]
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
 
 
@@ -66,12 +74,21 @@ def _default_link_radius(points_mm: NDArray) -> float:
     return 3.0 * float(np.median(d)) if len(d) else 0.0
 
 
+def _outside(deviation_mm: NDArray, band: Tolerance | PointBands) -> NDArray[np.bool_]:
+    if isinstance(band, PointBands):
+        return band.outside(deviation_mm)
+    return (deviation_mm < band.lower_mm) | (deviation_mm > band.upper_mm)
+
+
 def out_of_tolerance_clusters(
-    points_mm: NDArray, deviation_mm: NDArray, tol: Tolerance, link_radius_mm: float | None = None
+    points_mm: NDArray,
+    deviation_mm: NDArray,
+    band: Tolerance | PointBands,
+    link_radius_mm: float | None = None,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Indices of the out-of-tolerance points and their cluster label (points closer than the link radius,
-    by default :func:`_default_link_radius`, share a cluster)."""
-    bad = np.flatnonzero((deviation_mm < tol.lower_mm) | (deviation_mm > tol.upper_mm))
+    """Indices of the points outside their band (one for all, or one per point) and their cluster label
+    (points closer than the link radius, by default :func:`_default_link_radius`, share a cluster)."""
+    bad = np.flatnonzero(_outside(deviation_mm, band))
     if len(bad) == 0:
         return bad, np.zeros(0, dtype=np.int64)
     radius = _default_link_radius(points_mm) if link_radius_mm is None else link_radius_mm
@@ -83,12 +100,12 @@ def out_of_tolerance_clusters(
 
 
 def isolated_out_of_tolerance(
-    points_mm: NDArray, deviation_mm: NDArray, tol: Tolerance, min_points: int
+    points_mm: NDArray, deviation_mm: NDArray, band: Tolerance | PointBands, min_points: int
 ) -> NDArray[np.bool_]:
     """Mask of out-of-tolerance points in clusters of fewer than ``min_points``: isolated outliers (mixed
     pixels at edges, noise spikes) rather than a surface defect, which covers an area."""
     out = np.zeros(len(deviation_mm), dtype=bool)
-    bad, lab = out_of_tolerance_clusters(points_mm, deviation_mm, tol)
+    bad, lab = out_of_tolerance_clusters(points_mm, deviation_mm, band)
     if len(bad):
         sizes = np.bincount(lab)
         out[bad[sizes[lab] < min_points]] = True
@@ -98,12 +115,12 @@ def isolated_out_of_tolerance(
 def out_of_tolerance_regions(
     points_mm: NDArray,
     deviation_mm: NDArray,
-    tol: Tolerance,
+    band: Tolerance | PointBands,
     link_radius_mm: float | None = None,
     max_regions: int = 20,
 ) -> list[dict[str, Any]]:
-    """Spatial clusters of out-of-tolerance points, largest first, with centre and extreme deviation."""
-    bad, lab = out_of_tolerance_clusters(points_mm, deviation_mm, tol, link_radius_mm)
+    """Spatial clusters of points outside their band, largest first, with centre and extreme deviation."""
+    bad, lab = out_of_tolerance_clusters(points_mm, deviation_mm, band, link_radius_mm)
     if len(bad) == 0:
         return []
     pts = points_mm[bad]
@@ -131,7 +148,9 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
     """The report.json document (see docs/report-schema.md)."""
     d = inp.deviation_mm
     tol = inp.tolerance
-    inside = (d >= tol.lower_mm) & (d <= tol.upper_mm)
+    # Points in a region with a band of its own are judged by that band, the rest by the report's band.
+    bands = point_bands(inp.regions, inp.points_mm, inp.source_face, tol)
+    inside = ~bands.outside(d)
     stats: dict[str, Any] = {}
     if len(d):
         stats = {
@@ -146,15 +165,11 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
         }
     cov = inp.coverage
     coverage = cov.fraction if cov is not None else None
-    regions = out_of_tolerance_regions(inp.points_mm, d, tol, link_radius_mm=inp.link_radius_mm)
+    regions = out_of_tolerance_regions(inp.points_mm, d, bands, link_radius_mm=inp.link_radius_mm)
     user = region_verdicts(inp.regions, inp.points_mm, d, inp.source_face, tol, cov, inp.min_coverage)
-    # Points in a region with a band of its own are judged by that band (in region_verdicts), the rest by
-    # the report's band; any failing region fails the part, any unmeasured one makes it incomplete.
-    own_band = np.zeros(len(d), bool)
-    for r in inp.regions:
-        if r.tolerance is not None:
-            own_band |= r.contains(inp.points_mm, inp.source_face)
-    overall = verdict(len(d), int((~inside & ~own_band).sum()), coverage, inp.min_coverage)
+    # Any point outside its band or any failing region fails the part; any unmeasured region makes it
+    # incomplete.
+    overall = verdict(len(d), int((~inside).sum()), coverage, inp.min_coverage)
     region_states = {r["verdict"] for r in user}
     if overall != "no_data" and "fail" in region_states:
         overall = "fail"

@@ -67,24 +67,36 @@ def run_compare(
     density_per_mm2: float | None = None,
     radius_mm: float | None = None,
     min_coverage: float | None = None,
+    min_defect_points: int = 1,
 ) -> dict:
     """Load, check, align, compute the error map and write the report; return report.json's document.
 
     ``regions``: YAML of user regions (see ``cell.analysis.regions.load_regions``); coverage is computed when
     a required density (points/mm^2) or radius (mm) is given, and judged against ``min_coverage`` (0..1).
+    ``min_defect_points``: out-of-tolerance clusters smaller than this are isolated outliers, excluded and
+    counted under ``excluded`` as ``cell inspect`` does (1, the default, keeps every point: a cloud from
+    elsewhere may have been filtered already).
     """
     from cell.analysis.errormap import NominalMesh, signed_distance
-    from cell.analysis.regions import coverage, load_regions
+    from cell.analysis.regions import (
+        check_region_faces,
+        coverage,
+        load_regions,
+        point_bands,
+        region_from_config,
+    )
     from cell.analysis.registration import datum_align, icp_point_to_plane
-    from cell.analysis.report import ReportInput, Tolerance, write_report
+    from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
     from cell.geometry import transform_points
 
     lo, hi = parse_tolerance(tolerance)
     if min_coverage is not None and not 0 <= min_coverage <= 1:
         raise ConfigError(f"--min-coverage must be a fraction in [0, 1], got {min_coverage}")
+    if min_defect_points < 1:
+        raise ConfigError(f"--min-defect-points must be >= 1, got {min_defect_points}")
     if min_coverage is not None and density_per_mm2 is None and radius_mm is None:
         raise ConfigError("--min-coverage needs --density (points/mm^2) or --radius (mm) to measure coverage")
-    user_regions = load_regions(regions) if regions is not None else []
+    region_specs = load_regions(regions) if regions is not None else []
     if align not in ("none", "datums", "bestfit"):
         raise ConfigError(f"--align must be none, datums or bestfit, got '{align}'")
     if not nominal_path.is_file():
@@ -92,6 +104,8 @@ def run_compare(
     mesh = trimesh.load(nominal_path, force="mesh", process=False)
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ConfigError("the nominal has no triangles", path=str(nominal_path))
+    check_region_faces(region_specs, len(mesh.faces), regions or "", prefix="regions.")
+    user_regions = [region_from_config(spec) for spec in region_specs]
     t0 = time.perf_counter()
     nominal = NominalMesh.from_trimesh(mesh)
     raw = load_cloud(cloud_path)
@@ -123,6 +137,12 @@ def run_compare(
     em = signed_distance(nominal, pts)
     excluded = dict(nominal.excluded)
     excluded["non_finite_points"] = int((~finite).sum())
+    deviation, faces = em.deviation_mm, nominal.source_face[em.face]
+    if min_defect_points > 1:
+        bands = point_bands(user_regions, pts, faces, Tolerance(lo, hi))
+        kept = ~isolated_out_of_tolerance(pts, deviation, bands, min_defect_points)
+        excluded["isolated_out_of_tolerance_points"] = int((~kept).sum())
+        pts, deviation, faces = pts[kept], deviation[kept], faces[kept]
     meta = {
         "nominal": str(nominal_path),
         "cloud": str(cloud_path),
@@ -135,18 +155,14 @@ def run_compare(
     cov = None
     if density_per_mm2 is not None or radius_mm is not None:
         cov = coverage(nominal, em.closest_mm, density_per_mm2, radius_mm)
-    n_faces = len(mesh.faces)
-    for r in user_regions:
-        if r.faces is not None and (r.faces.min() < 0 or r.faces.max() >= n_faces):
-            raise ConfigError(f"region '{r.name}': face indices must be in [0, {n_faces})", path=str(regions))
     inp = ReportInput(
         pts,
-        em.deviation_mm,
+        deviation,
         Tolerance(lo, hi),
         len(raw),
         excluded,
         metadata=meta,
-        source_face=nominal.source_face[em.face],
+        source_face=faces,
         regions=user_regions,
         coverage=cov,
         min_coverage=min_coverage,
@@ -172,10 +188,26 @@ def register(app: typer.Typer) -> None:
         density: float = typer.Option(None, help="coverage: required points per mm^2 of nominal surface"),
         radius: float = typer.Option(None, help="coverage: search radius in mm (alone: one point covers)"),
         min_coverage: float = typer.Option(None, help="required covered fraction 0..1 (else 'incomplete')"),
+        min_defect_points: int = typer.Option(
+            1,
+            help="out-of-tolerance clusters smaller than this are isolated outliers, excluded and counted "
+            "(cell inspect uses 10; 1 keeps every point)",
+        ),
     ) -> None:
         """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report."""
         doc = run_compare(
-            nominal, cloud, out, align, tolerance, datums, True, regions, density, radius, min_coverage
+            nominal,
+            cloud,
+            out,
+            align,
+            tolerance,
+            datums,
+            True,
+            regions,
+            density,
+            radius,
+            min_coverage,
+            min_defect_points,
         )
         typer.echo(
             f"{doc['verdict']}: {doc['n_points']} points, {doc['n_out_of_tolerance']} out of tolerance "

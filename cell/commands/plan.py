@@ -11,6 +11,7 @@ import numpy as np
 import trimesh
 import typer
 
+from cell.analysis.regions import check_region_faces
 from cell.config import DEFAULT_CELL, CellConfig, Recipe, load_cell_config, load_recipe
 from cell.errors import PlanningError
 from cell.geometry import transform_points
@@ -29,8 +30,10 @@ def working_volume_W(cfg: CellConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 def load_part_W(recipe: Recipe, recipe_path: Path, cfg: CellConfig) -> trimesh.Trimesh:
-    """The validated nominal CAD placed in the world; ConfigError when it does not fit the cell."""
+    """The validated nominal CAD placed in the world; ConfigError when it does not fit the cell or the
+    recipe's face regions name faces it does not have."""
     mesh = load_mesh(recipe.part.cad)
+    check_region_faces(recipe.regions, len(mesh.faces), recipe_path, prefix="regions.")
     T_W_P = recipe.part.T_W_P.matrix()
     lo, hi = working_volume_W(cfg)
     check_in_volume(mesh, recipe.part.cad, lo, hi, T_W_P)
