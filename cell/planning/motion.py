@@ -1,7 +1,8 @@
 """Collision-checked motion between viewpoints.
 
 A straight line or a joint-space move between two clear sensor poses can still sweep the 430 mm sensor bar
-through the part or the table (a wrist that flips, a tilted view close to the table). Before the cell
+or the arm's own links (capsules, cell.planning.arm_body) through the part or the table (a wrist that
+flips, a tilted view close to the table, an elbow swinging over a tall part). Before the cell
 moves, it simulates the candidate paths against the nominal CAD and the table with the robot's own kinematics
 and takes
 the first that stays clear:
@@ -90,7 +91,7 @@ class MotionPlanner:
         ok, why = self.reach.path_clear(samples)
         if not ok:
             return None, why, q_a
-        q, worst = q_a, 0.0
+        q, worst, path = q_a, 0.0, [q_a]
         for T_prev, T in zip(samples[:-1], samples[1:]):
             try:
                 q_next = self.kin.ik_nearest(T, q)
@@ -106,6 +107,10 @@ class MotionPlanner:
             )
             worst = max(worst, float(np.abs(q_next - q).max() / dt))
             q = q_next
+            path.append(q)
+        ok, why = self.reach.arm_clear(np.asarray(path))
+        if not ok:
+            return None, why, q_a
         scale = min(1.0, 0.9 * self.joint_speed_limit / worst) if worst > 0 else 1.0
         if scale < MIN_SPEED_SCALE:
             return None, f"the line passes a singularity (a joint would need {worst:.1f} rad/s)", q_a
@@ -114,7 +119,8 @@ class MotionPlanner:
     def _joint_ok(self, q_a: NDArray[np.float64], q_b: NDArray[np.float64]) -> tuple[bool, str]:
         n = int(np.abs(q_b - q_a).max() / STEP_RAD) + 2
         qs = q_a + np.linspace(0.0, 1.0, n)[:, None] * (q_b - q_a)
-        return self.reach.path_clear(self.kin.fk(qs))
+        ok, why = self.reach.path_clear(self.kin.fk(qs))
+        return self.reach.arm_clear(qs) if ok else (ok, why)
 
     def plan(
         self, T_from: Pose, q_from: NDArray[np.float64], T_to: Pose, q_home: NDArray[np.float64] | None = None

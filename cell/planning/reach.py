@@ -1,5 +1,6 @@
 """Can the robot put the sensor at a viewpoint? IK within joint limits away from the wrist singularity, flange
-inside the configured envelope, and the sensor body clear of table and part.
+inside the configured envelope, and the sensor body clear of table and part; along a path also the arm's own
+links (capsules, cell.planning.arm_body).
 
 The sensor body is approximated by points in the flange frame {T}: the flange, the camera and projector
 centres and points along the bar joining them; each must stay ``clearance_mm`` above the table (z = 0 of {W})
@@ -16,6 +17,7 @@ from scipy.spatial import cKDTree
 from cell.config import CellConfig
 from cell.contracts import Envelope
 from cell.geometry import Pose, invert, transform_points
+from cell.planning.arm_body import UR5E_CAPSULES, Capsule, arm_samples
 from cell.planning.kinematics import UR5E, URKinematics
 
 Array = NDArray[np.float64]
@@ -34,7 +36,12 @@ class ReachChecker:
     """Reachability of camera poses T_W_C for one cell and one part (surface points in world mm)."""
 
     def __init__(
-        self, cfg: CellConfig, part_points_W: Array, clearance_mm: float, kinematics: URKinematics = UR5E
+        self,
+        cfg: CellConfig,
+        part_points_W: Array,
+        clearance_mm: float,
+        kinematics: URKinematics = UR5E,
+        arm: tuple[Capsule, ...] = UR5E_CAPSULES,
     ):
         self.T_W_B = cfg.robot.T_W_B.matrix()
         self.T_B_W = invert(self.T_W_B)
@@ -44,6 +51,7 @@ class ReachChecker:
         self.tree = cKDTree(part_points_W)
         self.clearance = clearance_mm
         self.kin = kinematics
+        self.arm = arm
 
     def target(self, T_W_C: Pose) -> Pose:
         """Flange target T_B_T = inv(T_W_B) @ T_W_C @ inv(T_T_C)."""
@@ -85,5 +93,28 @@ class ReachChecker:
             return (
                 False,
                 f"sensor body {d.min():.1f} mm from the part on the way, needs {self.clearance:.0f} mm",
+            )
+        return True, "clear"
+
+    def arm_clear(self, q: NDArray[np.float64]) -> tuple[bool, str]:
+        """Every link capsule of the arm ``clearance_mm`` clear of the table (z = 0 of {W}) and of the part at
+        every joint configuration of a (N, 6) stack (a sampled path), rad."""
+        arm = arm_samples(self.kin, q, self.arm)
+        pts_W = np.einsum("ij,nmj->nmi", self.T_W_B[:3, :3], arm.points_B) + self.T_W_B[:3, 3]
+        need = arm.radius_mm + self.clearance  # axis to obstacle
+        low = pts_W[..., 2] - need
+        if low.min() < 0:
+            n, m = np.unravel_index(int(np.argmin(low)), low.shape)
+            return False, (
+                f"robot {arm.link[m]} {pts_W[n, m, 2] - arm.radius_mm[m]:.1f} mm above the table on the way, "
+                f"needs {self.clearance:.0f} mm"
+            )
+        d = self.tree.query(pts_W.reshape(-1, 3))[0].reshape(low.shape)
+        gap = d - need
+        if gap.min() < 0:
+            n, m = np.unravel_index(int(np.argmin(gap)), gap.shape)
+            return False, (
+                f"robot {arm.link[m]} {d[n, m] - arm.radius_mm[m]:.1f} mm from the part on the way, "
+                f"needs {self.clearance:.0f} mm"
             )
         return True, "clear"
