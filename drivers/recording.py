@@ -9,6 +9,7 @@ raised CellError as ``{$error: ClassName, device, message}``. :mod:`fakes.replay
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import datetime
 from enum import Enum
@@ -20,6 +21,7 @@ import yaml
 
 from cell import contracts, errors
 from cell.contracts import Camera, GlassRig, Projector, Robot
+from cell.devices import DeviceBundle
 
 FIXTURE_FORMAT = 1
 PROPERTIES = {
@@ -166,3 +168,36 @@ class RecordingProxy:
         (out / "fixture.yaml").write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
         np.savez_compressed(out / "arrays.npz", **enc.arrays)
         return out
+
+
+def record_bundle(devices: DeviceBundle) -> DeviceBundle:
+    """The same cell with every device behind a :class:`RecordingProxy` (a simulated world stays reachable
+    as ``sim``, so a recorded simulated run renders what an unrecorded one would)."""
+    return dataclasses.replace(
+        devices,
+        robot=RecordingProxy(devices.robot),
+        camera=RecordingProxy(devices.camera),
+        projector=RecordingProxy(devices.projector),
+    )
+
+
+def save_bundle(devices: DeviceBundle, out: str | Path, cell_config: dict[str, Any]) -> Path:
+    """Write one fixture per device under ``out`` (``robot/``, ``camera/``, ``projector/``) and ``cell.yaml``:
+    ``cell_config`` (the cell config's YAML data) with every driver set to ``replay`` on those fixtures, so
+    that ``cell inspect RECIPE --cell out/cell.yaml`` runs the recorded session again without hardware."""
+    root = Path(out).resolve()
+    data = copy.deepcopy(cell_config)
+    sections = {
+        "robot": data.setdefault("robot", {}),
+        "camera": data.setdefault("sensor", {}).setdefault("camera", {}),
+        "projector": data["sensor"].setdefault("projector", {}),
+    }
+    for kind, section in sections.items():
+        proxy = getattr(devices, kind)
+        if not isinstance(proxy, RecordingProxy):
+            raise TypeError(f"the {kind} is not recorded: build the bundle with record_bundle()")
+        fixture = proxy.save(root / kind)
+        section["driver"] = "replay"
+        section["options"] = {**(section.get("options") or {}), "fixture": str(fixture)}
+    (root / "cell.yaml").write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    return root

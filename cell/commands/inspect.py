@@ -138,8 +138,9 @@ def _load_run_inputs(run: RunFolder) -> tuple[Recipe, Any, Path | None]:
     return recipe, cfg, actual
 
 
-def _execute(run: RunFolder, *, resume: bool) -> str:
-    """Run (or resume) a run folder with the settings it was started with."""
+def _execute(run: RunFolder, *, resume: bool, record: Path | None = None) -> str:
+    """Run (or resume) a run folder with the settings it was started with; with ``record``, every device
+    call is recorded there as replay fixtures (also when the run pauses or fails)."""
     started = run_settings(run)
     seed = started.get("seed")
     settings = ControllerSettings(pipelining=bool(started.get("pipelining", True)))
@@ -152,11 +153,22 @@ def _execute(run: RunFolder, *, resume: bool) -> str:
     nominal_W = load_mesh(recipe.part.cad).apply_transform(T_W_P)
     actual_W = load_mesh(actual_path).apply_transform(T_W_P) if actual_path else nominal_W
     devices = build_devices(cfg, part_W=actual_W, part_material=recipe.part.material, seed=seed)
+    if record is not None:
+        from drivers.recording import record_bundle
+
+        devices = record_bundle(devices)
     job = LambertianInspection(recipe, cfg, nominal_W)
     ctl = inspection_controller(devices, job, run, settings, on_progress=_progress)
     index = RunIndex(run.path.parent)
     index.upsert(run.path, job.part_name, "running")
-    state = ctl.execute(resume=resume)
+    try:
+        state = ctl.execute(resume=resume)
+    finally:
+        if record is not None:
+            from drivers.recording import save_bundle
+
+            saved = save_bundle(devices, record, cfg.model_dump(mode="json"))
+            console.print(f"device traffic recorded: replay with --cell {saved / 'cell.yaml'}")
     summary = (run.load_checkpoint() or {}).get("summary", {})
     dev = summary.get("deviation") or {}
     index.upsert(
@@ -199,10 +211,18 @@ def register(app: typer.Typer) -> None:
         ),
         seed: int = typer.Option(None, "--seed", help="simulation noise seed (default: the cell's sim.seed)"),
         pipelining: bool = typer.Option(True, help="decode view k while moving to view k+1"),
+        record: Path = typer.Option(
+            None,
+            "--record",
+            help="record every device call into this folder as replay fixtures, with a cell.yaml that "
+            "replays them (docs/fixtures.md)",
+        ),
     ) -> None:
         """Run an inspection recipe end to end; Ctrl-C pauses safely (resume with `cell resume DIR`)."""
+        if record is not None and record.exists() and any(record.iterdir()):
+            raise ConfigError("recording folder exists and is not empty; choose another", path=str(record))
         run = _start_run(recipe, cell, out, sim_actual, seed=seed, pipelining=pipelining)
-        _execute(run, resume=False)
+        _execute(run, resume=False, record=record)
 
     @app.command("resume")
     def resume_cmd(run_dir: Path = typer.Argument(..., help="run folder of an interrupted run")) -> None:
