@@ -12,7 +12,8 @@ mean, so S / sigma^2 follows chi-square with 2(c - 1) - 1 degrees of freedom. He
    ray parameter as 2 sigma^2 / S''; along the normal it is scaled by |cos i|. A point whose depth standard
    error exceeds ``max_depth_sigma_mm`` is rejected (e.g. two cameras looking from nearly the same side);
 4. a point seen by one camera only is unconfirmed: its depth rests on the CAD normal (2.3), so it is kept
-   apart, not judged by this test.
+   apart, not judged by this test -- unless it was measured by multi-projection (2.4), which assumes no
+   normal: such a point is judged by its own two-screen geometry (:func:`check_projection`).
 """
 
 from __future__ import annotations
@@ -71,3 +72,36 @@ def check_consistency(
         depth_sigma[confirmed] = np.sqrt(var_t) * np.abs(cos_incidence[confirmed])
     accepted = confirmed & (p > alpha) & (depth_sigma <= max_depth_sigma_mm)
     return Consistency(accepted, p, depth_sigma, sigma)
+
+
+def check_projection(
+    miss_mm: NDArray[np.float64],
+    lever: NDArray[np.float64],
+    sin_angle: NDArray[np.float64],
+    cos_incidence: NDArray[np.float64],
+    alpha: float,
+    max_depth_sigma_mm: float,
+) -> Consistency:
+    """Judge multi-projection points by their own geometry (cell.glass.multiprojection.ProjectionFit).
+
+    Model: the second screen point W2 carries isotropic noise of sigma_w (mm per axis). Its component out of
+    the plane of ray and W1-W2 line shows as the miss distance, miss = lever * e_out; its component in that
+    plane moves the point along the ray by lever * e_in / sin_angle. So (miss / lever)^2 / sigma_w^2 follows
+    chi-square with 1 degree of freedom: sigma_w is estimated robustly from all points (median), a point fails
+    when its miss is improbable at ``alpha`` or when its depth standard error along the normal,
+    lever * sigma_w / sin_angle * |cos i|, exceeds ``max_depth_sigma_mm``. NaN inputs (no second-screen
+    fit) are not accepted. ``sigma_rad`` of the result holds sigma_w (mm)."""
+    e_out = miss_mm / lever
+    fitted = np.isfinite(e_out) & (sin_angle > 0)
+    p = np.zeros(len(miss_mm))
+    depth_sigma = np.full(len(miss_mm), np.inf)
+    if not fitted.any():
+        return Consistency(fitted, p, depth_sigma, float("nan"))
+    sigma_w = float(np.sqrt(np.median(e_out[fitted] ** 2) / chi2.ppf(0.5, 1)))
+    if sigma_w > 0:
+        p[fitted] = chi2.sf(e_out[fitted] ** 2 / sigma_w**2, 1)
+    else:  # noise-free data: every exact fit passes
+        p[fitted] = np.where(e_out[fitted] == 0, 1.0, 0.0)
+    depth_sigma[fitted] = lever[fitted] * sigma_w / sin_angle[fitted] * np.abs(cos_incidence[fitted])
+    accepted = fitted & (p > alpha) & (depth_sigma <= max_depth_sigma_mm)
+    return Consistency(accepted, p, depth_sigma, sigma_w)

@@ -114,6 +114,10 @@ def feedback(
         t_new, _ = golden_minimize(cost, a, b, step, length_tol_mm)
         idx = np.flatnonzero(step)
         ns = normals_at(t_new[idx], idx)
+        # where no other camera's normal exists at the minimum, the cost was the primary's alone (flat):
+        # the move means nothing, so those points keep their position and wait for the next camera
+        confirmed = np.sum(np.all(np.isfinite(ns), axis=2), axis=0) >= 2
+        idx, ns = idx[confirmed], ns[:, confirmed]
         v = unit(np.nanmean(ns, axis=0))
         old = normal[idx]
         delta = np.arctan2(np.linalg.norm(np.cross(v, old), axis=1), np.einsum("ij,ij->i", v, old))

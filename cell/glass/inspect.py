@@ -18,10 +18,10 @@ from cell.contracts import MarkerScreen
 from cell.glass.bottom import blob_area_ok, bottom_copies, predict_copies
 from cell.glass.calibration import LocalQuadratic, ViewVectorCalibration
 from cell.glass.config import GlassSearchConfig
-from cell.glass.consistency import check_consistency
+from cell.glass.consistency import check_consistency, check_projection
 from cell.glass.feedback import FeedbackCamera, feedback
 from cell.glass.markers import DotDetections, detect_dots, identify
-from cell.glass.multiprojection import multi_projection
+from cell.glass.multiprojection import ProjectionFit, multi_projection
 from cell.glass.reflection import RaySearchProblem, ReflectionLaw, golden_section
 from cell.glass.surface import SmoothSurface, plane_hits, reflect
 
@@ -56,6 +56,8 @@ class GlassMeasurement:
     p_value: NDArray[np.float64]
     depth_sigma_mm: NDArray[np.float64]
     normal_sigma_rad: float  # per-camera normal noise estimated from all residuals
+    # seen by one camera, measured by multi-projection: judged by its own two-screen geometry instead
+    single_projection: NDArray[np.bool_]
 
     @property
     def spread(self) -> NDArray[np.float64]:
@@ -136,7 +138,7 @@ def measure(
         if markers2 is not None and second is not None:
             m2 = markers2[c]
             ok2 = m2.dot >= 0
-            res = multi_projection(
+            res, fit = multi_projection(
                 law,
                 m.detections.centroids_px[ok],
                 m2.detections.centroids_px[ok2],
@@ -147,6 +149,7 @@ def measure(
             res = golden_section(
                 law, search.max_surface_error_mm, search.angle_tol_urad * 1e-6, search.length_tol_mm
             )
+            fit = ProjectionFit(*(np.full(len(res.t), np.nan) for _ in range(3)))
         others = [fb for j, fb in enumerate(fb_cams) if j != c]
         if forced:
             others = others[: max(max_cameras - 1, 0)]
@@ -163,7 +166,11 @@ def measure(
         out["curvature"].append(fb.curvature[keep])
         out["cos_incidence"].append(np.abs(np.einsum("ij,ij->i", prob.dirs, fb.normals))[keep])
         out["points_single"].append(res.points[keep])
+        out["miss_mm"].append(fit.miss_mm[keep])
+        out["lever"].append(fit.lever[keep])
+        out["sin_angle"].append(fit.sin_angle[keep])
     cat = {k: np.concatenate(v) for k, v in out.items()}
+    fits = [cat.pop(k) for k in ("miss_mm", "lever", "sin_angle")]
     c = check_consistency(
         cat["residual"],
         cat["curvature"],
@@ -172,12 +179,19 @@ def measure(
         search.outlier_alpha,
         search.max_depth_sigma_mm,
     )
+    accepted, p_value, depth_sigma = c.accepted.copy(), c.p_value.copy(), c.depth_sigma_mm.copy()
+    single = (cat["n_cameras"] == 1) & np.isfinite(fits[0])
+    if single.any():  # multi-projection points no other camera confirms: their own geometry judges them
+        proj = check_projection(*fits, cat["cos_incidence"], search.outlier_alpha, search.max_depth_sigma_mm)
+        accepted[single], p_value[single] = proj.accepted[single], proj.p_value[single]
+        depth_sigma[single] = proj.depth_sigma_mm[single]
     return GlassMeasurement(
         **cat,
-        accepted=c.accepted,
-        p_value=c.p_value,
-        depth_sigma_mm=c.depth_sigma_mm,
+        accepted=accepted,
+        p_value=p_value,
+        depth_sigma_mm=depth_sigma,
         normal_sigma_rad=c.sigma_rad,
+        single_projection=single,
     )
 
 
@@ -193,4 +207,7 @@ _PER_CAMERA = (
     "curvature",
     "cos_incidence",
     "points_single",
+    "miss_mm",
+    "lever",
+    "sin_angle",
 )

@@ -148,7 +148,7 @@ def _report(
     pts_P = transform_points(T_P_W, m.points[acc])
     normals_P = m.normals[acc] @ T_P_W[:3, :3].T
     dev = signed_distance(nominal, pts_P).deviation_mm
-    unconfirmed = m.n_cameras < 2
+    unconfirmed = (m.n_cameras < 2) & ~m.single_projection  # depth rests on the CAD normal
     inconsistent = ~unconfirmed & ~acc & (m.p_value <= recipe.search.outlier_alpha)
     excluded = {
         "unconfirmed_single_camera": int(unconfirmed.sum()),
@@ -160,7 +160,7 @@ def _report(
         "part": recipe.name or recipe.part.cad.stem,
         "cad": str(recipe.part.cad),
         "method": "back-imaging glass (reflection search seeded by the CAD, multi-camera feedback, "
-        "chi-square consistency test)",
+        "chi-square consistency test; single-camera multi-projection points by their two-screen fit)",
         "search_method": recipe.search.method,
         "markers": int(len(m.points)),
         "accepted": int(acc.sum()),
@@ -193,6 +193,7 @@ def _report(
         p_value=m.p_value,
         depth_sigma_mm=m.depth_sigma_mm,
         points_single_W=m.points_single,
+        single_projection=m.single_projection,
     )
     summary = {
         "verdict": doc["verdict"],

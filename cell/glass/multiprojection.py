@@ -8,9 +8,15 @@ along the projection vector W = W1 - W2 (both points lie on it), so the surface 
 ray o + t U meets the line through W1 and W2 (closest approach of the two lines) and the normal is the
 bisector V = unit(unit(W1 - P) - U). Unlike the single-camera search no CAD normal is assumed: the CAD only
 seeds the marker identification.
+
+How well the two screen points fit the ray is kept per marker (:class:`ProjectionFit`): a point seen by this
+one camera only is then judged by its own geometry (cell.glass.consistency.check_projection) instead of being
+left unconfirmed as a single-camera golden-section point must be.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,17 +44,29 @@ def closest_approach_t(
         return (uw * wr - ww * ur) / den
 
 
+@dataclass(frozen=True)
+class ProjectionFit:
+    """Per marker: ``miss_mm``, the closest distance of the view ray and the W1-W2 line (0 for exact data);
+    ``lever`` = |P - W1| / |W1 - W2|, how far an error of W2 moves the line at P (mm per mm);
+    ``sin_angle`` of the ray and the line (a small angle pins P poorly along the ray)."""
+
+    miss_mm: NDArray[np.float64]
+    lever: NDArray[np.float64]
+    sin_angle: NDArray[np.float64]
+
+
 def multi_projection(
     law: ReflectionLaw,
     pixels: NDArray[np.float64],
     second_pixels: NDArray[np.float64],
     second_xy: NDArray[np.float64],
     second: MarkerScreen,
-) -> SearchResult:
+) -> tuple[SearchResult, ProjectionFit]:
     """Surface points of ``law``'s markers (seen at ``pixels``, N x 2) from the second screen position:
     ``second_pixels`` / ``second_xy`` are the markers identified in that image (pixel, screen mm in {S}).
     ``ok`` is False where the second image has no markers around the pixel. ``iterations`` is 0 (no search);
-    ``theta`` is the offset angle to the CAD normal at the found point."""
+    ``theta`` is the offset angle to the CAD normal at the found point. Also the fit of each marker's two
+    screen points to its ray."""
     w2 = screen_points_W(second.T_W_S, LocalQuadratic(second_pixels, second_xy, k=12)(pixels))
     w1 = law.p.markers
     t = closest_approach_t(law.p.origins, law.p.dirs, w1, w1 - w2)
@@ -56,4 +74,14 @@ def multi_projection(
     t = np.where(ok, t, law.t0)
     points = law.p.origins + t[:, None] * law.p.dirs
     normals = unit(unit(w1 - points) - law.p.dirs)
-    return SearchResult(t, points, normals, law.theta(t), np.zeros(len(t), dtype=np.int64), ok)
+    w = w1 - w2
+    w_len = np.linalg.norm(w, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w_dir = w / w_len[:, None]
+        s = np.einsum("ij,ij->i", points - w1, w_dir)
+        miss = np.linalg.norm(points - (w1 + s[:, None] * w_dir), axis=1)
+        lever = np.linalg.norm(points - w1, axis=1) / w_len
+    sin_angle = np.linalg.norm(np.cross(law.p.dirs, np.nan_to_num(w_dir)), axis=1)
+    fit = ProjectionFit(np.where(ok, miss, np.nan), np.where(ok, lever, np.nan), sin_angle)
+    result = SearchResult(t, points, normals, law.theta(t), np.zeros(len(t), dtype=np.int64), ok)
+    return result, fit
