@@ -158,7 +158,12 @@ class MotionPlanner:
                 ("to the target", T_to, False),
             ):
                 try:
-                    q_goal = self.kin.ik_nearest(T_joint, q_start)
+                    branches = self._branches(T_joint, q_start)
+                except PlanningError as exc:
+                    rejected.append(f"{label}joint move {name}: {exc}")
+                    continue
+                why = ""
+                for q_goal in branches:
                     ok, why = self._joint_ok(q_start, q_goal)
                     down = None
                     if ok and then_down:
@@ -166,7 +171,15 @@ class MotionPlanner:
                         ok = down is not None
                     if ok:
                         return prefix + [Move("joint", q_goal)] + ([down] if down else []), rejected
-                except PlanningError as exc:
-                    why = str(exc)
                 rejected.append(f"{label}joint move {name}: {why}")
         raise PlanningError("no collision-free path to the view: " + "; ".join(rejected))
+
+    def _branches(self, T: Pose, q_ref: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+        """Every IK branch of ``T`` (shoulder, elbow, wrist), nearest to ``q_ref`` first: a joint move on the
+        nearest branch can dip the flange below the envelope or sweep the arm through the part where another
+        branch stays clear. PlanningError when there is none."""
+        sols = self.kin.ik(T, q_ref)
+        if not sols.ok:
+            raise PlanningError(f"pose unreachable: {sols.reason}")
+        order = np.argsort(np.abs(sols.joints - q_ref).max(axis=1))
+        return [sols.joints[i] for i in order]

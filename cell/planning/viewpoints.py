@@ -8,7 +8,8 @@ projector stands, so it decides self-shadowing); each candidate is scored by the
 measures (projector constraints first, then camera, with ray-cast occlusion for both). When no roll measures
 ``patch_accept`` of the patch, or the box is too large, the patch is split in two across its longest axis and
 each half is searched again (Fig. 3.5). Unreachable candidates are re-posed: other rolls first, then the view
-direction tilted by 15 and 30 degrees about the box centre.
+direction tilted by 15, 30 and 45 degrees about the box centre (45: the view that reaches a low vertical
+face, such as the side of a flat part, from above the envelope floor).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from cell.planning.surface import PartSurface
 
 Array = NDArray[np.float64]
 ROLLS = np.deg2rad(np.arange(0, 360, 45))
-TILTS = np.deg2rad((15.0, 30.0))
+TILTS = np.deg2rad((15.0, 30.0, 45.0))
 TILT_AZIMUTHS = np.deg2rad(np.arange(0, 360, 60))
 MIN_SAMPLES = 6
 
@@ -116,7 +117,7 @@ class PatchPlanner:
             return self._split(idx, box, name, source)
         best = self._best_pose(idx, box, fits if fits.any() else np.ones(len(ROLLS), bool))
         accept = self.sensor.settings.patch_accept
-        if best is not None and (best[1] >= accept or not can_split):
+        if best is not None and (best[1] >= accept or (not can_split and best[1] > 0)):
             T, frac, meas, how = best
             self.log.append(
                 {
