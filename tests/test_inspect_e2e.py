@@ -79,6 +79,7 @@ def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return recipe, folder / "cell.yaml"
 
 
+@pytest.mark.timeout(900)  # 20 kills and resumes of a ~10 s run, on a shared 2-core machine
 def test_killed_runs_resume_to_the_same_result(box_inputs: tuple[Path, Path], tmp_path: Path) -> None:
     recipe, cell_file = box_inputs
     t0 = time.monotonic()

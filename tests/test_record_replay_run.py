@@ -55,7 +55,8 @@ def test_recorded_inspection_replays_to_the_same_report(tmp_path: Path) -> None:
     # one frame per projected pattern of every view, each from the recording
     job = LambertianInspection(load_recipe(recipe), small_cell(), trimesh.load(tmp_path / "box.stl"))
     calls = yaml.safe_load((fx / "camera" / "fixture.yaml").read_text())["calls"]
-    assert sum(c["method"] == "grab" for c in calls) == len(job.patterns) * len(recorded["metadata"]["views"])
+    captured = len(list((tmp_path / "a" / "views").glob("*/view.json")))  # planned views with a clear path
+    assert captured >= 5 and sum(c["method"] == "grab" for c in calls) == len(job.patterns) * captured
 
     # the part placed 10 mm elsewhere: the plan asks the robot for moves it never recorded
     moved = yaml.safe_load(recipe.read_text())

@@ -281,12 +281,17 @@ def evaluate(fb: FeedbackPlanner, views: list[MeasuredView], first_new: int, ia_
 
 
 def select_new(fb: FeedbackPlanner, proposed: list[Viewpoint], done: list[Pose]) -> list[Viewpoint]:
-    """The proposed viewpoints that are not a pose already measured, within the view budget (logged)."""
+    """The proposed viewpoints that are not a pose already in the run (measured, or skipped because no clear
+    path reached it) nor proposed twice, within the view budget (logged)."""
     pending: list[Viewpoint] = []
     for vp in proposed:
         if is_duplicate(vp.T_W_C, done + [p.T_W_C for p in pending]):
             fb.log.append(
-                {"event": "duplicate", "patch": vp.patch, "reason": "an equal pose was already measured"}
+                {
+                    "event": "duplicate",
+                    "patch": vp.patch,
+                    "reason": "an equal pose is already in the run (measured, or skipped as unreachable)",
+                }
             )
             continue
         if len(done) + len(pending) >= fb.st.view_budget:
