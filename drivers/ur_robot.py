@@ -24,6 +24,7 @@ from cell.geometry import pose_from_xyz_rotvec, pose_to_xyz_rotvec
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 UR_POWERED_MODES = {5: RobotMode.IDLE, 7: RobotMode.IDLE}  # UR robot_mode IDLE (brakes on), RUNNING
 PROTECTIVE_STOP_BIT, EMERGENCY_STOP_BIT = 2, 7  # RTDE safety_status_bits
+STOP_SETTLE_S = 0.25  # after a failed move, how long the data stream may take to show a stop
 
 
 def _probe(host: str, port: int, timeout_s: float, device: str, rtde: bool = False) -> None:
@@ -167,14 +168,20 @@ class URRobot:
             self._fresh()
             self._fresh()
             return
-        state = self.state()
-        if state.protective_stop or state.emergency_stop:
-            kind = "protective stop" if state.protective_stop else "emergency stop"
-            raise DeviceFault(
-                self.name,
-                f"{what} stopped by a {kind}; clear the cause, then unlock it on the "
-                "pendant (or unlock_protective_stop())",
-            )
+        # The safety bits of the data stream can trail the failed command by a package or more: watch the
+        # stream for a short while before calling it a refusal rather than a stop.
+        deadline = time.monotonic() + STOP_SETTLE_S
+        while True:
+            state = self.state()
+            if state.protective_stop or state.emergency_stop:
+                kind = "protective stop" if state.protective_stop else "emergency stop"
+                raise DeviceFault(
+                    self.name,
+                    f"{what} stopped by a {kind}; clear the cause, then unlock it on the "
+                    "pendant (or unlock_protective_stop())",
+                )
+            if time.monotonic() > deadline:
+                break
         raise DeviceFault(self.name, f"controller refused {what}; check the pendant for the reason")
 
     def _control_ready(self) -> Any:
