@@ -6,7 +6,8 @@ inside the configured envelope (base frame), every sample of the path reachable 
 within the joint limits and without joint speeds above the UR5e's 180 deg/s (singularity crossings).
 
 What happens while moving (simulated time on a :class:`~fakes.clock.SimClock`, nothing sleeps): the flange and
-the tool body points must stay above the table (world z > clearance) and out of the obstacle mesh; on contact
+the tool body points must stay above the table (world z > clearance) and out of the obstacle mesh, and the
+arm's links (capsules of cell.planning.arm_body, exact distance to the mesh) must not touch either; on contact
 the arm stops at the last safe sample, the protective stop latches and DeviceFault says what touched what, as
 a UR controller would. ``inject_fault`` makes the next move fail midway the same way. ``command_log`` keeps
 every command with its target, speed, acceleration, start time, duration and outcome.
@@ -26,6 +27,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from cell.config import RobotConfig
 from cell.contracts import Envelope, RobotMode, RobotState
 from cell.errors import DeviceFault, DeviceTimeout, PlanningError
+from cell.planning.arm_body import arm_samples
 from cell.planning.kinematics import (
     UR5E,
     URKinematics,
@@ -71,6 +73,26 @@ class _CollisionModel:
             if hit is not None:
                 hits.append(hit)
         return min(hits) if hits else None
+
+    def arm_contact(self, kin: URKinematics, q: Array, T_W_B: Array) -> tuple[int, str] | None:
+        """Index of the first joint sample (n, 6) where a link capsule touches the table or the obstacle
+        mesh (surface within the capsule radius, exact distance), and what touches, or None."""
+        arm = arm_samples(kin, q)
+        pts = np.einsum("ij,nmj->nmi", T_W_B[:3, :3], arm.points_B) + T_W_B[:3, 3]
+        touch = pts[..., 2] < arm.radius_mm
+        if self.mesh is not None:
+            reach = arm.radius_mm.max()
+            lo, hi = self.mesh.bounds[0] - reach, self.mesh.bounds[1] + reach
+            near = np.all((pts >= lo) & (pts <= hi), axis=-1) & ~touch
+            if near.any():
+                sd = trimesh.proximity.signed_distance(self.mesh, pts[near])  # > 0 inside the mesh
+                touch[near] = sd > -np.broadcast_to(arm.radius_mm, near.shape)[near]
+        if not touch.any():
+            return None
+        k = int(np.argmax(touch.any(axis=1)))
+        m = int(np.argmax(touch[k]))
+        where = "the table" if pts[k, m, 2] < arm.radius_mm[m] else "the obstacle mesh"
+        return k, f"robot {arm.link[m]} touches {where} near world {np.round(pts[k, m], 1).tolist()} mm"
 
     def _mesh_contact(self, T_W_T: Array, pts: Array) -> tuple[int, str] | None:
         lo, hi = self.mesh.bounds[0] - self.clearance, self.mesh.bounds[1] + self.clearance
@@ -351,7 +373,11 @@ class SimRobot:
         """Run a checked path: stop early on contact or injected fault; advance the clock; log."""
         duration = float(times[-1])
         end, outcome, error = len(path) - 1, "ok", None
-        contact = self._collision.first_contact(self.T_W_B @ self.kin.fk(path))
+        hits = [
+            self._collision.first_contact(self.T_W_B @ self.kin.fk(path)),
+            self._collision.arm_contact(self.kin, path, self.T_W_B),
+        ]
+        contact = min((h for h in hits if h is not None), default=None)
         if contact is not None:
             end = max(contact[0] - 1, 0)
             outcome = "protective_stop"

@@ -10,11 +10,12 @@ import pytest
 import trimesh
 
 from cell.config import load_cell_config
-from cell.errors import PlanningError
+from cell.errors import DeviceFault, PlanningError
 from cell.planning.arm_body import arm_samples
 from cell.planning.kinematics import UR5E
 from cell.planning.motion import MotionPlanner
 from cell.planning.reach import ReachChecker
+from fakes.robot import SimRobot
 
 SIM = Path(__file__).resolve().parent.parent / "recipes" / "cells" / "sim.yaml"
 HOME = np.deg2rad([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
@@ -99,3 +100,32 @@ def test_motion_planner_refuses_to_swing_the_arm_through_a_post() -> None:
     assert "robot upper arm" in str(err.value)
     moves, _ = planner(with_post=False).plan(start, HOME, goal, q_home=HOME)
     assert moves
+
+
+def test_simulated_robot_stops_when_its_upper_arm_meets_a_post() -> None:
+    """The simulator is the independent truth for link contact (exact distance to the post's mesh, not the
+    planner's surface samples): turning the base through the post of the planner test stops the arm with a
+    protective stop before 45 deg, naming the upper arm; without the post the same move completes."""
+    cfg = load_cell_config(SIM)
+    T_W_B = cfg.robot.T_W_B.matrix()
+    mid = np.deg2rad(45.0)
+    post = trimesh.creation.box(extents=(20.0, 20.0, 300.0))
+    post.apply_translation((138.0 * np.sin(mid), -138.0 * np.cos(mid), 375.0))
+    post.apply_transform(T_W_B)
+    goal = HOME + np.deg2rad([90.0, 0, 0, 0, 0, 0])
+    speed, accel = cfg.robot.max_joint_speed_rad_s, cfg.robot.max_joint_accel_rad_s2
+
+    blocked = SimRobot(cfg.robot, obstacles_W=post)
+    blocked.connect()
+    with pytest.raises(DeviceFault, match="protective stop: robot upper arm touches the obstacle mesh"):
+        blocked.move_joint(goal, speed, accel)
+    assert blocked.state().protective_stop
+    # the upper arm's hull (60 mm) meets the 20 mm post whose centre is 45 deg round: the axis 70 mm away
+    # from the centre, i.e. 2 * 138 * sin(delta / 2) = 70 mm -> delta = 29.4 deg before it
+    turned = np.rad2deg(blocked.joints()[0] - HOME[0])
+    assert 10.0 < turned < 45.0 - 25.0
+
+    free = SimRobot(cfg.robot)
+    free.connect()
+    free.move_joint(goal, speed, accel)
+    assert np.allclose(free.joints(), goal)
