@@ -61,11 +61,6 @@ class FeedbackResult:
     curvature: NDArray[np.float64]
     history: NDArray[np.float64]
 
-    @property
-    def spread(self) -> NDArray[np.float64]:
-        """RMS angle (rad) of the cameras' normals to their mean."""
-        return np.sqrt(self.residual / np.maximum(self.n_cameras, 1))
-
 
 def _spread(normals: NDArray[np.float64]) -> NDArray[np.float64]:
     """Sum of squared angles (rad^2, small-angle) of each camera's normal to their mean; (C, N, 3) -> (N,)."""

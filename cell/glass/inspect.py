@@ -59,11 +59,6 @@ class GlassMeasurement:
     # seen by one camera, measured by multi-projection: judged by its own two-screen geometry instead
     single_projection: NDArray[np.bool_]
 
-    @property
-    def spread(self) -> NDArray[np.float64]:
-        """RMS angle (rad) of the cameras' normals to their mean."""
-        return np.sqrt(self.residual / np.maximum(self.n_cameras, 1))
-
 
 def find_markers(
     image: NDArray,
