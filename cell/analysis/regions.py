@@ -38,6 +38,10 @@ class Tolerance:
     lower_mm: float = -0.3
     upper_mm: float = 0.3
 
+    def outside(self, deviation_mm: NDArray) -> NDArray[np.bool_]:
+        """Deviations outside the band."""
+        return (deviation_mm < self.lower_mm) | (deviation_mm > self.upper_mm)
+
 
 @dataclass(frozen=True)
 class Region:
@@ -233,7 +237,7 @@ def region_verdicts(
         inside = r.contains(points_mm, source_face)
         d = deviation_mm[inside]
         t = r.tolerance or tol
-        n_out = int(((d < t.lower_mm) | (d > t.upper_mm)).sum())
+        n_out = int(t.outside(d).sum())
         frac = None
         if cov is not None:
             in_s = (

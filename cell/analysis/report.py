@@ -11,6 +11,7 @@ import html
 import io
 import json
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +59,12 @@ class ReportInput:
     link_radius_mm: float | None = None  # out-of-tolerance points closer than this form one region
     warnings: list[str] = field(default_factory=list)  # what the reader must know before trusting the map
 
+    @cached_property
+    def bands(self) -> PointBands:
+        """The band each point is judged by: the report's, or inside user regions with a band of their own
+        that band (:func:`cell.analysis.regions.point_bands`)."""
+        return point_bands(self.regions, self.points_mm, self.source_face, self.tolerance)
+
 
 def _default_link_radius(points_mm: NDArray) -> float:
     """3x the cloud's median nearest-neighbour spacing: queried for a random sample of points against the
@@ -74,12 +81,6 @@ def _default_link_radius(points_mm: NDArray) -> float:
     return 3.0 * float(np.median(d)) if len(d) else 0.0
 
 
-def _outside(deviation_mm: NDArray, band: Tolerance | PointBands) -> NDArray[np.bool_]:
-    if isinstance(band, PointBands):
-        return band.outside(deviation_mm)
-    return (deviation_mm < band.lower_mm) | (deviation_mm > band.upper_mm)
-
-
 def out_of_tolerance_clusters(
     points_mm: NDArray,
     deviation_mm: NDArray,
@@ -88,7 +89,7 @@ def out_of_tolerance_clusters(
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Indices of the points outside their band (one for all, or one per point) and their cluster label
     (points closer than the link radius, by default :func:`_default_link_radius`, share a cluster)."""
-    bad = np.flatnonzero(_outside(deviation_mm, band))
+    bad = np.flatnonzero(band.outside(deviation_mm))
     if len(bad) == 0:
         return bad, np.zeros(0, dtype=np.int64)
     radius = _default_link_radius(points_mm) if link_radius_mm is None else link_radius_mm
@@ -148,8 +149,7 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
     """The report.json document (see docs/report-schema.md)."""
     d = inp.deviation_mm
     tol = inp.tolerance
-    # Points in a region with a band of its own are judged by that band, the rest by the report's band.
-    bands = point_bands(inp.regions, inp.points_mm, inp.source_face, tol)
+    bands = inp.bands
     inside = ~bands.outside(d)
     stats: dict[str, Any] = {}
     if len(d):
@@ -230,9 +230,10 @@ def _png(fig: Any) -> str:
 
 
 def _pictures(
-    points: NDArray, dev: NDArray, tol: Tolerance, max_points: int = 100_000
+    points: NDArray, dev: NDArray, tol: Tolerance, bad: NDArray[np.bool_], max_points: int = 100_000
 ) -> tuple[list, str | None]:
-    """Colour error-map pictures from several view directions and a histogram (base64 PNG)."""
+    """Colour error-map pictures from several view directions and a histogram (base64 PNG); ``bad``: the
+    points outside their band, always drawn."""
     try:
         import matplotlib
 
@@ -242,7 +243,6 @@ def _pictures(
         return [], None
     hist_dev = dev
     if len(points) > max_points:  # a sample for drawing, but every out-of-tolerance point stays visible
-        bad = (dev < tol.lower_mm) | (dev > tol.upper_mm)
         rest = np.flatnonzero(~bad)
         keep = np.random.default_rng(0).choice(rest, min(len(rest), max_points), replace=False)
         sel = np.sort(np.concatenate([keep, np.flatnonzero(bad)]))
@@ -319,7 +319,7 @@ def write_report(out_dir: Path, inp: ReportInput, pictures: bool = True) -> dict
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     images, hist = (
-        _pictures(inp.points_mm, inp.deviation_mm, inp.tolerance)
+        _pictures(inp.points_mm, inp.deviation_mm, inp.tolerance, inp.bands.outside(inp.deviation_mm))
         if pictures and len(inp.points_mm)
         else ([], None)
     )
