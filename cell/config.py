@@ -84,6 +84,52 @@ class CameraConfig(PinholeConfig):
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific settings")
 
 
+class ProjectorTiming(Strict):
+    """How the projector turns input frames into light, and what the scan assumes of its latency."""
+
+    refresh_hz: Annotated[float, Field(gt=0, le=1000)] = Field(60.0, description="input frame rate, Hz")
+    modulation: Literal["none", "dlp"] = Field(
+        "none",
+        description="dlp: binary mirrors make grey levels by pulse width within each frame period, so camera "
+        "exposures must be whole multiples of the frame period; none: steady light (LCD, LCoS)",
+    )
+    latency_ms: Annotated[float, Field(ge=0, le=1000)] | None = Field(
+        None,
+        description="delay from the display's present stamp to a fully new pattern on the part, measured by "
+        "`cell calibrate latency` (the calibration file's value replaces it); None: max_latency_frames",
+    )
+    max_latency_frames: Annotated[float, Field(ge=0, le=20)] = Field(
+        4.0, description="latency assumed until measured: an upper bound (projectors add 1-3 frames)"
+    )
+    max_recaptures: Annotated[int, Field(ge=0, le=10)] = Field(
+        3, description="times the scan re-captures an inconsistent pattern pair, one frame later each time"
+    )
+
+    @property
+    def frame_period_ms(self) -> float:
+        return 1000.0 / self.refresh_hz
+
+    def assumed_latency_s(self) -> float:
+        """The wait after a present stamp before the camera may expose: measured, else the upper bound."""
+        if self.latency_ms is not None:
+            return self.latency_ms * 1e-3
+        return self.max_latency_frames * self.frame_period_ms * 1e-3
+
+    def check_exposure(self, exposure_ms: float, where: str) -> None:
+        """ValueError unless a DLP exposure is a whole number of frame periods (to the camera's 1 us)."""
+        if self.modulation != "dlp":
+            return
+        period = self.frame_period_ms
+        n = round(exposure_ms / period)
+        if n < 1 or abs(exposure_ms - n * period) > 1e-3:
+            good = ", ".join(f"{k * period:.3f}" for k in (1, 2, 3))
+            raise ValueError(
+                f"{where} = {exposure_ms:g} ms is not a whole number of the DLP projector's frame periods "
+                f"({period:.4f} ms at {self.refresh_hz:g} Hz): partial frames catch part of the grey-level "
+                f"bit planes; use e.g. {good} ms or change sensor.projector.timing"
+            )
+
+
 class ProjectorConfig(PinholeConfig):
     """A DLP projector: optics, light output, placement in the camera frame and its control driver."""
 
@@ -98,6 +144,7 @@ class ProjectorConfig(PinholeConfig):
     )
     black_level: Fraction = Field(0.002, description="light leaked by a black pixel: 1 / contrast ratio")
     gamma: Annotated[float, Field(gt=0.2, lt=5)] = 1.0
+    timing: ProjectorTiming = ProjectorTiming()
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific settings")
 
 
@@ -109,6 +156,11 @@ class SensorConfig(Strict):
     depth_of_field_mm: Annotated[float, Field(gt=0, lt=2000)]
     camera: CameraConfig
     projector: ProjectorConfig
+
+    @model_validator(mode="after")
+    def _exposure_synchronises(self) -> SensorConfig:
+        self.projector.timing.check_exposure(self.camera.exposure_ms, "sensor.camera.exposure_ms")
+        return self
 
 
 class RobotConfig(Strict):
@@ -163,6 +215,7 @@ class CalibrationFiles(Strict):
     hand_eye: Path | None = Field(None, description="T_T_C; overrides sensor.T_T_C (cell calibrate handeye)")
     intrinsics: Path | None = Field(None, description="camera K and distortion (cell calibrate intrinsics)")
     projector: Path | None = Field(None, description="projector K and T_C_P (cell calibrate projector)")
+    latency: Path | None = Field(None, description="display latency (cell calibrate latency)")
 
 
 class CellConfig(Strict):
@@ -314,6 +367,11 @@ def load_cell_config(path: str | Path) -> CellConfig:
                 field=f"calibration.{field}",
             )
         setattr(cfg.calibration, field, resolved)
+    if cfg.calibration.latency is not None:
+        from cell.calibration.latency import load_latency
+
+        timing = cfg.sensor.projector.timing
+        timing.latency_ms = load_latency(cfg.calibration.latency, cfg.sensor.projector, path)
     return cfg
 
 

@@ -9,6 +9,7 @@ Units: mm, rad, ms for exposure and timeouts, seconds for timestamps. Poses are 
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -73,6 +74,53 @@ class Projector(Protocol):
 
     def step(self) -> int:
         """Show the next image of the loaded sequence and return its index (0-based)."""
+        ...
+
+
+class Clock(Protocol):
+    """Time in seconds as a device sees it: ``time.monotonic`` on a real cell, the simulated clock in
+    fakes."""
+
+    def now(self) -> float: ...
+
+    def sleep(self, dt_s: float) -> None: ...
+
+
+class SystemClock:
+    """The host's monotonic clock (what :class:`drivers.hdmi_display.HdmiDisplay` stamps presents with)."""
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def sleep(self, dt_s: float) -> None:
+        if dt_s > 0:
+            time.sleep(dt_s)
+
+
+@runtime_checkable
+class TimedProjector(Protocol):
+    """A projector that says when its last frame was presented at its input (vsync flip), on ``clock``.
+
+    ``timing`` is the cell's knowledge of the link (``cell.config.ProjectorTiming``: refresh rate, DLP or not,
+    measured or assumed latency). The scan waits from ``last_present_s`` for the latency before a software
+    trigger; without this capability (replay) it cannot wait and triggers at once."""
+
+    clock: Clock
+    timing: Any
+
+    @property
+    def last_present_s(self) -> float: ...
+
+
+@runtime_checkable
+class SequenceProjector(Protocol):
+    """A projector that runs its loaded pattern sequence by itself (DLP pattern mode) and fires its trigger
+    output once per pattern into a camera in hardware-trigger mode."""
+
+    def run_sequence(self, camera: Camera, count: int, timeout_ms: float) -> list[Frame | None]:
+        """Flush the camera, start the sequence, grab ``count`` frames and stop. The result is indexed by
+        pattern (position in the sequence), placed by the camera's frame ids; None where a frame was lost
+        (an id skipped, or fewer frames than patterns). Refuses a camera not in hardware-trigger mode."""
         ...
 
 

@@ -1,7 +1,15 @@
-"""Simulated DLP projector: holds the image it shows, which the simulated camera renders onto the scene."""
+"""Simulated projector: holds the image it shows, which the simulated camera renders onto the scene.
+
+Timing is the real device's: :meth:`SimProjector.show` blocks until the next vertical blank of the input
+(``timing.refresh_hz``) and stamps that present like :class:`drivers.hdmi_display.HdmiDisplay`; the frame
+lights the scene ``latency_s`` later (the projector's input lag: ``options.latency_frames`` refresh periods,
+default 2, a property of the simulated world the cell does not know). The frame sync output fires when the
+light starts. :meth:`SimProjector.emission` tells the camera which images lit the scene during an exposure.
+"""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -9,11 +17,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config import ProjectorConfig
-from cell.contracts import ProjectorSource, ProjectorStatus
+from cell.contracts import Camera, Frame, ProjectorSource, ProjectorStatus, TriggerMode
 from cell.errors import ConfigError, DeviceFault, DeviceProtocolError, DeviceTimeout
+from fakes.clock import SimClock
 
 AMBIENT_TEMPERATURE_C = 25.0
 RUNNING_TEMPERATURE_C = 42.0  # a DLP projector's reported temperature once warm
+DEFAULT_LATENCY_FRAMES = 2.0  # input lag of a typical projector: scaler + DMD sequence
+HISTORY_S = 2.0  # how far back the emission timeline is kept
 
 
 @dataclass
@@ -25,6 +36,9 @@ class ProjectorFaults:
     lamp_error: bool = False
     serial_timeouts: int = 0
     garbled_replies: int = 0
+    late_presents: int = (
+        0  # the next N frames reach the mirrors one refresh later than stamped (missed vblank)
+    )
 
 
 class SimProjector:
@@ -33,9 +47,19 @@ class SimProjector:
     with a lamp fault). Listeners registered with :meth:`add_frame_listener` get the projector's frame sync
     after every :meth:`show` / :meth:`step`, which is how a hardware-triggered camera follows it."""
 
-    def __init__(self, config: ProjectorConfig, lamp_hours: float = 0.0) -> None:
+    def __init__(
+        self, config: ProjectorConfig, lamp_hours: float = 0.0, clock: SimClock | None = None
+    ) -> None:
         self.config = config
         self.name = config.name
+        self.timing = config.timing
+        self.clock = clock or SimClock()  # a SimCamera built on this projector replaces it by the world's
+        self.frame_period_s = 1.0 / config.timing.refresh_hz
+        self.latency_s = (
+            float(config.options.get("latency_frames", DEFAULT_LATENCY_FRAMES)) * self.frame_period_s
+        )
+        self.last_present_s = math.nan
+        self.present_count = 0
         self.faults = ProjectorFaults()
         self._connected = False
         self._powered = False
@@ -45,7 +69,10 @@ class SimProjector:
         self._image = self._black
         self._sequence: list[NDArray[np.uint8]] = []
         self._index = -1
-        self._listeners: list[Callable[[], None]] = []
+        self._listeners: list[Callable[[float], None]] = []
+        self._timeline: list[tuple[float, NDArray[np.uint8]]] = [
+            (-math.inf, self._black)
+        ]  # (light on, image)
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -97,10 +124,29 @@ class SimProjector:
         out.setflags(write=False)
         return out
 
+    def _present(self, image: NDArray[np.uint8]) -> None:
+        """Flip at the next vertical blank (the clock advances to it), stamp it, schedule the light."""
+        now = self.clock.now()
+        t_present = (math.floor(now / self.frame_period_s + 1e-9) + 1) * self.frame_period_s
+        self.clock.advance(t_present - now)
+        late = 0.0
+        if self.faults.late_presents > 0:
+            self.faults.late_presents -= 1
+            late = self.frame_period_s
+        self._image = image
+        self.last_present_s = t_present
+        self.present_count += 1
+        t_light = t_present + self.latency_s
+        keep = [e for e in self._timeline if e[0] <= t_light + late]
+        self._timeline = keep + [(t_light + late, image)]
+        while len(self._timeline) > 2 and self._timeline[1][0] < now - HISTORY_S:
+            self._timeline.pop(0)
+        self._notify(t_light)
+
     def show(self, image: NDArray[np.uint8]) -> None:
+        """Present ``image`` at the next vertical blank; returns after the flip (``last_present_s``)."""
         self._require_connection()
-        self._image = self._checked(image, "the image")
-        self._notify()
+        self._present(self._checked(image, "the image"))
 
     def load_sequence(self, images: Sequence[NDArray[np.uint8]]) -> None:
         self._require_connection()
@@ -115,9 +161,27 @@ class SimProjector:
         if not self._sequence:
             raise DeviceFault(self.name, "step() without a loaded sequence; call load_sequence() first")
         self._index = (self._index + 1) % len(self._sequence)
-        self._image = self._sequence[self._index]
-        self._notify()
+        self._present(self._sequence[self._index])
         return self._index
+
+    def run_sequence(self, camera: Camera, count: int, timeout_ms: float) -> list[Frame | None]:
+        """Pattern mode: flush the camera, present ``count`` patterns of the loaded sequence back to back (one
+        per refresh), grab what the trigger output exposed and place frames by their ids."""
+        self._require_connection()
+        if (
+            getattr(getattr(camera, "settings", None), "trigger", TriggerMode.HARDWARE)
+            is not TriggerMode.HARDWARE
+        ):
+            raise DeviceFault(
+                camera.name, "run_sequence needs the camera in hardware trigger (the projector's trigger out)"
+            )
+        flush = getattr(camera, "flush", None)
+        if flush is not None:
+            flush()
+        self._index = -1
+        for _ in range(count):
+            self.step()
+        return collect_sequence(camera, count, timeout_ms)
 
     # -------------------------------------------------------------------------------------- simulator side
     @property
@@ -125,19 +189,67 @@ class SimProjector:
         """The frame on the HDMI input, pixel-exact (read-only)."""
         return self._image
 
-    def emitted_image(self) -> NDArray[np.uint8]:
-        """What lights the scene: the current frame when powered, on HDMI and without a fault; else black."""
-        ready = self._connected and self._powered and self._source is ProjectorSource.HDMI
-        return self._image if ready and not self.faults.lamp_error else self._black
+    def _lit(self) -> bool:
+        return (
+            self._connected
+            and self._powered
+            and self._source is ProjectorSource.HDMI
+            and not self.faults.lamp_error
+        )
 
-    def add_frame_listener(self, callback: Callable[[], None]) -> None:
-        """Call ``callback()`` after every new frame (the projector's frame-sync output)."""
+    def emitted_image(self) -> NDArray[np.uint8]:
+        """What lights the scene now: the frame whose light has arrived, when powered, on HDMI and without a
+        fault; else black."""
+        return self.emission(self.clock.now(), self.clock.now())[-1][0]
+
+    def emission(self, t0: float, t1: float) -> list[tuple[NDArray[np.uint8], float, float]]:
+        """(image, start, end) of every frame that lit the scene during [t0, t1] (s), in order."""
+        if not self._lit():
+            return [(self._black, t0, t1)]
+        out = []
+        for i, (t_on, image) in enumerate(self._timeline):
+            t_off = self._timeline[i + 1][0] if i + 1 < len(self._timeline) else math.inf
+            a, b = max(t0, t_on), min(t1, t_off)
+            if b > a or (t0 == t1 and t_on <= t0 < t_off):
+                out.append((image, a, b))
+        return out or [(self._black, t0, t1)]
+
+    def frame_start(self, t: float) -> float:
+        """Start of the mirror frame containing ``t`` (frames are on the vblank grid shifted by latency)."""
+        T = self.frame_period_s
+        return math.floor((t - self.latency_s) / T + 1e-9) * T + self.latency_s
+
+    def add_frame_listener(self, callback: Callable[[float], None]) -> None:
+        """Call ``callback(t_light_s)`` at every new frame (the frame-sync output; when its light starts)."""
         self._listeners.append(callback)
 
-    def remove_frame_listener(self, callback: Callable[[], None]) -> None:
+    def remove_frame_listener(self, callback: Callable[[float], None]) -> None:
         if callback in self._listeners:
             self._listeners.remove(callback)
 
-    def _notify(self) -> None:
+    def _notify(self, t_light: float) -> None:
         for callback in list(self._listeners):
-            callback()
+            callback(t_light)
+
+
+def collect_sequence(camera: Camera, count: int, timeout_ms: float) -> list[Frame | None]:
+    """Grab the frames of one sequence run and place them by frame id (first id = pattern 0); a skipped id is
+    a lost frame (None). Frames beyond ``count`` are a protocol error: the trigger fired too often."""
+    frames: list[Frame] = []
+    while len(frames) < count:
+        try:
+            frames.append(camera.grab(timeout_ms))
+        except DeviceTimeout:
+            break
+        if frames[-1].frame_id - frames[0].frame_id >= count - 1:
+            break
+    out: list[Frame | None] = [None] * count
+    if not frames:
+        return out
+    first = frames[0].frame_id
+    for f in frames:
+        k = f.frame_id - first
+        if not 0 <= k < count:
+            raise DeviceProtocolError(camera.name, f"frame id {f.frame_id} outside the sequence of {count}")
+        out[k] = f
+    return out

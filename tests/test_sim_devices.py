@@ -29,12 +29,19 @@ def _level(rig, value: int) -> np.ndarray:  # noqa: ANN001
     return np.full((96, 128), value, np.uint8)
 
 
+def _show(rig, value: int) -> None:  # noqa: ANN001
+    """Show a level and wait (simulated time) until its light has reached the scene."""
+    rig.projector.show(_level(rig, value))
+    rig.projector.clock.sleep(rig.projector.latency_s)
+
+
 def test_software_frame_shows_the_projector_image_at_trigger_time() -> None:
     rig = _connected_rig()
-    rig.projector.show(_level(rig, 255))
+    _show(rig, 255)
     rig.camera.trigger()
     rig.projector.show(_level(rig, 0))  # changed after the exposure: must not matter
     bright = rig.camera.grab(100)
+    rig.projector.clock.sleep(rig.projector.latency_s)
     rig.camera.trigger()
     dark = rig.camera.grab(100)
     lit = rig.renderer.view(rig.T_W_C).lit
@@ -60,7 +67,7 @@ def test_hardware_trigger_gives_one_frame_per_projector_step_in_order() -> None:
 
 def test_projector_off_or_internal_source_leaves_ambient_light_only() -> None:
     rig = _connected_rig(TriggerMode.FREE_RUN)
-    rig.projector.show(_level(rig, 255))
+    _show(rig, 255)
     on = rig.camera.grab(50).pixels
     rig.projector.set_source(ProjectorSource.INTERNAL)
     internal = rig.camera.grab(50).pixels
@@ -75,7 +82,7 @@ def test_projector_off_or_internal_source_leaves_ambient_light_only() -> None:
 
 def test_injected_faults() -> None:
     rig = _connected_rig()
-    rig.projector.show(_level(rig, 255))
+    _show(rig, 255)
     rig.camera.faults.drop_frames = 1
     rig.camera.trigger()
     with pytest.raises(DeviceTimeout, match="lost"):
@@ -134,6 +141,7 @@ def test_sim_cell_camera_follows_the_robot() -> None:
         dev.connect()
     cell.projector.set_power(True)
     cell.projector.show(np.full((96, 128), 255, np.uint8))
+    cell.clock.sleep(cell.projector.latency_s)
     cell.camera.trigger()
     before = cell.camera.grab(100)
     np.testing.assert_allclose(before.metadata["T_W_C"], T_W_B @ cell.robot.tool_pose() @ T_T_C, atol=1e-9)
