@@ -210,7 +210,7 @@ class SimProjector:
         for i, (t_on, image) in enumerate(self._timeline):
             t_off = self._timeline[i + 1][0] if i + 1 < len(self._timeline) else math.inf
             a, b = max(t0, t_on), min(t1, t_off)
-            if b > a or (t0 == t1 and t_on <= t0 < t_off):
+            if b - a > 1e-9 or (t0 == t1 and t_on <= t0 < t_off):  # slivers below 1 ns are float rounding
                 out.append((image, a, b))
         return out or [(self._black, t0, t1)]
 
