@@ -28,11 +28,15 @@ class SerialSettings(Strict):
 
 
 class Timing(Strict):
-    """Seconds to wait for a reply, extra attempts after a timeout/garbled reply, pause before a command."""
+    """Seconds to wait for a reply, extra attempts after a timeout/garbled reply, pause before a command, and
+    how power-up and refused commands are waited for."""
 
     reply_timeout_s: Annotated[float, Field(gt=0, le=600)] = 5.0
     retries: Annotated[int, Field(ge=0, le=10)] = 2
     settle_s: Annotated[float, Field(ge=0, le=10)] = 0.0
+    refused_retry_interval_s: Annotated[float, Field(gt=0, le=10)] = 0.5
+    power_poll_s: Annotated[float, Field(gt=0, le=10)] = 1.0
+    power_on_s: Annotated[float, Field(gt=0, le=600)] = 100.0
 
 
 class Command(Strict):
@@ -41,6 +45,9 @@ class Command(Strict):
     send: str
     reply: str | None = Field(None, description="regex a query's reply line must match; group 'value'")
     timeout_s: Annotated[float, Field(gt=0, le=600)] | None = None
+    retry_refused_s: Annotated[float, Field(ge=0, le=600)] = Field(
+        0.0, description="a refusal is retried for this long (e.g. SOURCE while the input signal settles)"
+    )
 
     @field_validator("reply")
     @classmethod
@@ -79,6 +86,7 @@ class ProjectorProfile(Strict):
     commands: dict[str, Command | None]
     power_states: dict[str, str]
     powered_states: list[str]
+    warming_states: list[str] = Field(default_factory=list, description="power states to wait through")
     sources: dict[Literal["hdmi"], str]
     error_codes: dict[str, str] = Field(default_factory=dict)
 

@@ -5,7 +5,11 @@ Control (power, input, status) goes over the serial line; the pixels go over HDM
 (``display=``) or built from ``options.display`` (a :class:`drivers.hdmi_display.HdmiDisplay` full-screen
 window); it opens with :meth:`SerialProjector.connect` and must have the projector's resolution.
 Every exchange is framed by the profile's prompt, bounded by its timeout and retried a bounded number of
-times after a timeout or a garbled reply; a refusal (``ERR``) is a DeviceFault and is not retried.
+times after a timeout or a garbled reply; a refusal (``ERR``) is a DeviceFault and is not retried, except for
+commands whose profile entry has ``retry_refused_s`` (``SOURCE``: the projector refuses it while the HDMI
+signal settles, right after the display opened). Power-on returns once ``PWR?`` reads a powered state and
+reports a lamp or other failure as soon as the projector shows it (polled every ``timing.power_poll_s``).
+Waits run on ``clock`` (the host's monotonic clock; tests pass a simulated one).
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from cell.config import ProjectorConfig, Strict, validate
-from cell.contracts import ProjectorSource, ProjectorStatus
+from cell.contracts import Clock, ProjectorSource, ProjectorStatus, SystemClock
 from cell.errors import DeviceError, DeviceFault, DeviceProtocolError, DeviceTimeout
 from drivers.hdmi_display import HdmiDisplay, HdmiDisplayOptions
 from drivers.projector_profile import ProjectorProfile, load_profile
@@ -40,6 +44,14 @@ class PatternDisplay(Protocol):
     def show(self, image: NDArray[np.uint8]) -> object: ...
 
     def close(self) -> None: ...
+
+
+class _Refused(DeviceFault):
+    """The projector answered its error reply: it understood the command and will not do it now."""
+
+    def __init__(self, device: str, reason: str) -> None:
+        super().__init__(device, reason)
+        self.reason = reason
 
 
 class SerialProjectorOptions(Strict):
@@ -63,9 +75,12 @@ class SerialProjector:
         *,
         transport: Transport | None = None,
         display: PatternDisplay | None = None,
+        clock: Clock | None = None,
     ) -> None:
         self.name = config.name
         self._config = config
+        self.timing = config.timing
+        self.clock: Clock = clock or SystemClock()
         self.options = validate(
             SerialProjectorOptions, dict(config.options), f"projector '{config.name}' options"
         )
@@ -85,6 +100,11 @@ class SerialProjector:
     @property
     def resolution(self) -> tuple[int, int]:
         return (self._config.width_px, self._config.height_px)
+
+    @property
+    def last_present_s(self) -> float:
+        """The display's last present stamp (its clock: time.monotonic), NaN if it does not stamp."""
+        return float(getattr(self._display, "last_present_s", math.nan))
 
     def connect(self) -> None:
         """Open the port, check that the projector answers the null command, open the pattern display."""
@@ -139,6 +159,8 @@ class SerialProjector:
         attempts = self._retries + 1
         for attempt in range(1, attempts + 1):
             what = f"{text!r} (attempt {attempt}/{attempts})"
+            if p.timing.settle_s > 0:
+                self.clock.sleep(p.timing.settle_s)
             self._transport.discard_input()
             self._transport.write(data)
             try:
@@ -149,7 +171,7 @@ class SerialProjector:
             lines = [ln.strip() for ln in frame.decode(p.encoding, errors="replace").split(p.terminator)]
             lines = [ln for ln in lines if ln]
             if lines == [p.error_reply]:
-                raise DeviceFault(
+                raise _Refused(
                     self.name,
                     f"projector refused {text!r} ({p.error_reply}); check its state "
                     "(warming up, no signal on the input, lamp fault) and its error status",
@@ -166,15 +188,54 @@ class SerialProjector:
         assert last is not None
         raise last
 
+    def _exchange_until_accepted(self, command: str, **fields: str) -> str | None:
+        """:meth:`_exchange`, retrying a refusal for the command's ``retry_refused_s`` (on ``clock``)."""
+        cmd = self.profile.command(command)
+        patience = cmd.retry_refused_s if cmd is not None else 0.0
+        deadline = self.clock.now() + patience
+        while True:
+            try:
+                return self._exchange(command, **fields)
+            except _Refused as exc:
+                if self.clock.now() >= deadline:
+                    if patience > 0:
+                        raise DeviceFault(
+                            self.name, f"{exc.reason} (still after {patience:g} s of retries)"
+                        ) from None
+                    raise
+            self.clock.sleep(self.profile.timing.refused_retry_interval_s)
+
     # ----------------------------------------------------------------------------------------- control
     def set_power(self, on: bool) -> None:
-        self._exchange("power_on" if on else "power_off")
+        """Power off, or power on and wait until the projector projects: a lamp or other failure is a
+        DeviceFault as soon as the projector reports it (not after the warm-up timeout)."""
+        if not on:
+            self._exchange("power_off")
+            return
+        self._exchange("power_on")
+        t = self.profile.timing
+        deadline = self.clock.now() + t.power_on_s
+        while True:
+            pwr = self._exchange("power_query")
+            assert pwr is not None
+            if pwr in self.profile.powered_states:
+                return
+            code = self._query_optional("error_query")
+            state = self.profile.power_states.get(pwr, f"unknown power state {pwr}")
+            if code is not None and int(code, 16) != 0:
+                why = self.profile.error_codes.get(code, f"error code {code}")
+                raise DeviceFault(self.name, f"power-on failed: {why} (power state: {state})")
+            if pwr not in self.profile.warming_states:
+                raise DeviceFault(self.name, f"power-on failed: the projector went to '{state}'")
+            if self.clock.now() >= deadline:
+                raise DeviceTimeout(self.name, f"still '{state}' {t.power_on_s:g} s after power-on")
+            self.clock.sleep(t.power_poll_s)
 
     def set_source(self, source: ProjectorSource) -> None:
         """HDMI: select the HDMI input and unmute; INTERNAL: mute to the projector's own black screen."""
         has_mute = self.profile.command("mute_set") is not None
         if source is ProjectorSource.HDMI:
-            self._exchange("source_set", code=self.profile.sources["hdmi"])
+            self._exchange_until_accepted("source_set", code=self.profile.sources["hdmi"])
             if has_mute:
                 self._exchange("mute_set", state="OFF")
         elif has_mute:

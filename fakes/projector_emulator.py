@@ -162,3 +162,121 @@ class ExpectedProtocol:
             assert left == 0 and not self._pending, (
                 f"{left} exchange(s) unused, reply unread: {self._pending!r}"
             )
+
+
+class EscVp21Projector:
+    """A stateful ESC/VP21 projector behind the Transport interface (write/read/discard_input/close), strict
+    where the real one is: commands end with CR; set commands answer ':' or ``ERR`` CR ':'; queries
+    ``KEY=VALUE`` CR ':'.
+
+    Behaviour, on ``clock`` (a :class:`fakes.clock.SimClock` shared with the driver, so tests do not wait):
+
+    * ``PWR ON`` from standby answers ':' at once and warms up (``PWR?`` = 02) for ``warmup_s``, then projects
+      (01). With ``lamp_failure`` the ignition fails after ``ignition_s``: ``PWR?`` = 05 (abnormal standby),
+      ``ERR?`` = 03 (lamp failure at power on), and ``PWR ON`` is refused until the lamp is replaced.
+    * ``SOURCE``, ``MUTE`` and their queries are refused (``ERR``) unless projecting; ``SOURCE 30`` is also
+      refused until the HDMI signal has been stable for ``signal_settle_s`` (:meth:`signal_on` when the
+      pattern display opens; a signal present from the start counts from time 0).
+    * Anything else is refused: an unknown or malformed command never gets a ':' alone.
+    """
+
+    def __init__(
+        self,
+        clock: Any,
+        *,
+        warmup_s: float = 20.0,
+        ignition_s: float = 4.0,
+        signal_settle_s: float = 3.0,
+        lamp_failure: bool = False,
+        lamp_hours: int = 1234,
+        signal: bool = True,
+    ) -> None:
+        self.clock = clock
+        self.warmup_s, self.ignition_s, self.signal_settle_s = warmup_s, ignition_s, signal_settle_s
+        self.lamp_failure = lamp_failure
+        self.lamp_hours = lamp_hours
+        self.power = "00"
+        self.error = "00"
+        self.source = "30"
+        self.mute = "OFF"
+        self._power_on_at = 0.0
+        self._signal_since: float | None = 0.0 if signal else None
+        self._pending = b""
+        self._buffer = b""
+        self.commands: list[str] = []
+
+    def signal_on(self) -> None:
+        """The HDMI signal appears now (the pattern display opened)."""
+        self._signal_since = self.clock.now()
+
+    def _advance(self) -> None:
+        if self.power == "02":
+            elapsed = self.clock.now() - self._power_on_at
+            if self.lamp_failure and elapsed >= self.ignition_s:
+                self.power, self.error = "05", "03"
+            elif not self.lamp_failure and elapsed >= self.warmup_s:
+                self.power = "01"
+
+    def _answer(self, command: str) -> bytes:
+        self._advance()
+        ok, err = b":", b"ERR\r:"
+        projecting = self.power == "01"
+        if command == "":
+            return ok
+        if command == "PWR ON":
+            if self.power in ("00", "04"):
+                self.power, self._power_on_at = "02", self.clock.now()
+                return ok
+            return ok if self.power in ("01", "02") else err
+        if command == "PWR OFF":
+            if self.power != "05":  # abnormal standby stays until the lamp is replaced
+                self.power = "00"
+            return ok
+        queries = {
+            "PWR?": f"PWR={self.power}",
+            "ERR?": f"ERR={self.error}",
+            "LAMP?": f"LAMP={self.lamp_hours}",
+        }
+        if command in queries:
+            return queries[command].encode() + b"\r:"
+        if command == "SOURCE?" and projecting:
+            return f"SOURCE={self.source}".encode() + b"\r:"
+        if command == "MUTE?" and projecting:
+            return f"MUTE={self.mute}".encode() + b"\r:"
+        if command in ("MUTE ON", "MUTE OFF") and projecting:
+            self.mute = command.split()[1]
+            return ok
+        if command.startswith("SOURCE ") and projecting:
+            stable = (
+                self._signal_since is not None
+                and self.clock.now() - self._signal_since >= self.signal_settle_s
+            )
+            code = command.split()[1]
+            if code == "30" and not stable:
+                return err  # no stable signal on the input yet
+            if len(code) == 2:
+                self.source = code
+                return ok
+        return err
+
+    # ----------------------------------------------------------------------------------------- transport
+    def write(self, data: bytes) -> None:
+        self._buffer += data
+        while b"\r" in self._buffer:
+            line, self._buffer = self._buffer.split(b"\r", 1)
+            command = line.decode("ascii", errors="replace")
+            self.commands.append(command)
+            self._pending += self._answer(command)
+
+    def read(self, timeout_s: float) -> bytes:
+        if not self._pending:
+            time.sleep(min(timeout_s, 0.002))  # a silent line: let the caller's deadline pass
+            return b""
+        data, self._pending = self._pending, b""
+        return data
+
+    def discard_input(self) -> None:
+        self._pending = b""
+
+    def close(self) -> None:
+        pass

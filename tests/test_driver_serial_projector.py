@@ -16,7 +16,14 @@ from cell.errors import ConfigError, DeviceFault, DeviceProtocolError, DeviceTim
 from drivers.projector_profile import load_profile
 from drivers.serial_projector import SerialProjector
 from drivers.serial_transport import PySerialTransport, RecordingTransport
-from fakes.projector_emulator import ExpectedProtocol, PtyProjectorEmulator, load_transcript, save_transcript
+from fakes.clock import SimClock
+from fakes.projector_emulator import (
+    EscVp21Projector,
+    ExpectedProtocol,
+    PtyProjectorEmulator,
+    load_transcript,
+    save_transcript,
+)
 
 pytestmark = pytest.mark.timeout(10)
 
@@ -160,3 +167,80 @@ def test_profile_errors_name_the_problem(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="unknown command name"):
         load_profile(bad)
     assert load_profile("epson_escvp21").serial.baudrate == 9600
+
+
+# ------------------------------------------------------------------------ behaviour against a stateful peer
+class _SignalDisplay:
+    """A pattern display whose opening starts the HDMI signal on the emulated projector."""
+
+    def __init__(self, peer: EscVp21Projector, size: tuple[int, int]) -> None:
+        self.peer, self.size = peer, size
+
+    def open(self) -> None:
+        self.peer.signal_on()
+
+    def show(self, image: object) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _stateful(**behaviour: object) -> tuple[SerialProjector, EscVp21Projector, SimClock]:
+    clock = SimClock()
+    peer = EscVp21Projector(clock, signal=False, **behaviour)
+    cfg = projector_config()
+    display = _SignalDisplay(peer, (cfg.width_px, cfg.height_px))
+    return SerialProjector(cfg, transport=peer, display=display, clock=clock), peer, clock
+
+
+def test_source_is_retried_while_the_signal_settles_after_the_display_opens() -> None:
+    projector, peer, clock = _stateful(warmup_s=1.0, signal_settle_s=3.0)
+    projector.connect()  # opens the display: the signal starts now
+    projector.set_power(True)
+    assert 1.0 <= clock.now() < 2.0  # returned after the warm-up, polling PWR?
+    projector.set_source(ProjectorSource.HDMI)
+    assert 3.0 <= clock.now() < 3.6
+    assert peer.commands.count("SOURCE 30") > 2  # refused (ERR) while the signal settled, then accepted
+    assert projector.status().ready
+
+
+def test_source_without_a_signal_fails_after_the_retry_window() -> None:
+    projector, peer, clock = _stateful(warmup_s=1.0)
+    projector._display = None  # nothing ever drives the input
+    projector.connect()
+    projector.set_power(True)
+    start = clock.now()
+    with pytest.raises(DeviceFault, match="refused 'SOURCE 30'.*10 s"):
+        projector.set_source(ProjectorSource.HDMI)
+    assert clock.now() - start == pytest.approx(10.0, abs=0.6)
+
+
+def test_lamp_failure_is_reported_within_ten_seconds() -> None:
+    projector, peer, clock = _stateful(lamp_failure=True, ignition_s=4.0)
+    projector.connect()
+    with pytest.raises(DeviceFault, match="lamp failure at power on") as err:
+        projector.set_power(True)
+    assert not err.value.retryable and clock.now() < 10.0
+    status = projector.status()
+    assert "lamp failure at power on" in status.errors and not status.ready
+
+
+def test_a_normal_warm_up_is_waited_for() -> None:
+    projector, peer, clock = _stateful(warmup_s=20.0)
+    projector.connect()
+    projector.set_power(True)
+    assert 20.0 <= clock.now() <= 21.0 and peer.power == "01"
+
+
+def test_the_stateful_peer_refuses_what_the_projector_refuses() -> None:
+    peer = EscVp21Projector(SimClock())
+    for command, reply in (
+        (b"SOURCE 30\r", b"ERR\r:"),  # in standby
+        (b"MUTE?\r", b"ERR\r:"),
+        (b"FOO\r", b"ERR\r:"),
+        (b"PWR?\r", b"PWR=00\r:"),
+        (b"\r", b":"),
+    ):
+        peer.write(command)
+        assert peer.read(0.1) == reply, command
