@@ -133,7 +133,7 @@ class ProjectorTiming(Strict):
 class ProjectorConfig(PinholeConfig):
     """A DLP projector: optics, light output, placement in the camera frame and its control driver."""
 
-    driver: Literal["sim", "serial", "replay"] = "sim"
+    driver: Literal["sim", "serial", "dlpc350", "replay"] = "sim"
     name: str = "projector"
     serial: str = "SIM-PROJ-0001"
     model: str = "simulated"

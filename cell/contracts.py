@@ -306,3 +306,24 @@ class GlassRig(Protocol):
     def grab_all(self, timeout_ms: float) -> list[Frame]:
         """Trigger every camera together and return one frame per camera, in camera order."""
         ...
+
+
+def frames_by_id(camera: Camera, count: int, timeout_ms: float) -> list[Frame | None]:
+    """Grab the frames of one sequence run and place them by the camera's frame id (the first frame received
+    is pattern 0); a skipped id is a lost frame (None), so are missing frames at the end. A frame id beyond
+    the sequence is a DeviceProtocolError: the trigger fired more often than there are patterns."""
+    from cell.errors import DeviceProtocolError, DeviceTimeout
+
+    frames: list[Frame] = []
+    while not frames or frames[-1].frame_id - frames[0].frame_id < count - 1:
+        try:
+            frames.append(camera.grab(timeout_ms))
+        except DeviceTimeout:
+            break
+    out: list[Frame | None] = [None] * count
+    for f in frames:
+        k = f.frame_id - frames[0].frame_id
+        if not 0 <= k < count:
+            raise DeviceProtocolError(camera.name, f"frame id {f.frame_id} beyond the sequence of {count}")
+        out[k] = f
+    return out

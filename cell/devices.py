@@ -23,6 +23,7 @@ REAL_DRIVERS: dict[tuple[str, str], str] = {
     ("robot", "ur_rtde"): "drivers.ur_robot:URRobot",
     ("camera", "genicam"): "drivers.genicam_camera:GenICamCamera",
     ("projector", "serial"): "drivers.serial_projector:SerialProjector",
+    ("projector", "dlpc350"): "drivers.dlpc350:Dlpc350Projector",
     ("robot", "replay"): "fakes.replay:ReplayRobot",
     ("camera", "replay"): "fakes.replay:ReplayCamera",
     ("projector", "replay"): "fakes.replay:ReplayProjector",

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config import ProjectorConfig
-from cell.contracts import Camera, Frame, ProjectorSource, ProjectorStatus, TriggerMode
+from cell.contracts import Camera, Frame, ProjectorSource, ProjectorStatus, TriggerMode, frames_by_id
 from cell.errors import ConfigError, DeviceFault, DeviceProtocolError, DeviceTimeout
 from fakes.clock import SimClock
 
@@ -181,7 +181,7 @@ class SimProjector:
         self._index = -1
         for _ in range(count):
             self.step()
-        return collect_sequence(camera, count, timeout_ms)
+        return frames_by_id(camera, count, timeout_ms)
 
     # -------------------------------------------------------------------------------------- simulator side
     @property
@@ -230,26 +230,3 @@ class SimProjector:
     def _notify(self, t_light: float) -> None:
         for callback in list(self._listeners):
             callback(t_light)
-
-
-def collect_sequence(camera: Camera, count: int, timeout_ms: float) -> list[Frame | None]:
-    """Grab the frames of one sequence run and place them by frame id (first id = pattern 0); a skipped id is
-    a lost frame (None). Frames beyond ``count`` are a protocol error: the trigger fired too often."""
-    frames: list[Frame] = []
-    while len(frames) < count:
-        try:
-            frames.append(camera.grab(timeout_ms))
-        except DeviceTimeout:
-            break
-        if frames[-1].frame_id - frames[0].frame_id >= count - 1:
-            break
-    out: list[Frame | None] = [None] * count
-    if not frames:
-        return out
-    first = frames[0].frame_id
-    for f in frames:
-        k = f.frame_id - first
-        if not 0 <= k < count:
-            raise DeviceProtocolError(camera.name, f"frame id {f.frame_id} outside the sequence of {count}")
-        out[k] = f
-    return out
