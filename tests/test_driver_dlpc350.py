@@ -195,3 +195,21 @@ def test_run_sequence_refuses_a_software_triggered_camera() -> None:
     dlpc.load_sequence(list(GCLS.frames))
     with pytest.raises(DeviceFault, match="hardware trigger"):
         dlpc.run_sequence(rig.camera, len(GCLS), 100)
+
+
+def test_lab_cell_names_a_consistent_camera_and_projector() -> None:
+    from pathlib import Path
+
+    from cell.config import load_cell_config
+    from cell.devices import build_devices
+
+    cfg = load_cell_config(Path(__file__).resolve().parent.parent / "recipes" / "cells" / "lab.yaml")
+    proj, cam = cfg.sensor.projector, cfg.sensor.camera
+    devices = build_devices(cfg)  # every driver constructs (nothing connects)
+    assert isinstance(devices.projector, Dlpc350Projector)
+    display = devices.projector.options.display
+    assert display is not None and tuple(display.mode) == (proj.width_px, proj.height_px) == (912, 1140)
+    assert display.refresh_hz == proj.timing.refresh_hz and proj.timing.modulation == "dlp"
+    frames = cam.exposure_ms / proj.timing.frame_period_ms
+    assert abs(frames - round(frames)) * proj.timing.frame_period_ms < 1e-3  # whole DMD frames
+    assert cam.options["cti"].endswith(".cti") and cam.options["trigger_source"].startswith("Line")
