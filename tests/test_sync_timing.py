@@ -200,3 +200,13 @@ def test_latency_calibration_measures_the_simulated_latency(tmp_path) -> None:  
     (tmp_path / "cell.yaml").write_text(yaml.safe_dump(cell))
     with pytest.raises(ConfigError, match="120 Hz.*calibrate latency"):
         load_cell_config(tmp_path / "cell.yaml")
+
+
+def test_calibrate_latency_command_measures_the_default_cell(tmp_path) -> None:  # noqa: ANN001
+    from cell.cli import main
+
+    out = tmp_path / "latency"
+    main(["calibrate", "latency", "--out", str(out), "--max-frames", "4", "--steps-per-frame", "2"])
+    meta = yaml.safe_load((out / "latency.yaml").read_text())
+    assert meta["kind"] == KIND and meta["projector"]["refresh_hz"] == 60.0
+    assert meta["figures"]["measured_ms"] == pytest.approx(2000 * T, abs=0.2)  # the world's 2 frames
