@@ -213,3 +213,22 @@ def test_lab_cell_names_a_consistent_camera_and_projector() -> None:
     frames = cam.exposure_ms / proj.timing.frame_period_ms
     assert abs(frames - round(frames)) * proj.timing.frame_period_ms < 1e-3  # whole DMD frames
     assert cam.options["cti"].endswith(".cti") and cam.options["trigger_source"].startswith("Line")
+
+
+@pytest.mark.hardware
+def test_a_real_lightcrafter_takes_and_validates_a_pattern_sequence() -> None:
+    hid = pytest.importorskip("hid")
+    from drivers.dlpc350 import PID, VID
+
+    if not hid.enumerate(VID, PID):
+        pytest.skip("no DLPC350 (0451:6401) on USB")
+    projector = Dlpc350Projector(config())  # USB HID only: the LUT is validated by the controller itself
+    projector.connect()
+    try:
+        projector.set_power(True)
+        projector.set_source(ProjectorSource.HDMI)
+        projector.load_sequence(list(GCLS.frames))
+        assert not projector.status().errors
+    finally:
+        projector.set_source(ProjectorSource.INTERNAL)
+        projector.close()

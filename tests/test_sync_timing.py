@@ -210,3 +210,52 @@ def test_calibrate_latency_command_measures_the_default_cell(tmp_path) -> None: 
     meta = yaml.safe_load((out / "latency.yaml").read_text())
     assert meta["kind"] == KIND and meta["projector"]["refresh_hz"] == 60.0
     assert meta["figures"]["measured_ms"] == pytest.approx(2000 * T, abs=0.2)  # the world's 2 frames
+
+
+def test_serial_projector_path_waits_from_the_hdmi_displays_present_stamp() -> None:
+    from cell.config import ProjectorConfig
+    from cell.contracts import Frame
+    from drivers.serial_projector import SerialProjector
+    from fakes.clock import SimClock
+
+    clock = SimClock(0.004)
+
+    class StampingDisplay:  # presents at the next vblank, like HdmiDisplay with vsync
+        size = (128, 96)
+        last_present_s = float("nan")
+
+        def open(self) -> None: ...
+
+        def close(self) -> None: ...
+
+        def show(self, image: np.ndarray) -> float:
+            self.last_present_s = (int(clock.now() / T) + 1) * T
+            clock.advance(self.last_present_s - clock.now())
+            return self.last_present_s
+
+    class RecordingCamera:
+        name, resolution = "camera", (160, 120)
+
+        def __init__(self) -> None:
+            self.triggers: list[float] = []
+
+        def trigger(self) -> None:
+            self.triggers.append(clock.now())
+            clock.advance(0.010)
+
+        def grab(self, timeout_ms: float) -> Frame:
+            return Frame(np.zeros((120, 160), np.uint8), self.triggers[-1], len(self.triggers) - 1)
+
+    base = small_sensor().projector.model_dump()
+    cfg = ProjectorConfig.model_validate(
+        {**base, "driver": "serial", "options": {"port": "unused"}, "timing": {"latency_ms": 30.0}}
+    )
+    display = StampingDisplay()
+    projector = SerialProjector(cfg, display=display, clock=clock)
+    camera = RecordingCamera()
+    presents: list[float] = []
+    show = display.show
+    display.show = lambda image: presents.append(show(image)) or presents[-1]  # type: ignore[method-assign]
+    capture_stack(camera, projector, GCLS)
+    assert len(camera.triggers) == len(presents) == len(GCLS)
+    np.testing.assert_allclose(np.array(camera.triggers) - np.array(presents), 0.030, atol=1e-12)
