@@ -31,8 +31,8 @@ HISTORY_S = 2.0  # how far back the emission timeline is kept
 class ProjectorFaults:
     """Faults a test can inject: a lamp failure (status error, no light reaches the scene), and on the serial
     control port (power, source, status) the next ``serial_timeouts`` commands get no reply and the next
-    ``garbled_replies`` an unparsable one, as a real ESC/VP21 line does when it is noisy or unplugged. The next
-    ``late_presents`` frames light the scene one refresh later than their present stamp says (a missed
+    ``garbled_replies`` an unparsable one, as a real ESC/VP21 line does when it is noisy or unplugged. The
+    next ``late_presents`` frames light the scene one refresh later than their present stamp says (a missed
     vertical blank); the display latency itself is ``SimProjector.latency_s``, which a test may change."""
 
     lamp_error: bool = False
