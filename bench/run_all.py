@@ -17,6 +17,7 @@ BENCHES = [
     "bench_errormap.py",
     "bench_glass.py",
     "bench_inspect.py",
+    "bench_sync.py",
 ]
 
 

@@ -77,8 +77,10 @@ def pair_groups(patterns: PatternSet, pairs: list[tuple[int, int]]) -> list[int]
     pixels (one coded axis) must give the same camera sum."""
     keys: dict[bytes, int] = {}
     out = []
+    step = max(1, patterns.frames[0].size // MAX_SAMPLES)
+    flat = patterns.frames.reshape(len(patterns), -1)[:, ::step]
     for a, b in pairs[1:]:
-        lit = (patterns.frames[a].astype(np.uint16) + patterns.frames[b]).tobytes()
+        lit = (flat[a].astype(np.uint16) + flat[b]).tobytes()
         out.append(keys.setdefault(lit, len(keys)))
     return out
 
