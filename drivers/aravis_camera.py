@@ -204,6 +204,20 @@ class AravisCamera:
         except _glib().Error as exc:
             raise self._wrap(node, f"set {value!r}", exc) from exc
 
+    def _set_in_range(self, node: str, value: float, unit: str) -> float:
+        """Set a numeric node after checking its bounds (Aravis does not), return what it reads back."""
+        dev, integer = self._require(), isinstance(value, int)
+        try:
+            lo, hi = (dev.get_integer_feature_bounds if integer else dev.get_float_feature_bounds)(node)
+        except _glib().Error as exc:
+            raise self._wrap(node, "read its bounds", exc) from exc
+        if not lo <= value <= hi:
+            raise DeviceFault(
+                self.name, f"GenApi node {node}: {value:g} {unit} is outside {lo:g}..{hi:g} on {self._model}"
+            )
+        self._set(node, value)
+        return self._get(node, int if integer else float)
+
     def _execute(self, node: str) -> None:
         try:
             self._require().execute_command(node)
@@ -253,8 +267,7 @@ class AravisCamera:
                 self._set_enum(auto, "Off")
         exposure_ms, gain_db = settings.exposure_ms, settings.gain_db
         if node := self._first("ExposureTime", "ExposureTimeAbs", need="the exposure"):
-            self._set(node, settings.exposure_ms * 1000.0)
-            exposure_ms = self._get(node, float) / 1000.0
+            exposure_ms = self._set_in_range(node, settings.exposure_ms * 1000.0, "us") / 1000.0
         gain_db = self._configure_gain(settings.gain_db)
         if node := self._first("PixelFormat", need="the pixel format"):
             self._set_enum(node, _PFNC[settings.pixel_format])
@@ -265,11 +278,10 @@ class AravisCamera:
 
     def _configure_gain(self, gain_db: float) -> float:
         if self._has("Gain"):
-            self._set("Gain", gain_db)
-            return self._get("Gain", float)
+            return self._set_in_range("Gain", float(gain_db), "dB")
         if self._has("GainRaw") and self.options.gain_raw_per_db:
-            self._set("GainRaw", int(round(gain_db * self.options.gain_raw_per_db)))
-            return self._get("GainRaw", int) / self.options.gain_raw_per_db
+            raw = self._set_in_range("GainRaw", int(round(gain_db * self.options.gain_raw_per_db)), "steps")
+            return raw / self.options.gain_raw_per_db
         if "Gain" in self.options.ignore_missing:
             return gain_db
         raw = (
