@@ -58,35 +58,43 @@ class FrameIdTracker:
 
     GigE Vision 1.x block ids are 16 bit and wrap after 65535 (to 1; id 0 is reserved, some devices use it),
     so steps are counted modulo 2^16. ``reset`` at each acquisition start: devices may restart their count.
+    A dropped frame whose leader was lost has no id (0): it is counted as one frame seen.
     """
 
     def __init__(self) -> None:
         self._last: int | None = None
+        self._unidentified = 0  # frames seen without an id since the last identified one
         self._count = 0  # frames counted since construction, across resets
 
     def reset(self) -> None:
         self._last = None
+        self._unidentified = 0
 
     def _step(self, block_id: int) -> int:
         if self._last is None:
-            return 1
+            return 1 + self._unidentified
         if block_id > self._last:
             return block_id - self._last
         step = (block_id - self._last) % 65536
         return step - 1 if block_id != 0 and step > 1 else step  # wrapped past the reserved id 0
 
-    def observe(self, block_id: int) -> None:
-        """A frame the driver saw but drops (incomplete, stale): it is not a lost one."""
+    def observe(self, block_id: int | None) -> None:
+        """A frame the driver saw but drops (incomplete, stale): it is not a lost one. None or 0: no id."""
+        if not block_id:
+            self._unidentified += 1
+            return
         self._count += self._step(block_id)
-        self._last = block_id
+        self._last, self._unidentified = block_id, 0
 
     def next(self, block_id: int) -> int:
         """The frame id of a delivered frame; raises LostFrames when frames went missing before it."""
-        step, last = self._step(block_id), self._last
+        step, last, seen = self._step(block_id), self._last, self._unidentified
         self._count += step
-        self._last = block_id
-        if step != 1:
-            raise LostFrames(f"camera frame id jumped from {last} to {block_id}: {step - 1} frame(s) lost")
+        self._last, self._unidentified = block_id, 0
+        if last is not None and step != 1 + seen:
+            raise LostFrames(
+                f"camera frame id jumped from {last} to {block_id}: {step - 1 - seen} frame(s) lost"
+            )
         return self._count
 
 
