@@ -20,7 +20,6 @@ Every GenApi/GVCP error (``GLib.GError``) becomes a :class:`DeviceError` naming 
 from __future__ import annotations
 
 import logging
-import time
 from typing import Annotated, Any
 
 import numpy as np
@@ -29,7 +28,7 @@ from pydantic import Field
 from cell.config import CameraConfig, Strict, validate
 from cell.contracts import CameraSettings, Frame, PixelFormat, TriggerMode
 from cell.errors import DeviceFault, DeviceTimeout
-from drivers.genicam_camera import AUTO_FEATURES, FrameIdTracker, IncompleteFrame, to_numpy
+from drivers.genicam_camera import AUTO_FEATURES, FrameIdTracker, IncompleteFrame, LostFrames, to_numpy
 
 log = logging.getLogger(__name__)
 
@@ -346,7 +345,8 @@ class AravisCamera:
         """Requeue every frame already waiting (it was not caused by the coming trigger); returns how many."""
         n = 0
         while (buf := self._stream.try_pop_buffer()) is not None:
-            self._ids.observe(buf.get_frame_id())
+            complete = buf.get_status() == self._arv.BufferStatus.SUCCESS
+            self._ids.observe(buf.get_frame_id() if complete else None)
             self._stream.push_buffer(buf)
             n += 1
         return n
@@ -396,9 +396,15 @@ class AravisCamera:
             status = buf.get_status()
             block_id = int(buf.get_frame_id())
             if status != Aravis.BufferStatus.SUCCESS:
-                self._ids.observe(block_id)
-                raise IncompleteFrame(f"frame with block id {block_id} incomplete ({status.value_nick})")
-            frame_id = self._ids.next(block_id)
+                # a frame whose leader was lost keeps the id of the buffer's previous use: not an id to trust
+                self._ids.observe(None)
+                raise IncompleteFrame(
+                    f"frame incomplete ({status.value_nick}, block id {block_id} or unknown)"
+                )
+            try:
+                frame_id = self._ids.next(block_id)
+            except LostFrames as exc:
+                raise DeviceTimeout(self.name, f"{exc}; the sequence must be captured again") from exc
             width, height = int(buf.get_image_width()), int(buf.get_image_height())
             name = _PFNC_CODES.get(int(buf.get_image_pixel_format()), hex(buf.get_image_pixel_format()))
             if name != _PFNC[self._settings.pixel_format]:
@@ -427,15 +433,3 @@ def _glib() -> Any:
     from gi.repository import GLib
 
     return GLib
-
-
-def wait_for_device(serial: str, timeout_s: float = 5.0) -> bool:
-    """True once Aravis discovers a device with ``serial`` (an emulator that has just started)."""
-    Aravis = load_aravis()
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        Aravis.update_device_list()
-        if serial in {Aravis.get_device_serial_nbr(i) for i in range(Aravis.get_n_devices())}:
-            return True
-        time.sleep(0.1)
-    return False
