@@ -28,6 +28,7 @@ from cell.errors import DeviceError, DeviceFault, DeviceTimeout
 from drivers.aravis_camera import AravisCamera, load_aravis
 from drivers.genicam_camera import FrameIdTracker, LostFrames
 from tests.contracts.camera_contract import CameraContract
+from tests.test_controller import recipe_path  # noqa: F401 - the box recipe fixture of the run test below
 
 EMULATOR = shutil.which("arv-fake-gv-camera-0.8")
 
@@ -418,3 +419,60 @@ def test_a_scan_through_gvsp_at_2_percent_packet_loss_decodes_to_the_clean_cloud
         f"{len(patterns)} frames of {rig.camera.resolution} through GVSP at 2 % loss: "
         f"{cam.incomplete_frames} incomplete, re-captured; {int(clean.cloud.valid.sum())} points identical"
     )
+
+
+def _camera_through_the_emulator(devices, aravis: AravisCamera, kill_at: int | None, emu: Emulator) -> None:  # noqa: ANN001
+    """The simulated cell's camera, with every trigger and grab also sent through AravisCamera to the
+    emulator (its frames are checked against the emulator's ramp, the simulator's are decoded): the run
+    meets the real driver's errors. ``kill_at``: the trigger at which the emulator is killed."""
+    sim_trigger, sim_grab = devices.camera.trigger, devices.camera.grab
+    calls = {"n": 0}
+
+    def trigger() -> None:
+        calls["n"] += 1
+        if calls["n"] == kill_at:
+            emu.kill()
+        aravis.trigger()
+        sim_trigger()
+
+    def grab(timeout_ms: float):  # noqa: ANN202
+        frame = aravis.grab(1000)
+        assert np.array_equal(frame.pixels, ramp(frame.metadata["device_frame_id"]))
+        return sim_grab(timeout_ms)
+
+    devices.camera.trigger, devices.camera.grab = trigger, grab
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_emulator_killed_mid_run_pauses_the_run_with_the_camera_named_and_it_resumes(
+    recipe_path: Path,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    """A whole (simulated) inspection whose camera calls also go through AravisCamera to the emulator: the
+    emulator killed at the 40th trigger pauses the run with the camera's named error (not a fault, not a raw
+    GLib error); restarted, a new controller resumes the run to the end. (That a resumed run gives the same
+    result as an uninterrupted one is tests/test_controller.py's pausing-fault matrix; not repeated here.)"""
+    from tests.test_controller import make_controller
+
+    run_dir = tmp_path / "run"
+    emu = Emulator("ARV-RUN").start()
+    aravis = AravisCamera(camera_config("ARV-RUN"))
+    try:
+        aravis.connect()
+        aravis.configure(CLEAN)
+        ctl, devices = make_controller(recipe_path, run_dir)
+        _camera_through_the_emulator(devices, aravis, kill_at=40, emu=emu)
+        assert ctl.execute() == "paused", ctl.message
+        assert ctl.message.startswith("camera: GenApi node TriggerSoftware"), ctl.message
+        aravis.close()
+        emu = Emulator("ARV-RUN").start()  # the operator powers the camera again; a new process resumes
+        aravis.connect()
+        aravis.configure(CLEAN)
+        ctl2, devices2 = make_controller(recipe_path, run_dir)
+        _camera_through_the_emulator(devices2, aravis, kill_at=None, emu=emu)
+        assert ctl2.execute(resume=True) == "done", ctl2.message
+    finally:
+        aravis.close()
+        emu.kill()
+    assert (run_dir / "results" / "report.json").is_file()
