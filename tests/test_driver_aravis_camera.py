@@ -73,12 +73,13 @@ def wait_for_device(serial: str, timeout_s: float = 5.0) -> bool:
 class Emulator:
     """``arv-fake-gv-camera-0.8`` on loopback with a serial number and a GVSP lost-packet ratio (1/1000)."""
 
-    def __init__(self, serial: str, lost_per_mille: int = 0) -> None:
-        self.serial, self.lost_per_mille = serial, lost_per_mille
+    def __init__(self, serial: str, lost_per_mille: int = 0, genicam: Path | None = None) -> None:
+        self.serial, self.lost_per_mille, self.genicam = serial, lost_per_mille, genicam
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> Emulator:
         cmd = [EMULATOR, "-i", "127.0.0.1", "-s", self.serial, "-r", str(self.lost_per_mille)]
+        cmd += ["-g", str(self.genicam)] if self.genicam else []
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
         if not wait_for_device(self.serial, timeout_s=5.0):
             self.kill()
@@ -476,3 +477,87 @@ def test_emulator_killed_mid_run_pauses_the_run_with_the_camera_named_and_it_res
         aravis.close()
         emu.kill()
     assert (run_dir / "results" / "report.json").is_file()
+
+
+def _genicam_xml(device: object) -> str:
+    """The device's GenICam XML. Through ctypes with its length: the GObject binding reads the buffer as a
+    NUL-terminated string, which it is not (a random tail, sometimes not UTF-8)."""
+    import ctypes
+
+    lib = ctypes.CDLL("libaravis-0.8.so.0")
+    lib.arv_device_get_genicam_xml.restype = ctypes.c_void_p
+    lib.arv_device_get_genicam_xml.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t)]
+    get = ctypes.pythonapi.PyCapsule_GetPointer
+    get.restype, get.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
+    size = ctypes.c_size_t()
+    data = lib.arv_device_get_genicam_xml(get(device.__gpointer__, None), ctypes.byref(size))  # type: ignore[attr-defined]
+    return ctypes.string_at(data, size.value).decode()
+
+
+def _enumeration(name: str, entries: list[str], address: int) -> str:
+    """A GenApi enumeration over a 4-byte register of the emulator's plain memory."""
+    values = "".join(f'<EnumEntry Name="{e}"><Value>{i}</Value></EnumEntry>' for i, e in enumerate(entries))
+    return (
+        f'<Enumeration Name="{name}" NameSpace="Standard">{values}<pValue>{name}Reg</pValue></Enumeration>'
+        f'<IntReg Name="{name}Reg" NameSpace="Custom"><Address>{address:#x}</Address><Length>4</Length>'
+        "<AccessMode>RW</AccessMode><pPort>Device</pPort><Sign>Unsigned</Sign>"
+        "<Endianess>BigEndian</Endianess></IntReg>"
+    )
+
+
+@pytest.fixture
+def emulator_with_lines(tmp_path: Path) -> Iterator[Emulator]:
+    """The emulator with the nodes a real camera has and it lacks (LineSelector, LineMode, ExposureAuto,
+    BalanceWhiteAuto, a FallingEdge activation): its own GenICam XML, read from a running one, plus these
+    nodes on free registers of its memory (0x140..0x14c; plain read/write memory without behaviour)."""
+    emu = Emulator("ARV-XML").start()
+    try:
+        xml = _genicam_xml(load_aravis().Camera.new("127.0.0.1").get_device())
+    finally:
+        emu.kill()
+    added = (
+        _enumeration("LineSelector", ["Line0", "Line1"], 0x140)
+        + _enumeration("LineMode", ["Input", "Output"], 0x144)
+        + _enumeration("ExposureAuto", ["Off", "Once", "Continuous"], 0x148)
+        + _enumeration("BalanceWhiteAuto", ["Off", "Once", "Continuous"], 0x14C)
+    )
+    rising = '<EnumEntry Name="RisingEdge" NameSpace="Standard">'
+    assert xml.count(rising) == 1 and "</RegisterDescription>" in xml
+    xml = xml.replace(rising, '<EnumEntry Name="FallingEdge"><Value>1</Value></EnumEntry>' + rising)
+    xml = xml.replace("</RegisterDescription>", added + "</RegisterDescription>")
+    (tmp_path / "fake-with-lines.xml").write_text(xml)
+    emu = Emulator("ARV-LINES", genicam=tmp_path / "fake-with-lines.xml").start()
+    yield emu
+    emu.kill()
+
+
+def test_hardware_trigger_sets_line_and_activation_and_auto_features_are_turned_off(
+    emulator_with_lines: Emulator,
+) -> None:
+    cam = AravisCamera(camera_config("ARV-LINES", trigger_source="Line0", trigger_activation="FallingEdge"))
+    cam.connect()
+    try:
+        for auto in ("ExposureAuto", "GainAuto", "BalanceWhiteAuto"):
+            cam._set(auto, "Continuous")
+        cam._set("LineMode", "Output")
+        got = cam.configure(CameraSettings(exposure_ms=10.0, trigger=TriggerMode.HARDWARE))
+        read = {n: cam._get(n, str) for n in ("ExposureAuto", "GainAuto", "BalanceWhiteAuto")}
+        assert read == dict.fromkeys(read, "Off")
+        nodes = ("TriggerMode", "TriggerSource", "TriggerActivation", "LineSelector", "LineMode")
+        assert {n: cam._get(n, str) for n in nodes} == {
+            "TriggerMode": "On",
+            "TriggerSource": "Line0",
+            "TriggerActivation": "FallingEdge",
+            "LineSelector": "Line0",
+            "LineMode": "Input",
+        }
+        assert got.trigger is TriggerMode.HARDWARE
+        # nothing pulses the emulator's Line0: no frame, a retryable timeout that names the trigger mode
+        with pytest.raises(
+            DeviceTimeout, match=r"^camera: no frame within 300 ms; check the trigger \(hardware\)"
+        ):
+            cam.grab(300)
+        with pytest.raises(DeviceFault, match=r"trigger\(\) needs software trigger, not hardware"):
+            cam.trigger()
+    finally:
+        cam.close()
