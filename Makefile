@@ -14,10 +14,17 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
+# the Aravis camera driver's Python binding, when the Debian packages it builds against are there (.ci/run)
+ARAVIS_STAMP := $(VENV)/.aravis
+$(ARAVIS_STAMP): $(STAMP)
+	@if pkg-config --exists gobject-introspection-1.0 cairo 2>/dev/null; then \
+		$(PY) -m pip install --quiet -e '.[dev,aravis]' && touch $(ARAVIS_STAMP); \
+	else echo "Aravis tests will skip: no libgirepository1.0-dev/libcairo2-dev (bash .ci/run installs them)"; fi
+
 demo: $(STAMP)
 	$(PY) -m cell demo
 
-test: $(STAMP)
+test: $(STAMP) $(ARAVIS_STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile -q
 
 bench: $(STAMP)

@@ -70,7 +70,7 @@ class PinholeConfig(Strict):
 class CameraConfig(PinholeConfig):
     """An area camera: optics, sensor noise model and the driver that talks to it."""
 
-    driver: Literal["sim", "genicam", "replay"] = "sim"
+    driver: Literal["sim", "genicam", "aravis", "replay"] = "sim"
     name: str = "camera"
     serial: str = "SIM-CAM-0001"
     model: str = "simulated"

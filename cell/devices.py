@@ -22,6 +22,7 @@ from cell.errors import ConfigError
 REAL_DRIVERS: dict[tuple[str, str], str] = {
     ("robot", "ur_rtde"): "drivers.ur_robot:URRobot",
     ("camera", "genicam"): "drivers.genicam_camera:GenICamCamera",
+    ("camera", "aravis"): "drivers.aravis_camera:AravisCamera",
     ("projector", "serial"): "drivers.serial_projector:SerialProjector",
     ("projector", "dlpc350"): "drivers.dlpc350:Dlpc350Projector",
     ("robot", "replay"): "fakes.replay:ReplayRobot",

@@ -5,6 +5,11 @@ TriggerSelector/TriggerMode/TriggerSource/TriggerSoftware) after checking the no
 lacks is an error naming it, unless ``options.ignore_missing`` lists it (simulated producers): then the value
 is not applied, a warning is logged and the returned settings echo the request. Without trigger nodes, a
 software trigger is emulated by starting acquisition for one frame (documented latency: one frame period).
+
+For a structured-light stack: auto features (ExposureAuto, GainAuto, BalanceWhiteAuto) are turned off and
+read back; GenApi errors become DeviceFaults naming the camera and the node; buffers are flushed before a
+software trigger; frame ids come from the camera (the GenTL buffer's frame id), so a lost frame is a gap that
+raises instead of shifting the stack; hardware trigger sets TriggerActivation and the line's LineMode.
 """
 
 from __future__ import annotations
@@ -40,12 +45,70 @@ _PFNC = {
 }
 
 
+# auto features a camera may have; all are turned off so that every frame of a stack has the same response
+AUTO_FEATURES = ("ExposureAuto", "GainAuto", "BalanceWhiteAuto")
+
+
+class IncompleteFrame(Exception):
+    """A frame whose data did not all arrive (lost packets); never handed to the pipeline."""
+
+
+class FrameIdTracker:
+    """The camera's frame (block) ids as a frame id that only increases; a gap is frames lost on the way.
+
+    GigE Vision 1.x block ids are 16 bit and wrap after 65535 (to 1; id 0 is reserved, some devices use it),
+    so steps are counted modulo 2^16. ``reset`` at each acquisition start: devices may restart their count.
+    A dropped frame whose leader was lost has no id (0): it is counted as one frame seen.
+    """
+
+    def __init__(self) -> None:
+        self._last: int | None = None
+        self._unidentified = 0  # frames seen without an id since the last identified one
+        self._count = 0  # frames counted since construction, across resets
+
+    def reset(self) -> None:
+        self._last = None
+        self._unidentified = 0
+
+    def _step(self, block_id: int) -> int:
+        if self._last is None:
+            return 1 + self._unidentified
+        if block_id > self._last:
+            return block_id - self._last
+        step = (block_id - self._last) % 65536
+        return step - 1 if block_id != 0 and step > 1 else step  # wrapped past the reserved id 0
+
+    def observe(self, block_id: int | None) -> None:
+        """A frame the driver saw but drops (incomplete, stale): it is not a lost one. None or 0: no id."""
+        if not block_id:
+            self._unidentified += 1
+            return
+        self._count += self._step(block_id)
+        self._last, self._unidentified = block_id, 0
+
+    def next(self, block_id: int) -> int:
+        """The frame id of a delivered frame; raises LostFrames when frames went missing before it."""
+        step, last, seen = self._step(block_id), self._last, self._unidentified
+        self._count += step
+        self._last, self._unidentified = block_id, 0
+        if last is not None and step != 1 + seen:
+            raise LostFrames(
+                f"camera frame id jumped from {last} to {block_id}: {step - 1 - seen} frame(s) lost"
+            )
+        return self._count
+
+
+class LostFrames(Exception):
+    """The camera's frame ids show frames that never reached the host."""
+
+
 class GenICamOptions(Strict):
     """``sensor.camera.options`` for ``driver: genicam``."""
 
     cti: str | None = Field(None, description="GenTL producer file; default: viky.cti of the genicam wheel")
     user_id: str | None = Field(None, description="open by DeviceUserID instead of the config's serial")
     trigger_source: str = Field("Line0", description="input line of the hardware trigger")
+    trigger_activation: str = Field("RisingEdge", description="edge of the hardware trigger")
     ignore_missing: list[str] = Field(default_factory=list, description="GenApi nodes allowed to be absent")
     buffers: Annotated[int, Field(ge=1, le=64)] = 4
 
@@ -84,7 +147,7 @@ class GenICamCamera:
         self._settings = CameraSettings()
         self._emulated_trigger = False
         self._armed = False
-        self._frames = 0
+        self._ids = FrameIdTracker()
         self._model = config.model
         self._serial = config.serial
 
@@ -195,36 +258,52 @@ class GenICamCamera:
             raise DeviceFault(self.name, "not connected; call connect() first")
         return self._ia
 
+    def _has(self, name: str) -> bool:
+        return hasattr(self._require().remote_device.node_map, name)
+
+    def _write(self, name: str, value: Any) -> Any:
+        """Set a GenApi node and return what it reads back; GenApi errors name the camera and the node."""
+        node = getattr(self._require().remote_device.node_map, name)
+        try:
+            node.value = value
+            return node.value
+        except Exception as exc:  # genicam raises OutOfRange/AccessException/LogicalError with the limits
+            raise DeviceFault(
+                self.name, f"GenApi node {name}: cannot set {value!r} on {self._model}: {exc}"
+            ) from exc
+
+    def _write_enum(self, name: str, value: str) -> None:
+        node = getattr(self._require().remote_device.node_map, name)
+        if value not in node.symbolics:
+            raise DeviceFault(
+                self.name,
+                f"GenApi node {name} of {self._model} has no entry {value!r}; it offers {node.symbolics}",
+            )
+        if (got := self._write(name, value)) != value:
+            raise DeviceFault(self.name, f"GenApi node {name} reads {got!r} after setting {value!r}")
+
     def configure(self, settings: CameraSettings) -> CameraSettings:
-        """Stop acquisition, set nodes, restart per trigger mode; returns the values the nodes report."""
-        ia = self._require()
-        ia.stop()
+        """Stop acquisition (which flushes every buffer), turn auto features off, set the nodes, restart per
+        trigger mode; returns the values the nodes report. A node the settings need but the camera lacks is
+        a DeviceFault naming it."""
+        self._require()
+        self._stop()
+        for auto in AUTO_FEATURES:
+            if self._has(auto):
+                self._write_enum(auto, "Off")
         exposure_ms, gain_db = settings.exposure_ms, settings.gain_db
-        if (node := self._node("ExposureTime")) is not None:
-            node.value = settings.exposure_ms * 1000.0
-            exposure_ms = float(node.value) / 1000.0
-        if (node := self._node("Gain")) is not None:
-            node.value = settings.gain_db
-            gain_db = float(node.value)
-        fmt = self._node("PixelFormat")
-        wanted = _PFNC[settings.pixel_format]
-        if fmt is not None:
-            if wanted not in fmt.symbolics:
-                raise DeviceFault(
-                    self.name, f"pixel format {wanted} not offered by {self._model}: {fmt.symbolics}"
-                )
-            fmt.value = wanted
+        if self._node("ExposureTime") is not None:
+            exposure_ms = float(self._write("ExposureTime", settings.exposure_ms * 1000.0)) / 1000.0
+        if self._node("Gain") is not None:
+            gain_db = float(self._write("Gain", settings.gain_db))
+        if self._node("PixelFormat") is not None:
+            self._write_enum("PixelFormat", _PFNC[settings.pixel_format])
         if not self._emulated_trigger:
-            nm = ia.remote_device.node_map
-            if hasattr(nm, "TriggerSelector"):
-                nm.TriggerSelector.value = "FrameStart"
-            nm.TriggerMode.value = "Off" if settings.trigger is TriggerMode.FREE_RUN else "On"
-            if settings.trigger is not TriggerMode.FREE_RUN:
-                nm.TriggerSource.value = (
-                    "Software" if settings.trigger is TriggerMode.SOFTWARE else self.options.trigger_source
-                )
+            self._configure_trigger(settings.trigger)
         elif settings.trigger is TriggerMode.HARDWARE:
-            raise DeviceFault(self.name, f"{self._model} has no TriggerMode node: no hardware trigger")
+            raise DeviceFault(
+                self.name, f"hardware trigger needs GenApi node TriggerMode, absent on {self._model}"
+            )
         self._settings = CameraSettings(
             exposure_ms=exposure_ms,
             gain_db=gain_db,
@@ -233,19 +312,80 @@ class GenICamCamera:
         )
         self._armed = False
         if settings.trigger is not TriggerMode.SOFTWARE or not self._emulated_trigger:
-            ia.start()
+            self._start()
         return self._settings
 
+    def _configure_trigger(self, mode: TriggerMode) -> None:
+        needed = ["TriggerMode"] if mode is TriggerMode.FREE_RUN else ["TriggerMode", "TriggerSource"]
+        if mode is TriggerMode.SOFTWARE:
+            needed.append("TriggerSoftware")
+        if mode is TriggerMode.HARDWARE:
+            needed += ["TriggerActivation", "LineSelector", "LineMode"]
+        missing = [n for n in needed if not self._has(n) and n not in self.options.ignore_missing]
+        if missing:
+            raise DeviceFault(
+                self.name,
+                f"{mode.value} trigger needs GenApi node(s) {', '.join(missing)}, absent on {self._model}",
+            )
+        if self._has("TriggerSelector"):
+            self._write_enum("TriggerSelector", "FrameStart")
+        self._write_enum("TriggerMode", "Off" if mode is TriggerMode.FREE_RUN else "On")
+        if mode is TriggerMode.SOFTWARE:
+            self._write_enum("TriggerSource", "Software")
+        elif mode is TriggerMode.HARDWARE:
+            line = self.options.trigger_source
+            if self._has("LineSelector"):
+                self._write_enum("LineSelector", line)
+                self._write_enum("LineMode", "Input")
+            self._write_enum("TriggerSource", line)
+            if self._has("TriggerActivation"):
+                self._write_enum("TriggerActivation", self.options.trigger_activation)
+
+    def _start(self) -> None:
+        try:
+            self._require().start()
+        except Exception as exc:  # GenTL/GenApi errors of AcquisitionStart
+            raise DeviceFault(
+                self.name, f"GenApi node AcquisitionStart: cannot start on {self._model}: {exc}"
+            ) from exc
+        self._ids.reset()  # devices may restart their frame count with each acquisition
+
+    def _stop(self) -> None:
+        try:
+            self._require().stop()  # harvesters discards every queued buffer (GenTL ACQ_QUEUE_ALL_DISCARD)
+        except Exception as exc:
+            raise DeviceFault(
+                self.name, f"GenApi node AcquisitionStop: cannot stop on {self._model}: {exc}"
+            ) from exc
+
+    def _flush(self) -> int:
+        """Requeue frames already waiting (they were not caused by the coming trigger); returns how many."""
+        n = 0
+        while (buffer := self._require().try_fetch(timeout=1e-4)) is not None:
+            self._ids.observe(int(buffer.frame_id))
+            buffer.queue()
+            n += 1
+        return n
+
     def trigger(self) -> None:
-        ia = self._require()
+        self._require()
         if self._emulated_trigger:
-            ia.start()  # acquisition start stands in for the trigger; grab() stops it after one frame
+            self._start()  # acquisition start stands in for the trigger; grab() stops it after one frame
             self._armed = True
-        else:
-            ia.remote_device.node_map.TriggerSoftware.execute()
+            return
+        if stale := self._flush():
+            log.warning("%s: dropped %d stale frame(s) before a software trigger", self.name, stale)
+        node = self._require().remote_device.node_map.TriggerSoftware
+        try:
+            node.execute()
+        except Exception as exc:  # GenApi AccessException when the trigger is not armed
+            raise DeviceFault(
+                self.name, f"GenApi node TriggerSoftware: cannot execute on {self._model}: {exc}"
+            ) from exc
 
     def grab(self, timeout_ms: float) -> Frame:
-        """The next frame, copied out of its buffer (which is requeued), or DeviceTimeout after timeout_ms."""
+        """The next complete frame, copied out of its buffer (which is requeued); DeviceTimeout after
+        timeout_ms or when the camera's frame ids show a lost frame (harvesters discards incomplete ones)."""
         ia = self._require()
         try:
             from genicam.gentl import TimeoutException
@@ -268,17 +408,20 @@ class GenICamCamera:
             ) from exc
         finally:
             if self._emulated_trigger and self._armed:
-                ia.stop()
+                self._stop()
                 self._armed = False
+        try:
+            frame_id = self._ids.next(device_frame_id)
+        except LostFrames as exc:
+            raise DeviceTimeout(self.name, f"{exc}; the sequence must be captured again") from exc
         if self._settings.pixel_format is not PixelFormat.RGB8 and pixels.ndim == 3:
             raise DeviceFault(
                 self.name, f"device sent colour data ({c.data_format}) for {self._settings.pixel_format}"
             )
-        self._frames += 1  # the device's id restarts with each acquisition start; ours counts every frame
         return Frame(
             pixels=pixels,
             timestamp_s=stamp,
-            frame_id=self._frames,
+            frame_id=frame_id,
             metadata={
                 "pixel_format": c.data_format,
                 "device_frame_id": device_frame_id,

@@ -89,3 +89,30 @@ def test_to_numpy_formats() -> None:
     assert img.shape == (2, 3, 3) and img[1, 2].tolist() == [20, 21, 22]  # pixel (1,2) = bytes 20..23
     mono12 = np.array([0x0FFF, 1, 2, 3], dtype=np.uint16).view(np.uint8)
     assert to_numpy(mono12, 2, 2, "Mono12").tolist() == [[4095, 1], [2, 3]]
+
+
+def test_genapi_errors_name_the_camera_and_the_node() -> None:
+    cam = _viky(ignore_missing=["ExposureTime", "Gain"])
+    cam.connect()
+    try:
+        with pytest.raises(DeviceFault, match=r"^camera: GenApi node Width: cannot set 100000 on Viky: "):
+            cam._write("Width", 100000)  # genicam's OutOfRangeException, wrapped
+        with pytest.raises(DeviceFault, match=r"^camera: hardware trigger needs GenApi node TriggerMode"):
+            cam.configure(CameraSettings(trigger=TriggerMode.HARDWARE))  # viky has no trigger nodes
+    finally:
+        cam.close()
+
+
+def test_frame_ids_come_from_the_producer_and_restart_with_each_acquisition() -> None:
+    cam = _viky(ignore_missing=["ExposureTime", "Gain"])
+    cam.connect()
+    try:
+        cam.configure(CameraSettings(trigger=TriggerMode.SOFTWARE))
+        frames = []
+        for _ in range(3):  # viky has no trigger nodes: each trigger is one acquisition start
+            cam.trigger()
+            frames.append(cam.grab(1000))
+        assert [f.frame_id for f in frames] == [1, 2, 3]
+        assert all(isinstance(f.metadata["device_frame_id"], int) for f in frames)
+    finally:
+        cam.close()

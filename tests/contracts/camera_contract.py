@@ -102,6 +102,36 @@ class CameraContract:
         finally:
             camera.close()
 
+    def test_frame_ids_count_every_frame_the_camera_sent(self, camera: Camera) -> None:
+        """Ids come from the camera's own count, so consecutive triggers give consecutive ids (a lost frame
+        would show as a gap instead of shifting a stack by one pattern)."""
+        camera.connect()
+        try:
+            camera.configure(CameraSettings(exposure_ms=5.0, trigger=TriggerMode.SOFTWARE))
+            ids = []
+            for _ in range(4):
+                camera.trigger()
+                ids.append(camera.grab(self.timeout_ms).frame_id)
+            assert np.all(np.diff(ids) == 1), ids
+        finally:
+            camera.close()
+
+    def test_a_refused_setting_names_the_camera(self, camera: Camera) -> None:
+        """A mode the camera cannot do (hardware trigger without trigger lines, a pixel format it lacks) is
+        refused by configure(), before any frame, with an error that names the camera."""
+        camera.connect()
+        try:
+            for settings in (
+                CameraSettings(trigger=TriggerMode.HARDWARE),
+                CameraSettings(pixel_format=PixelFormat.MONO12, trigger=TriggerMode.SOFTWARE),
+            ):
+                try:
+                    camera.configure(settings)
+                except CellError as exc:
+                    assert str(exc).startswith(f"{camera.name}: "), exc
+        finally:
+            camera.close()
+
     def test_grab_without_trigger_times_out_in_time(self, camera: Camera) -> None:
         camera.connect()
         try:
