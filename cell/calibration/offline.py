@@ -203,13 +203,20 @@ def save_offline_projector(
 
 
 def run_offline(
-    routine: str, source: Path, out_dir: Path, cell: Path, intrinsics: Path | None = None, force: bool = False
+    routine: str,
+    source: Path,
+    out_dir: Path,
+    cell: Path,
+    intrinsics: Path | None = None,
+    force: bool = False,
+    points: int = 65536,
 ) -> tuple[str, Path, dict[str, Any]]:
     """Body of ``cell calibrate intrinsics|projector|sensor --from SOURCE``: calibrate from the capture
     folder, write the calibration file into ``out_dir``; returns (kind, file, figures).
     ``intrinsics``: a camera intrinsics file for the projector routine (default: calibrate the camera on
     the same board views).
-    ``cell``: the cell config the sensor routine calibrates (its camera, projector, stand-off, lens)."""
+    ``cell``: the cell config the sensor routine calibrates (its camera, projector, stand-off, lens);
+    ``points``: its number of encoded points."""
     folder = load_capture_folder(source)
     if routine == "intrinsics":
         res = intrinsics_from_folder(folder)
@@ -241,6 +248,7 @@ def run_offline(
             cam,
             cfg.sensor.projector,
             cfg.sensor.standoff_mm,
+            points,
             eval_height_mm=cfg.sensor.depth_of_field_mm / 2,
         )
         path = save_sensor_calibration(sres, out_dir / "sensor", cam, cfg.sensor.projector, force=force)

@@ -96,7 +96,7 @@ def sensor_cmd(
     """Per-pixel calibration: step the reference board STEPS x STEP_MM toward the sensor (dissertation
     5.1.1)."""
     if source is not None:
-        return _offline("sensor", source, out, cell, force=force)
+        return _offline("sensor", source, out, cell, force=force, points=points)
     from cell.calibration.active import active_sensor_config
     from cell.calibration.sensor import SensorCalibrator, save_sensor_calibration
     from cell.sensing.decode import decode
