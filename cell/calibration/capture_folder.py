@@ -173,39 +173,40 @@ class CaptureFolder:
     def projector_size(self) -> tuple[int, int]:
         return self.manifest.projector.width_px, self.manifest.projector.height_px
 
+    def _read(self, pose: CapturePose, f: Path) -> NDArray:
+        """One image of ``pose``, checked against the camera's pixel depth and the sensor size."""
+        want = np.uint8 if self.manifest.camera.bit_depth == 8 else np.uint16
+        img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ConfigError("cannot read this image (corrupt or not an image)", path=str(f))
+        if img.ndim == 3:  # colour files of a grey camera: convert, as the capturing tools do
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+        if img.dtype != want:
+            raise ConfigError(
+                f"{img.dtype} image, a {self.manifest.camera.bit_depth}-bit camera gives "
+                f"{np.dtype(want).name}; check camera.bit_depth in {MANIFEST}",
+                path=str(f),
+            )
+        (x0, y0), (W, H) = pose.roi_px, self.camera_size
+        if x0 + img.shape[1] > W or y0 + img.shape[0] > H:
+            raise ConfigError(
+                f"{img.shape[1]}x{img.shape[0]} image at roi_px {pose.roi_px} does not fit the "
+                f"{W}x{H} camera of {MANIFEST}",
+                path=str(f),
+            )
+        return img
+
     def stack(self, pose: CapturePose) -> NDArray:
         """The pose's images as one checked (N, h, w) stack in pattern order (h, w: the pose's ROI)."""
-        want = np.uint8 if self.manifest.camera.bit_depth == 8 else np.uint16
-        frames, size = [], None
-        for f in pose.files:
-            img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise ConfigError("cannot read this image (corrupt or not an image)", path=str(f))
-            if img.ndim == 3:  # colour files of a grey camera: convert, as the capturing tools do
-                img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-            if img.dtype != want:
-                raise ConfigError(
-                    f"{img.dtype} image, a {self.manifest.camera.bit_depth}-bit camera gives "
-                    f"{np.dtype(want).name}; check camera.bit_depth in {MANIFEST}",
-                    path=str(f),
-                )
-            if size is None:
-                size = img.shape
-                x0, y0 = pose.roi_px
-                W, H = self.camera_size
-                if x0 + img.shape[1] > W or y0 + img.shape[0] > H:
-                    raise ConfigError(
-                        f"{img.shape[1]}x{img.shape[0]} image at roi_px {pose.roi_px} does not fit the "
-                        f"{W}x{H} camera of {MANIFEST}",
-                        path=str(f),
-                    )
-            elif img.shape != size:
+        frames = [self._read(pose, f) for f in pose.files]
+        size = frames[0].shape
+        for f, img in zip(pose.files, frames, strict=True):
+            if img.shape != size:
                 raise ConfigError(
                     f"{img.shape[1]}x{img.shape[0]} image, the pose's first image {pose.files[0].name} is "
                     f"{size[1]}x{size[0]}: every image of a pose must have the same size",
                     path=str(f),
                 )
-            frames.append(img)
         return check_stack(
             frames,
             self.patterns,
@@ -237,22 +238,21 @@ class CaptureFolder:
             cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, b.dictionary)),
         )
 
-    def find_board(self, pose: CapturePose, stack: NDArray, board: Board) -> CharucoView:
-        """Board corners in the pose's board image, in full-sensor pixels; CalibrationError naming the pose
-        and file when the board is not found."""
-        name = self.manifest.board.image
-        img = stack[self.patterns.index(name)]
+    def find_board(self, pose: CapturePose, board: Board) -> CharucoView:
+        """Board corners in the pose's board image (only that file is read), in full-sensor pixels;
+        CalibrationError naming the pose and file when the board is not found."""
+        f = pose.files[self.patterns.index(self.manifest.board.image)]
+        img = self._read(pose, f)
         view = (
             _find_chessboard(img, board)
             if isinstance(board, ChessboardTarget)
             else detect_charuco(img, board)
         )
         if view is None:
-            f = pose.files[self.patterns.index(name)]
+            b = self.manifest.board
             raise CalibrationError(
-                f"pose '{pose.name}': the {self.manifest.board.kind} board ({self.manifest.board.squares[0]}x"
-                f"{self.manifest.board.squares[1]} squares) was not found in {f}; check the board in "
-                f"{MANIFEST}, or remove the pose"
+                f"pose '{pose.name}': the {b.kind} board ({b.squares[0]}x{b.squares[1]} squares) was not "
+                f"found in {f}; check the board in {MANIFEST}, or remove the pose"
             )
         return CharucoView(view.corners_px + np.asarray(pose.roi_px, np.float64), view.ids)
 

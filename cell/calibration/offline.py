@@ -38,7 +38,7 @@ class OfflineProjector:
 def board_views(folder: CaptureFolder) -> list[CharucoView]:
     """The board corners of every pose (full-sensor px); CalibrationError naming the first pose without it."""
     board = folder.board()
-    return [folder.find_board(pose, stack, board) for pose, stack in folder.iter_poses()]
+    return [folder.find_board(pose, board) for pose in folder.poses]
 
 
 def intrinsics_from_folder(folder: CaptureFolder, fix_k3: bool = True) -> Intrinsics:
@@ -64,9 +64,9 @@ def projector_from_folder(
         )
     board = folder.board()
     views, proj_px, valid, counts = [], [], [], {}
-    for pose, stack in folder.iter_poses():
-        view = folder.find_board(pose, stack, board)
-        dec = folder.decode(pose, stack)
+    for pose in folder.poses:
+        view = folder.find_board(pose, board)  # before the stack: a missing board is the likelier mistake
+        dec = folder.decode(pose)
         pp, ok = corners_in_projector(view, dec.axes["columns"].u, dec.axes["rows"].u, half_window)
         views.append(view)
         proj_px.append(pp)
