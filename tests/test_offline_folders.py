@@ -231,3 +231,23 @@ def test_offline_projector_calibration_on_an_exported_charuco_gcps_folder(tmp_pa
     )
     dt, dr = pose_error(np.array(s["T_C_P"]), proj.T_C_P.matrix())
     assert dt < 1.5 and dr < 0.2, (dt, dr)  # measured 0.69 mm / 0.097 deg (camera fitted on the same 6 views)
+
+
+# ------------------------------------------------------------------------------------------- plain Gray code
+def test_plain_gray_code_is_opencvs_and_decodes_every_projector_pixel():
+    """The frames equal OpenCV's GrayCodePattern.generate() in its order; seen pixel for pixel (camera =
+    projector, 8-bit, with a dark level) they decode to each pixel's own column and row."""
+    from cell.sensing.decode import decode
+    from cell.sensing.graycode import graycode_patterns, opencv_order
+
+    w, h = 100, 60
+    ps = graycode_patterns(w, h)
+    ok, generated = cv2.structured_light.GrayCodePattern.create(w, h).generate()
+    order = opencv_order(ps)
+    assert ok and len(generated) == len(order) - 2 and order[-2:] == ["white", "black"]
+    for img, name in zip(generated, order, strict=False):
+        assert np.array_equal(img, ps.frames[ps.index(name)]), name
+    seen = (20 + ps.frames.astype(np.float32) * 0.6).astype(np.uint8)
+    dec = decode(seen, ps, 8)
+    yy, xx = np.mgrid[0:h, 0:w]
+    assert np.array_equal(dec.axes["columns"].u, xx) and np.array_equal(dec.axes["rows"].u, yy)
