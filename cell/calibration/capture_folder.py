@@ -41,8 +41,8 @@ class CameraSpec(Strict):
 
     width_px: PosInt
     height_px: PosInt
-    bit_depth: Literal[8, 10, 12, 16] = 8
-    serial: str | None = None
+    bit_depth: Literal[8, 10, 12, 16] = Field(8, description="8: 8-bit files; 10/12/16: 16-bit files")
+    serial: str | None = Field(None, description="recorded in the calibration file when given")
 
 
 class ProjectorSpec(Strict):
@@ -57,8 +57,8 @@ class CodeSpec(Strict):
     """Which pattern set was projected. ``graycode``: OpenCV's GrayCodePattern (one Gray bit per projector
     pixel); ``gcls`` / ``gcps``: the cell's own sets (:mod:`cell.sensing.patterns`) with these parameters."""
 
-    kind: Literal["gcls", "gcps", "graycode"]
-    direction: Literal["columns", "rows", "both"] = "both"
+    kind: Literal["gcls", "gcps", "graycode"] = Field(description="graycode: OpenCV GrayCodePattern")
+    direction: Literal["columns", "rows", "both"] = Field("both", description="coded projector axes")
     stripe_px: PosInt | None = Field(None, description="gcls/gcps: Gray stripe width, projector px")
     n_shifts: PosInt = Field(6, description="gcls: line shifts")
     n_phase: Annotated[int, Field(ge=3)] = Field(4, description="gcps: phase steps")
@@ -84,10 +84,10 @@ class BoardSpec(Strict):
     fewer each way). ChArUco boards also need the marker size and the ArUco dictionary's OpenCV name."""
 
     kind: Literal["chessboard", "charuco"]
-    squares: tuple[PosInt, PosInt]
+    squares: tuple[PosInt, PosInt] = Field(description="squares across, down (not inner corners)")
     square_mm: PositiveFloat
-    marker_mm: PositiveFloat | None = None
-    dictionary: str = "DICT_5X5_100"
+    marker_mm: PositiveFloat | None = Field(None, description="charuco: ArUco marker side")
+    dictionary: str = Field("DICT_5X5_100", description="charuco: OpenCV ArUco dictionary name")
     image: str = Field("white", description="frame in which the board is found")
 
     @model_validator(mode="after")
@@ -106,9 +106,13 @@ class PoseSpec(Strict):
     """One pose: a folder of images. ``roi_px``: where the images' top-left pixel lies on the sensor;
     ``height_mm``: for the per-pixel sensor calibration, the board's height above the reference plane."""
 
-    dir: str
-    roi_px: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]] = (0, 0)
-    height_mm: float | None = None
+    dir: str = Field(description="pose folder, relative to the capture folder")
+    roi_px: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]] = Field(
+        (0, 0), description="sensor pixel (x, y) of the images' top-left pixel"
+    )
+    height_mm: float | None = Field(
+        None, description="sensor routine: board height above the reference plane"
+    )
 
 
 class CaptureManifest(Strict):
