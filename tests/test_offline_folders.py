@@ -251,3 +251,16 @@ def test_plain_gray_code_is_opencvs_and_decodes_every_projector_pixel():
     dec = decode(seen, ps, 8)
     yy, xx = np.mgrid[0:h, 0:w]
     assert np.array_equal(dec.axes["columns"].u, xx) and np.array_equal(dec.axes["rows"].u, yy)
+
+
+def test_a_dark_coded_frame_names_its_file(real_copy):
+    black = cv2.imread(str(real_copy / "capture_4" / "graycode_41.png"), cv2.IMREAD_UNCHANGED)
+    f = (
+        real_copy / "capture_4" / "graycode_00.png"
+    )  # col_gray0 and its inverse: the projector was off for both
+    cv2.imwrite(str(f), black)
+    cv2.imwrite(str(real_copy / "capture_4" / "graycode_01.png"), black)
+    folder = load_capture_folder(real_copy)
+    with pytest.raises(ConfigError, match="all dark") as exc:
+        folder.stack(folder.poses[4])
+    assert str(f) in str(exc.value) and "col_gray0" in str(exc.value)

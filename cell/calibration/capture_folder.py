@@ -30,7 +30,7 @@ from cell.schema import PositiveFloat, Strict
 from cell.sensing.decode import AxisDecode, Decoded, Reason, decode
 from cell.sensing.graycode import graycode_patterns, opencv_order
 from cell.sensing.patterns import PatternSet, gcls_patterns, gcps_patterns
-from cell.sensing.stack import check_stack
+from cell.sensing.stack import StackError, check_stack
 
 MANIFEST = "capture.yaml"
 PosInt = Annotated[int, Field(gt=0)]
@@ -211,13 +211,14 @@ class CaptureFolder:
                     f"{size[1]}x{size[0]}: every image of a pose must have the same size",
                     path=str(f),
                 )
-        return check_stack(
-            frames,
-            self.patterns,
-            (size[1], size[0]),
-            self.manifest.camera.bit_depth,
-            source=str(self.root / pose.name),
-        )
+        try:
+            return check_stack(
+                frames, self.patterns, (size[1], size[0]), self.manifest.camera.bit_depth, source=""
+            )
+        except StackError as exc:  # name the file of the offending frame (source "": no prefix to repeat)
+            names = self.patterns.names
+            f = pose.files[names.index(exc.field)] if exc.field in names else self.root / pose.name
+            raise StackError(str(exc), path=str(f), field=exc.field) from exc
 
     def decode(self, pose: CapturePose, stack: NDArray | None = None) -> Decoded:
         """Decode a pose; the maps are returned on the full sensor (NaN and DARK outside the pose's ROI)."""
