@@ -103,3 +103,18 @@ def test_offline_intrinsics_then_projector_with_that_file(tmp_path):
     assert r2.exit_code == 0, (r2.output, r2.exception)
     s = json.loads((tmp_path / "p" / "calibration.json").read_text())["summary"]
     assert s["stereo_rms_px"] <= 0.5 and "camera" not in s
+
+
+def test_a_better_existing_calibration_is_kept_without_force(tmp_path):
+    from cell.calibration.store import load_metadata, save_calibration
+
+    out = tmp_path / "p"
+    args = ["calibrate", "projector", "--from", str(REAL), "--out", str(out)]
+    assert CliRunner().invoke(app, args).exit_code == 0
+    better = {"projector": {"resolution": [1024, 768]}, "quality": {"rms_px": 0.01}}
+    save_calibration(out / "projector", "projector", {"K": np.eye(3)}, better, force=True)
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code != 0 and "better" in str(res.exception) and "--force" in str(res.exception)
+    assert load_metadata(out / "projector.yaml")["quality"]["rms_px"] == 0.01
+    assert CliRunner().invoke(app, [*args, "--force"]).exit_code == 0
+    assert load_metadata(out / "projector.yaml")["quality"]["rms_px"] == pytest.approx(0.185, abs=0.01)
