@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from cell.errors import ConfigError
 from cell.sensing import _gcls_kernel
-from cell.sensing.decode import AxisDecode, Decoded, DecodeParams, Reason, _gray_stripe
+from cell.sensing.decode import AxisDecode, Decoded, DecodeParams, Reason, _diff, _gray_stripe
 from cell.sensing.patterns import AxisCode, Direction, PatternSet, _assemble, _axes
 
 # OpenCV's default whiteThreshold: a bit whose pattern and inverse differ by less (8-bit DN) is unclear.
@@ -53,10 +53,12 @@ def decode_graycode(
 ) -> Decoded:
     """Integer projector column/row per camera pixel from a checked (N, H, W) stack in ``patterns`` order.
 
-    A pixel is INCONSISTENT when more than one Gray bit is unclear (pattern and inverse closer than
-    ``white_threshold_dn8``, scaled to the bit depth): the one unclear bit allowed is the bit that changes at
-    the pixel's stripe boundary, which moves the code by one projector pixel at most. NO_CODE: a code beyond
-    the projector's width or height. Sharpness is 1 where decoded (plain Gray has no edge measure)."""
+    A bit is unclear where pattern and inverse differ by no more than ``white_threshold_dn8`` (scaled to
+    the bit depth); OpenCV's ``getProjPixel`` rejects such pixels. Here one unclear bit is accepted when its
+    two readings give adjacent codes, i.e. the pixel straddles that bit's stripe edge (mostly the finest bit,
+    whose one-pixel stripes the optics blur): the code is then off by one projector pixel at most. Other
+    pixels with unclear bits are INCONSISTENT. NO_CODE: a code beyond the projector's width or height.
+    Sharpness is 1 where decoded (plain Gray has no edge measure)."""
     top = 2**bit_depth - 1
     mod, contrast, base = _gcls_kernel.reference_masks(
         stack[patterns.index("white")],
@@ -70,6 +72,14 @@ def decode_graycode(
     for code in patterns.codes:
         tag = "col" if code.axis == "columns" else "row"
         g, coded = _gray_stripe(stack, patterns, code, tag, thr)
+        # Flipping Gray bit b (MSB first) inverts the binary bits from b down: the other reading is g ^ flip.
+        flip = np.zeros_like(g)
+        for b in range(code.n_gray):
+            unclear = np.abs(
+                _diff(stack, patterns.index(f"{tag}_gray{b}"), patterns.index(f"{tag}_gray{b}_inv"))
+            )
+            flip[unclear <= thr] |= (1 << (code.n_gray - b)) - 1
+        coded &= (flip == 0) | (np.abs(g - (g ^ flip)) == 1)
         length = patterns.width_px if code.axis == "columns" else patterns.height_px
         reasons = base.copy()
         reasons[(reasons == 0) & ~coded] |= np.uint8(Reason.INCONSISTENT)
