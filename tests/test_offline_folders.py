@@ -264,3 +264,9 @@ def test_a_dark_coded_frame_names_its_file(real_copy):
     with pytest.raises(ConfigError, match="all dark") as exc:
         folder.stack(folder.poses[4])
     assert str(f) in str(exc.value) and "col_gray0" in str(exc.value)
+
+
+def test_a_missing_capture_folder_writes_nothing(tmp_path):
+    res = _invoke(["calibrate", "intrinsics", "--from", tmp_path / "nowhere", "--out", tmp_path / "out"])
+    assert isinstance(res.exception, ConfigError) and "capture folder not found" in str(res.exception)
+    assert not (tmp_path / "out").exists()

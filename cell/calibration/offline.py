@@ -204,7 +204,7 @@ def save_offline_projector(
 
 def run_offline(
     routine: str,
-    source: Path,
+    folder: CaptureFolder,
     out_dir: Path,
     cell: Path,
     intrinsics: Path | None = None,
@@ -212,12 +212,12 @@ def run_offline(
     points: int = 65536,
 ) -> tuple[str, Path, dict[str, Any]]:
     """Body of ``cell calibrate intrinsics|projector|sensor --from SOURCE``: calibrate from the capture
-    folder, write the calibration file into ``out_dir``; returns (kind, file, figures).
+    folder (:func:`load_capture_folder`), write the calibration file into ``out_dir``; returns (kind, file,
+    figures).
     ``intrinsics``: a camera intrinsics file for the projector routine (default: calibrate the camera on
     the same board views).
     ``cell``: the cell config the sensor routine calibrates (its camera, projector, stand-off, lens);
     ``points``: its number of encoded points."""
-    folder = load_capture_folder(source)
     if routine == "intrinsics":
         res = intrinsics_from_folder(folder)
         path = save_offline_intrinsics(res, folder, out_dir / "intrinsics", force)

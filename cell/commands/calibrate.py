@@ -72,11 +72,13 @@ def _calibration_lines(field: str, path: Path) -> str:
 
 def _offline(routine: str, source: Path, out: Path, cell: Path, **kw: Any) -> None:
     """``--from SOURCE``: the routine on a capture folder (cell.calibration.offline)."""
+    from cell.calibration.capture_folder import MANIFEST, load_capture_folder
     from cell.calibration.offline import run_offline
 
+    folder = load_capture_folder(source)  # checked before the run folder is made
     run = _folder(out, cell)
-    run.copy_input(source / "capture.yaml", "capture.yaml")
-    kind, path, figs = run_offline(routine, source, run.path, cell, **kw)
+    run.copy_input(source / MANIFEST, MANIFEST)
+    kind, path, figs = run_offline(routine, folder, run.path, cell, **kw)
     field = {"camera_intrinsics": "intrinsics", "sensor_per_pixel": "sensor"}.get(kind, kind)
     report = {"kind": kind, "file": str(path), "source": str(source), "summary": figs}
     _finish(run, "calibration.json", report, _calibration_lines(field, path))
