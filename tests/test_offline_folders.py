@@ -124,7 +124,8 @@ def small_cell(tmp_path_factory):
 
 
 def _export(root: Path, cfg, heights, direction: str, shuffle: bool, seed: int) -> Path:
-    """Board steps rendered by the simulator and written as a capture folder (16-bit PNG of 12-bit data)."""
+    """Board steps rendered by the simulator and written as a capture folder (16-bit PNG of 12-bit data,
+    numbered without zero padding)."""
     cam, proj = cfg.sensor.camera, cfg.sensor.projector
     ps = gcls_patterns(proj.width_px, proj.height_px, 12, 6, direction)
     order = list(ps.names)
@@ -136,7 +137,7 @@ def _export(root: Path, cfg, heights, direction: str, shuffle: bool, seed: int) 
         frames = rig.capture(h, ps.frames, rng)
         (root / f"step_{k:02d}").mkdir(parents=True)
         for i, name in enumerate(order):
-            cv2.imwrite(str(root / f"step_{k:02d}" / f"img_{i:03d}.png"), frames[ps.index(name)])
+            cv2.imwrite(str(root / f"step_{k:02d}" / f"img_{i}.png"), frames[ps.index(name)])
         poses.append({"dir": f"step_{k:02d}", "height_mm": h})
     manifest = {
         "camera": {"width_px": cam.width_px, "height_px": cam.height_px, "bit_depth": cam.bit_depth},

@@ -13,6 +13,7 @@ stay those of the whole sensor.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -127,7 +128,9 @@ class CaptureManifest(Strict):
         description="image order in each pose folder: 'cell' (white, black, then each pattern and its "
         "inverse), 'opencv' (GrayCodePattern.generate() order, then white, then black) or frame names",
     )
-    images: str = Field("*.png", description="glob of the images in a pose folder; sorted by name")
+    images: str = Field(
+        "*.png", description="glob of the images in a pose folder; sorted by name, numbers by value"
+    )
     board: BoardSpec | None = None
     poses: list[PoseSpec] | None = Field(None, description="default: every sub-folder, sorted by name")
 
@@ -305,6 +308,11 @@ def _on_sensor(dec: Decoded, roi_px: tuple[int, int], size: tuple[int, int]) -> 
     return Decoded(axes, pad(dec.contrast, 0), pad(dec.modulation_dn, 0), dict(dec.extra))
 
 
+def _natural(path: Path) -> list[int | str]:
+    """Sort key: the file name with its numbers compared by value (img_2 before img_10)."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
+
+
 def load_capture_folder(path: str | Path) -> CaptureFolder:
     """Read and check a capture folder's manifest and file lists (counts); images are read per pose later.
 
@@ -351,7 +359,7 @@ def load_capture_folder(path: str | Path) -> CaptureFolder:
         pdir = root / spec.dir
         if not pdir.is_dir():
             raise ConfigError(f"pose folder '{spec.dir}' not found", path=str(pdir), field="poses")
-        files = sorted(pdir.glob(m.images))
+        files = sorted(pdir.glob(m.images), key=_natural)
         if len(files) != len(order):
             which = (
                 f"the first missing is frame '{order[len(files)]}' (index {len(files)})"
