@@ -26,6 +26,9 @@ calibrate_app = typer.Typer(
 CellOpt = typer.Option(DEFAULT_CELL, "--cell", help="cell config YAML")
 OutOpt = typer.Option(..., "--out", help="run folder to write")
 GAUGE = DEFAULT_CELL.parent.parent / "parts" / "gauge.stl"
+FromOpt = typer.Option(
+    None, "--from", help="capture folder of images taken elsewhere (docs/capture-folders.md)"
+)
 
 
 def _sim_cell(path: Path) -> CellConfig:
@@ -67,6 +70,20 @@ def _calibration_lines(field: str, path: Path) -> str:
     return f"calibration:\n  {field}: {Path(path).resolve()}"
 
 
+def _offline(routine: str, source: Path, out: Path, cell: Path, **kw: Any) -> None:
+    """``--from SOURCE``: the routine on a capture folder (cell.calibration.offline)."""
+    from cell.calibration.capture_folder import MANIFEST, load_capture_folder
+    from cell.calibration.offline import run_offline
+
+    folder = load_capture_folder(source)  # checked before the run folder is made
+    run = _folder(out, cell)
+    run.copy_input(source / MANIFEST, MANIFEST)
+    kind, path, figs = run_offline(routine, folder, run.path, cell, **kw)
+    field = {"camera_intrinsics": "intrinsics", "sensor_per_pixel": "sensor"}.get(kind, kind)
+    report = {"kind": kind, "file": str(path), "source": str(source), "summary": figs}
+    _finish(run, "calibration.json", report, _calibration_lines(field, path))
+
+
 @calibrate_app.command("sensor")
 def sensor_cmd(
     cell: Path = CellOpt,
@@ -76,9 +93,12 @@ def sensor_cmd(
     points: int = typer.Option(65536, min=16),
     force: bool = typer.Option(False, "--force", help="replace a better existing calibration"),
     seed: int = 1,
+    source: Path | None = FromOpt,
 ) -> None:
     """Per-pixel calibration: step the reference board STEPS x STEP_MM toward the sensor (dissertation
     5.1.1)."""
+    if source is not None:
+        return _offline("sensor", source, out, cell, force=force, points=points)
     from cell.calibration.active import active_sensor_config
     from cell.calibration.sensor import SensorCalibrator, save_sensor_calibration
     from cell.sensing.decode import decode
@@ -132,9 +152,12 @@ def intrinsics_cmd(
     views: int = typer.Option(12, min=1),
     force: bool = typer.Option(False, "--force", help="replace a better existing calibration"),
     seed: int = 1,
+    source: Path | None = FromOpt,
 ) -> None:
     """Camera K and distortion from VIEWS images of a ChArUco board (OpenCV CharucoDetector,
     calibrateCamera)."""
+    if source is not None:
+        return _offline("intrinsics", source, out, cell, force=force)
     from cell.calibration.intrinsics import calibrate_intrinsics, detect_charuco
     from cell.calibration.store import save_calibration
     from fakes.sim.board import board_poses, render_textured_board
@@ -189,8 +212,11 @@ def projector_cmd(
     ),
     force: bool = typer.Option(False, "--force", help="replace a better existing calibration"),
     seed: int = 1,
+    source: Path | None = FromOpt,
 ) -> None:
     """Projector K and T_C_P (Moreno-Taubin local homographies at the ChArUco corners, stereoCalibrate)."""
+    if source is not None:
+        return _offline("projector", source, out, cell, intrinsics=intrinsics, force=force)
     from cell.calibration.active import active_sensor_config
     from cell.calibration.intrinsics import detect_charuco
     from cell.calibration.projector import calibrate_projector, corners_in_projector

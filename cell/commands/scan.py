@@ -44,10 +44,20 @@ def scan_cmd(
     codec: str = typer.Option("gcls", "--codec", help="gcls or gcps"),
     model: str = typer.Option("pinhole", "--model", help="triangulation: pinhole or reference (eq 2.8)"),
     seed: int = typer.Option(None, "--seed", help="noise seed (default: the cell's sim.seed)"),
+    source: Path = typer.Option(
+        None, "--from", help="capture folder (docs/capture-folders.md): scan its poses"
+    ),
 ) -> None:
     """Scan MESH from one pose; write cloud.ply (world mm), masks.png and scan.json to OUT."""
     from cell.config import DEFAULT_CELL, load_cell_config
     from cell.sensing.sim_scan import run_sim_scan
+
+    if source is not None:  # images captured elsewhere, measured with the cell's active calibration
+        from cell.calibration.offline import write_folder_scan
+
+        summary = write_folder_scan(load_cell_config(cell or DEFAULT_CELL), source, Path(out))
+        (Path(out) / "scan.json").write_text(json.dumps(summary, indent=2))
+        return typer.echo(f"{len(summary['poses'])} poses -> {out}")
 
     if codec not in ("gcls", "gcps"):
         raise ConfigError(f"--codec: unknown codec '{codec}'; use gcls or gcps", field="--codec")

@@ -192,6 +192,10 @@ def decode(
     stack: NDArray, patterns: PatternSet, bit_depth: int = 8, params: DecodeParams = DecodeParams()
 ) -> Decoded:
     """Decode a checked (N, H, W) stack (see :func:`cell.sensing.stack.check_stack`) of ``patterns``."""
+    if patterns.codec == "graycode":  # plain Gray code; imported here as graycode.py builds on this module
+        from cell.sensing.graycode import decode_graycode
+
+        return decode_graycode(stack, patterns, bit_depth, params)
     top = 2**bit_depth - 1
     white = stack[patterns.index("white")]
     black = stack[patterns.index("black")]

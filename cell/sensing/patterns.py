@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from cell.errors import ConfigError
 
-Codec = Literal["gcls", "gcps"]
+Codec = Literal["gcls", "gcps", "graycode"]  # graycode: plain Gray code, cell/sensing/graycode.py
 Axis = Literal["columns", "rows"]
 Direction = Literal["columns", "rows", "both"]
 
