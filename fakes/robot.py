@@ -279,8 +279,9 @@ class SimRobot:
         handler or another thread: it only records the request; the polling move decelerates the arm from
         that instant and raises MotionStopped."""
         moving = self._motion is not None
-        if moving:
-            self._stop_request = self.clock.now()
+        # recorded when idle too: a move being checked and started right now (start_* clears the request
+        # first, then spends wall time on IK and collision checks) must not escape a stop that came meanwhile
+        self._stop_request = self.clock.now()
         self._log("stop", None, None, None, 0.0, self.clock.now(), "ok" if moving else "idle")
 
     def unlock_protective_stop(self) -> None:
@@ -350,6 +351,7 @@ class SimRobot:
     def start_linear(self, T_B_T: NDArray[np.float64], speed_mm_s: float, accel_mm_s2: float) -> None:
         """Start a straight-line Cartesian move of the flange to ``T_B_T`` (mm), TCP speed/accel
         trapezoid; returns at once (refusals raise before anything moves)."""
+        self._stop_request = None
         target = np.array(T_B_T, dtype=np.float64)
         entry = self._log("move_linear", target, speed_mm_s, accel_mm_s2, 0.0, self.clock.now(), "refused")
         self._require_ready()
@@ -395,6 +397,7 @@ class SimRobot:
     def start_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float, accel_rad_s2: float) -> None:
         """Start a joint-space move to ``joints_rad``; all joints synchronised, the limiting joint sets the
         time; returns at once (refusals raise before anything moves)."""
+        self._stop_request = None
         target = np.array(joints_rad, dtype=np.float64).reshape(-1)
         entry = self._log("move_joint", target, speed_rad_s, accel_rad_s2, 0.0, self.clock.now(), "refused")
         self._require_ready()
@@ -565,7 +568,6 @@ class SimRobot:
                     error = DeviceTimeout(
                         self.name, f"connection lost {t_fault:.3f} s into the move; reconnect"
                     )
-        self._stop_request = None
         self._error = None
         now = self.clock.now()
         self._last_kick = now

@@ -194,7 +194,7 @@ def test_sigterm_mid_move_pauses_and_resume_gives_the_same_result(
             if any(e["view"] >= 1 for e in moves):
                 break
             time.sleep(0.02)
-        time.sleep(0.1)
+        time.sleep(0.5)  # the move is under way (its sim time runs at wall-clock rate)
         assert proc.poll() is None, "the run ended before it could be terminated"
         os.kill(proc.pid, signal.SIGTERM)
         out, _ = proc.communicate(timeout=120)
