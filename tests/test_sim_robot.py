@@ -226,6 +226,7 @@ def test_watchdog_stops_the_arm_one_period_after_the_last_kick():
     r = _robot()
     start, target = _start_far_linear(r)
     r.wait(0.5)  # polled (and kicked) until 0.5 s
+    r.kick_watchdog()  # the last sign of life, at 0.5 s
     r.clock.advance(5.0)  # then nobody polls: the process died; the world goes on
     assert not r.moving
     entry = r.command_log[0]
