@@ -102,8 +102,8 @@ class _Motion:
         """Decelerate from ``t`` (s from the start) unless the motion ends before; True if it stops."""
         if self.stop_t is not None or t >= float(self.times[self.end]):
             return False
-        h = 1e-4
-        v = (self.s_at(t + h) - self.s_at(max(t - h, 0.0))) / (t + h - max(t - h, 0.0))
+        h = 1e-4  # the speed of the sampled trapezoid (exact in the cruise, a segment's mean elsewhere)
+        v = 0.0 if t <= 0.0 else (self.s_at(t + h) - self.s_at(max(t - h, 0.0))) / (t + h - max(t - h, 0.0))
         self.stop_t, self.stop_v = t, max(v, 0.0)
         self.stop_end_t = t + self.stop_v / self.a_stop
         if self.end == len(self.s) - 1 or self.s_at(self.stop_end_t) < float(self.s[self.end]):
