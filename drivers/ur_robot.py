@@ -162,7 +162,12 @@ class URRobot:
                 self._control.setWatchdog(self._watchdog_hz)
         except RuntimeError as exc:  # ur_rtde raises RuntimeError for every failure (script not starting...)
             self.close()
-            raise DeviceLibraryError(self.name, f"ur_rtde could not take control of {host}: {exc}") from exc
+            hint = ""
+            if "in use" in str(exc):  # the controller answered IN_USE for the input registers
+                hint = "; another process (a second cell, a PLC adapter) writes this robot's input registers"
+            raise DeviceLibraryError(
+                self.name, f"ur_rtde could not take control of {host}: {exc}{hint}"
+            ) from exc
         except BaseException:
             self.close()
             raise

@@ -388,3 +388,28 @@ def test_watchdog_stops_the_arm_when_the_controlling_process_dies(fake) -> None:
     finally:
         if proc.is_alive():
             proc.kill()
+
+
+def _second_controller(pipe, host: str) -> None:
+    robot = URRobot(robot_config(host))
+    try:
+        robot.connect()
+        pipe.send(("none", "", 0.0))
+    except Exception as exc:
+        pipe.send((type(exc).__name__, str(exc), 0.0))
+
+
+def test_a_second_controller_on_the_same_arm_is_refused(fake) -> None:
+    """The controller answers IN_USE for input registers another RTDE connection writes: a second process
+    cannot take over an arm that one process controls, and the first keeps it."""
+    robot = URRobot(robot_config(fake.host))
+    robot.connect()
+    try:
+        kind, message, _ = _run_in_child(_second_controller, fake.host)
+        assert kind == "DeviceLibraryError" and "already in use" in message and "another process" in message
+        assert robot.state().normal
+        target = robot.tool_pose()
+        target[2, 3] -= 10.0
+        robot.move_linear(target, 100.0, 1000.0)
+    finally:
+        robot.close()
