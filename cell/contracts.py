@@ -202,29 +202,55 @@ class Camera(Protocol):
 
 # --------------------------------------------------------------------------------------------- robot
 class RobotMode(StrEnum):
-    """The robot's operating mode, as a UR controller reports it (simplified)."""
+    """The robot's operating mode, as a UR controller reports it (simplified). Only IDLE and RUNNING may
+    move: UR robot_mode 7 (RUNNING: powered, brakes released). UR mode 5 (IDLE) has the brakes on."""
 
     DISCONNECTED = "disconnected"
-    POWER_OFF = "power_off"
+    BOOTING = "booting"  # UR modes 1 (confirm safety), 2 (booting)
+    POWER_OFF = "power_off"  # UR mode 3
+    BRAKES_ON = "brakes_on"  # UR modes 4 (power on, brakes not yet released), 5 (idle), 6 (backdrive)
     IDLE = "idle"  # powered, brakes released, no program
     RUNNING = "running"  # a motion program is executing
 
 
 @dataclass(frozen=True)
 class RobotState:
-    """Safety and program state of a robot."""
+    """Safety and program state of a robot (the UR safety status bits: protective stop 2, emergency stop 7
+    or 8, safeguard stop 6 (a guard, door or light curtain), fault 9, violation 10; reduced mode 1)."""
 
     mode: RobotMode
     protective_stop: bool = False
     emergency_stop: bool = False
     program_running: bool = False
+    safeguard_stop: bool = False
+    fault: bool = False
+    violation: bool = False
+    reduced: bool = False  # reduced speed limits active: motion allowed, but slower than commanded
 
     @property
     def normal(self) -> bool:
-        """True when motion may be commanded: powered, no stop of any kind."""
+        """True when motion may be commanded: powered with brakes released, no stop, fault or violation."""
         return self.mode in (RobotMode.IDLE, RobotMode.RUNNING) and not (
-            self.protective_stop or self.emergency_stop
+            self.protective_stop or self.emergency_stop or self.safeguard_stop or self.fault or self.violation
         )
+
+    @property
+    def why_not_normal(self) -> str:
+        """What keeps the robot from moving, in words for the operator ('' when normal)."""
+        reasons = [
+            name
+            for flag, name in (
+                (self.emergency_stop, "emergency stop"),
+                (self.protective_stop, "protective stop"),
+                (self.safeguard_stop, "safeguard stop (a guard is open)"),
+                (self.fault, "fault"),
+                (self.violation, "safety violation"),
+            )
+            if flag
+        ]
+        if self.mode not in (RobotMode.IDLE, RobotMode.RUNNING):
+            reasons.insert(0, f"mode {self.mode.value} (needs power on and brakes released)")
+        return ", ".join(reasons)
 
 
 @dataclass(frozen=True)
@@ -265,15 +291,19 @@ class Robot(Protocol):
         ...
 
     def move_linear(self, T_B_T: NDArray[np.float64], speed_mm_s: float, accel_mm_s2: float) -> None:
-        """Move the flange along a straight line to ``T_B_T``; blocks until there. Raises on refusal/stop."""
+        """Move the flange along a straight line to ``T_B_T``; blocks until there, polling the motion (it
+        runs asynchronously on the device) so that :meth:`stop` can end it. Raises on refusal/stop
+        (MotionStopped when :meth:`stop` ended it)."""
         ...
 
     def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float, accel_rad_s2: float) -> None:
-        """Move in joint space to ``joints_rad``; blocks until there."""
+        """Move in joint space to ``joints_rad``; blocks until there like :meth:`move_linear`."""
         ...
 
     def stop(self) -> None:
-        """Decelerate and stop any motion now."""
+        """Decelerate and stop any motion now. Safe to call from a signal handler or another thread while
+        a move blocks: the arm starts to decelerate within one poll period and the move raises
+        MotionStopped."""
         ...
 
 

@@ -30,7 +30,7 @@ from transitions.extensions import HierarchicalGraphMachine
 
 from cell.contracts import ProjectorSource
 from cell.devices import DeviceBundle
-from cell.errors import CellError, DeviceError, DeviceFault, PlanningError
+from cell.errors import CellError, DeviceError, DeviceFault, MotionStopped, PlanningError
 from cell.planning.motion import Move
 from cell.runs import RunFolder
 
@@ -206,6 +206,7 @@ class Controller:
             "iteration": 0,
         }
         self.message = ""
+        self.pause_requested_at: float | None = None  # time.monotonic() of the last pause request
         self.progress = _Progress()
         self._pause_requested = threading.Event()
         self._executor: ThreadPoolExecutor | None = None
@@ -238,8 +239,9 @@ class Controller:
         return not (self.robot_normal() and self.projector_ready())
 
     def _explain_unsafe(self) -> None:
+        robot = self.devices.robot.state()
         self.message = (
-            f"stopped for the operator: robot {self.devices.robot.state()}, "
+            f"stopped for the operator: robot {robot.why_not_normal or 'ok'} ({robot}), "
             f"projector {self.devices.projector.status()}; fix it, then `cell resume`"
         )
 
@@ -287,19 +289,28 @@ class Controller:
         return len(self.run.completed_views())
 
     def request_pause(self, reason: str = "operator") -> None:
-        """Ask for a safe pause at the next step boundary (Ctrl-C calls this)."""
+        """Ask for a safe pause (Ctrl-C and SIGTERM call this; safe from a signal handler or another thread).
+        A move in progress is stopped at once (the robot's stop() decelerates it mid-path and the move
+        raises MotionStopped); otherwise the run pauses at the next step boundary."""
         self.message = f"pause requested: {reason}"
         self._pause_requested.set()
+        self.pause_requested_at = time.monotonic()
+        try:
+            self.devices.robot.stop()
+        except Exception:  # noqa: BLE001 - a signal handler must not raise; _make_safe stops it again
+            pass
 
     # ------------------------------------------------------------------ the run loop
     def execute(self, *, resume: bool = False) -> str:
         """Run until done, paused, faulted or aborted; returns the final state. Devices are made safe on
         exit."""
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="decode")
-        previous = signal.getsignal(signal.SIGINT)
         in_main = threading.current_thread() is threading.main_thread()
-        if in_main:
-            signal.signal(signal.SIGINT, lambda *_: self.request_pause("Ctrl-C"))
+        previous = {}
+        if in_main:  # Ctrl-C and SIGTERM (systemd, docker stop, kill) both pause safely, mid-move too
+            for signum, reason in ((signal.SIGINT, "Ctrl-C"), (signal.SIGTERM, "SIGTERM")):
+                previous[signum] = signal.getsignal(signum)
+                signal.signal(signum, lambda *_, r=reason: self.request_pause(r))
         try:
             self.run.discard_partial_views()
             self.resume() if resume else self.start()
@@ -311,8 +322,8 @@ class Controller:
                     break
                 self._step()
         finally:
-            if in_main:
-                signal.signal(signal.SIGINT, previous)
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
             self._make_safe()
             self._executor.shutdown(wait=True, cancel_futures=False)
             self._close_devices()
@@ -342,7 +353,10 @@ class Controller:
             self._reconnect(exc.device)
             return  # same state, same handler: retry
         self._attempts = 0
-        self.message = str(exc)
+        if isinstance(exc, MotionStopped) and self._pause_requested.is_set():
+            self.message = f"{self.message}; {exc}"  # the operator's reason first, then where the arm stopped
+        else:
+            self.message = str(exc)
         self._drain_decodes()
         if isinstance(exc, DeviceError):
             self.pause()  # needs the operator; `cell resume` continues from the last checkpoint
@@ -394,9 +408,10 @@ class Controller:
         projector.set_source(ProjectorSource.HDMI)
         self._blank_projector()
         if not self.robot_normal():
+            state = self.devices.robot.state()
             raise DeviceFault(
                 self.devices.names.get("robot", "robot"),
-                f"not ready for motion: {self.devices.robot.state()}",
+                f"not ready for motion: {state.why_not_normal} ({state})",
             )
         if not self.projector_ready():
             raise DeviceFault(
@@ -461,6 +476,8 @@ class Controller:
         robot = self.devices.robot
         v, a, qd, qdd = self.robot_limits
         for move in moves:
+            if self._pause_requested.is_set():  # a pause that came between two moves: send no more
+                raise MotionStopped(self.devices.names.get("robot", "robot"), "pause requested before a move")
             k = self.settings.speed_fraction * move.speed_scale
             self.run.log(
                 "device",

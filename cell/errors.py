@@ -57,6 +57,16 @@ class DeviceFault(DeviceError):
     """The device reports a fault (lamp error, protective stop, refused motion). Needs the operator."""
 
 
+class MotionStopped(DeviceFault):
+    """A move was stopped on request (a pause, Ctrl-C, SIGTERM) before it reached its target; the arm
+    decelerated along its path and stands wherever that ended."""
+
+
+class DeviceLibraryError(DeviceFault):
+    """The device's own library raised an error of its own kind (ur_rtde's RuntimeError, a GenApi error);
+    wrapped with the device's name so that the run pauses for the operator instead of faulting."""
+
+
 class CalibrationError(CellError):
     """A calibration routine failed or would be worse than the active calibration."""
 

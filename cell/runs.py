@@ -7,6 +7,7 @@ Layout of a run folder::
     checkpoint.json  what is done: the plan, the completed views, the current step (atomic replace)
     views/NNN/       one folder per measured view (pose, cloud, masks), written atomically (a dir rename)
     results/         report.json, report.html, cloud.ply, deviations.csv
+    run.lock         while a process works on the run: its PID, host and command (one process per folder)
 
 Killing the process at any instant leaves a folder from which the job resumes: a view folder exists whole or
 not at all, the checkpoint is replaced atomically, and a torn last journal line is ignored when reading.
@@ -18,6 +19,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import sqlite3
 import tempfile
 import time
@@ -33,6 +35,28 @@ import numpy as np
 from cell.errors import ConfigError
 
 INDEX_NAME = "index.sqlite"
+LOCK_NAME = "run.lock"
+
+
+def _process_start(pid: int) -> str | None:
+    """The kernel's start time of ``pid`` (field 22 of /proc/PID/stat), or None where /proc is missing:
+    with the PID it tells a live holder from a new process that reuses a dead holder's PID."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[19]
+
+
+def _alive(pid: int, start: str | None) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: it exists
+        pass
+    now = _process_start(pid)
+    return start is None or now is None or now == start
 
 
 def _json_default(value: Any) -> Any:
@@ -195,6 +219,81 @@ class RunFolder:
     @property
     def results_dir(self) -> Path:
         return self.path / "results"
+
+    # ------------------------------------------------------------------ one process per folder
+    @property
+    def lock_path(self) -> Path:
+        return self.path / LOCK_NAME
+
+    def lock_holder(self) -> dict[str, Any] | None:
+        """Who holds the run folder (pid, host, command, since), or None when no lock file exists."""
+        try:
+            return json.loads(self.lock_path.read_text())
+        except FileNotFoundError:
+            return None
+        except (json.JSONDecodeError, OSError):  # torn by a crash while it was written: nobody holds it
+            return {"pid": -1, "host": socket.gethostname(), "command": "?", "torn": True}
+
+    def holder_is_live(self, holder: dict[str, Any]) -> bool:
+        """True unless the holder is a process of this host that no longer runs (a stale lock)."""
+        if holder.get("host") != socket.gethostname():
+            return True  # another machine's process cannot be checked from here: assume it runs
+        pid = int(holder.get("pid", -1))
+        if pid == os.getpid():
+            return True
+        return pid > 0 and _alive(pid, holder.get("start"))
+
+    def acquire_lock(self, command: str) -> None:
+        """Make this process the only one working on the folder; ConfigError naming the holder if another
+        live process has it. A stale lock (its process is gone) is taken over and journalled."""
+        me = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "start": _process_start(os.getpid()),
+            "command": command,
+            "since": datetime.now(UTC).isoformat(timespec="seconds"),
+        }
+        for _ in range(3):
+            try:
+                fd = os.open(self.lock_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                holder = self.lock_holder()
+                if holder is None:
+                    continue  # released meanwhile: try again
+                if holder.get("pid") == me["pid"] and holder.get("host") == me["host"]:
+                    return  # this process holds it already
+                if self.holder_is_live(holder):
+                    raise ConfigError(
+                        f"run folder in use by PID {holder.get('pid')} on host {holder.get('host')} "
+                        f"({holder.get('command')}, since {holder.get('since')}); wait for it to end or "
+                        "pause it (Ctrl-C or SIGTERM). If that process is surely gone, delete "
+                        f"{LOCK_NAME} in the folder",
+                        path=str(self.path),
+                    ) from None
+                # stale: rename it away (only one of two racing processes can), then create ours
+                stale = self.lock_path.with_name(f".{LOCK_NAME}.stale-{os.getpid()}")
+                try:
+                    os.replace(self.lock_path, stale)
+                except FileNotFoundError:
+                    continue
+                stale.unlink(missing_ok=True)
+                if (self.path / "journal.jsonl").exists():
+                    self.log("lock", action="stale lock taken over", stale_holder=holder, holder=me)
+                continue
+            with os.fdopen(fd, "w") as f:
+                f.write(json.dumps(me))
+                f.flush()
+                os.fsync(f.fileno())
+            return
+        raise ConfigError(
+            "could not take the run folder's lock (another process races for it)", path=str(self.path)
+        )
+
+    def release_lock(self) -> None:
+        """Remove the lock if this process holds it (a lock of another process is left alone)."""
+        holder = self.lock_holder()
+        if holder and holder.get("pid") == os.getpid() and holder.get("host") == socket.gethostname():
+            self.lock_path.unlink(missing_ok=True)
 
 
 # ---------------------------------------------------------------------------------------------- index

@@ -11,11 +11,24 @@ arm's links (capsules of cell.planning.arm_body, exact distance to the mesh) mus
 the arm stops at the last safe sample, the protective stop latches and DeviceFault says what touched what, as
 a UR controller would. ``inject_fault`` makes the next move fail midway the same way. ``command_log`` keeps
 every command with its target, speed, acceleration, start time, duration and outcome.
+
+Motion is asynchronous on the sim clock, like a UR controller's async moveL/moveJ: :meth:`start_linear` /
+:meth:`start_joint` start a checked path at the clock's present time, and the arm's pose is a function of the
+clock from then on. :meth:`wait` advances the clock by one poll period (and sleeps as long in wall time when
+``robot.options.sim_realtime_factor`` is set, so that a signal can arrive mid-move); ``move_linear`` /
+``move_joint`` are start + wait. :meth:`stop` may be called from a signal handler or another thread while a
+move runs: the arm decelerates from the speed it has at that instant (at the configured maximum acceleration,
+like stopL/stopJ) and the move raises :class:`~cell.errors.MotionStopped`. A watchdog
+(``robot.options.watchdog_hz``, default 10 Hz, like ur_rtde's ``setWatchdog``) stops the arm the same way when
+nobody kicks it for one period; the polling move kicks it, so it trips when the controlling code stops
+polling, as it does when the process dies.
 """
 
 from __future__ import annotations
 
 import math
+import time
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -26,7 +39,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from cell.config import RobotConfig
 from cell.contracts import Envelope, RobotMode, RobotState
-from cell.errors import DeviceFault, DeviceTimeout, PlanningError
+from cell.errors import CellError, DeviceFault, DeviceTimeout, MotionStopped, PlanningError
 from cell.planning.arm_body import arm_samples
 from cell.planning.kinematics import (
     UR5E,
@@ -40,7 +53,62 @@ from fakes.clock import SimClock
 Array = NDArray[np.float64]
 
 UR5E_MAX_JOINT_SPEED_RAD_S = math.pi  # hardware limit of every UR5e joint (180 deg/s)
-FaultKind = Literal["protective_stop", "connection_loss"]
+FaultKind = Literal["protective_stop", "connection_loss", "safeguard_stop"]
+POLL_S = 0.004  # how often a blocking move polls the motion (ur_rtde reads its data at 500 Hz = 2 ms)
+
+
+@dataclass
+class _Motion:
+    """A path in progress: joint samples, their path parameter (mm, or rad for joint moves and rotation-timed
+    lines) and times from the start; ``end`` is the last sample the arm reaches (a contact or an injected
+    fault cuts it short, ``error`` then says why). A stop sets ``stop_t`` (s from the start), the speed it
+    had then and the time the deceleration ends."""
+
+    entry: dict[str, Any]
+    path: Array
+    s: Array
+    times: Array
+    t0: float
+    end: int
+    error: CellError | None
+    outcome: str
+    a_stop: float
+    stop_t: float | None = None
+    stop_v: float = 0.0
+    stop_end_t: float = 0.0
+
+    def s_at(self, t: float) -> float:
+        """Path parameter at ``t`` seconds from the start (trapezoid along the samples, or the deceleration
+        ramp after a stop), never beyond the last reachable sample."""
+        s_end = float(self.s[self.end])
+        if self.stop_t is not None and t >= self.stop_t:
+            dt = min(t - self.stop_t, self.stop_end_t - self.stop_t)
+            s0 = float(np.interp(self.stop_t, self.times[: self.end + 1], self.s[: self.end + 1]))
+            return min(s0 + self.stop_v * dt - 0.5 * self.a_stop * dt * dt, s_end)
+        return float(np.interp(t, self.times[: self.end + 1], self.s[: self.end + 1]))
+
+    def q_at(self, t: float) -> Array:
+        s = self.s_at(t)
+        if self.s[-1] <= 0.0:
+            return self.path[-1].copy()
+        k = int(np.clip(np.searchsorted(self.s, s, side="right") - 1, 0, len(self.s) - 2))
+        w = 0.0 if self.s[k + 1] == self.s[k] else (s - self.s[k]) / (self.s[k + 1] - self.s[k])
+        return self.path[k] + min(max(w, 0.0), 1.0) * (self.path[k + 1] - self.path[k])
+
+    def finish_t(self) -> float:
+        return self.stop_end_t if self.stop_t is not None else float(self.times[self.end])
+
+    def begin_stop(self, t: float, error: CellError, outcome: str) -> bool:
+        """Decelerate from ``t`` (s from the start) unless the motion ends before; True if it stops."""
+        if self.stop_t is not None or t >= float(self.times[self.end]):
+            return False
+        h = 1e-4  # the speed of the sampled trapezoid (exact in the cruise, a segment's mean elsewhere)
+        v = 0.0 if t <= 0.0 else (self.s_at(t + h) - self.s_at(max(t - h, 0.0))) / (t + h - max(t - h, 0.0))
+        self.stop_t, self.stop_v = t, max(v, 0.0)
+        self.stop_end_t = t + self.stop_v / self.a_stop
+        if self.end == len(self.s) - 1 or self.s_at(self.stop_end_t) < float(self.s[self.end]):
+            self.error, self.outcome = error, outcome  # otherwise the contact comes first and stays the cause
+        return True
 
 
 class _CollisionModel:
@@ -158,6 +226,15 @@ class SimRobot:
         self._connected = False
         self._protective_stop = False
         self._fault: tuple[FaultKind, float | None] | None = None
+        self._safeguard_stop = False
+        self._motion: _Motion | None = None
+        self._error: CellError | None = None  # how the last move ended, raised by the next wait()
+        self._stop_request: float | None = None  # sim time of a stop() during a move
+        options = dict(config.options)
+        self._realtime = float(options.get("sim_realtime_factor", 0.0))  # 0: never sleep
+        hz = float(options.get("watchdog_hz", 10.0))
+        self.watchdog_period_s: float | None = 1.0 / hz if hz > 0 else None
+        self._last_kick = self.clock.now()
         self.command_log: list[dict[str, Any]] = []
 
     # -------------------------------------------------------------------------------------- contract
@@ -172,17 +249,25 @@ class SimRobot:
         self._connected = False
 
     def state(self) -> RobotState:
+        self._update()
         mode = RobotMode.IDLE if self._connected else RobotMode.DISCONNECTED
-        return RobotState(mode=mode, protective_stop=self._protective_stop)
+        return RobotState(
+            mode=mode,
+            protective_stop=self._protective_stop,
+            safeguard_stop=self._safeguard_stop,
+            program_running=self._motion is not None,
+        )
 
     def tool_pose(self) -> Array:
         """Current flange pose ``T_B_T`` (mm)."""
         self._require_connected()
+        self._update()
         return self.kin.fk(self._q)
 
     def joints(self) -> Array:
         """Current joint angles (rad)."""
         self._require_connected()
+        self._update()
         return self._q.copy()
 
     def world_tool_pose(self) -> Array:
@@ -190,22 +275,83 @@ class SimRobot:
         return self.T_W_B @ self.tool_pose()
 
     def stop(self) -> None:
-        """Moves block until done on the simulated clock, so there is never motion to stop; logged only."""
-        self._log("stop", None, None, None, 0.0, self.clock.now(), "ok")
+        """Stop any motion now (stopL/stopJ at the configured maximum acceleration). Safe from a signal
+        handler or another thread: it only records the request; the polling move decelerates the arm from
+        that instant and raises MotionStopped."""
+        moving = self._motion is not None
+        # recorded when idle too: a move being checked and started right now (start_* clears the request
+        # first, then spends wall time on IK and collision checks) must not escape a stop that came meanwhile
+        self._stop_request = self.clock.now()
+        self._log("stop", None, None, None, 0.0, self.clock.now(), "ok" if moving else "idle")
 
     def unlock_protective_stop(self) -> None:
         """Clear a latched protective stop, as the UR dashboard's 'unlock protective stop' does."""
         self._require_connected()
         self._protective_stop = False
 
+    def reset_safeguard_stop(self) -> None:
+        """The guard is closed again and the safeguard reset input given (a UR's safeguard reset)."""
+        self._safeguard_stop = False
+
     def inject_fault(self, kind: FaultKind, after_s: float | None = None) -> None:
-        """Make the next move fail ``after_s`` seconds into its motion (default: half way)."""
-        if kind not in ("protective_stop", "connection_loss"):
-            raise ValueError(f"unknown fault kind {kind!r}; use 'protective_stop' or 'connection_loss'")
+        """Make the next move fail ``after_s`` seconds into its motion (default: half way): a protective
+        stop, a lost connection, or a safeguard stop (a guard door opened: the arm decelerates along its
+        path, like a category 2 stop, and stays stopped until :meth:`reset_safeguard_stop`)."""
+        if kind not in ("protective_stop", "connection_loss", "safeguard_stop"):
+            raise ValueError(
+                f"unknown fault kind {kind!r}; use 'protective_stop', 'connection_loss' or 'safeguard_stop'"
+            )
         self._fault = (kind, after_s)
 
+    def kick_watchdog(self) -> None:
+        """Tell the watchdog that the controlling code is alive (ur_rtde's kickWatchdog)."""
+        self._last_kick = self.clock.now()
+
+    @property
+    def moving(self) -> bool:
+        self._update()
+        return self._motion is not None
+
+    def wait(self, timeout_s: float = POLL_S) -> bool:
+        """Let up to ``timeout_s`` of simulated time pass in the current move, polling every ``POLL_S`` and
+        kicking the watchdog at each poll; True when no move is running any more. Raises the move's error
+        when it ended in one."""
+        deadline = self.clock.now() + timeout_s
+        while True:
+            self.kick_watchdog()
+            m = self._motion
+            if m is not None:
+                dt = max(
+                    0.0, min(POLL_S, deadline - self.clock.now(), m.t0 + m.finish_t() - self.clock.now())
+                )
+                if self._realtime > 0.0 and dt > 0.0:
+                    time.sleep(dt / self._realtime)
+                self.clock.advance(dt)
+            self._update()
+            if self._error is not None:
+                error, self._error = self._error, None
+                raise error
+            if self._motion is None or self.clock.now() >= deadline:
+                return self._motion is None
+
+    def _block(self) -> None:
+        while not self.wait(POLL_S):
+            pass
+
     def move_linear(self, T_B_T: NDArray[np.float64], speed_mm_s: float, accel_mm_s2: float) -> None:
-        """Straight-line Cartesian move of the flange to ``T_B_T`` (mm), TCP speed/accel trapezoid."""
+        """Straight-line Cartesian move of the flange to ``T_B_T`` (mm); blocks (polling) until there."""
+        self.start_linear(T_B_T, speed_mm_s, accel_mm_s2)
+        self._block()
+
+    def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float, accel_rad_s2: float) -> None:
+        """Joint-space move to ``joints_rad``; blocks (polling) until there."""
+        self.start_joint(joints_rad, speed_rad_s, accel_rad_s2)
+        self._block()
+
+    def start_linear(self, T_B_T: NDArray[np.float64], speed_mm_s: float, accel_mm_s2: float) -> None:
+        """Start a straight-line Cartesian move of the flange to ``T_B_T`` (mm), TCP speed/accel
+        trapezoid; returns at once (refusals raise before anything moves)."""
+        self._stop_request = None
         target = np.array(T_B_T, dtype=np.float64)
         entry = self._log("move_linear", target, speed_mm_s, accel_mm_s2, 0.0, self.clock.now(), "refused")
         self._require_ready()
@@ -238,16 +384,20 @@ class SimRobot:
             angle, self.config.max_joint_speed_rad_s, self.config.max_joint_accel_rad_s2
         )
         if t_lin >= t_rot:
-            times = trapezoid_time_at(u * dist, dist, speed_mm_s, accel_mm_s2)
+            s, a_stop = u * dist, self.config.max_tcp_accel_mm_s2
+            times = trapezoid_time_at(s, dist, speed_mm_s, accel_mm_s2)
         else:
+            s, a_stop = u * angle, self.config.max_joint_accel_rad_s2
             times = trapezoid_time_at(
-                u * angle, angle, self.config.max_joint_speed_rad_s, self.config.max_joint_accel_rad_s2
+                s, angle, self.config.max_joint_speed_rad_s, self.config.max_joint_accel_rad_s2
             )
         self._check_joint_rates(path, times)
-        self._execute(entry, path, times)
+        self._execute(entry, path, s, times, a_stop)
 
-    def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float, accel_rad_s2: float) -> None:
-        """Joint-space move to ``joints_rad``; all joints synchronised, the limiting joint sets the time."""
+    def start_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float, accel_rad_s2: float) -> None:
+        """Start a joint-space move to ``joints_rad``; all joints synchronised, the limiting joint sets the
+        time; returns at once (refusals raise before anything moves)."""
+        self._stop_request = None
         target = np.array(joints_rad, dtype=np.float64).reshape(-1)
         entry = self._log("move_joint", target, speed_rad_s, accel_rad_s2, 0.0, self.clock.now(), "refused")
         self._require_ready()
@@ -278,7 +428,7 @@ class SimRobot:
         path[-1] = target
         self._check_envelope(self.kin.fk(path)[:, :3, 3], "joint path")
         times = trapezoid_time_at(u * span, span, speed_rad_s, accel_rad_s2)
-        self._execute(entry, path, times)
+        self._execute(entry, path, u * span, times, self.config.max_joint_accel_rad_s2)
 
     # -------------------------------------------------------------------------------------- internals
     def _log(
@@ -309,9 +459,16 @@ class SimRobot:
 
     def _require_ready(self) -> None:
         self._require_connected()
+        self._update()
+        if self._motion is not None:
+            raise DeviceFault(self.name, "refused: a move is still running; wait() for it or stop() it")
         if self._protective_stop:
             raise DeviceFault(
                 self.name, "protective stop active; clear the cause, then unlock_protective_stop()"
+            )
+        if self._safeguard_stop:
+            raise DeviceFault(
+                self.name, "safeguard stop active (a guard is open); close it and reset the safeguard"
             )
 
     def _check_limit(self, what: str, value: float, limit: float, unit: str, field: str) -> None:
@@ -369,8 +526,9 @@ class SimRobot:
                 "branch flip); use move_joint or another path"
             )
 
-    def _execute(self, entry: dict[str, Any], path: Array, times: Array) -> None:
-        """Run a checked path: stop early on contact or injected fault; advance the clock; log."""
+    def _execute(self, entry: dict[str, Any], path: Array, s: Array, times: Array, a_stop: float) -> None:
+        """Start a checked path now: find where a contact or an injected fault would cut it; the arm then
+        follows it on the sim clock (:meth:`_update`)."""
         duration = float(times[-1])
         end, outcome, error = len(path) - 1, "ok", None
         hits = [
@@ -398,18 +556,68 @@ class SimRobot:
                     error = DeviceFault(
                         self.name, f"protective stop (injected) {t_fault:.3f} s into the move"
                     )
+                elif kind == "safeguard_stop":
+                    outcome = "safeguard_stop"
+                    error = DeviceFault(
+                        self.name,
+                        f"safeguard stop {t_fault:.3f} s into the move (a guard opened); close the guard, "
+                        "reset the safeguard, then `cell resume`",
+                    )
                 else:
                     outcome = "connection_loss"
                     error = DeviceTimeout(
                         self.name, f"connection lost {t_fault:.3f} s into the move; reconnect"
                     )
-        self._q = path[end].copy()
-        elapsed = float(times[end])
-        self.clock.advance(elapsed)
-        entry.update(duration_s=elapsed, outcome=outcome)
-        if error is not None:
-            if outcome == "protective_stop":
-                self._protective_stop = True
-            elif outcome == "connection_loss":
-                self._connected = False
-            raise error
+        self._error = None
+        now = self.clock.now()
+        self._last_kick = now
+        self._motion = _Motion(
+            entry,
+            path,
+            np.asarray(s, float),
+            np.asarray(times, float),
+            now,
+            end,
+            error,
+            outcome,
+            float(a_stop),
+        )
+        self._update()
+
+    def _update(self) -> None:
+        """Bring the arm to the clock's present: apply a stop request or a watchdog trip, finish the move
+        when its time is up (latching what its outcome latches)."""
+        m = self._motion
+        if m is None:
+            return
+        now = self.clock.now()
+        if self._stop_request is not None:
+            t_req = max(self._stop_request - m.t0, 0.0)
+            self._stop_request = None
+            m.begin_stop(
+                t_req, MotionStopped(self.name, f"stopped {t_req:.3f} s into the move on request"), "stopped"
+            )
+        if self.watchdog_period_s is not None and now - self._last_kick > self.watchdog_period_s:
+            t_trip = self._last_kick + self.watchdog_period_s - m.t0
+            m.begin_stop(
+                max(t_trip, 0.0),
+                DeviceFault(
+                    self.name,
+                    f"watchdog: not kicked for {self.watchdog_period_s:.3f} s, motion stopped "
+                    f"{max(t_trip, 0.0):.3f} s into the move (the controlling process died or hung)",
+                ),
+                "watchdog",
+            )
+        t = now - m.t0
+        self._q = m.q_at(min(t, m.finish_t()))
+        if now < m.t0 + m.finish_t() - 1e-12:  # compared in absolute time, as wait() advances the clock
+            return
+        self._motion = None
+        m.entry.update(duration_s=m.finish_t(), outcome=m.outcome)
+        if m.outcome == "protective_stop":
+            self._protective_stop = True
+        elif m.outcome == "safeguard_stop":
+            self._safeguard_stop = True
+        elif m.outcome == "connection_loss":
+            self._connected = False
+        self._error = m.error

@@ -14,7 +14,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cell.config import RobotConfig
-from cell.errors import DeviceFault, DeviceTimeout, PlanningError
+from cell.contracts import RobotMode
+from cell.errors import DeviceFault, DeviceTimeout, MotionStopped, PlanningError
 from cell.geometry import pose_from_xyz_rpy
 from drivers.ur_robot import URRobot
 from fakes.ur_controller import FakeURController
@@ -29,7 +30,7 @@ def fresh_host() -> str:
     return f"127.0.{os.getpid() % 250 + 1}.{next(_hosts)}"
 
 
-def robot_config(host: str) -> RobotConfig:
+def robot_config(host: str, **options) -> RobotConfig:
     return RobotConfig(
         driver="ur_rtde",
         name="ur5e",
@@ -41,6 +42,7 @@ def robot_config(host: str) -> RobotConfig:
         max_joint_speed_rad_s=1.05,
         max_joint_accel_rad_s2=3.0,
         home_joints_deg=(180.0, -90.0, 90.0, -90.0, -90.0, 0.0),
+        options={"power_on_at_connect": True, **options},
     )
 
 
@@ -51,6 +53,11 @@ def fake():
 
 
 class TestURRobotContract(RobotContract):
+    speed_mm_s = 200.0  # the fake moves in real time: keep the contract's moves short
+    accel_mm_s2 = 1000.0
+    joint_speed_rad_s = 1.0
+    joint_accel_rad_s2 = 3.0
+
     @pytest.fixture
     def robot(self, fake):
         return URRobot(robot_config(fake.host))
@@ -65,15 +72,17 @@ def test_pose_sent_in_metres_and_rotation_vector(fake) -> None:
     robot.connect()
     try:
         T = pose_from_xyz_rpy([420.0, -80.0, 350.0], [2.9, 0.2, -0.4])
-        robot.move_linear(T, 40.0, 150.0)
-        np.testing.assert_allclose(robot.tool_pose(), T, atol=1e-9)
+        robot.move_linear(T, 100.0, 800.0)
+        reached = robot.tool_pose()  # the forward kinematics of the joints the fake's IK reached
+        assert np.linalg.norm(reached[:3, 3] - T[:3, 3]) < 0.03
+        np.testing.assert_allclose(reached[:3, :3], T[:3, :3], atol=1e-6)
     finally:
         robot.close()
     cmd, args = fake.snapshot()["moves"][-1]
     assert cmd == 3  # moveL in ur_rtde's register protocol
     np.testing.assert_allclose(args[:3], [0.420, -0.080, 0.350])
     np.testing.assert_allclose(Rotation.from_rotvec(args[3:6]).as_matrix(), T[:3, :3], atol=1e-12)
-    np.testing.assert_allclose(args[6:8], [0.040, 0.150])  # m/s, m/s^2
+    np.testing.assert_allclose(args[6:8], [0.100, 0.800])  # m/s, m/s^2
 
 
 @pytest.mark.parametrize("speed,accel", [(251.0, 100.0), (50.0, 1201.0), (0.0, 100.0)])
@@ -175,7 +184,7 @@ def _silence_mid_session(pipe, host: str) -> None:
 def test_script_that_never_starts_is_a_device_fault() -> None:
     with FakeURController(fresh_host(), script_starts=False) as fake:
         kind, message, elapsed = _run_in_child(_script_never_starts, fake.host)
-    assert kind == "DeviceFault" and "control script" in message
+    assert kind == "DeviceLibraryError" and "control script" in message  # a DeviceFault naming ur_rtde
     assert elapsed < 8.0  # ur_rtde's own 5 s wait for runtime_state PLAYING
 
 
@@ -207,3 +216,200 @@ def test_dashboard_power_and_brakes(fake) -> None:
     finally:
         robot.close()
     assert fake.snapshot()["dashboard"][-3:] == ["power off", "power on", "brake release"]
+    assert fake.snapshot()["robot_mode"] == 7
+
+
+# ------------------------------------------------------------------------------------------ safety (issue 13)
+@pytest.mark.parametrize(
+    "bits,flag,normal",
+    [
+        (1 | 1 << 4, "safeguard_stop", False),  # a guard, door or light curtain
+        (1 << 9, "fault", False),
+        (1 << 8, "violation", False),
+        (1 << 7, "emergency_stop", False),
+        (1 | 1 << 1, "reduced", True),  # reduced mode: motion allowed, slower
+    ],
+)
+def test_every_safety_status_bit_is_read(fake, bits: int, flag: str, normal: bool) -> None:
+    robot = URRobot(robot_config(fake.host))
+    robot.connect()
+    try:
+        fake.set("safety_bits", bits)
+        time.sleep(0.05)
+        state = robot.state()
+        assert getattr(state, flag) and state.normal is normal
+        if not normal:
+            with pytest.raises(DeviceFault, match="not ready for motion"):
+                robot.move_joint(robot.joints() + 0.01, 0.5, 1.0)
+            assert fake.snapshot()["moves"] == []  # refused before anything was sent
+    finally:
+        robot.close()
+
+
+def test_powered_off_arm_is_refused_at_connect_or_powered_step_by_step() -> None:
+    with FakeURController(fresh_host(), joints=FACING_X, power_step_s=0.3) as fake:
+        robot = URRobot(robot_config(fake.host, power_on_at_connect=False))
+        with pytest.raises(DeviceFault, match="power_off.*power it on.*power_on_at_connect"):
+            robot.connect()
+        assert fake.snapshot()["scripts_received"] == 0  # nothing uploaded, nothing can move
+        robot = URRobot(robot_config(fake.host))
+        t0 = time.monotonic()
+        robot.connect()  # power on -> IDLE (brakes on) -> brake release -> RUNNING, each waited for
+        try:
+            assert time.monotonic() - t0 >= 0.6
+            assert robot.state().mode is RobotMode.IDLE and robot.state().normal
+            log = fake.snapshot()["dashboard"]
+            assert log.index("power on") < log.index("brake release")
+        finally:
+            robot.close()
+
+
+def test_brakes_on_is_not_ready() -> None:
+    with FakeURController(fresh_host(), joints=FACING_X, powered=True) as fake:
+        robot = URRobot(robot_config(fake.host))
+        robot.connect()
+        try:
+            fake.set("robot_mode", 5)  # IDLE: powered, brakes on
+            time.sleep(0.05)
+            state = robot.state()
+            assert state.mode is RobotMode.BRAKES_ON and not state.normal
+        finally:
+            robot.close()
+
+
+def test_remote_control_off_is_a_clear_error_before_anything_moves() -> None:
+    with FakeURController(fresh_host(), joints=FACING_X, remote_control=False) as fake:
+        robot = URRobot(robot_config(fake.host))
+        with pytest.raises(DeviceFault, match="not in remote control.*Remote Control"):
+            robot.connect()
+        snap = fake.snapshot()
+        assert snap["scripts_received"] == 0 and snap["moves"] == [] and snap["robot_mode"] == 3
+
+
+def test_joint_move_leaving_the_envelope_is_refused_before_sending(fake) -> None:
+    robot = URRobot(robot_config(fake.host))
+    robot.connect()
+    try:
+        q = robot.joints()
+        with pytest.raises(PlanningError, match="moveJ path leaves the envelope"):
+            robot.move_joint(q + np.array([np.pi, 0, 0, 0, 0, 0]), 0.5, 1.0)  # swings behind the base
+        assert fake.snapshot()["moves"] == []
+    finally:
+        robot.close()
+
+
+def test_streams_at_500_hz_and_moves_take_their_time(fake) -> None:
+    robot = URRobot(robot_config(fake.host))
+    robot.connect()
+    try:
+        target = robot.tool_pose()
+        target[2, 3] -= 50.0
+        t0 = time.monotonic()
+        robot.move_linear(target, 100.0, 1000.0)
+        assert time.monotonic() - t0 >= 0.6  # 50 mm at 100 mm/s, 1000 mm/s^2: 0.6 s
+        assert np.linalg.norm(robot.tool_pose()[:3, 3] - target[:3, 3]) < 0.03
+    finally:
+        robot.close()
+    assert fake.snapshot()["frequencies"] and set(fake.snapshot()["frequencies"]) == {500.0}
+
+
+def test_stop_from_another_thread_ends_the_move_mid_path(fake) -> None:
+    import threading
+
+    robot = URRobot(robot_config(fake.host))
+    robot.connect()
+    try:
+        start = robot.tool_pose()
+        target = start.copy()
+        target[2, 3] -= 200.0  # 2 s at 100 mm/s
+        timer = threading.Timer(0.5, robot.stop)
+        timer.start()
+        with pytest.raises(MotionStopped, match="into the move on request"):
+            robot.move_linear(target, 100.0, 1000.0)
+        time.sleep(0.1)
+        travelled = start[2, 3] - robot.tool_pose()[2, 3]
+        assert 20.0 < travelled < 120.0  # stopped mid-path (0.5 s in, plus the ramp), far from 200 mm
+        assert 33 in fake.snapshot()["commands"]  # stopL
+        assert robot.state().normal  # a stop on request latches nothing
+        robot.move_linear(start, 200.0, 1000.0)
+    finally:
+        robot.close()
+
+
+def test_protective_stop_ends_the_script_unlock_waits_then_reuploads() -> None:
+    with FakeURController(
+        fresh_host(), joints=FACING_X, protective_stop_on_move=True, unlock_delay_s=1.0
+    ) as fake:
+        robot = URRobot(robot_config(fake.host, unlock_wait_s=3.0))
+        robot.connect()
+        try:
+            target = robot.tool_pose()
+            target[2, 3] -= 40.0
+            with pytest.raises(DeviceFault, match="protective stop"):
+                robot.move_linear(target, 100.0, 1000.0)
+            t_stop = time.monotonic()
+            state = robot.state()
+            assert state.protective_stop and not state.program_running
+            robot.unlock_protective_stop()
+            assert time.monotonic() - t_stop >= 0.8  # refused until 1 s after the stop
+            snap = fake.snapshot()
+            assert snap["dashboard"].count("unlock protective stop") >= 2
+            assert snap["scripts_received"] == 2 and snap["runtime_state"] == 2  # uploaded again
+            assert robot.state().normal
+        finally:
+            robot.close()
+
+
+def _move_until_killed(pipe, host: str) -> None:
+    robot = URRobot(robot_config(host))
+    robot.connect()
+    target = robot.tool_pose()
+    target[2, 3] -= 200.0
+    pipe.send("moving")
+    robot.move_linear(target, 100.0, 1000.0)  # 2 s; the test kills this process half way
+
+
+def test_watchdog_stops_the_arm_when_the_controlling_process_dies(fake) -> None:
+    ctx = multiprocessing.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_move_until_killed, args=(child, fake.host))
+    proc.start()
+    try:
+        assert parent.poll(25.0) and parent.recv() == "moving"
+        time.sleep(0.6)
+        z_killed = fake.snapshot()["tcp"][2]
+        proc.kill()  # SIGKILL: no handler, no stopL from the driver
+        proc.join(5.0)
+        time.sleep(0.5)  # 100 ms watchdog period + the program-stop ramp (0.1 m/s at 3 m/s^2: 33 ms)
+        snap = fake.snapshot()
+        assert any("watchdog" in e for e in snap["events"])
+        assert not snap["moving"] and snap["runtime_state"] == 1
+        assert 0.0 < (z_killed - snap["tcp"][2]) * 1000.0 < 40.0  # at most ~0.3 s more at 100 mm/s
+    finally:
+        if proc.is_alive():
+            proc.kill()
+
+
+def _second_controller(pipe, host: str) -> None:
+    robot = URRobot(robot_config(host))
+    try:
+        robot.connect()
+        pipe.send(("none", "", 0.0))
+    except Exception as exc:
+        pipe.send((type(exc).__name__, str(exc), 0.0))
+
+
+def test_a_second_controller_on_the_same_arm_is_refused(fake) -> None:
+    """The controller answers IN_USE for input registers another RTDE connection writes: a second process
+    cannot take over an arm that one process controls, and the first keeps it."""
+    robot = URRobot(robot_config(fake.host))
+    robot.connect()
+    try:
+        kind, message, _ = _run_in_child(_second_controller, fake.host)
+        assert kind == "DeviceLibraryError" and "already in use" in message and "another process" in message
+        assert robot.state().normal
+        target = robot.tool_pose()
+        target[2, 3] -= 10.0
+        robot.move_linear(target, 100.0, 1000.0)
+    finally:
+        robot.close()

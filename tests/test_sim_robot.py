@@ -9,7 +9,7 @@ import trimesh
 
 from cell.config import RobotConfig
 from cell.contracts import RobotMode
-from cell.errors import DeviceFault, DeviceTimeout, PlanningError
+from cell.errors import DeviceFault, DeviceTimeout, MotionStopped, PlanningError
 from cell.geometry import make_pose
 from cell.planning.kinematics import UR5E
 from fakes.clock import SimClock
@@ -186,3 +186,69 @@ def test_linear_path_through_the_wrist_singularity_is_refused():
     with pytest.raises(PlanningError, match="joint 4 would need .* rad/s"):
         r.move_linear(UR5E.fk(qb), 250, 1200)
     np.testing.assert_allclose(r.joints(), qa)
+
+
+def _start_far_linear(r: SimRobot) -> tuple[np.ndarray, np.ndarray]:
+    start = r.tool_pose()
+    target = start.copy()  # same orientation: the move is timed on its 265 mm translation
+    target[:3, 3] = (-500, -250, 250)
+    r.start_linear(target, 200, 1000)
+    return start, target
+
+
+def test_stop_mid_move_decelerates_from_the_speed_at_that_instant():
+    """Truth: a 1-D trapezoid. A stop at time t during the cruise (v = 200 mm/s) ends v/a = 1200 mm/s^2
+    later, v^2 / 2a further along the straight line, and the move raises MotionStopped."""
+    r = _robot()
+    start, target = _start_far_linear(r)
+    d = np.linalg.norm(target[:3, 3] - start[:3, 3])
+    assert r.moving and r.state().program_running
+    assert not r.wait(0.5)  # cruising from 0.2 s on
+    r.stop()
+    with pytest.raises(MotionStopped, match="0.500 s into the move"):
+        while not r.wait(0.004):
+            pass
+    # 0.2 s accelerating at 1000 (20 mm), 0.3 s cruising (60 mm), then stopping at 1200 mm/s^2 (16.7 mm)
+    s_expected = 0.5 * 1000 * 0.2**2 + 0.3 * 200 + 200**2 / (2 * 1200)
+    p = r.tool_pose()[:3, 3]
+    # joints are interpolated between 2 mm path samples: the chord leaves the line by far less than 1 um
+    assert np.linalg.norm(p - start[:3, 3]) == pytest.approx(s_expected, abs=1e-3)
+    assert (
+        np.linalg.norm(np.cross(p - start[:3, 3], target[:3, 3] - start[:3, 3])) / d < 5e-3
+    )  # on the line (within the chord error)
+    assert r.command_log[0]["outcome"] == "stopped"
+    assert r.command_log[0]["duration_s"] == pytest.approx(0.5 + 200 / 1200, abs=1e-9)
+    r.move_linear(target, 200, 1000)  # usable again at once: a stop on request latches nothing
+    assert np.linalg.norm(r.tool_pose()[:3, 3] - target[:3, 3]) < 1e-6
+
+
+def test_watchdog_stops_the_arm_one_period_after_the_last_kick():
+    r = _robot()
+    start, target = _start_far_linear(r)
+    r.wait(0.5)  # polled (and kicked) until 0.5 s
+    r.kick_watchdog()  # the last sign of life, at 0.5 s
+    r.clock.advance(5.0)  # then nobody polls: the process died; the world goes on
+    assert not r.moving
+    entry = r.command_log[0]
+    assert entry["outcome"] == "watchdog"
+    assert entry["duration_s"] == pytest.approx(0.5 + 0.1 + 200 / 1200, abs=1e-9)
+    with pytest.raises(DeviceFault, match="watchdog"):
+        r.wait()
+    assert np.linalg.norm(r.tool_pose()[:3, 3] - target[:3, 3]) > 100.0
+
+
+def test_stop_requested_while_a_move_is_being_checked_stops_it_at_once():
+    """A signal can arrive while start_linear computes its path (wall time, no sim time): the move must not
+    run to its end."""
+    r = _robot()
+    checks = r._check_joint_rates
+
+    def slow_check(path, times):
+        r.stop()  # the signal handler runs here
+        return checks(path, times)
+
+    r._check_joint_rates = slow_check
+    start = r.tool_pose()
+    with pytest.raises(MotionStopped):
+        r.move_linear(_down(-500, -250, 250), 200, 1000)
+    np.testing.assert_allclose(r.tool_pose(), start, atol=1e-9)

@@ -68,6 +68,13 @@ def _start_run(
         load_mesh(sim_actual, what="simulated actual part")
     part = recipe.name or recipe.part.cad.stem
     final = out if out else REPO / "runs" / f"{part}-{time.strftime('%Y%m%dT%H%M%S')}"
+    holder = RunFolder(final).lock_holder() if final.is_dir() else None
+    if holder is not None and RunFolder(final).holder_is_live(holder):
+        raise ConfigError(
+            f"run folder in use by PID {holder.get('pid')} on host {holder.get('host')} "
+            f"({holder.get('command')}); choose another --out",
+            path=str(final),
+        )
     if final.exists() and any(final.iterdir()):
         raise ConfigError(
             "run folder exists and is not empty; choose another --out or `cell resume` it", path=str(final)
@@ -75,6 +82,7 @@ def _start_run(
     # the folder appears under its name only once every input is copied: a run killed before that never
     # started, and leaves nothing that `cell resume` could mistake for a run
     run = RunFolder.create(final.parent, part, name=f".{final.name}.partial-{os.getpid()}")
+    run.acquire_lock("cell inspect")  # held from the start: the folder appears under its name locked
     manifest: dict[str, Any] = {
         "recipe": run.copy_input(recipe_path, "recipe.yaml").name,
         "cell_as_given": run.copy_input(cell_path, "cell.original.yaml").name,
@@ -140,7 +148,16 @@ def _load_run_inputs(run: RunFolder) -> tuple[Recipe, Any, Path | None]:
 
 def _execute(run: RunFolder, *, resume: bool, record: Path | None = None) -> str:
     """Run (or resume) a run folder with the settings it was started with; with ``record``, every device
-    call is recorded there as replay fixtures (also when the run pauses or fails)."""
+    call is recorded there as replay fixtures (also when the run pauses or fails). Holds the folder's lock
+    throughout: a second process on the same folder is refused with this one's PID and host."""
+    run.acquire_lock("cell resume" if resume else "cell inspect")
+    try:
+        return _execute_locked(run, resume=resume, record=record)
+    finally:
+        run.release_lock()
+
+
+def _execute_locked(run: RunFolder, *, resume: bool, record: Path | None) -> str:
     started = run_settings(run)
     seed = started.get("seed")
     settings = ControllerSettings(pipelining=bool(started.get("pipelining", True)))

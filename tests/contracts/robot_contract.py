@@ -24,7 +24,7 @@ class RobotContract:
     accel_mm_s2 = 200.0
     joint_speed_rad_s = 0.3
     joint_accel_rad_s2 = 1.0
-    pose_tol_mm = 1e-3
+    pose_tol_mm = 0.03  # the arm's pose repeatability (UR5e: +-0.03 mm, ISO 9283); no arm meets 1 um
 
     def test_is_a_robot(self, robot):
         assert isinstance(robot, Robot)

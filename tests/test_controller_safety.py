@@ -1,0 +1,281 @@
+# ruff: noqa: F811  (the fixtures recipe_path and reference come from tests/test_controller.py)
+"""Fault matrix, robot safety: a safeguard stop, a watchdog trip, a pause mid-move, SIGTERM mid-move through
+the CLI, and a stale run-folder lock. Each ends in a defined state (paused, with the arm stopped where the
+simulated physics says), loses no view, and `resume` ends with the result of an uninterrupted run.
+
+Truth: the simulated arm's motion on its own clock (trapezoid profiles, a deceleration at the configured
+maximum acceleration after a stop), and the uninterrupted reference run of tests/test_controller.py.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from cell.runs import RunFolder
+from tests.box_part import small_cell, write_box_recipe
+from tests.same_result import assert_same_result
+from tests.test_controller import make_controller, recipe_path, reference, result_of  # noqa: F401
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _moves(log: list[dict]) -> list[dict]:
+    return [e for e in log if e["command"] in ("move_linear", "move_joint")]
+
+
+def _views_in_journal(run_dir: Path) -> set[int]:
+    return {e["view"] for e in RunFolder.open(run_dir).journal() if e["event"] == "view"}
+
+
+def _resume_and_compare(recipe_path: Path, run_dir: Path, reference: dict, context: str) -> None:
+    views_before = set(RunFolder.open(run_dir).completed_views())
+    journal_before = len(RunFolder.open(run_dir).journal())
+    ctl, _ = make_controller(recipe_path, run_dir)
+    assert ctl.execute(resume=True) == "done", ctl.message
+    assert views_before <= set(ctl.run.completed_views())  # no view lost
+    assert len(ctl.run.journal()) > journal_before
+    assert_same_result(result_of(run_dir), reference["result"], context)
+
+
+def test_safeguard_stop_mid_move_pauses_and_resumes(
+    recipe_path: Path, tmp_path: Path, reference: dict
+) -> None:
+    """A guard opens during a move: the arm stops on its path, the run pauses naming the safeguard stop and
+    refuses to move while the guard is open; after the reset, resume ends with the reference result."""
+    run_dir = tmp_path / "run"
+    ctl, devices = make_controller(recipe_path, run_dir)
+    original = devices.camera.trigger
+    calls = {"n": 0}
+
+    def trigger_then_open_the_guard() -> None:  # after a few views: the next move meets the open guard
+        calls["n"] += 1
+        if calls["n"] == 40:
+            devices.robot.inject_fault("safeguard_stop")  # half way through the next move
+        original()
+
+    devices.camera.trigger = trigger_then_open_the_guard
+    assert ctl.execute() == "paused", ctl.message
+    assert "safeguard stop" in ctl.message
+    stopped = [e for e in _moves(devices.robot.command_log) if e["outcome"] == "safeguard_stop"]
+    assert len(stopped) == 1 and stopped[0]["duration_s"] > 0.0
+    devices.robot.connect()
+    state = devices.robot.state()
+    assert state.safeguard_stop and not state.normal and "safeguard" in state.why_not_normal
+    _resume_and_compare(recipe_path, run_dir, reference, "safeguard stop")
+
+
+def test_watchdog_trip_stops_the_arm_within_the_period(
+    recipe_path: Path, tmp_path: Path, reference: dict
+) -> None:
+    """The controlling code stops kicking mid-move (as when its process dies or hangs): the simulated arm
+    starts to decelerate one watchdog period after the last kick and stands still after at most v/a more,
+    never reaching its target; the run pauses and resumes to the reference result."""
+    run_dir = tmp_path / "run"
+    ctl, devices = make_controller(recipe_path, run_dir)
+    robot = devices.robot
+    period = robot.watchdog_period_s
+    assert period == pytest.approx(0.1)  # default 10 Hz, like ur_rtde's setWatchdog()
+    kick = robot.kick_watchdog
+    alive = {"kicks": 0, "last": None}
+
+    def kick_until_dead() -> None:  # 250 polls (1 s of motion) after the start, the controller "dies"
+        alive["kicks"] += 1
+        if alive["kicks"] <= 250:
+            alive["last"] = robot.clock.now()
+            kick()
+
+    robot.kick_watchdog = kick_until_dead
+    assert ctl.execute() == "paused", ctl.message
+    assert "watchdog" in ctl.message
+    tripped = [e for e in _moves(robot.command_log) if e["outcome"] == "watchdog"]
+    assert len(tripped) == 1
+    end = tripped[0]["start_s"] + tripped[0]["duration_s"]
+    cfg = small_cell().robot
+    worst_stop = max(
+        cfg.max_tcp_speed_mm_s / cfg.max_tcp_accel_mm_s2,
+        cfg.max_joint_speed_rad_s / cfg.max_joint_accel_rad_s2,
+    )
+    assert alive["last"] + period <= end + 1e-9 <= alive["last"] + period + worst_stop + 1e-9
+    if tripped[0]["command"] == "move_linear":
+        target = np.asarray(tripped[0]["target"])[:3, 3]
+        robot.connect()
+        assert np.linalg.norm(robot.tool_pose()[:3, 3] - target) > 1.0  # it did not finish the move
+    _resume_and_compare(recipe_path, run_dir, reference, "watchdog trip")
+
+
+def test_pause_mid_move_stops_the_arm_at_once(recipe_path: Path, tmp_path: Path, reference: dict) -> None:
+    """request_pause (what Ctrl-C and SIGTERM call) during a move: the arm decelerates from that instant,
+    the move ends within the stop ramp (no wait for the move to end), the run pauses and resumes."""
+    run_dir = tmp_path / "run"
+    ctl, devices = make_controller(recipe_path, run_dir)
+    robot = devices.robot
+    wait = robot.wait
+    polls = {"n": 0, "t": None}
+
+    def wait_then_pause(timeout_s: float = 0.004) -> bool:
+        polls["n"] += 1
+        if polls["n"] == 400:  # 1.6 s of motion into the run: some move is under way
+            polls["t"] = robot.clock.now()
+            ctl.request_pause("test")
+        return wait(timeout_s)
+
+    robot.wait = wait_then_pause
+    assert ctl.execute() == "paused", ctl.message
+    assert ctl.message.startswith("pause requested: test") and "stopped" in ctl.message
+    stopped = [e for e in _moves(robot.command_log) if e["outcome"] == "stopped"]
+    assert len(stopped) == 1
+    end = stopped[0]["start_s"] + stopped[0]["duration_s"]
+    cfg = small_cell().robot
+    worst_stop = max(
+        cfg.max_tcp_speed_mm_s / cfg.max_tcp_accel_mm_s2,
+        cfg.max_joint_speed_rad_s / cfg.max_joint_accel_rad_s2,
+    )
+    assert polls["t"] <= end <= polls["t"] + worst_stop + 1e-9
+    assert not [e for e in _moves(robot.command_log) if e["start_s"] > polls["t"]]  # nothing sent after
+    _resume_and_compare(recipe_path, run_dir, reference, "pause mid-move")
+
+
+# ------------------------------------------------------------------------------------------ CLI, processes
+def _cell(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "cell", *args], capture_output=True, text=True, cwd=REPO, timeout=timeout
+    )
+
+
+@pytest.fixture(scope="module")
+def realtime_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """The box recipe, the small cell as a file, and the same cell whose simulated arm moves in wall-clock
+    time at twice the pace (robot.options.sim_realtime_factor = 2), so that a signal can arrive mid-move."""
+    folder = tmp_path_factory.mktemp("rt")
+    recipe = write_box_recipe(folder)
+    data = small_cell().model_dump(mode="json")
+    (folder / "cell.yaml").write_text(yaml.safe_dump(data))
+    data["robot"]["options"] = {**data["robot"].get("options", {}), "sim_realtime_factor": 2.0}
+    (folder / "realtime.yaml").write_text(yaml.safe_dump(data))
+    return recipe, folder / "cell.yaml", folder / "realtime.yaml"
+
+
+@pytest.fixture(scope="module")
+def cli_reference(realtime_inputs: tuple[Path, Path, Path], tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The report of an uninterrupted `cell inspect` of the box (same inputs, seed and settings)."""
+    recipe, cell_file, _ = realtime_inputs
+    out = tmp_path_factory.mktemp("cliref") / "ref"
+    ref = _cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(out))
+    assert ref.returncode == 0, ref.stdout + ref.stderr
+    return json.loads((out / "results" / "report.json").read_text())
+
+
+def _journal(run: Path) -> list[dict]:
+    if not (run / "journal.jsonl").exists():
+        return []
+    return RunFolder(run).journal()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_sigterm_mid_move_pauses_and_resume_gives_the_same_result(
+    realtime_inputs: tuple[Path, Path, Path], cli_reference: dict, tmp_path: Path
+) -> None:
+    recipe, _, realtime = realtime_inputs
+    run = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cell", "inspect", str(recipe), "--cell", str(realtime), "--out", str(run)],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    deadline = time.monotonic() + 300
+    try:  # wait for the second view's move to be sent, then terminate the process mid-move
+        while time.monotonic() < deadline and proc.poll() is None:
+            moves = [e for e in _journal(run) if e["event"] == "device" and e.get("view") is not None]
+            if any(e["view"] >= 1 for e in moves):
+                break
+            time.sleep(0.02)
+        time.sleep(0.2)  # the move is under way (its sim time runs at twice the wall-clock rate)
+        assert proc.poll() is None, "the run ended before it could be terminated"
+        os.kill(proc.pid, signal.SIGTERM)
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 3, out  # EXIT_PAUSED
+    assert "SIGTERM" in out and "cell resume" in out
+    journal = _journal(run)
+    stops = [e for e in journal if e["event"] == "error" and e["kind"] == "MotionStopped"]
+    assert stops and "into the move" in stops[0]["error"], "the arm was not stopped mid-move"
+    assert journal[-1]["event"] == "exit" and journal[-1]["state"] == "paused"
+    assert not (run / "run.lock").exists()  # released on the way out
+    views_before = set(RunFolder.open(run).completed_views())
+    done = _cell("resume", str(run))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert views_before <= set(RunFolder.open(run).completed_views())
+    doc = json.loads((run / "results" / "report.json").read_text())
+    assert_same_result(doc, cli_reference, "SIGTERM mid-move")
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_stale_lock_is_taken_over_and_a_live_one_refused(
+    realtime_inputs: tuple[Path, Path, Path], cli_reference: dict, tmp_path: Path
+) -> None:
+    """A run paused by SIGTERM is left with the lock of a process that died (as after a SIGKILL or a power
+    cut): `cell resume` takes it over and journals it. While a live process holds the lock, `cell resume`
+    and `cell inspect --out` on the folder are refused naming its PID and host, and nothing is written."""
+    recipe, cell_file, _ = realtime_inputs
+    run = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cell", "inspect", str(recipe), "--cell", str(cell_file), "--out", str(run)],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        if any(e["event"] == "view" for e in _journal(run)):
+            break
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)  # no handler runs: the lock stays behind
+    proc.wait(timeout=30)
+    holder = json.loads((run / "run.lock").read_text())
+    assert holder["pid"] == proc.pid
+
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:  # a live holder: a second process is refused with its name
+        live = dict(holder, pid=sleeper.pid, start=None, command="cell resume")
+        (run / "run.lock").write_text(json.dumps(live))
+        journal_before = (run / "journal.jsonl").read_bytes()
+        refused = _cell("resume", str(run))
+        assert refused.returncode == 2
+        assert f"PID {sleeper.pid}" in refused.stdout + refused.stderr
+        assert holder["host"] in refused.stdout + refused.stderr
+        refused = _cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(run))
+        assert refused.returncode == 2 and f"PID {sleeper.pid}" in refused.stdout + refused.stderr
+        assert (run / "journal.jsonl").read_bytes() == journal_before
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+
+    (run / "run.lock").write_text(json.dumps(dict(holder, pid=_dead_pid())))
+    done = _cell("resume", str(run))
+    assert done.returncode == 0, done.stdout + done.stderr
+    takeovers = [e for e in _journal(run) if e["event"] == "lock"]
+    assert takeovers and takeovers[0]["action"] == "stale lock taken over"
+    assert not (run / "run.lock").exists()
+    assert_same_result(json.loads((run / "results" / "report.json").read_text()), cli_reference, "stale lock")
