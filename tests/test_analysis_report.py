@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from cell.commands.compare import run_compare
+from cell.analysis.compare import run_compare
 from cell.errors import ConfigError
 
 

@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from cell.commands.plan import make_plan
 from cell.config import DEFAULT_CELL, MaterialConfig, load_cell_config, load_recipe
 from cell.errors import ConfigError
 from cell.planning.feedback import run_loop
-from cell.planning.planner import plan_initial
+from cell.planning.planner import plan_initial, plan_recipe
 from cell.planning.settings import PlanSettings
 from cell.planning.truth_model import measure_from_truth
 from fakes.sim.render import SceneRenderer
@@ -49,7 +48,7 @@ def truth_measure(mesh, material):
 
 @pytest.fixture(scope="module")
 def pillar_plan():
-    return make_plan(ROOT / "recipes/pillar.yaml", DEFAULT_CELL)
+    return plan_recipe(ROOT / "recipes/pillar.yaml", DEFAULT_CELL)
 
 
 def test_pillar_plan_covers_the_part_in_the_simulator(pillar_plan):
@@ -141,7 +140,7 @@ def test_bad_cad_is_refused_and_nothing_written(tmp_path, case, match):
         )
         rec = _recipe(tmp_path, fin)
     with pytest.raises(ConfigError, match=match):
-        make_plan(rec, DEFAULT_CELL)
+        plan_recipe(rec, DEFAULT_CELL)
     with pytest.raises(SystemExit) as ex:
         main(["plan", str(rec), "--out", str(tmp_path / "out")])
     assert ex.value.code == 2 and not (tmp_path / "out" / "plan.json").exists()
