@@ -13,7 +13,7 @@ def register(app: typer.Typer) -> None:
         nominal: Path = typer.Argument(..., help="nominal mesh (STL/PLY/OBJ, mm)"),
         cloud: Path = typer.Argument(..., help="measured cloud (PLY/XYZ/CSV, mm)"),
         out: Path = typer.Option(
-            ..., "--out", help="folder for report.json, report.html, cloud.ply, deviations.csv"
+            ..., "--out", help="folder for report.json, report.html and cloud.ply (deviation field)"
         ),
         align: str = typer.Option("none", help="none | datums | bestfit (best-fit hides global deviations)"),
         tolerance: str = typer.Option("-0.3,0.3", help="tolerance band LOWER,UPPER in mm"),
@@ -29,6 +29,7 @@ def register(app: typer.Typer) -> None:
             help="out-of-tolerance clusters smaller than this are isolated outliers, excluded and counted "
             "(cell inspect uses 10; 1 keeps every point)",
         ),
+        csv: bool = typer.Option(False, "--csv", help="also write deviations.csv (x,y,z,deviation in mm)"),
     ) -> None:
         """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report."""
         from cell.analysis.compare import run_compare
@@ -45,6 +46,7 @@ def register(app: typer.Typer) -> None:
             radius_mm=radius,
             min_coverage=min_coverage,
             min_defect_points=min_defect_points,
+            csv=csv,
         )
         typer.echo(
             f"{doc['verdict']}: {doc['n_points']} points, {doc['n_out_of_tolerance']} out of tolerance "
