@@ -157,6 +157,9 @@ def test_cli_writes_plan_and_picture(tmp_path):
     assert (tmp_path / "out" / "plan.png").stat().st_size > 1000
     assert 0.8 < data["coverage"] <= 1.0 and data["planning_time_s"] > 0  # the +x face is out of reach
     assert any(e["event"] == "unreachable" for e in data["log"])
+    limit = data["cycle_time"]  # the tour's motion + capture limit rides along with the plan
+    assert limit["views"] == len(data["viewpoints"]) and len(limit["moves"]) == limit["views"] + 1
+    assert limit["total_s"] == pytest.approx(limit["motion_s"] + limit["capture_s"])
     for v in data["viewpoints"]:
         T_W_C, T_B_T = np.array(v["T_W_C"]), np.array(v["T_B_T"])
         expect = np.linalg.inv(CFG.robot.T_W_B.matrix()) @ T_W_C @ np.linalg.inv(CFG.sensor.T_T_C.matrix())

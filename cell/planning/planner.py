@@ -236,14 +236,15 @@ def plan_recipe(recipe_path: Path, cell_path: Path, settings: PlanSettings | Non
     return plan_initial(load_part_W(recipe, recipe_path, cfg), cfg, settings or recipe.plan)
 
 
-def write_plan(plan: Plan, out: Path) -> None:
-    """Write ``out/plan.json`` atomically (temp file + rename) and ``out/plan.png``."""
+def write_plan(plan: Plan, out: Path, extra: dict[str, Any] | None = None) -> None:
+    """Write ``out/plan.json`` atomically (temp file + rename), with the ``extra`` keys added (e.g. the
+    cycle-time limit), and ``out/plan.png``."""
     from cell.planning.picture import draw_plan
 
     out.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=out, suffix=".json.tmp")
     os.fchmod(fd, 0o644)
     with os.fdopen(fd, "w") as f:
-        json.dump(plan.to_json(), f, indent=1)
+        json.dump({**plan.to_json(), **(extra or {})}, f, indent=1)
     draw_plan(plan, out / "plan.png")
     os.replace(tmp, out / "plan.json")
