@@ -72,9 +72,10 @@ def test_undented_pillar_passes(tmp_path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """A small box recipe and a cell config with the 160x120 test sensor, written as files for the CLI. The box
-    stands where the robot reaches all its faces: a run takes a few seconds (about 8 s on the shared 2-core
-    machine, against 37 s at the origin, where the planner splits the unreachable face into tiny patches)."""
+    """A small box recipe and a cell config with the 160x120 test sensor, written as files for the CLI.
+
+    The box stands where the robot reaches all its faces: a run takes about 8 s on the shared 2-core machine,
+    against 37 s at the origin, where the planner splits the unreachable face into tiny patches."""
     folder = tmp_path_factory.mktemp("boxcli")
     recipe = write_box_recipe(folder, at_mm=(0.0, -60.0, 0.0))
     (folder / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
