@@ -54,7 +54,6 @@ def pillar_plan():
 def test_pillar_plan_covers_the_part_in_the_simulator(pillar_plan):
     plan = pillar_plan
     recipe = load_recipe(ROOT / "recipes/pillar.yaml")
-    assert plan.planning_time_s < 5.0
     res = run_loop(plan, truth_measure(plan.surface.mesh, recipe.part.material))
     assert res.coverage[0] >= 0.95  # f0 alone, measured by the renderer's part & lit masks
     assert res.coverage[-1] >= 0.995  # after feedback
