@@ -11,12 +11,15 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 BENCHES = [
+    "bench_startup.py",
     "bench_render.py",
     "bench_decode.py",
     "bench_plan.py",
     "bench_errormap.py",
     "bench_glass.py",
     "bench_inspect.py",
+    "bench_cycle_time.py",
+    "bench_compare.py",
 ]
 
 
