@@ -136,7 +136,8 @@ def run_compare(
         T = datum_align(d[:, 3:6], d[:, 0:3])
     elif align == "bestfit":
         T = icp_point_to_plane(nominal, pts).T
-    pts = transform_points(T, pts)
+    if align != "none":  # the identity would only copy millions of points
+        pts = transform_points(T, pts)
     em = signed_distance(nominal, pts)
     excluded = dict(nominal.excluded)
     excluded["non_finite_points"] = int((~finite).sum())

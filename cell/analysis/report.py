@@ -69,7 +69,8 @@ def _default_link_radius(points_mm: NDArray) -> float:
     whole cloud (a thinned cloud would overstate the spacing), duplicates (zero distances) left out."""
     if len(points_mm) < 2:
         return 0.0
-    tree = cKDTree(points_mm)
+    # an unbalanced tree builds several times faster on millions of points; queries stay exact
+    tree = cKDTree(points_mm, balanced_tree=False, compact_nodes=False)
     sample = points_mm[
         np.random.default_rng(0).choice(len(points_mm), min(len(points_mm), 20000), replace=False)
     ]
