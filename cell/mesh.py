@@ -90,13 +90,20 @@ def load_mesh(
 
 
 def _require_step_support(where: str) -> None:
+    """Import cascadio (trimesh tessellates STEP through it) and register trimesh's STEP loader, which
+    ``cell/__init__.py`` kept from loading at start-up."""
     try:
-        import cascadio  # noqa: F401  (trimesh tessellates STEP through it)
+        import cascadio
     except ImportError as exc:
         raise ConfigError(
             "STEP needs the 'cascadio' package (pip install cascadio), or export the CAD as STL/PLY/OBJ",
             path=where,
         ) from exc
+    from trimesh.exchange import cascade
+    from trimesh.exchange.load import mesh_loaders
+
+    cascade.cascadio = cascadio
+    mesh_loaders.update({"stp": cascade.load_step, "step": cascade.load_step})
 
 
 def _check_manifold(mesh: trimesh.Trimesh, where: str) -> None:
