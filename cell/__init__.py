@@ -5,21 +5,27 @@ import sys
 __version__ = "0.1.0"
 
 
-def _defer_cascadio() -> None:
-    """Keep trimesh from loading OpenCASCADE at import time.
+class _DeferCascadio:
+    """Keeps trimesh from loading OpenCASCADE when trimesh is imported.
 
-    trimesh imports ``cascadio`` (its STEP reader, a 1 s-CPU shared library) whenever ``import trimesh`` runs,
-    which was a third of a whole ``cell compare``. Only STEP files need it: while trimesh is first imported,
-    ``cascadio`` is marked unimportable, and :func:`cell.mesh.load_mesh` imports it and registers trimesh's
-    STEP loader the first time a STEP file is read.
+    ``trimesh.exchange.cascade`` imports ``cascadio`` (its STEP reader, a shared library that costs ~0.9 s of
+    CPU to load) on every ``import trimesh``: a third of a whole ``cell compare``. Only STEP files need it.
+    This import hook refuses that one import (trimesh then marks STEP unavailable); every other import of
+    cascadio works, and :func:`cell.mesh.load_mesh` imports it and registers trimesh's STEP loader the first
+    time it reads a STEP file.
     """
-    if "trimesh" in sys.modules or "cascadio" in sys.modules:
-        return
-    sys.modules["cascadio"] = None  # type: ignore[assignment]  # `import cascadio` raises ImportError
-    try:
-        import trimesh  # noqa: F401
-    finally:
-        del sys.modules["cascadio"]
+
+    @staticmethod
+    def find_spec(name: str, path: object = None, target: object = None) -> None:
+        if name != "cascadio":
+            return None
+        frame = sys._getframe(1)
+        while frame is not None and frame.f_globals.get("__name__", "").startswith("importlib"):
+            frame = frame.f_back
+        if frame is not None and frame.f_globals.get("__name__") == "trimesh.exchange.cascade":
+            raise ModuleNotFoundError("cascadio is loaded on demand by cell.mesh", name=name)
+        return None
 
 
-_defer_cascadio()
+if not any(isinstance(f, _DeferCascadio) for f in sys.meta_path):
+    sys.meta_path.insert(0, _DeferCascadio())
