@@ -28,6 +28,7 @@ test: $(STAMP) $(ARAVIS_STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile -q
 
 bench: $(STAMP)
+	command -v CloudCompare >/dev/null || (apt-get update && apt-get install -y cloudcompare)  # bench_compare's peer
 	$(PY) bench/run_all.py
 
 lint: $(STAMP)

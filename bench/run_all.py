@@ -11,6 +11,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 BENCHES = [
+    "bench_startup.py",
     "bench_render.py",
     "bench_decode.py",
     "bench_plan.py",
@@ -18,6 +19,8 @@ BENCHES = [
     "bench_glass.py",
     "bench_inspect.py",
     "bench_sync.py",
+    "bench_cycle_time.py",
+    "bench_compare.py",
 ]
 
 

@@ -13,13 +13,16 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
 from cell.errors import ConfigError
+
+if TYPE_CHECKING:
+    from cell.config import CellConfig, Recipe
 
 MESH_SUFFIXES = (".stl", ".ply", ".obj")
 STEP_SUFFIXES = (".step", ".stp")
@@ -87,13 +90,20 @@ def load_mesh(
 
 
 def _require_step_support(where: str) -> None:
+    """Import cascadio (trimesh tessellates STEP through it) and register trimesh's STEP loader, which
+    ``cell/__init__.py`` kept from loading at start-up."""
     try:
-        import cascadio  # noqa: F401  (trimesh tessellates STEP through it)
+        import cascadio
     except ImportError as exc:
         raise ConfigError(
             "STEP needs the 'cascadio' package (pip install cascadio), or export the CAD as STL/PLY/OBJ",
             path=where,
         ) from exc
+    from trimesh.exchange import cascade
+    from trimesh.exchange.load import mesh_loaders
+
+    cascade.cascadio = cascadio
+    mesh_loaders.update({"stp": cascade.load_step, "step": cascade.load_step})
 
 
 def _check_manifold(mesh: trimesh.Trimesh, where: str) -> None:
@@ -200,3 +210,25 @@ def mesh_summary(mesh: trimesh.Trimesh) -> dict[str, Any]:
         "volume_mm3": float(mesh.volume) if mesh.is_watertight else None,
         "degenerate_removed": int(mesh.metadata.get("degenerate_removed", 0)),
     }
+
+
+def working_volume_W(cfg: CellConfig) -> tuple[np.ndarray, np.ndarray]:
+    """World box (mm) the part must fit in: the robot envelope mapped into {W}, from the table top up."""
+    T_W_B = cfg.robot.T_W_B.matrix()
+    lo, hi = np.asarray(cfg.robot.envelope_min_mm), np.asarray(cfg.robot.envelope_max_mm)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    cw = trimesh.transform_points(corners, T_W_B)
+    return np.r_[cw.min(axis=0)[:2], -1.0], cw.max(axis=0)
+
+
+def load_part_W(recipe: Recipe, recipe_path: str | Path, cfg: CellConfig) -> trimesh.Trimesh:
+    """A recipe's validated nominal CAD placed in the world {W} (mm); ConfigError when it does not fit the
+    cell's working volume or the recipe's face regions name faces it does not have."""
+    from cell.analysis.regions import check_region_faces
+
+    mesh = load_mesh(recipe.part.cad)
+    check_region_faces(recipe.regions, len(mesh.faces), recipe_path, prefix="regions.")
+    T_W_P = recipe.part.T_W_P.matrix()
+    lo, hi = working_volume_W(cfg)
+    check_in_volume(mesh, recipe.part.cad, lo, hi, T_W_P)
+    return mesh.copy().apply_transform(T_W_P)

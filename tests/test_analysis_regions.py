@@ -9,10 +9,10 @@ import pytest
 import trimesh
 import yaml
 
+from cell.analysis.compare import run_compare
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.regions import Region, Tolerance, coverage
 from cell.analysis.report import ReportInput, summarise
-from cell.commands.compare import run_compare
 from cell.errors import ConfigError
 
 PLATE = (100.0, 60.0, 4.0)  # box centred at the origin: top face z = 2, area 2 (6000 + 400 + 240) mm^2

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from cell.commands.compare import run_compare
+from cell.analysis.compare import run_compare
 from cell.errors import ConfigError
 
 
@@ -29,7 +29,7 @@ def test_compare_writes_report_with_dent_region(plate, tmp_path: Path) -> None:
     nominal, pts = plate
     cloud = tmp_path / "cloud.csv"
     np.savetxt(cloud, pts, delimiter=",", header="x,y,z", comments="")
-    doc = run_compare(nominal, cloud, tmp_path / "out", tolerance="-0.3,0.3", pictures=False)
+    doc = run_compare(nominal, cloud, tmp_path / "out", tolerance="-0.3,0.3", pictures=False, csv=True)
     expected = pts[:, 2] - 2.0
     assert doc["verdict"] == "fail"
     assert doc["n_out_of_tolerance"] == int((expected < -0.3).sum())
@@ -50,13 +50,14 @@ def test_compare_writes_report_with_dent_region(plate, tmp_path: Path) -> None:
 
 
 def test_html_has_embedded_pictures(plate, tmp_path: Path) -> None:
-    pytest.importorskip("matplotlib")
     nominal, pts = plate
     cloud = tmp_path / "c.xyz"
     np.savetxt(cloud, pts[::10])
     doc = run_compare(nominal, cloud, tmp_path / "o")
     html = (tmp_path / "o" / "report.html").read_text()
-    assert html.count("data:image/png;base64,") == len(doc["views"]) + 1 >= 4
+    assert html.count("data:image/png;base64,") == len(doc["views"]) == 4
+    assert html.count("<svg") == 1 and html.count("<rect") > 3  # the histogram
+    assert not (tmp_path / "o" / "deviations.csv").exists()  # compare writes the CSV on request only
 
 
 def test_bad_input_is_a_config_error(plate, tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ a ConfigError that names the file and what was found."""
 from __future__ import annotations
 
 import itertools
+import subprocess
 import sys
 import warnings
 from pathlib import Path
@@ -259,3 +260,16 @@ def test_step_without_cascadio_names_the_package(tmp_path, monkeypatch):
     path.write_text(_step_box((10.0, 20.0, 30.0)))
     monkeypatch.setitem(sys.modules, "cascadio", None)  # makes the import fail
     _refused(path, "cascadio", "STL")
+
+
+def test_opencascade_loads_only_when_a_step_file_is_read(tmp_path):
+    pytest.importorskip("cascadio")
+    path = tmp_path / "box.step"
+    path.write_text(_step_box((10.0, 20.0, 30.0)))
+    code = (
+        "import sys\nimport cell.mesh, trimesh\nprint('before', 'cascadio' in sys.modules)\n"
+        f"m = cell.mesh.load_mesh({str(path)!r})\nprint('after', 'cascadio' in sys.modules, len(m.faces))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "before False" in out.stdout and "after True 12" in out.stdout

@@ -6,7 +6,7 @@
 - :func:`datum_align`: 3-2-1 / RPS alignment from measured datum points and their nominal positions.
 - :func:`icp_point_to_plane`: ICP on the exact closest points of the nominal mesh, optionally restricted to
   user regions (a boolean mask). Used over the whole part it is *best-fit*, which hides global deviations;
-  it is never the default of :func:`cell.commands.compare`.
+  it is never the default of :func:`cell.analysis.compare.run_compare`.
 - :func:`combine_registrations`: the weighted combination of kinematic, datum, feature and ICP estimates
   (eqs 4.21-4.22). Feature-based alignment from curvature labels lives in :mod:`cell.analysis.features`.
 """

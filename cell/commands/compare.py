@@ -2,173 +2,9 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
-import numpy as np
-import trimesh
 import typer
-
-from cell.errors import ConfigError
-
-
-def load_cloud(path: Path) -> np.ndarray:
-    """Points (N, 3, mm) from PLY (vertices), XYZ or CSV (first three numeric columns; header row skipped)."""
-    if not path.is_file():
-        raise ConfigError("cloud file not found", path=str(path))
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".ply":
-            loaded = trimesh.load(path, process=False)
-            if not hasattr(loaded, "vertices"):  # trimesh gives an empty Scene for a PLY without vertices
-                raise ConfigError("the cloud has no points", path=str(path))
-            pts = np.asarray(loaded.vertices, dtype=np.float64)
-        elif suffix in (".xyz", ".txt", ".csv"):
-            delim = "," if suffix == ".csv" else None
-            with open(path) as fh:
-                first = fh.readline()
-            skip = 0 if _is_numeric_row(first, delim) else 1
-            pts = np.loadtxt(path, delimiter=delim, skiprows=skip, usecols=(0, 1, 2), ndmin=2)
-        else:
-            raise ConfigError(f"unknown cloud format '{suffix}': use .ply, .xyz or .csv", path=str(path))
-    except (ValueError, OSError) as exc:
-        raise ConfigError(f"cannot read the cloud: {exc}", path=str(path)) from exc
-    return pts.reshape(-1, 3)
-
-
-def _is_numeric_row(line: str, delim: str | None) -> bool:
-    try:
-        [float(x) for x in line.strip().split(delim)[:3]]
-        return True
-    except ValueError:
-        return False
-
-
-def parse_tolerance(text: str) -> tuple[float, float]:
-    """'-0.3,0.3' -> (-0.3, 0.3) mm."""
-    try:
-        lo, hi = (float(x) for x in text.split(","))
-    except ValueError as exc:
-        raise ConfigError(f"--tolerance must be 'LOWER,UPPER' in mm, got '{text}'") from exc
-    if not lo < hi:
-        raise ConfigError(f"--tolerance lower bound must be below the upper one, got '{text}'")
-    return lo, hi
-
-
-def run_compare(
-    nominal_path: Path,
-    cloud_path: Path,
-    out: Path,
-    align: str = "none",
-    tolerance: str = "-0.3,0.3",
-    datums: Path | None = None,
-    pictures: bool = True,
-    regions: Path | None = None,
-    density_per_mm2: float | None = None,
-    radius_mm: float | None = None,
-    min_coverage: float | None = None,
-    min_defect_points: int = 1,
-) -> dict:
-    """Load, check, align, compute the error map and write the report; return report.json's document.
-
-    ``regions``: YAML of user regions (see ``cell.analysis.regions.load_regions``); coverage is computed when
-    a required density (points/mm^2) or radius (mm) is given, and judged against ``min_coverage`` (0..1).
-    ``min_defect_points``: out-of-tolerance clusters smaller than this are isolated outliers, excluded and
-    counted under ``excluded`` as ``cell inspect`` does (1, the default, keeps every point: a cloud from
-    elsewhere may have been filtered already).
-    """
-    from cell.analysis.errormap import NominalMesh, signed_distance
-    from cell.analysis.regions import (
-        check_region_faces,
-        coverage,
-        load_regions,
-        point_bands,
-        region_from_config,
-    )
-    from cell.analysis.registration import datum_align, icp_point_to_plane
-    from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
-    from cell.geometry import transform_points
-
-    lo, hi = parse_tolerance(tolerance)
-    if min_coverage is not None and not 0 <= min_coverage <= 1:
-        raise ConfigError(f"--min-coverage must be a fraction in [0, 1], got {min_coverage}")
-    if min_defect_points < 1:
-        raise ConfigError(f"--min-defect-points must be >= 1, got {min_defect_points}")
-    if min_coverage is not None and density_per_mm2 is None and radius_mm is None:
-        raise ConfigError("--min-coverage needs --density (points/mm^2) or --radius (mm) to measure coverage")
-    region_specs = load_regions(regions) if regions is not None else []
-    if align not in ("none", "datums", "bestfit"):
-        raise ConfigError(f"--align must be none, datums or bestfit, got '{align}'")
-    if not nominal_path.is_file():
-        raise ConfigError("nominal mesh not found", path=str(nominal_path))
-    mesh = trimesh.load(nominal_path, force="mesh", process=False)
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ConfigError("the nominal has no triangles", path=str(nominal_path))
-    check_region_faces(region_specs, len(mesh.faces), regions or "", prefix="regions.")
-    user_regions = [region_from_config(spec) for spec in region_specs]
-    t0 = time.perf_counter()
-    nominal = NominalMesh.from_trimesh(mesh)
-    raw = load_cloud(cloud_path)
-    finite = np.isfinite(raw).all(1)
-    pts = raw[finite]
-    if len(pts) == 0:
-        raise ConfigError("the cloud has no finite points (empty or all NaN)", path=str(cloud_path))
-    ratio = np.linalg.norm(np.ptp(pts, 0)) / nominal.extent_mm
-    inches = any(abs(ratio * k - 1) < 0.1 for k in (25.4, 1 / 25.4))
-    if len(pts) >= 3 and (not 1 / 30 < ratio < 30 or inches):
-        hint = " (a factor of 25.4: inches?)" if inches else ""
-        raise ConfigError(
-            f"the cloud is {ratio:.3g}x the size of the nominal{hint}: wrong units? (both must be in mm)",
-            path=str(cloud_path),
-        )
-    T = np.eye(4)
-    if align == "datums":
-        if datums is None:
-            raise ConfigError(
-                "--align datums needs --datums FILE (csv: nominal x,y,z, measured x,y,z per row)"
-            )
-        d = np.loadtxt(datums, delimiter=",", ndmin=2, comments="#")
-        if d.shape[1] != 6:
-            raise ConfigError("datum file needs 6 columns: nominal x,y,z, measured x,y,z", path=str(datums))
-        T = datum_align(d[:, 3:6], d[:, 0:3])
-    elif align == "bestfit":
-        T = icp_point_to_plane(nominal, pts).T
-    pts = transform_points(T, pts)
-    em = signed_distance(nominal, pts)
-    excluded = dict(nominal.excluded)
-    excluded["non_finite_points"] = int((~finite).sum())
-    deviation, faces = em.deviation_mm, nominal.source_face[em.face]
-    if min_defect_points > 1:
-        bands = point_bands(user_regions, pts, faces, Tolerance(lo, hi))
-        kept = ~isolated_out_of_tolerance(pts, deviation, bands, min_defect_points)
-        excluded["isolated_out_of_tolerance_points"] = int((~kept).sum())
-        pts, deviation, faces = pts[kept], deviation[kept], faces[kept]
-    meta = {
-        "nominal": str(nominal_path),
-        "cloud": str(cloud_path),
-        "align": align,
-        "warning": "best-fit alignment hides global deviations" if align == "bestfit" else None,
-        "T_P_cloud": T.round(9).tolist(),
-        "seconds": round(time.perf_counter() - t0, 3),
-        "nominal_watertight": nominal.watertight,
-    }
-    cov = None
-    if density_per_mm2 is not None or radius_mm is not None:
-        cov = coverage(nominal, em.closest_mm, density_per_mm2, radius_mm)
-    inp = ReportInput(
-        pts,
-        deviation,
-        Tolerance(lo, hi),
-        len(raw),
-        excluded,
-        metadata=meta,
-        source_face=faces,
-        regions=user_regions,
-        coverage=cov,
-        min_coverage=min_coverage,
-        warnings=[w for w in (meta["warning"], nominal.sign_warning()) if w],
-    )
-    return write_report(out, inp, pictures=pictures)
 
 
 def register(app: typer.Typer) -> None:
@@ -177,7 +13,7 @@ def register(app: typer.Typer) -> None:
         nominal: Path = typer.Argument(..., help="nominal mesh (STL/PLY/OBJ, mm)"),
         cloud: Path = typer.Argument(..., help="measured cloud (PLY/XYZ/CSV, mm)"),
         out: Path = typer.Option(
-            ..., "--out", help="folder for report.json, report.html, cloud.ply, deviations.csv"
+            ..., "--out", help="folder for report.json, report.html and cloud.ply (deviation field)"
         ),
         align: str = typer.Option("none", help="none | datums | bestfit (best-fit hides global deviations)"),
         tolerance: str = typer.Option("-0.3,0.3", help="tolerance band LOWER,UPPER in mm"),
@@ -193,21 +29,24 @@ def register(app: typer.Typer) -> None:
             help="out-of-tolerance clusters smaller than this are isolated outliers, excluded and counted "
             "(cell inspect uses 10; 1 keeps every point)",
         ),
+        csv: bool = typer.Option(False, "--csv", help="also write deviations.csv (x,y,z,deviation in mm)"),
     ) -> None:
         """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report."""
+        from cell.analysis.compare import run_compare
+
         doc = run_compare(
             nominal,
             cloud,
             out,
-            align,
-            tolerance,
-            datums,
-            True,
-            regions,
-            density,
-            radius,
-            min_coverage,
-            min_defect_points,
+            align=align,
+            tolerance=tolerance,
+            datums=datums,
+            regions=regions,
+            density_per_mm2=density,
+            radius_mm=radius,
+            min_coverage=min_coverage,
+            min_defect_points=min_defect_points,
+            csv=csv,
         )
         typer.echo(
             f"{doc['verdict']}: {doc['n_points']} points, {doc['n_out_of_tolerance']} out of tolerance "

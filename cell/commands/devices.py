@@ -6,17 +6,12 @@ from pathlib import Path
 from typing import Any
 
 import typer
-from rich.console import Console
-from rich.table import Table
-
-from cell.config import DEFAULT_CELL, load_cell_config
-from cell.contracts import Camera, Projector, Robot
-from cell.devices import build_devices
-from cell.errors import DeviceError
 
 
 def describe(kind: str, device: Any) -> str:
     """One line of status for a connected device, read through its contract."""
+    from cell.contracts import Camera, Projector, Robot
+
     if isinstance(device, Robot):
         state = device.state()
         x, y, z = device.tool_pose()[:3, 3]
@@ -45,9 +40,17 @@ def describe(kind: str, device: Any) -> str:
 def register(app: typer.Typer) -> None:
     @app.command("devices")
     def devices(
-        cell: Path = typer.Option(DEFAULT_CELL, "--cell", help="cell config YAML"),
+        cell: Path = typer.Option(None, "--cell", help="cell config YAML (default: recipes/cells/sim.yaml)"),
     ) -> None:
         """Connect each configured device and print its status; exit 1 naming the first device that fails."""
+        from rich.console import Console
+        from rich.table import Table
+
+        from cell.config import DEFAULT_CELL, load_cell_config
+        from cell.devices import build_devices
+        from cell.errors import DeviceError
+
+        cell = cell or DEFAULT_CELL
         cfg = load_cell_config(cell)
         bundle = build_devices(cfg)
         table = Table(title=f"cell '{cfg.name}' ({cell})")

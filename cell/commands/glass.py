@@ -10,9 +10,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.console import Console
-
-console = Console()
 
 
 def glass_cmd(
@@ -30,6 +27,8 @@ def glass_cmd(
     ),
 ) -> None:
     """Measure a glass pane: view vectors, marker search, multi-camera feedback, error map and report."""
+    from rich.console import Console
+
     from cell.errors import ConfigError
     from cell.glass.config import load_glass_recipe, load_glass_rig
     from cell.glass.job import run_glass_inspection
@@ -85,6 +84,7 @@ def glass_cmd(
         run, rec, cfg, rig, place_board, nominal_W, frames, board_frames, move_screen
     )
     dev = summary["deviation"]
+    console = Console()
     console.print(
         f"[bold]verdict: {str(summary['verdict']).upper()}[/]  ({summary['n_points']} of "
         f"{summary['markers']} points accepted; deviation {dev.get('min_mm', float('nan')):.3f} .. "

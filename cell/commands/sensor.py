@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import typer
 
-from cell.sensing.error_model import format_tables
-
 sensor_app = typer.Typer(help="Structured-light sensor model utilities.", no_args_is_help=True)
 
 
 @sensor_app.command("error-table")
 def error_table_cmd() -> None:
     """Print Tables 2.1-2.3: height error (mm) of a one-pixel error in L (dissertation eq 2.5)."""
+    from cell.sensing.error_model import format_tables
+
     typer.echo(format_tables())
 
 

@@ -4,8 +4,12 @@ holes, pruning of redundant views, reachability and the tour order. Every decisi
 
 from __future__ import annotations
 
+import json
+import os
+import tempfile
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -219,3 +223,28 @@ def order_views(
     cost = pose_costs([home_T_W_C] + [v.T_W_C for v in views])
     tour = [i - 1 for i in order_tour(cost, 0)[1:]]
     return [views[i] for i in tour], masks[tour]
+
+
+def plan_recipe(recipe_path: Path, cell_path: Path, settings: PlanSettings | None = None) -> Plan:
+    """The initial plan of a recipe file's part on a cell config file (the recipe's plan settings unless
+    ``settings`` is given)."""
+    from cell.config import load_cell_config, load_recipe
+    from cell.mesh import load_part_W
+
+    cfg = load_cell_config(cell_path)
+    recipe = load_recipe(recipe_path)
+    return plan_initial(load_part_W(recipe, recipe_path, cfg), cfg, settings or recipe.plan)
+
+
+def write_plan(plan: Plan, out: Path, extra: dict[str, Any] | None = None) -> None:
+    """Write ``out/plan.json`` atomically (temp file + rename), with the ``extra`` keys added (e.g. the
+    cycle-time limit), and ``out/plan.png``."""
+    from cell.planning.picture import draw_plan
+
+    out.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=out, suffix=".json.tmp")
+    os.fchmod(fd, 0o644)
+    with os.fdopen(fd, "w") as f:
+        json.dump({**plan.to_json(), **(extra or {})}, f, indent=1)
+    draw_plan(plan, out / "plan.png")
+    os.replace(tmp, out / "plan.json")

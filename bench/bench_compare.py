@@ -1,0 +1,171 @@
+"""`cell compare` against CloudCompare's command-line C2M distance, whole process, side by side.
+
+Run: .venv/bin/python bench/bench_compare.py [n_points] [rounds] [big_points]
+     (CloudCompare: Debian package `cloudcompare`, installed by `make bench`)
+
+Inputs (generated, seeded): a 20,480-triangle sphere of radius 50 mm (STL) and N points sampled on it
+with 0.02 mm of normal noise and a 0.5 mm deep dent (binary PLY, float64). Each round runs both tools once,
+one after the other, as separate processes with their default outputs: `cell compare NOMINAL CLOUD --out DIR`
+(report.json, report.html with pictures, cloud.ply with the deviation field) and
+`CloudCompare -SILENT -O CLOUD -O MESH -C2M_DIST` (the cloud with its distance field in CloudCompare's BIN
+format). The median and best wall time of each are printed with the machine's load average. Then both
+tools' distances are compared point by point (CloudCompare exported as ASCII for that). Last, `cell compare`
+of BIG points (default 5M) against the same mesh: wall time and peak resident memory (GNU time's maximum RSS).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import resource
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+REPO = Path(__file__).resolve().parent.parent
+CELL = [sys.executable, "-m", "cell"]
+CC_ENV = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+
+
+def write_cloud(path: Path, points: np.ndarray) -> None:
+    """Binary little-endian PLY of float64 vertices (both tools read it)."""
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+        "property double x\nproperty double y\nproperty double z\nend_header\n"
+    )
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(np.ascontiguousarray(points, dtype="<f8").tobytes())
+
+
+def make_inputs(folder: Path, n: int) -> tuple[Path, Path]:
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=50.0)
+    nominal = folder / "nominal.stl"
+    mesh.export(nominal)
+    rng = np.random.default_rng(0)
+    p, f = trimesh.sample.sample_surface(mesh, n, seed=1)
+    offset = rng.normal(0.0, 0.02, n)
+    dent = np.linalg.norm(p - (0.0, 0.0, 50.0), axis=1) < 8.0
+    offset[dent] -= 0.5
+    cloud = folder / f"cloud{n}.ply"
+    write_cloud(cloud, p + mesh.face_normals[f] * offset[:, None])
+    return nominal, cloud
+
+
+def child_cpu() -> float:
+    """CPU seconds (user + system) used so far by this process's finished children."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def run_cell(nominal: Path, cloud: Path, out: Path) -> float:
+    t = time.perf_counter()
+    subprocess.run(
+        [*CELL, "compare", str(nominal), str(cloud), "--out", str(out)],
+        check=True,
+        cwd=REPO,
+        capture_output=True,
+    )
+    return time.perf_counter() - t
+
+
+def run_cloudcompare(nominal: Path, cloud: Path, export_ascii: bool = False) -> float:
+    fmt = ["-C_EXPORT_FMT", "ASC", "-PREC", "9"] if export_ascii else []
+    cmd = ["CloudCompare", "-SILENT", *fmt, "-O", str(cloud), "-O", str(nominal), "-C2M_DIST"]
+    t = time.perf_counter()
+    subprocess.run(cmd, check=True, env=CC_ENV, capture_output=True)
+    return time.perf_counter() - t
+
+
+def read_cell_deviation(ply: Path) -> np.ndarray:
+    data = ply.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    n = int(re.search(rb"element vertex (\d+)", data[:end]).group(1))
+    rec = np.frombuffer(
+        data[end:], dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("deviation", "<f4")], count=n
+    )
+    return rec["deviation"].astype(np.float64)
+
+
+def agreement(folder: Path, nominal: Path, cloud: Path, cell_out: Path) -> str:
+    for old in folder.glob("*_C2M_DIST_*"):
+        old.unlink()
+    run_cloudcompare(nominal, cloud, export_ascii=True)
+    (asc,) = folder.glob("*_C2M_DIST_*.asc")
+    cc = np.loadtxt(asc, usecols=3)
+    ours = read_cell_deviation(cell_out / "cloud.ply")
+    if len(cc) != len(ours):
+        return f"point counts differ: CloudCompare {len(cc)}, cell {len(ours)}"
+    diff = np.abs(cc - ours)
+    return (
+        f"{len(cc)} points; |cell - CloudCompare| max {diff.max() * 1e6:.0f} nm, "
+        f"median {np.median(diff) * 1e6:.1f} nm (cell's cloud.ply stores float32 deviations)"
+    )
+
+
+def big_run(folder: Path, nominal: Path, n: int) -> str:
+    _, cloud = make_inputs(folder, n)
+    proc = subprocess.run(
+        [
+            "/usr/bin/time",
+            "-f",
+            "%e %M",
+            *CELL,
+            "compare",
+            str(nominal),
+            str(cloud),
+            "--out",
+            str(folder / "big"),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
+    if proc.returncode:
+        return f"failed: {proc.stderr[-500:]}"
+    wall, kb = proc.stderr.strip().splitlines()[-1].split()
+    return f"{n} points: {float(wall):.1f} s wall, peak RSS {int(kb) / 1024**2:.2f} GB"
+
+
+def main(n: int = 200_000, rounds: int = 5, big: int = 5_000_000) -> None:
+    if shutil.which("CloudCompare") is None:
+        sys.exit("CloudCompare not found: apt-get install cloudcompare (make bench does)")
+    print(f"nproc {os.cpu_count()}, load average {os.getloadavg()}, {rounds} rounds")
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        nominal, cloud = make_inputs(folder, n)
+        run_cell(nominal, cloud, folder / "warm")  # numba's on-disk cache and the OS file cache
+        cell_t, cc_t, cell_cpu, cc_cpu = [], [], [], []
+        for k in range(rounds):
+            c = child_cpu()
+            cell_t.append(run_cell(nominal, cloud, folder / f"cell{k}"))
+            cell_cpu.append(child_cpu() - c)
+            c = child_cpu()
+            cc_t.append(run_cloudcompare(nominal, cloud))
+            cc_cpu.append(child_cpu() - c)
+        print(f"{n} points vs 20480 triangles, whole process, default outputs:")
+        for name, ts, cpu in (("cell compare", cell_t, cell_cpu), ("CloudCompare -C2M_DIST", cc_t, cc_cpu)):
+            print(
+                f"  {name:24s} wall median {statistics.median(ts):6.2f} s  best {min(ts):6.2f} s; "
+                f"CPU (user+sys) median {statistics.median(cpu):5.2f} s"
+            )
+        print(
+            f"  ratio (median) {statistics.median(cell_t) / statistics.median(cc_t):.2f}x, "
+            f"(best) {min(cell_t) / min(cc_t):.2f}x, "
+            f"(CPU) {statistics.median(cell_cpu) / statistics.median(cc_cpu):.2f}x"
+        )
+        print("agreement: " + agreement(folder, nominal, cloud, folder / "cell0"))
+        if big:
+            print("large cloud: " + big_run(folder, nominal, big))
+    print(f"load average after {os.getloadavg()}")
+
+
+if __name__ == "__main__":
+    main(*(int(a) for a in sys.argv[1:]))

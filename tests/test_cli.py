@@ -1,0 +1,73 @@
+"""The ``cell`` entry point: commands load on demand, and usage errors end in one line with exit code 2."""
+
+from __future__ import annotations
+
+import pkgutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import cell.commands
+from cell.cli import COMMANDS, load_module_commands
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def run(*code_or_args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, *code_or_args], capture_output=True, text=True, cwd=REPO, timeout=120
+    )
+
+
+def test_the_command_table_names_exactly_what_the_modules_register() -> None:
+    registered = {}
+    for info in pkgutil.iter_modules(cell.commands.__path__):
+        for name in load_module_commands(info.name):
+            registered[name] = info.name
+    assert registered == {name: module for name, (module, _) in COMMANDS.items()}
+    assert all(help_line.strip() for _, help_line in COMMANDS.values())
+
+
+def test_help_lists_every_command_without_importing_any_command_or_the_library() -> None:
+    code = (
+        "import sys\nfrom cell.cli import main\nmain(['--help'])\n"
+        "heavy = [m for m in sys.modules if m.startswith('cell.commands.') or m.split('.')[0] in "
+        "('numpy', 'trimesh', 'scipy', 'matplotlib', 'numba', 'rich')]\nprint('HEAVY', heavy)"
+    )
+    proc = run("-c", code)
+    assert proc.returncode == 0, proc.stderr
+    for name in COMMANDS:
+        assert f"  {name} " in proc.stdout
+    assert "HEAVY []" in proc.stdout
+
+
+@pytest.mark.parametrize("command", ["compare", "plan", "scan", "glass", "devices", "docs", "sensor"])
+def test_a_command_help_loads_only_its_own_light_module(command: str) -> None:
+    code = (
+        f"import sys\nfrom cell.cli import main\nmain(['{command}', '--help'])\n"
+        "print('HEAVY', [m for m in sys.modules if m.split('.')[0] in ('numpy', 'trimesh', 'scipy', "
+        "'matplotlib', 'numba')])"
+    )
+    proc = run("-c", code)
+    assert proc.returncode == 0, proc.stderr
+    assert "Usage: cell " + command in proc.stdout
+    assert "HEAVY []" in proc.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (["compare"], "Missing argument"),
+        (["compare", "a.stl", "b.ply", "--bogus"], "No such option: --bogus"),
+        (["nosuch"], "No such command 'nosuch'"),
+        (["sensor", "error-table", "--x"], "No such option: --x"),
+    ],
+)
+def test_usage_errors_are_one_line_with_exit_code_2(args: list[str], says: str) -> None:
+    proc = run("-m", "cell", *args)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and says in lines[0] and lines[0].startswith("error:"), proc.stderr
+    assert "Traceback" not in proc.stderr
