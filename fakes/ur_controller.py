@@ -301,7 +301,7 @@ class ControllerServer:
         self._protective_at: float | None = None
         self._mode_pending: tuple[float, int] | None = None
         self._watchdog_s: float | None = None
-        self._watch_last = 0.0
+        self._watch_silence = 0.0  # s of the fake's cycles without input_int_register_0
         self._async_wr = self._async_op = 0
         self._input_owner: dict[str, int] = {}
         self._protective_times: list[float] = []
@@ -353,7 +353,15 @@ class ControllerServer:
             s.settimeout(0.05)
             self._listeners.append(s)
             self._spawn(self._accept, s, handler)
+        self._spawn(self._cycle)
         return self
+
+    def _cycle(self) -> None:
+        """The controller's own clock: the arm moves and the watchdog counts with or without clients."""
+        while not self._stop.is_set():
+            with self._lock:
+                self._advance()
+            time.sleep(MOTION_CYCLE_S / 2)
 
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
@@ -432,7 +440,7 @@ class ControllerServer:
         cmd = values.get("input_int_register_0")
         if cmd is None:
             return
-        self._watch_last = time.monotonic()
+        self._watch_silence = 0.0
         if cmd == 0 and self.out_int[0] == 2:
             self.out_int[0] = 1  # command cleared: ready for the next one
             return
@@ -476,7 +484,7 @@ class ControllerServer:
                     self._end_program("inverse kinematics failed: moveL target or path out of reach")
                     return
             move.t0 = now = time.monotonic()  # the check took the fake's time, not the arm's
-            self._watch_last = max(self._watch_last, now)
+            self._watch_silence = 0.0
         self._move, self._move_sync = move, not asynchronous
         self._protective_at = now + move.duration / 2 if self.protective_stop_on_move else None
         if asynchronous:
@@ -487,8 +495,10 @@ class ControllerServer:
         now = time.monotonic()
         if now - self._last_advance < MOTION_CYCLE_S:  # one motion update for all connections together
             return
-        if now - self._last_advance > 0.02:  # the fake itself stalled (a busy test machine): reading
-            self._watch_last = max(self._watch_last, now - 0.02)  # inputs stalled too, not the client
+        # Client silence is counted in the fake's own cycles, at most 2 per update: when the fake itself
+        # stalls (a busy test machine), reading the client's inputs stalled too, and that is not the client's
+        # silence. A real controller never stalls; this only makes a trip later, never earlier.
+        self._watch_silence += min(now - self._last_advance, 2 * MOTION_CYCLE_S)
         self._last_advance = now
         if self._mode_pending and now >= self._mode_pending[0]:
             self.robot_mode = self._mode_pending[1]
@@ -496,7 +506,7 @@ class ControllerServer:
         if (
             self._watchdog_s is not None
             and self.runtime_state == 2
-            and now - self._watch_last > self._watchdog_s
+            and self._watch_silence > self._watchdog_s
         ):
             if self._move is not None:
                 self._move.begin_stop(now - self._move.t0, self.program_stop_decel)
@@ -532,7 +542,7 @@ class ControllerServer:
         if self.script_starts and self.remote_control and self.robot_mode == 7 and self.safety_bits == 1:
             self.runtime_state, self.out_int[0] = 2, 1
             self._async_progress(running=False)
-            self._watch_last = time.monotonic()
+            self._watch_silence = 0.0
 
     # --------------------------------------------------------------------------------------- RTDE
     def _rtde(self, conn: socket.socket) -> None:
@@ -602,7 +612,6 @@ class ControllerServer:
             if started and time.monotonic() >= next_send:
                 next_send += period
                 with self._lock:
-                    self._advance()
                     if self._silent.is_set():
                         continue
                     flat: list[Any] = []
