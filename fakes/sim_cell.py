@@ -45,8 +45,8 @@ class SimCell:
     projector: SimProjector
     camera: SimCamera
     part_W: trimesh.Trimesh | None
+    world: World
     seed: int = 0
-    world: World | None = None
     T_place_W: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
     _landing: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
     _moves_seen: int = 0
@@ -54,8 +54,6 @@ class SimCell:
 
     def flange_pose(self) -> NDArray[np.float64]:
         """T_B_T where the flange really is (true kinematics, the last move's landing error); mm."""
-        if self.world is None:
-            return self.robot.tool_pose()
         moves = self._moves_made()
         if moves != self._moves_seen:  # a new move has ended: it landed somewhere else in the ball
             self._moves_seen = moves
@@ -76,10 +74,9 @@ class SimCell:
         view's images then depend only on the view, not on what was captured or how the robot got there, so
         a resumed run reproduces an uninterrupted one exactly."""
         self.camera.rng = np.random.default_rng([self.seed, *key])
-        if self.world is not None:
-            self._landing_rng = np.random.default_rng([self.seed, *key, 1])
-            self._moves_seen = self._moves_made()
-            self._landing = self.world.landing_error(self._landing_rng)
+        self._landing_rng = np.random.default_rng([self.seed, *key, 1])
+        self._moves_seen = self._moves_made()
+        self._landing = self.world.landing_error(self._landing_rng)
 
 
 def build_sim_cell(
@@ -127,8 +124,8 @@ def build_sim_cell(
         projector,
         camera,
         part_W,
+        world,
         seed,
-        world=world,
         T_place_W=T_place_W,
         _landing_rng=np.random.default_rng([seed, 1]),
     )

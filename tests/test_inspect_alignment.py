@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parent.parent
 PILLAR = REPO / "recipes" / "pillar.yaml"
 PARTS = REPO / "recipes" / "parts"
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(3000)]  # full inspections on a shared machine
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,7 @@ def inspect(recipe: Path, cell: Path, actual: Path, out: Path) -> dict:
         capture_output=True,
         text=True,
         cwd=REPO,
-        timeout=900,
+        timeout=2400,
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return json.loads((out / "results" / "report.json").read_text())
