@@ -136,11 +136,21 @@ class RobotConfig(Strict):
 
 
 class MaterialConfig(Strict):
-    """Surface reflectance for the simulator: ambient + Lambert + Phong specular."""
+    """Surface of a material for the simulator: reflectance (ambient + Lambert + Phong specular) and its
+    microstructure (rendered unless the cell's world is ideal)."""
 
     albedo: Fraction = 0.6
     specular: Annotated[float, Field(ge=0, le=50)] = 0.0
     shininess: Annotated[float, Field(ge=1, le=10000)] = 20.0
+    roughness_um: Annotated[float, Field(ge=0, le=100)] = Field(
+        1.0, description="std of the surface height about its nominal shape, on the grain's scale"
+    )
+    grain_mm: Annotated[float, Field(gt=0, le=100)] = Field(
+        0.5, description="lateral scale of the roughness and of the albedo texture"
+    )
+    albedo_texture: Annotated[float, Field(ge=0, le=0.5)] = Field(
+        0.03, description="relative std of the albedo across the surface"
+    )
 
 
 class SimConfig(Strict):
@@ -173,6 +183,12 @@ class CellConfig(Strict):
     robot: RobotConfig
     sensor: SensorConfig
     sim: SimConfig = SimConfig()
+    world: Literal["ideal"] | dict[str, Any] | None = Field(
+        None,
+        description="simulation only: how the simulated world differs from this config (hand-eye, lenses, "
+        "robot kinematics, part placement, surface); 'ideal' is the exact model, absent or a mapping the "
+        "realistic defaults. Only the simulator reads it (schema: docs/world-schema.md)",
+    )
     calibration: CalibrationFiles = CalibrationFiles()
 
 
@@ -299,8 +315,12 @@ def validate(model: type[M], data: dict[str, Any], path: str | Path) -> M:
 
 
 def load_cell_config(path: str | Path) -> CellConfig:
-    """Load and validate a cell config YAML; calibration paths become absolute and must exist."""
+    """Load and validate a cell config YAML; calibration paths become absolute and must exist. A simulated
+    cell's ``world:`` section is validated by the simulator (through cell.devices), never read here."""
     cfg = validate(CellConfig, read_yaml(path), path)
+    from cell.devices import check_world  # late: cell.devices imports this module
+
+    check_world(cfg, path)
     base = Path(path).resolve().parent
     for field in CalibrationFiles.model_fields:
         value = getattr(cfg.calibration, field)

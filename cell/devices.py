@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import trimesh
@@ -64,6 +65,25 @@ def _import_driver(kind: str, driver: str, where: str) -> type:
             field=where,
         ) from exc
     return getattr(module, class_name)
+
+
+def check_world(cfg: CellConfig, path: str | Path) -> None:
+    """Validate a simulated cell's ``world:`` section with the simulator's schema (fakes.sim.world): a bad
+    key or value is a ConfigError naming the file and field at load time. Cells without sim drivers skip."""
+    if cfg.world is None or cfg.world == "ideal" or cfg.robot.driver != "sim":
+        return
+    from pydantic import ValidationError
+
+    from fakes.sim.world import world_config
+
+    try:
+        world_config(cfg.world)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key (typo?); see docs/world-schema.md"
+        raise ConfigError(msg, path=str(path), field=".".join(["world", *map(str, err["loc"])])) from exc
 
 
 def build_devices(

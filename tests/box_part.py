@@ -12,11 +12,13 @@ from fakes.sim.testing import small_sensor
 
 
 def small_cell() -> CellConfig:
-    """The default simulated cell with the 160x120 test sensor (same robot, hand-eye and scene)."""
+    """The default simulated cell with the 160x120 test sensor (same robot, hand-eye and scene) in the IDEAL
+    world (the simulator renders the config's geometry): the controller and resume tests check states,
+    faults and that a resumed run repeats an uninterrupted one, and judge the nominal box as passing."""
     cfg = load_cell_config(DEFAULT_CELL)
     sensor = small_sensor(bit_depth=8).model_dump()
     sensor["T_T_C"] = cfg.sensor.T_T_C.model_dump()
-    return CellConfig.model_validate({**cfg.model_dump(), "sensor": sensor})
+    return CellConfig.model_validate({**cfg.model_dump(), "sensor": sensor, "world": "ideal"})
 
 
 def write_box_recipe(folder: Path) -> Path:

@@ -117,9 +117,15 @@ def test_devices_refuse_use_before_connect_and_wrong_trigger_mode() -> None:
 
 
 def test_sim_cell_camera_follows_the_robot() -> None:
+    """In the ideal world the camera is exactly where the config's chain puts it (the honest world's
+    departures are tested in tests/test_sim_world.py)."""
     cfg = load_cell_config(DEFAULT_CELL)
     cfg = cfg.model_copy(
-        update={"sensor": small_sensor().model_copy(update={"T_T_C": cfg.sensor.T_T_C}), "sim": QUIET}
+        update={
+            "sensor": small_sensor().model_copy(update={"T_T_C": cfg.sensor.T_T_C}),
+            "sim": QUIET,
+            "world": "ideal",
+        }
     )
     T_W_B, T_T_C = cfg.robot.T_W_B.matrix(), cfg.sensor.T_T_C.matrix()
     probe = build_sim_cell(cfg, None)

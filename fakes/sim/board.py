@@ -147,7 +147,9 @@ def render_textured_board_stack(
     ``renderer.T_C_P``, its response curve and its defocus blur at the board distance). One geometry pass."""
     view = _BoardView(renderer, T_C_Bd, texture, px_per_mm)
     proj = renderer.proj
-    uv = project_points(proj, transform_points(invert(renderer.T_C_P), view.P_C)).astype(np.float32)
+    uv = project_points(
+        proj, transform_points(invert(renderer.T_C_P), view.P_C), renderer.projector_distortion
+    ).astype(np.float32)
     uv[~view.hit | ~np.isfinite(uv[..., 0])] = -1e6
     p_depth = float(np.median(transform_points(invert(renderer.T_C_P), view.P_C[view.hit])[:, 2]))
     p_sigma = float(blur_sigma_px(proj, np.array([p_depth]))[0])

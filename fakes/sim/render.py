@@ -27,6 +27,7 @@ from cell.config import SensorConfig, SimConfig
 from cell.geometry import invert, transform_points, transform_vectors
 from fakes.sim.optics import blur_sigma_px, pixel_rays, project_points
 from fakes.sim.scene import Scene
+from fakes.sim.world import value_noise
 
 # Blur levels (px) of the layered defocus model: each pixel blends the two levels around its own sigma.
 BLUR_LEVELS = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
@@ -117,8 +118,21 @@ def standard_normal_image(shape: tuple[int, ...], rng: np.random.Generator) -> N
 class SceneRenderer:
     """Renders camera images of the scene lit by the projector's pattern, for any camera pose T_W_C."""
 
-    def __init__(self, sensor: SensorConfig, sim: SimConfig, scene: Scene, cache_size: int = 3):
+    def __init__(
+        self,
+        sensor: SensorConfig,
+        sim: SimConfig,
+        scene: Scene,
+        cache_size: int = 3,
+        projector_distortion: NDArray[np.float64] | None = None,
+        microstructure_seed: int | None = None,
+    ):
+        """``sensor`` is the geometry rendered with (the world's true sensor in a simulated cell);
+        ``projector_distortion`` (OpenCV order) the projector's lens, a pinhole when None;
+        ``microstructure_seed`` turns on the materials' surface roughness and albedo texture."""
         self.sensor = sensor
+        self.projector_distortion = projector_distortion
+        self.microstructure_seed = microstructure_seed
         self.sim = sim
         self.scene = scene
         self.cam = sensor.camera
@@ -156,11 +170,15 @@ class SceneRenderer:
         idx = np.flatnonzero(hit)
         t = hits.triangle[idx]
         n = hits.normal[idx]
-        P_W = eye_W + dirs_W[idx] * hits.distance[idx, None]
+        distance = hits.distance.copy()
+        alb, spec, shin = scene.albedo[t], scene.specular[t], scene.shininess[t]
+        if self.microstructure_seed is not None:
+            distance[idx], alb = self._microstructure(eye_W, dirs_W[idx], n, t, distance[idx], alb)
+        P_W = eye_W + dirs_W[idx] * distance[idx, None]
 
         T_W_P = T_W_C @ self.T_C_P
         P_P = transform_points(invert(T_W_P), P_W)
-        uv = project_points(proj, P_P)
+        uv = project_points(proj, P_P, self.projector_distortion)
         in_frustum = (
             (P_P[:, 2] > 0)
             & np.all(uv > -0.5, axis=1)
@@ -181,7 +199,6 @@ class SceneRenderer:
         # Phong: mirror direction of the light about the normal, against the direction back to the camera
         mirror = 2 * cos_i[:, None] * n - l_dir
         cos_a = np.clip(-np.einsum("ij,ij->i", mirror, dirs_W[idx]), 0.0, 1.0)
-        alb, spec, shin = scene.albedo[t], scene.specular[t], scene.shininess[t]
         falloff = (proj.focus_distance_mm / r) ** 2
         gain = proj.irradiance_e_per_ms * falloff * (alb * np.maximum(cos_i, 0) + spec * cos_a**shin)
 
@@ -193,10 +210,10 @@ class SceneRenderer:
         lit = full(lit_sub, False, bool)
         map_uv = np.where(lit_sub[:, None], uv, _OUTSIDE)
         proj_sigma = np.where(lit_sub, blur_sigma_px(proj, P_P[:, 2]), 0.0)
-        cam_sigma = blur_sigma_px(cam, hits.distance[idx] * rays_C[idx, 2])
+        cam_sigma = blur_sigma_px(cam, distance[idx] * rays_C[idx, 2])
         return ViewGeometry(
             T_W_C=T_W_C.copy(),
-            distance=hits.distance.reshape(H, W),
+            distance=distance.reshape(H, W),
             triangle=hits.triangle.astype(np.int32).reshape(H, W),
             hit=hit.reshape(H, W),
             part=hits.is_part.reshape(H, W),
@@ -210,6 +227,32 @@ class SceneRenderer:
             camera_blur=blur_layers(full(cam_sigma, 0.0, np.float32)),
         )
 
+    def _microstructure(
+        self,
+        eye_W: NDArray[np.float64],
+        dirs_W: NDArray[np.float64],
+        normals_W: NDArray[np.float64],
+        triangle: NDArray[np.int64],
+        distance: NDArray[np.float64],
+        albedo: NDArray[np.float32],
+    ) -> tuple[NDArray[np.float64], NDArray[np.float32]]:
+        """Hit distances and albedos of a rough, textured surface: the surface is raised by a smooth random
+        height field (std ``roughness_um``, lateral scale ``grain_mm`` of the triangle's material) along its
+        normal, so the ray meets it earlier by h / cos(incidence); the albedo varies by ``albedo_texture``.
+        Both fields are functions of the world position: every view sees the same surface."""
+        scene, seed = self.scene, int(self.microstructure_seed or 0)
+        points = eye_W + dirs_W * distance[:, None]
+        height = np.zeros(len(points))
+        texture = np.zeros(len(points))
+        for grain in np.unique(scene.grain_mm[triangle]):
+            sel = scene.grain_mm[triangle] == grain
+            height[sel] = value_noise(points[sel], float(grain), seed)
+            texture[sel] = value_noise(points[sel], float(grain), seed + 1)
+        height *= scene.roughness_um[triangle] * 1e-3
+        cos = np.maximum(-np.einsum("ij,ij->i", normals_W, dirs_W), 0.1)  # normals face the camera
+        albedo = np.clip(albedo * (1.0 + scene.albedo_texture[triangle] * texture), 0.0, 1.0)
+        return distance - height / cos, albedo.astype(np.float32)
+
     def ground_truth(self, T_W_C: NDArray[np.float64]) -> GroundTruth:
         """Per-pixel hit points, normals, masks and projector coordinates of pose T_W_C (float64)."""
         v = self.view(T_W_C)
@@ -221,7 +264,7 @@ class SceneRenderer:
         flip = np.einsum("ijk,ijk->ij", n, dirs_W) > 0
         normals_W = np.where(v.hit[..., None], np.where(flip[..., None], -n, n), np.nan)
         P_P = transform_points(invert(v.T_W_C @ self.T_C_P), points_W)
-        uv = project_points(self.proj, P_P)
+        uv = project_points(self.proj, P_P, self.projector_distortion)
         uv[~v.in_frustum] = np.nan
         return GroundTruth(points_W, points_C, normals_W, v.hit, v.part, v.lit, uv)
 

@@ -43,6 +43,9 @@ class Scene:
         albedo: NDArray[np.float64],
         specular: NDArray[np.float64],
         shininess: NDArray[np.float64],
+        roughness_um: NDArray[np.float64] | None = None,
+        grain_mm: NDArray[np.float64] | None = None,
+        albedo_texture: NDArray[np.float64] | None = None,
     ):
         self.vertices = np.ascontiguousarray(vertices_W, dtype=np.float64)
         self.faces = np.ascontiguousarray(faces, dtype=np.int64)
@@ -50,6 +53,11 @@ class Scene:
         self.albedo = np.asarray(albedo, dtype=np.float32)
         self.specular = np.asarray(specular, dtype=np.float32)
         self.shininess = np.asarray(shininess, dtype=np.float32)
+        n = len(self.faces)
+        # surface microstructure per triangle (rendered only when the renderer is given a world seed for it)
+        self.roughness_um = np.zeros(n) if roughness_um is None else np.asarray(roughness_um, float)
+        self.grain_mm = np.ones(n) if grain_mm is None else np.asarray(grain_mm, float)
+        self.albedo_texture = np.zeros(n) if albedo_texture is None else np.asarray(albedo_texture, float)
         self._caster = RayCaster(self.vertices, self.faces, what="scene")
         self.face_normals = self._caster.face_normals
         self.scale_mm = float(np.linalg.norm(self.vertices.max(axis=0) - self.vertices.min(axis=0)))
@@ -78,6 +86,9 @@ class Scene:
             np.array([m.albedo for m in mats]),
             np.array([m.specular for m in mats]),
             np.array([m.shininess for m in mats]),
+            np.array([m.roughness_um for m in mats]),
+            np.array([m.grain_mm for m in mats]),
+            np.array([m.albedo_texture for m in mats]),
         )
 
     def cast(self, origins: NDArray[np.float64], dirs: NDArray[np.float64]) -> Hits:
