@@ -91,6 +91,8 @@ class SimBoardStage:
                 base.sensor,
                 base.sim,
                 Scene.from_meshes(mesh.copy().apply_transform(actual), base.sim, material),
+                projector_distortion=base.projector_distortion,
+                microstructure_seed=base.microstructure_seed,
             )
         self.sim.camera.renderer = renderer
         self.placed = (board, actual)

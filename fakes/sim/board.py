@@ -286,7 +286,7 @@ class TexturedBoardRenderer:
         if self._view is None or self._view[0] != key:
             view = _BoardView(self.base, invert(T_W_C) @ self.T_W_Bd, self.texture, self.px_per_mm)
             P_P = transform_points(invert(self.T_C_P), view.P_C)
-            uv = project_points(self.proj, P_P).astype(np.float32)
+            uv = project_points(self.proj, P_P, self.base.projector_distortion).astype(np.float32)
             uv[~view.hit | ~np.isfinite(uv[..., 0])] = -1e6
             depth = float(np.median(P_P[view.hit][:, 2])) if view.hit.any() else self.proj.focus_distance_mm
             self._view = (key, view, uv, float(blur_sigma_px(self.proj, np.array([depth]))[0]))
