@@ -60,7 +60,8 @@ class SimBoardStage:
         if float(np.hypot(p[0], p[1])) > self.reach_xy_mm:
             raise DeviceFault(
                 self.name,
-                f"cannot reach {np.hypot(p[0], p[1]):.0f} mm from its station (reach {self.reach_xy_mm:g} mm)",
+                f"cannot reach {np.hypot(p[0], p[1]):.0f} mm from its station "
+                f"(reach {self.reach_xy_mm:g} mm)",
             )
 
     def place(self, board: CalibrationBoard, T_W_Bd: NDArray[np.float64]) -> None:

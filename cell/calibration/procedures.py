@@ -1,8 +1,9 @@
 """The technician's calibration routines as controller jobs over the device contracts.
 
-Each routine is a :class:`cell.controller.Job`: ``plan`` lists the views (robot flange pose ``T_B_T`` and, where
-a target must be placed, the target and its requested pose ``T_W_Bd`` for the :class:`BoardStage`); ``capture``
-places the target and grabs the pattern stack through the camera and projector contracts; ``decode`` detects or
+Each routine is a :class:`cell.controller.Job`: ``plan`` lists the views (robot flange pose ``T_B_T`` and,
+where a target must be placed, the target and its requested pose ``T_W_Bd`` for the :class:`BoardStage`);
+``capture`` places the target and grabs the pattern stack through the camera and projector contracts;
+``decode`` detects or
 decodes one view into its view folder; ``register`` fits the calibration from the view folders and saves it;
 ``report`` writes ``calibration.json``. The controller gives them what an inspection has: state machine,
 journal, checkpoints, pause and resume (a killed routine continues from the last view).
@@ -98,7 +99,8 @@ def charuco_poses(
     max_tilt_deg: float = 30.0,
     spread_mm: float = 25.0,
 ) -> list[Pose]:
-    """``n`` poses ``T_C_Bd`` of a ChArUco board for intrinsics: centre near the optical axis at ``distance_mm``
+    """``n`` poses ``T_C_Bd`` of a ChArUco board for intrinsics: centre near the optical axis at
+    ``distance_mm``
     (+-10 %), shifted up to ``spread_mm`` sideways, tilted up to ``max_tilt_deg`` about a random in-plane axis
     and turned up to +-20 deg about its normal."""
     nx, ny = board.squares
@@ -242,7 +244,8 @@ class JointMotion:
     """Moves between calibration views: up to a safe height above the current flange position (a linear
     move), then a joint move to the IK solution of the target nearest the current joints (a calibration
     station has no part to plan around; linear moves between the views' tilted poses cross wrist
-    singularities). The controller asks it through the same ``plan`` call as the inspection's MotionPlanner."""
+    singularities). The controller asks it through the same ``plan`` call as the inspection's
+    MotionPlanner."""
 
     def __init__(self, kin: Any, lift_to_z_B_mm: float | None = None) -> None:
         self.kin = kin

@@ -1,6 +1,6 @@
-"""The routines (intrinsics, projector, gamma, sensor, hand-eye from board poses, hand-eye by ICP of gauge scans,
-validation) as :class:`cell.calibration.procedures.CalibrationJob` subclasses, the runner that puts one under
-the controller, and ``calibrate_all`` that chains them into one calibration folder."""
+"""The routines (intrinsics, projector, gamma, sensor, hand-eye from board poses, hand-eye by ICP of gauge
+scans, validation) as :class:`cell.calibration.procedures.CalibrationJob` subclasses, the runner that puts
+one under the controller, and ``calibrate_all`` that chains them into one calibration folder."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ from cell.calibration.procedures import (
 )
 from cell.calibration.projector import calibrate_projector, corners_in_projector
 from cell.calibration.store import load_calibration, save_calibration
-from cell.calibration.validation import fit_plane, sphere_test
+from cell.calibration.validation import fit_plane, flat_test, sphere_test
 from cell.config import CellConfig, load_cell_config
 from cell.controller import Controller, ControllerSettings
 from cell.devices import build_devices
@@ -45,6 +45,7 @@ from cell.planning.kinematics import UR5E
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import decode
 from cell.sensing.patterns import PatternSet, gcls_patterns, gcps_patterns
+from cell.sensing.triangulate import ReferencePlaneTriangulator
 
 
 def _board_not_found(view: dict[str, Any], index: int | str) -> CalibrationError:
@@ -245,7 +246,8 @@ class GammaJob(_FlatBoardJob):
 
 
 class SensorJob(_FlatBoardJob):
-    """Per-pixel d, S, alpha (dissertation 2.2, 5.1.1): the stage steps the white board ``steps`` x ``step_mm``
+    """Per-pixel d, S, alpha (dissertation 2.2, 5.1.1): the stage steps the white board ``steps`` x
+    ``step_mm``
     toward the sensor; GCLS in both directions at every step."""
 
     kind, file_stem = "sensor_per_pixel", "sensor"
@@ -289,7 +291,8 @@ class SensorJob(_FlatBoardJob):
                 "columns": SimpleNamespace(u=d["u"].astype(np.float64)),
                 "rows": SimpleNamespace(u=d["v"].astype(np.float64)),
             }
-            found = cal.add_step(float(views[i]["height_mm"]), SimpleNamespace(axes=axes))  # type: ignore[arg-type]
+            decoded = SimpleNamespace(axes=axes)  # the u, v maps are all add_step reads
+            found = cal.add_step(float(views[i]["height_mm"]), decoded)  # type: ignore[arg-type]
             run.log("step", index=i, height_mm=views[i]["height_mm"], encoded_points=found)
         res = cal.finish()
         path = save_sensor_calibration(
@@ -422,7 +425,8 @@ class HandEyeIcpJob(CalibrationJob):
         for i, s in self.view_summaries(run):
             p_C, T_B_T = _load_view(run, i)["points_C"], np.asarray(s["T_B_T"])
             # the table the gauge stands on is no part of its CAD: leave out what the mounting drawing puts
-            # within table_margin_mm of the table plane (a 0.4 deg hand-eye error moves points ~3 mm at 400 mm)
+            # within table_margin_mm of the table plane (a 0.4 deg hand-eye error moves points ~3 mm at
+            # 400 mm)
             z_W = transform_points(T_W_B @ T_B_T @ start, p_C)[:, 2]
             scans.append(GaugeView(p_C[z_W > self.station.xyz_W[2] + self.table_margin_mm], T_B_T))
         gauge = NominalMesh.from_trimesh(load_mesh(GAUGE_PATH))
@@ -454,8 +458,8 @@ GAUGE_PATH = Path(GAUGE.mesh_path or "")
 
 # --------------------------------------------------------------------------------------------- validation
 class ValidateJob(_FlatBoardJob):
-    """Flat board at ``height_mm`` on the stage and a sphere of ``sphere_radius_mm`` on a post, measured with the
-    cell's active calibration in the world frame (robot pose and hand-eye): plane height error against the
+    """Flat board at ``height_mm`` on the stage and a sphere of ``sphere_radius_mm`` on a post, measured with
+    the cell's active calibration in the world frame (robot pose and hand-eye): plane height error against the
     stage, plane residual, sphere radius error and fit residual."""
 
     kind, file_stem = "validation", "validation"
@@ -491,17 +495,24 @@ class ValidateJob(_FlatBoardJob):
 
     def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         dec = decode(captured["images"], self.patterns(view), self.cfg.sensor.camera.bit_depth)
-        cloud = active_triangulator(self.cfg).triangulate(dec)
+        model = active_triangulator(self.cfg)
+        cloud = model.triangulate(dec)
         T_W_C = self.cfg.robot.T_W_B.matrix() @ np.asarray(captured["T_B_T"]) @ active_hand_eye(self.cfg)
         pts = transform_points(T_W_C, cloud.points_C[cloud.valid])
         _save_view(out_dir, points_W=pts[::4])
-        return {"points": int(len(pts))}
+        summary: dict[str, Any] = {"points": int(len(pts))}
+        if view["test"] == "plane" and isinstance(model, ReferencePlaneTriangulator):
+            # Table 5.1's flat test: heights above the per-pixel model's reference plane (sensor frame only)
+            summary["flat"] = flat_test(cloud, model.res_mm, float(view["height_mm"]))
+        return summary
 
     def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
         out: dict[str, Any] = {"points": 0}
-        for i, _ in self.view_summaries(run):
+        for i, summary in self.view_summaries(run):
             v, pts = views[i], _load_view(run, i)["points_W"]
             out["points"] += len(pts)
+            if "flat" in summary:
+                out["flat"] = summary["flat"]
             if v["test"] == "plane":
                 z = np.asarray(v["T_W_Bd"])[2, 3]
                 on = pts[np.abs(pts[:, 2] - z) < 5.0]
@@ -571,7 +582,8 @@ def run_routine(
     state = controller.execute(resume=resume)
     if state != "done":
         raise CalibrationError(
-            f"{job.kind} routine ended '{state}': {controller.message} (run folder {run.path}; run it again to resume)"
+            f"{job.kind} routine ended '{state}': {controller.message} (run folder {run.path}; run it "
+            "again to resume)"
         )
     name = "validation.json" if job.kind == "validation" else "calibration.json"
     return json.loads((run.path / name).read_text())
@@ -595,8 +607,9 @@ def calibrate_all(
     seed: int = 1,
     say: Callable[[str], None] = print,
 ) -> tuple[Path, dict[str, Any]]:
-    """Chain the routines into ``out``: intrinsics -> projector -> hand-eye from board poses -> hand-eye by ICP
-    of gauge scans (from the mounting drawing) -> [per-pixel sensor] -> validation, each in ``out/<step>/`` and
+    """Chain the routines into ``out``: intrinsics -> projector -> hand-eye from board poses -> hand-eye by
+    ICP of gauge scans (from the mounting drawing) -> [per-pixel sensor] -> validation, each in
+    ``out/<step>/`` and
     each using the calibrations before it. Writes ``out/cell.yaml`` (the cell config with its ``calibration:``
     section pointing at the new files) and ``out/calibration.json``; returns (the cell file, the summary)."""
     cfg = load_cell_config(cell)
@@ -604,7 +617,7 @@ def calibrate_all(
     out.mkdir(parents=True, exist_ok=True)
     steps: list[tuple[str, Callable[[CellConfig], CalibrationJob]]] = [
         ("intrinsics", lambda c: IntrinsicsJob(c, seed=seed)),
-        ("projector", lambda c: ProjectorJob(c, seed=seed)),
+        ("projector", lambda c: ProjectorJob(c, views=12, seed=seed)),
         ("handeye-board", lambda c: HandEyeBoardJob(c, seed=seed)),
         ("handeye", lambda c: HandEyeIcpJob(c, seed=seed)),
     ]
@@ -624,5 +637,43 @@ def calibrate_all(
     cell_out = out / "cell.yaml"
     cell_out.write_text(yaml.safe_dump(data, sort_keys=False))
     load_cell_config(cell_out)  # the written config must load
-    write_json_atomic(out / "calibration.json", {"cell": str(cell_out), "steps": summary})
+    write_json_atomic(
+        out / "calibration.json", {"cell": str(cell_out), "source_sha256": _digest(cell), "steps": summary}
+    )
     return cell_out, summary
+
+
+def _digest(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def valid_calibration(cell: Path, folder: Path) -> Path | None:
+    """``folder/cell.yaml`` when ``folder`` holds a finished `cell calibrate all` of exactly this ``cell``
+    file (same content) whose calibrated config loads; else None."""
+    summary, cell_out = Path(folder) / "calibration.json", Path(folder) / "cell.yaml"
+    if not (summary.exists() and cell_out.exists()):
+        return None
+    if json.loads(summary.read_text()).get("source_sha256") != _digest(cell):
+        return None
+    try:
+        load_cell_config(cell_out)
+    except Exception:  # a calibration file moved or was damaged: calibrate again
+        return None
+    return cell_out
+
+
+def ensure_calibration(cell: Path, folder: Path, say: Callable[[str], None] = print) -> Path:
+    """The calibrated config of ``cell`` from ``folder``, running `cell calibrate all` there first when it
+    holds no valid calibration of it (said through ``say``)."""
+    found = valid_calibration(cell, folder)
+    if found is not None:
+        say(f"using the calibration in {folder} (made for {cell})")
+        return found
+    say(
+        f"no valid calibration of {cell} in {folder}: running `cell calibrate all` there first "
+        "(a few minutes)"
+    )
+    cell_out, _ = calibrate_all(cell, folder, say=say)
+    return cell_out

@@ -150,9 +150,12 @@ def validate_cmd(
     """Flat board at HEIGHT_MM and a sphere of known radius on the stage, measured with the cell's active
     calibration (or CALIBRATION): plane height error and residual, sphere radius error and residual."""
     from cell.calibration.routines import ValidateJob
+    from cell.errors import ConfigError
 
     cfg = load_cell_config(cell)
     if calibration is not None:
+        if not calibration.is_file():
+            raise ConfigError("sensor calibration file not found; check the path", path=str(calibration))
         cfg.calibration.sensor = calibration.resolve()
     job = ValidateJob(cfg, height_mm=height_mm, sphere_radius_mm=sphere_radius_mm, seed=seed)
     _run(job, out, cell, seed)
