@@ -7,6 +7,7 @@ kinematics); the binned camera (sim_binned.yaml with that world) keeps the ICP t
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -119,3 +120,18 @@ def test_icp_of_gauge_scans_from_the_mounting_drawing_recovers_the_hand_eye(tmp_
     _, arrays = load_calibration(Path(r["file"]), "hand_eye")
     dt, dr = pose_error(arrays["T_T_C"], truth.T_T_C.matrix())
     assert dt < 0.6 and dr < 0.06  # from 1.5 mm / 0.4 deg; the pinhole model ignores the projector's lens
+
+
+def test_demo_reuses_a_calibration_only_of_the_same_cell_file(tmp_path):
+    from cell.calibration.routines import _digest, valid_calibration
+
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(DEFAULT_CELL.read_text())
+    folder = tmp_path / "calibration"
+    folder.mkdir()
+    assert valid_calibration(cell, folder) is None  # nothing there
+    (folder / "cell.yaml").write_text(DEFAULT_CELL.read_text())
+    (folder / "calibration.json").write_text(json.dumps({"source_sha256": _digest(cell)}))
+    assert valid_calibration(cell, folder) == folder / "cell.yaml"
+    cell.write_text(DEFAULT_CELL.read_text() + "\n# edited\n")  # the cell changed: calibrate again
+    assert valid_calibration(cell, folder) is None

@@ -112,6 +112,9 @@ def _copy_cell_with_calibration(run: RunFolder, cell_path: Path, cfg: Any) -> st
             shutil.copytree(source, dest)
         else:
             shutil.copy2(source, dest)
+            arrays = source.with_suffix(".npz")  # a calibration's YAML names its arrays file beside it
+            if arrays.is_file():
+                shutil.copy2(arrays, dest.with_suffix(".npz"))
         data.setdefault("calibration", {})[field] = str(dest.relative_to(run.path / "inputs"))
     write_atomic(run.path / "inputs" / "cell.yaml", yaml.safe_dump(data, sort_keys=False).encode())
     return "cell.yaml"
