@@ -79,6 +79,7 @@ def test_a_pose_where_the_board_is_not_found_is_one_clear_error(tmp_path):
         run_routine(EdgeOn(cfg, views=1), tmp_path / "edge", DEFAULT_CELL)
 
 
+@pytest.mark.slow
 def test_intrinsics_projector_and_board_hand_eye_recover_the_world(tmp_path):
     cfg = load_cell_config(DEFAULT_CELL)
     truth = build_world(cfg).sensor
@@ -89,7 +90,7 @@ def test_intrinsics_projector_and_board_hand_eye_recover_the_world(tmp_path):
     assert np.hypot(K[0, 2] - truth.camera.cx_px, K[1, 2] - truth.camera.cy_px) < 1.5
     cfg.calibration.intrinsics = Path(r["file"])
 
-    r = run_routine(ProjectorJob(cfg, views=8), tmp_path / "projector", DEFAULT_CELL)
+    r = run_routine(ProjectorJob(cfg, views=6), tmp_path / "projector", DEFAULT_CELL)
     Kp = np.asarray(r["summary"]["K"])
     assert abs(Kp[0, 0] / truth.projector.fx_px - 1) < 0.003
     cfg.calibration.projector = Path(r["file"])
@@ -106,6 +107,7 @@ def test_intrinsics_projector_and_board_hand_eye_recover_the_world(tmp_path):
     assert '"state": "done"' in journal and '"device": "board-stage"' in journal
 
 
+@pytest.mark.slow
 def test_icp_of_gauge_scans_from_the_mounting_drawing_recovers_the_hand_eye(tmp_path, honest_binned):
     cfg = load_cell_config(honest_binned)
     truth = build_world(cfg).sensor
