@@ -499,7 +499,7 @@ class ValidateJob(_FlatBoardJob):
         cloud = model.triangulate(dec)
         T_W_C = self.cfg.robot.T_W_B.matrix() @ np.asarray(captured["T_B_T"]) @ active_hand_eye(self.cfg)
         pts = transform_points(T_W_C, cloud.points_C[cloud.valid])
-        _save_view(out_dir, points_W=pts[::4])
+        _save_view(out_dir, points_W=pts[:: 4 if view["test"] == "plane" else 1])
         summary: dict[str, Any] = {"points": int(len(pts))}
         if view["test"] == "plane" and isinstance(model, ReferencePlaneTriangulator):
             # Table 5.1's flat test: heights above the per-pixel model's reference plane (sensor frame only)
