@@ -357,3 +357,55 @@ def frames_by_id(camera: Camera, count: int, timeout_ms: float) -> list[Frame | 
             raise DeviceProtocolError(camera.name, f"frame id {f.frame_id} beyond the sequence of {count}")
         out[k] = f
     return out
+
+
+# --------------------------------------------------------------------------------------------- board stage
+class BoardKind(StrEnum):
+    """What a calibration target is: a flat white board, a printed ChArUco board, or a solid artefact (gauge,
+    sphere) given by its mesh."""
+
+    FLAT = "flat"
+    CHARUCO = "charuco"
+    MESH = "mesh"
+
+
+@dataclass(frozen=True)
+class CalibrationBoard:
+    """A calibration target and its frame {Bd} (mm).
+
+    FLAT: the top face is the plane z = 0 of {Bd}, centred on its origin, ``size_mm`` wide. CHARUCO: the
+    printed face is z = 0, origin at the print's top-left corner, x right and y down along the print (OpenCV's
+    board frame); ``squares``, ``square_mm``, ``marker_mm`` and the ArUco ``dictionary`` name describe it.
+    MESH: ``mesh_path`` is the artefact's STL in its own frame {Bd} (its mounting drawing)."""
+
+    name: str
+    kind: BoardKind
+    size_mm: tuple[float, float] = (600.0, 450.0)
+    squares: tuple[int, int] = (11, 8)
+    square_mm: float = 15.0
+    marker_mm: float = 11.0
+    dictionary: str = "DICT_5X5_100"
+    mesh_path: str | None = None
+
+
+@runtime_checkable
+class BoardStage(Protocol):
+    """Whatever puts a calibration target where a routine needs it: a motorised (linear or multi-axis) stage,
+    or the operator asked on the console to place the target and confirm. Poses are ``T_W_Bd`` (target
+    frame in the world, mm): the routine's request; where the target really ends up is for the routine to
+    measure, never to assume beyond the stage's accuracy."""
+
+    name: str
+
+    def connect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def place(self, board: CalibrationBoard, T_W_Bd: NDArray[np.float64]) -> None:
+        """Put ``board`` at ``T_W_Bd``; blocks until it is there. Raises DeviceFault naming the stage when the
+        pose is outside its travel (e.g. a height it does not reach) or the operator declines."""
+        ...
+
+    def clear(self) -> None:
+        """Take the target out of the sensor's view."""
+        ...

@@ -15,7 +15,7 @@ from typing import Any
 import trimesh
 
 from cell.config import CellConfig, MaterialConfig
-from cell.contracts import Camera, Projector, Robot
+from cell.contracts import BoardStage, Camera, Projector, Robot
 from cell.errors import ConfigError
 
 # (device kind, driver name) -> "module:Class". Sim devices are not listed: they share one simulated world
@@ -41,10 +41,16 @@ class DeviceBundle:
     projector: Projector
     sim: Any | None = None
     names: dict[str, str] = field(default_factory=dict)
+    stage: BoardStage | None = None  # calibration targets (cell calibrate); None for inspections
 
     def items(self) -> list[tuple[str, Any]]:
         """(kind, device) pairs in connection order."""
-        return [("robot", self.robot), ("projector", self.projector), ("camera", self.camera)]
+        kinds: list[tuple[str, Any]] = [
+            ("robot", self.robot),
+            ("projector", self.projector),
+            ("camera", self.camera),
+        ]
+        return kinds + ([("stage", self.stage)] if self.stage is not None else [])
 
 
 def _import_driver(kind: str, driver: str, where: str) -> type:
@@ -88,9 +94,11 @@ def build_devices(
     part_W: trimesh.Trimesh | None = None,
     part_material: MaterialConfig | None = None,
     seed: int | None = None,
+    with_stage: bool = False,
 ) -> DeviceBundle:
     """Devices for ``cfg``. ``part_W`` (world coordinates, mm) is what a simulated cell renders; real
-    cells ignore it."""
+    cells ignore it. ``with_stage`` adds the board stage the calibration routines need: a simulated motorised
+    stage on a simulated cell, else the operator, asked on the console to place each target and confirm."""
     drivers = {
         "robot": cfg.robot.driver,
         "camera": cfg.sensor.camera.driver,
@@ -112,10 +120,24 @@ def build_devices(
         from fakes.sim_cell import build_sim_cell
 
         sim = build_sim_cell(cfg, part_W, part_material=part_material, seed=seed)
-        return DeviceBundle(robot=sim.robot, camera=sim.camera, projector=sim.projector, sim=sim, names=names)
+        stage = None
+        if with_stage:
+            from fakes.stage import SimBoardStage
+
+            stage = SimBoardStage(sim)
+            names["stage"] = stage.name
+        return DeviceBundle(
+            robot=sim.robot, camera=sim.camera, projector=sim.projector, sim=sim, names=names, stage=stage
+        )
     robot = _import_driver("robot", cfg.robot.driver, "robot.driver")(cfg.robot)
     camera = _import_driver("camera", cfg.sensor.camera.driver, "sensor.camera.driver")(cfg.sensor.camera)
     projector = _import_driver("projector", cfg.sensor.projector.driver, "sensor.projector.driver")(
         cfg.sensor.projector
     )
-    return DeviceBundle(robot=robot, camera=camera, projector=projector, names=names)
+    stage = None
+    if with_stage:
+        from cell.calibration.operator_stage import OperatorBoardStage
+
+        stage = OperatorBoardStage()
+        names["stage"] = stage.name
+    return DeviceBundle(robot=robot, camera=camera, projector=projector, names=names, stage=stage)

@@ -24,16 +24,23 @@ HEIGHT_MM = 25.0  # plane above the reference plane
 @pytest.fixture(scope="module")
 def configs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("active")
-    main(["calibrate", "intrinsics", "--out", str(tmp / "intr"), "--views", "8"])
-    intr = tmp / "intr" / "intrinsics.yaml"
-    main(["calibrate", "projector", "--out", str(tmp / "proj"), "--views", "6", "--intrinsics", str(intr)])
+    # the prototype with world: ideal, so that its config is the truth the wrong config is compared with
     data = yaml.safe_load(DEFAULT_CELL.read_text())
+    data["world"] = "ideal"
+    ideal = tmp / "ideal.yaml"
+    ideal.write_text(yaml.safe_dump(data))
+    main(["calibrate", "intrinsics", "--cell", str(ideal), "--out", str(tmp / "intr"), "--views", "8"])
+    intr = tmp / "intr" / "intrinsics.yaml"
+    main(
+        ["calibrate", "projector", "--cell", str(ideal), "--out", str(tmp / "proj"), "--views", "6"]
+        + ["--intrinsics", str(intr)]
+    )
     data["sensor"]["camera"]["fx_px"] *= 1.01
     data["sensor"]["projector"]["T_C_P"]["xyz_mm"][0] += 2.0
     (tmp / "wrong.yaml").write_text(yaml.safe_dump(data))
     data["calibration"] = {"intrinsics": str(intr), "projector": str(tmp / "proj" / "projector.yaml")}
     (tmp / "calibrated.yaml").write_text(yaml.safe_dump(data))
-    return load_cell_config(DEFAULT_CELL), load_cell_config(tmp / "wrong.yaml"), tmp / "calibrated.yaml"
+    return load_cell_config(ideal), load_cell_config(tmp / "wrong.yaml"), tmp / "calibrated.yaml"
 
 
 @pytest.mark.slow

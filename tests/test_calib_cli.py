@@ -161,11 +161,11 @@ def test_validate_command_plane_sphere_and_slots(tmp_path, small_cell):
     v = tmp_path / "val"
     main(["calibrate", "validate", str(out / "sensor.yaml"), "--cell", str(small_cell), "--out", str(v)])
     summary = json.loads((v / "validation.json").read_text())["summary"]
-    # the small rig (1 px/mm) against the scene's true sphere and plane; its decoding limits it to ~0.2 mm on
-    # a sphere (tests/test_calib_sensor.py::test_sphere_test compares with the true geometry)
+    # the small rig (1 px/mm), its lenses, projector pose and hand-eye off as sim.yaml's world puts them; its
+    # decoding limits it to ~0.2 mm on a sphere (tests/test_calib_sensor.py::test_sphere_test). The centre and
+    # plane height are in the world frame through the uncalibrated hand-eye, so they are not asserted here.
     sphere = summary["sphere"]
     assert sphere["true_radius_mm"] == 12.5 and sphere["points"] > 300
-    assert (
-        abs(sphere["radius_error_mm"]) < 0.3 and sphere["std_mm"] < 0.15 and sphere["centre_offset_mm"] < 0.4
-    )
-    assert summary["plane"]["std_mm"] < 0.05 and abs(summary["flat"]["mean_mm"]) < 0.02
+    assert abs(sphere["radius_error_mm"]) < 0.3 and sphere["std_mm"] < 0.15
+    # 0.03 (was 0.02 in the ideal world): the camera lens here is the config's, 0.5 % off the world's
+    assert summary["plane"]["std_mm"] < 0.05 and abs(summary["flat"]["mean_mm"]) < 0.03

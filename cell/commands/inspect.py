@@ -129,6 +129,9 @@ def _copy_cell_with_calibration(run: RunFolder, cell_path: Path, cfg: Any) -> st
             shutil.copytree(source, dest)
         else:
             shutil.copy2(source, dest)
+            arrays = source.with_suffix(".npz")  # a calibration's YAML names its arrays file beside it
+            if arrays.is_file():
+                shutil.copy2(arrays, dest.with_suffix(".npz"))
         data.setdefault("calibration", {})[field] = str(dest.relative_to(run.path / "inputs"))
     write_atomic(run.path / "inputs" / "cell.yaml", yaml.safe_dump(data, sort_keys=False).encode())
     return "cell.yaml"
@@ -319,13 +322,23 @@ def register(app: typer.Typer) -> None:
             REPO / "runs", "--runs", help="runs root; each demo makes a new run folder"
         ),
     ) -> None:
-        """A full simulated inspection of the demo pillar (with its dented actual), ending in a report."""
+        """A full simulated inspection of the demo pillar (with its dented actual), ending in a report. The
+        simulated cell differs from its config (its world: section), so the demo first calibrates it with
+        `cell calibrate all` into RUNS/calibration-<cell> unless a valid calibration is there, and inspects
+        with that calibration (the report names its files)."""
+        from cell.calibration.routines import ensure_calibration
+
         recipe = load_recipe(DEMO_RECIPE)
         part = recipe.name or recipe.part.cad.stem
+        cell = ensure_calibration(
+            DEFAULT_CELL,
+            runs / f"calibration-{DEFAULT_CELL.stem}",
+            say=lambda m: console.print(m, highlight=False),
+        )
         out = runs / f"demo-{part}-{time.strftime('%Y%m%d-%H%M%S')}"
         console.print(
             f"simulated inspection of {DEMO_RECIPE.relative_to(REPO)} (actual part: "
-            f"{recipe.part.actual.name if recipe.part.actual else 'nominal'}) -> {out}"
+            f"{recipe.part.actual.name if recipe.part.actual else 'nominal'}) with {cell} -> {out}"
         )
-        run = _start_run(DEMO_RECIPE, DEFAULT_CELL, out, None)
+        run = _start_run(DEMO_RECIPE, cell, out, None)
         _execute(run, resume=False)

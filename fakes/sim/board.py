@@ -263,3 +263,87 @@ def board_poses(
         T[:3, 3] = c_C - R @ centre_Bd
         out.append(T)
     return out
+
+
+class TexturedBoardRenderer:
+    """A stand-in for :class:`SceneRenderer` (same ``render`` call) that shows a textured board at a fixed
+    world pose ``T_W_Bd`` lit by whatever the projector emits: what a simulated camera sees while a board
+    stage holds a ChArUco board in front of it. ``base`` gives the true optics (camera, projector, T_C_P), the
+    noise model and the scene around the board (pixels whose ray misses the board see ``base``'s scene)."""
+
+    def __init__(
+        self, base: SceneRenderer, T_W_Bd: NDArray[np.float64], texture: NDArray[np.float32], px_per_mm: float
+    ) -> None:
+        self.base = base
+        self.sensor, self.sim, self.cam, self.proj = base.sensor, base.sim, base.cam, base.proj
+        self.T_C_P = base.T_C_P
+        self.T_W_Bd = np.asarray(T_W_Bd, dtype=np.float64)
+        self.texture, self.px_per_mm = texture, px_per_mm
+        self._view: tuple[bytes, _BoardView, NDArray[np.float32], float] | None = None
+        self._on_board: NDArray[np.bool_] = np.zeros(0, bool)
+
+    def _geometry(self, T_W_C: NDArray[np.float64]) -> tuple[_BoardView, NDArray[np.float32], float]:
+        key = np.asarray(T_W_C, dtype=np.float64).tobytes()
+        if self._view is None or self._view[0] != key:
+            view = _BoardView(self.base, invert(T_W_C) @ self.T_W_Bd, self.texture, self.px_per_mm)
+            P_P = transform_points(invert(self.T_C_P), view.P_C)
+            uv = project_points(self.proj, P_P, self.base.projector_distortion).astype(np.float32)
+            uv[~view.hit | ~np.isfinite(uv[..., 0])] = -1e6
+            depth = float(np.median(P_P[view.hit][:, 2])) if view.hit.any() else self.proj.focus_distance_mm
+            # the board plane is infinite in _BoardView; the board itself ends at the texture's edges
+            T_Bd_C = invert(invert(T_W_C) @ self.T_W_Bd)
+            P = transform_points(T_Bd_C, view.P_C)
+            h, w = self.texture.shape
+            on = view.hit & (P[..., 0] >= 0) & (P[..., 1] >= 0)
+            on &= (P[..., 0] <= w / self.px_per_mm) & (P[..., 1] <= h / self.px_per_mm)
+            self._on_board = on
+            self._view = (key, view, uv, float(blur_sigma_px(self.proj, np.array([depth]))[0]))
+        return self._view[1], self._view[2], self._view[3]
+
+    def render(
+        self,
+        T_W_C: NDArray[np.float64],
+        pattern: NDArray[np.uint8],
+        exposure_ms: float,
+        gain_db: float,
+        rng: np.random.Generator | None,
+        bit_depth: int | None = None,
+    ) -> NDArray[np.integer]:
+        """One camera image of the board lit by projector image ``pattern`` (its response curve and
+        defocus)."""
+        view, uv, p_sigma = self._geometry(T_W_C)
+        proj = self.proj
+        lut = (proj.black_level + (1 - proj.black_level) * (np.arange(256) / 255.0) ** proj.gamma).astype(
+            np.float32
+        )
+        lin = lut[np.asarray(pattern)]
+        if p_sigma > 0.3:
+            lin = cv2.GaussianBlur(lin, (0, 0), p_sigma, borderType=cv2.BORDER_REPLICATE)
+        lit = cv2.remap(
+            lin,
+            uv[..., 0],
+            uv[..., 1],
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=float(proj.black_level),
+        )
+        rate = view.albedo * (self.sim.ambient_e_per_ms + view.proj_rate * lit)
+        signal = (rate * np.float32(exposure_ms)).astype(np.float32)
+        sigma = float(blur_sigma_px(self.cam, np.array([view.depth]))[0])
+        if sigma > 0.3:
+            signal = cv2.GaussianBlur(signal, (0, 0), sigma)
+        # around the board the camera sees the rest of the scene (the table)
+        behind = self.base.signal_e(T_W_C, pattern, exposure_ms)
+        signal = np.where(self._on_board, signal, behind).astype(np.float32)
+        return self.base.sensor_dn(signal, gain_db, rng, bit_depth)
+
+    def render_stack(
+        self,
+        T_W_C: NDArray[np.float64],
+        patterns: Sequence[NDArray[np.uint8]],
+        exposure_ms: float,
+        gain_db: float,
+        rng: np.random.Generator | None,
+        bit_depth: int | None = None,
+    ) -> NDArray[np.integer]:
+        return np.stack([self.render(T_W_C, p, exposure_ms, gain_db, rng, bit_depth) for p in patterns])

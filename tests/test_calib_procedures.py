@@ -1,0 +1,139 @@
+"""The calibration routines as controller jobs over the device contracts (issue 12, Deliver 2).
+
+The routines see the simulated world only through the camera, projector, robot and board stage; these tests
+compare what they recover with the world's truth (fakes.sim.world.build_world), which tests may read.
+The honest cells are sim.yaml's world (hand-eye 1.5 mm / 0.4 deg, lenses 0.5 %, projector pose, robot
+kinematics); the binned camera (sim_binned.yaml with that world) keeps the ICP test to a minute."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from cell.calibration.handeye import pose_error
+from cell.calibration.operator_stage import OperatorBoardStage
+from cell.calibration.procedures import CHARUCO, FLAT, Station
+from cell.calibration.routines import (
+    HandEyeBoardJob,
+    HandEyeIcpJob,
+    IntrinsicsJob,
+    ProjectorJob,
+    run_routine,
+)
+from cell.config import DEFAULT_CELL, load_cell_config
+from cell.contracts import BoardStage
+from cell.devices import build_devices
+from cell.errors import CalibrationError, DeviceFault
+from cell.geometry import make_pose
+from fakes.sim.world import build_world
+
+BINNED = DEFAULT_CELL.parent / "sim_binned.yaml"
+
+
+@pytest.fixture()
+def honest_binned(tmp_path) -> Path:
+    """sim_binned.yaml (512x384 camera) in sim.yaml's honest world instead of the ideal one."""
+    data = yaml.safe_load(BINNED.read_text())
+    data["world"] = yaml.safe_load(DEFAULT_CELL.read_text())["world"]
+    path = tmp_path / "binned_honest.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_stages_are_board_stages_and_refuse_what_they_cannot_do():
+    cfg = load_cell_config(DEFAULT_CELL)
+    devices = build_devices(cfg, with_stage=True)
+    stage = devices.stage
+    assert isinstance(stage, BoardStage) and ("stage", stage) in devices.items()
+    stage.connect()
+    x, y, _ = Station().xyz_W
+    with pytest.raises(DeviceFault, match=r"board-stage.*cannot reach height 900\.0 mm"):
+        stage.place(FLAT, make_pose(np.eye(3), (x, y, 900.0)))
+    answers = iter(["y", "no"])
+    operator = OperatorBoardStage(ask=lambda prompt: next(answers))
+    assert isinstance(operator, BoardStage)
+    operator.place(CHARUCO, np.eye(4))
+    with pytest.raises(DeviceFault, match="operator.*did not place"):
+        operator.place(CHARUCO, np.eye(4))
+
+
+def test_a_pose_where_the_board_is_not_found_is_one_clear_error(tmp_path):
+    class EdgeOn(IntrinsicsJob):
+        """One view with the board 250 mm to the side, out of the camera's 200 mm wide field."""
+
+        def plan(self):
+            views = super().plan()[:1]
+            T = np.asarray(views[0]["T_W_Bd"])
+            T[0, 3] += 250.0
+            views[0]["T_W_Bd"] = T.tolist()
+            return views
+
+    cfg = load_cell_config(DEFAULT_CELL)
+    with pytest.raises(
+        CalibrationError, match=r"view 0: the board 'charuco 11x8 15 mm' was not found.*world \("
+    ):
+        run_routine(EdgeOn(cfg, views=1), tmp_path / "edge", DEFAULT_CELL)
+
+
+@pytest.mark.slow
+def test_intrinsics_projector_and_board_hand_eye_recover_the_world(tmp_path):
+    cfg = load_cell_config(DEFAULT_CELL)
+    truth = build_world(cfg).sensor
+    r = run_routine(IntrinsicsJob(cfg, views=8), tmp_path / "intrinsics", DEFAULT_CELL)
+    K = np.asarray(r["summary"]["K"])
+    assert abs(cfg.sensor.camera.fx_px / truth.camera.fx_px - 1) > 0.004  # the config is 0.5 % off
+    assert abs(K[0, 0] / truth.camera.fx_px - 1) < 0.001
+    assert np.hypot(K[0, 2] - truth.camera.cx_px, K[1, 2] - truth.camera.cy_px) < 1.5
+    cfg.calibration.intrinsics = Path(r["file"])
+
+    r = run_routine(ProjectorJob(cfg, views=6), tmp_path / "projector", DEFAULT_CELL)
+    Kp = np.asarray(r["summary"]["K"])
+    assert abs(Kp[0, 0] / truth.projector.fx_px - 1) < 0.003
+    cfg.calibration.projector = Path(r["file"])
+
+    r = run_routine(HandEyeBoardJob(cfg, views=12), tmp_path / "handeye", DEFAULT_CELL)
+    T_true = truth.T_T_C.matrix()
+    assert pose_error(cfg.sensor.T_T_C.matrix(), T_true)[0] == pytest.approx(1.5, abs=1e-6)
+    from cell.calibration.store import load_calibration
+
+    _, arrays = load_calibration(Path(r["file"]), "hand_eye")
+    dt, dr = pose_error(arrays["T_T_C"], T_true)
+    assert dt < 0.25 and dr < 0.05  # from 1.5 mm / 0.4 deg (robot kinematic errors remain in the poses)
+    journal = (tmp_path / "handeye" / "journal.jsonl").read_text()
+    assert '"state": "done"' in journal and '"device": "board-stage"' in journal
+
+
+@pytest.mark.slow
+def test_icp_of_gauge_scans_from_the_mounting_drawing_recovers_the_hand_eye(tmp_path, honest_binned):
+    cfg = load_cell_config(honest_binned)
+    truth = build_world(cfg).sensor
+    r = run_routine(IntrinsicsJob(cfg, views=8), tmp_path / "i", honest_binned)
+    cfg.calibration.intrinsics = Path(r["file"])
+    r = run_routine(ProjectorJob(cfg, views=8), tmp_path / "p", honest_binned)
+    cfg.calibration.projector = Path(r["file"])
+    r = run_routine(HandEyeIcpJob(cfg, every=5), tmp_path / "icp", honest_binned)
+    assert r["summary"]["converged"]
+    from cell.calibration.store import load_calibration
+
+    _, arrays = load_calibration(Path(r["file"]), "hand_eye")
+    dt, dr = pose_error(arrays["T_T_C"], truth.T_T_C.matrix())
+    assert dt < 0.6 and dr < 0.06  # from 1.5 mm / 0.4 deg; the pinhole model ignores the projector's lens
+
+
+def test_demo_reuses_a_calibration_only_of_the_same_cell_file(tmp_path):
+    from cell.calibration.routines import _digest, valid_calibration
+
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(DEFAULT_CELL.read_text())
+    folder = tmp_path / "calibration"
+    folder.mkdir()
+    assert valid_calibration(cell, folder) is None  # nothing there
+    (folder / "cell.yaml").write_text(DEFAULT_CELL.read_text())
+    (folder / "calibration.json").write_text(json.dumps({"source_sha256": _digest(cell)}))
+    assert valid_calibration(cell, folder) == folder / "cell.yaml"
+    cell.write_text(DEFAULT_CELL.read_text() + "\n# edited\n")  # the cell changed: calibrate again
+    assert valid_calibration(cell, folder) is None
