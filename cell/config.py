@@ -175,6 +175,17 @@ class CalibrationFiles(Strict):
     projector: Path | None = Field(None, description="projector K and T_C_P (cell calibrate projector)")
 
 
+class VerificationConfig(Strict):
+    """Maximum permissible errors of the VDI/VDE 2634 figures (``cell verify``), mm, and the certificate of
+    the artefacts (relative to the cell config file; default recipes/artefacts/certificate.yaml)."""
+
+    mpe_pf_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.05, description="probing error, form")
+    mpe_ps_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.05, description="probing error, size (+-)")
+    mpe_sd_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.025, description="sphere-spacing error (+-)")
+    mpe_f_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.05, description="flatness measurement error")
+    certificate: Path | None = Field(None, description="artefact certificate YAML")
+
+
 class CellConfig(Strict):
     """A whole cell: one robot carrying one area sensor; the simulator section is used by sim devices."""
 
@@ -190,6 +201,7 @@ class CellConfig(Strict):
         "realistic defaults. Only the simulator reads it (schema: docs/world-schema.md)",
     )
     calibration: CalibrationFiles = CalibrationFiles()
+    verification: VerificationConfig = VerificationConfig()
 
 
 # --------------------------------------------------------------------------------------------- recipes
