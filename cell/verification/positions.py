@@ -46,7 +46,7 @@ class Volume:
         return float(np.linalg.norm([self.width_mm, self.height_mm, self.depth_mm]))
 
     def half_field_at(self, z_mm: float) -> tuple[float, float]:
-        """Half width and half height of the field at depth ``z_mm`` in {V} (the field grows with distance)."""
+        """Half width and half height of the field at depth ``z_mm`` in {V} (it grows with distance)."""
         scale = (self.standoff_mm + z_mm) / self.standoff_mm
         return self.width_mm / 2 * scale, self.height_mm / 2 * scale
 

@@ -8,7 +8,8 @@ cell config calls for; the procedure sees only :class:`ArtefactStage`.
 
 from __future__ import annotations
 
-from typing import Callable, Literal, Protocol
+from collections.abc import Callable
+from typing import Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
