@@ -49,6 +49,11 @@ class SphereFit:
         """PF: max minus min radial residual of the points used (mm)."""
         return float(self.residuals.max() - self.residuals.min())
 
+    @property
+    def rms(self) -> float:
+        """Root mean square of the residuals (mm): the noise under the form range."""
+        return float(np.sqrt(np.mean(self.residuals**2)))
+
 
 @dataclass(frozen=True)
 class PlaneFit:
@@ -65,6 +70,11 @@ class PlaneFit:
     def form_range(self) -> float:
         """F: max minus min residual of the points used (mm)."""
         return float(self.residuals.max() - self.residuals.min())
+
+    @property
+    def rms(self) -> float:
+        """Root mean square of the residuals (mm)."""
+        return float(np.sqrt(np.mean(self.residuals**2)))
 
 
 def _points(points: ArrayLike) -> NDArray[np.float64]:

@@ -55,6 +55,7 @@ class PositionResult:
     ps_mm: list[float] = field(default_factory=list)
     sd_mm: float | None = None
     f_mm: float | None = None
+    rms_mm: list[float] = field(default_factory=list)  # RMS residual of each fit: the noise under PF and F
     excluded_points: int = 0
     error: str | None = None
 
@@ -125,6 +126,7 @@ def evaluate_ball_bar(
     for fit, d in zip(fits, bar.sphere_diameters_mm, strict=True):
         res.pf_mm.append(probing_form(fit))
         res.ps_mm.append(probing_size(fit, d))
+        res.rms_mm.append(fit.rms)
         res.n_points += fit.n_used
         res.excluded_points += fit.n_excluded
     res.sd_mm = sphere_spacing(fits[0], fits[1], L)
@@ -156,6 +158,7 @@ def evaluate_plane(
     )
     fit = fit_plane(points_C[on_face][inner])
     res.f_mm = flatness(fit)
+    res.rms_mm.append(fit.rms)
     res.n_points, res.excluded_points = fit.n_used, fit.n_excluded
     return res
 

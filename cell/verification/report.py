@@ -47,10 +47,14 @@ def write_html(path: Path, result: AcceptanceResult, certificate: Certificate, n
         f"<td>{result.mpe_mm[k] * 1000:.1f}</td><td>{_ok(result.passed.get(k))}</td></tr>"
         for k in NAMES
     )
+
+    def rms(values: list[float]) -> str:
+        return " / ".join(f"{v * 1000:.1f}" for v in values)
+
     pos_rows = "".join(
         f"<tr><td>{escape(r.label)}</td><td>{' / '.join(_mm(v) for v in r.pf_mm) or '&ndash;'}</td>"
         f"<td>{' / '.join(_mm(v) for v in r.ps_mm) or '&ndash;'}</td><td>{_mm(r.sd_mm)}</td>"
-        f"<td>{_mm(r.f_mm)}</td><td>{r.n_points}</td><td>{r.excluded_points}</td>"
+        f"<td>{_mm(r.f_mm)}</td><td>{rms(r.rms_mm)}</td><td>{r.n_points}</td><td>{r.excluded_points}</td>"
         f"<td>{escape(r.error or '')}</td></tr>"
         for r in result.positions
     )
@@ -90,7 +94,7 @@ mm (L0 = {v["L0"]:.0f} mm); geometry: {escape(result.geometry_source)}.</p>
 <table><tr><th>figure</th><th>measured</th><th>MPE</th><th></th></tr>{rows}</table>
 <h2>Every position (um)</h2>
 <table><tr><th>position</th><th>PF (sphere 1 / 2)</th><th>PS (sphere 1 / 2)</th><th>SD</th><th>F</th>
-<th>points</th><th>excluded (0.3 %)</th><th>error</th></tr>{pos_rows}</table>
+<th>RMS residual</th><th>points</th><th>excluded (0.3 %)</th><th>error</th></tr>{pos_rows}</table>
 <h2>Artefacts (calibration certificate)</h2>
 <table><tr><th>artefact</th><th>serial</th><th>calibrated values</th><th>laboratory</th><th>date</th>
 <th>U (k=2), um</th></tr>{art_rows}</table>
