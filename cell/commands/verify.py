@@ -20,9 +20,6 @@ def acceptance_cmd(
     certificate: Path = typer.Option(
         None, "--certificate", help="artefact certificate YAML (default: the cell's verification.certificate)"
     ),
-    world: str = typer.Option(
-        None, "--world", help="simulation only: 'ideal' replaces the cell's world: section (a noise floor)"
-    ),
 ) -> None:
     """Measure the ball bar (7 positions) and the plane (6 positions) in the single-view measuring volume;
     write report.html and verification.json to OUT and print PF, PS, SD and F against their MPEs."""
@@ -35,10 +32,6 @@ def acceptance_cmd(
 
     cfg_path = cell or DEFAULT_CELL
     cfg = load_cell_config(cfg_path)
-    if world is not None:
-        if world != "ideal" or cfg.robot.driver != "sim":
-            raise ConfigError("--world takes only 'ideal', and only for a simulated cell", field="--world")
-        cfg.world = "ideal"
     cert_path = certificate or cfg.verification.certificate or DEFAULT_CERTIFICATE
     if not Path(cert_path).is_absolute() and certificate is None and cfg.verification.certificate is not None:
         cert_path = Path(cfg_path).resolve().parent / cert_path
@@ -55,13 +48,12 @@ def acceptance_cmd(
     result, _ = run_acceptance(
         cfg, devices, stage, cert, progress=lambda k, n, label: typer.echo(f"position {k + 1}/{n}: {label}")
     )
-    world_note = {None: "", "ideal": " in the ideal world (world equals model: a noise floor)"}.get(world, "")
-    sim_note = (
-        f"Simulated cell{world_note or ' in its own world: section'}."
+    note = (
+        f"Simulated cell ({cfg_path}): its world: section says how the simulated world differs from the "
+        "config; where it is 'ideal' these figures are a noise floor."
         if devices.sim is not None
-        else "Real cell."
+        else f"Cell {cfg_path}."
     )
-    note = f"{sim_note} Geometry: {result.geometry_source}."
     write_json(out / "verification.json", result, cert, note)
     write_html(out / "report.html", result, cert, note)
     for k, v in result.figures_mm.items():
