@@ -72,6 +72,7 @@ class AcceptanceResult:
     figures_mm: dict[str, float | None] = field(default_factory=dict)
     passed: dict[str, bool | None] = field(default_factory=dict)
     verdict: str = "incomplete"
+    simulated: bool = False
 
     def summarise(self) -> None:
         """Worst value (largest magnitude) per figure, pass/fail per figure and overall."""
@@ -180,6 +181,13 @@ def acceptance_positions(cfg: CellConfig, certificate: Certificate) -> list[Posi
     )
 
 
+def check_positions(cfg: CellConfig, certificate: Certificate) -> list[Position]:
+    """The interim check's two positions: the ball bar along the first space diagonal (it spans the depth
+    and the field) and the plane flat in the middle."""
+    every = {p.label: p for p in acceptance_positions(cfg, certificate)}
+    return [every["ball bar, space diagonal 1"], every["plane, flat middle"]]
+
+
 class SingleView:
     """Moves the sensor to the single-view pose and measures one artefact position at a time (points in the
     camera frame {C}, mm) through the device contracts."""
@@ -258,6 +266,7 @@ def run_acceptance(
         },
         mpe_mm={"PF": v.mpe_pf_mm, "PS": v.mpe_ps_mm, "SD": v.mpe_sd_mm, "F": v.mpe_f_mm},
         positions=[],
+        simulated=devices.sim is not None,
     )
     clouds: dict[str, NDArray[np.float64]] = {}
     sv = SingleView(cfg, devices)
