@@ -183,6 +183,10 @@ class VerificationConfig(Strict):
     mpe_ps_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.05, description="probing error, size (+-)")
     mpe_sd_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.025, description="sphere-spacing error (+-)")
     mpe_f_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.05, description="flatness measurement error")
+    mpe_sd_multiview_mm: Annotated[float, Field(gt=0, le=10)] = Field(
+        0.08,
+        description="sphere-spacing error of the long ball bar across views (Part 3, robot-moved sensor)",
+    )
     warn_fraction: Annotated[float, Field(gt=0, le=1)] = Field(
         0.7, description="`cell verify check` warns when a figure uses more than this share of its MPE"
     )

@@ -25,12 +25,18 @@ def acceptance_cmd(
     certificate: Path = typer.Option(
         None, "--certificate", help="artefact certificate YAML (default: the cell's verification.certificate)"
     ),
+    part: int = typer.Option(
+        2, "--part", help="2: one view, ball bar and plane in 13 positions; 3: the long bar across views"
+    ),
 ) -> None:
-    """Measure the ball bar (7 positions) and the plane (6 positions) in the single-view measuring volume;
-    write report.html and verification.json to OUT and print PF, PS, SD and F against their MPEs."""
+    """Part 2: the ball bar (7 positions) and the plane (6 positions) in the single-view measuring volume.
+    Part 3: the long ball bar in 3 directions, each across 4 views of the robot-moved sensor. Writes
+    report.html and verification.json to OUT and prints PF, PS, SD and F against their MPEs."""
     from cell.errors import ConfigError
     from cell.verification.report import write_html, write_json
 
+    if part not in (2, 3):
+        raise ConfigError(f"--part {part}: give 2 (single view) or 3 (multi-view)", field="--part")
     cfg_path, cfg, cert_path, cert = _load(cell, certificate)
     out = Path(out)
     if out.exists() and any(out.iterdir()):
@@ -39,7 +45,7 @@ def acceptance_cmd(
     shutil.copy2(cfg_path, out / "inputs" / "cell.yaml")
     shutil.copy2(cert_path, out / "inputs" / "certificate.yaml")
 
-    result = _measure(cfg, cert, positions=None)
+    result = _measure(cfg, cert, positions=None, multiview=part == 3)
     note = _note(cfg_path, result)
     write_json(out / "verification.json", result, cert, note)
     write_html(out / "report.html", result, cert, note)
@@ -59,20 +65,21 @@ def _load(cell: Path | None, certificate: Path | None):  # noqa: ANN202 - (cfg p
     return cfg_path, cfg, cert_path, load_certificate(cert_path)
 
 
-def _measure(cfg, cert, positions):  # noqa: ANN001, ANN202 - AcceptanceResult
+def _measure(cfg, cert, positions, multiview: bool = False):  # noqa: ANN001, ANN202 - AcceptanceResult
     from cell.devices import build_artefact_stage, build_devices
+    from cell.verification.multiview import run_multiview
     from cell.verification.procedure import run_acceptance
 
     devices = build_devices(cfg)
     stage = build_artefact_stage(devices, cert)
-    result, _ = run_acceptance(
-        cfg,
-        devices,
-        stage,
-        cert,
-        positions=positions,
-        progress=lambda k, n, label: typer.echo(f"position {k + 1}/{n}: {label}"),
-    )
+
+    def progress(k: int, n: int, label: str) -> None:
+        typer.echo(f"position {k + 1}/{n}: {label}")
+
+    if multiview:
+        result, _ = run_multiview(cfg, devices, stage, cert, progress=progress)
+    else:
+        result, _ = run_acceptance(cfg, devices, stage, cert, positions=positions, progress=progress)
     return result
 
 

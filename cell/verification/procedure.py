@@ -73,6 +73,8 @@ class AcceptanceResult:
     passed: dict[str, bool | None] = field(default_factory=dict)
     verdict: str = "incomplete"
     simulated: bool = False
+    kind: str = "VDI/VDE 2634 Part 2, single view"
+    required: tuple[str, ...] = ("PF", "PS", "SD", "F")
 
     def summarise(self) -> None:
         """Worst value (largest magnitude) per figure, pass/fail per figure and overall."""
@@ -90,10 +92,10 @@ class AcceptanceResult:
         self.passed = {
             k: (None if v is None else abs(v) <= self.mpe_mm[k]) for k, v in self.figures_mm.items()
         }
-        if any(r.error for r in p) or None in self.passed.values():
+        if any(r.error for r in p) or any(self.passed[k] is None for k in self.required):
             self.verdict = "incomplete"
         else:
-            self.verdict = "pass" if all(self.passed.values()) else "fail"
+            self.verdict = "pass" if all(v for v in self.passed.values() if v is not None) else "fail"
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

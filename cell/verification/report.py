@@ -30,7 +30,6 @@ def _ok(v: bool | None) -> str:
 
 def write_json(path: Path, result: AcceptanceResult, certificate: Certificate, note: str) -> None:
     doc = {
-        "kind": "VDI/VDE 2634-2 single view",
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "note": note,
         **result.to_dict(),
@@ -86,7 +85,7 @@ def write_html(path: Path, result: AcceptanceResult, certificate: Certificate, n
 <style>body{{font-family:sans-serif;max-width:60em;margin:2em auto}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #aaa;padding:.2em .6em;text-align:right}}td:first-child{{text-align:left}}
 .pass{{color:#070}}.fail{{color:#b00}}</style></head><body>
-<h1>Acceptance test after VDI/VDE 2634 Part 2 (single view): {escape(result.verdict.upper())}</h1>
+<h1>Acceptance test after {escape(result.kind)}: {escape(result.verdict.upper())}</h1>
 <p>Cell <b>{escape(result.cell)}</b>; measuring volume {v["width"]:.0f} x {v["height"]:.0f} x {v["depth"]:.0f}
 mm (L0 = {v["L0"]:.0f} mm); geometry: {escape(result.geometry_source)}.</p>
 <p>{escape(note)}</p>
