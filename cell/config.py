@@ -7,6 +7,8 @@ a typo must never silently fall back to a default.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
@@ -263,6 +265,68 @@ class PartConfig(Strict):
     material: MaterialConfig | None = None
 
 
+class DatumPoint(Strict):
+    """A reference point (RPS / 3-2-1 datum) on the nominal surface, in the part frame {P} (mm). It fixes the
+    part along ``normal`` (default: the nominal surface normal there), measured as the mean deviation of the
+    points within ``radius_mm`` of it."""
+
+    name: str = Field(min_length=1)
+    point_mm: Vec3
+    normal: Vec3 | None = None
+    radius_mm: Annotated[float, Field(gt=0, le=100)] = 6.0
+
+    @field_validator("normal")
+    @classmethod
+    def _unit(cls, v: Vec3 | None) -> Vec3 | None:
+        if v is not None and not 0.5 < float(np.linalg.norm(v)) < 2.0:
+            raise ValueError(f"{list(v)} is not a direction: give a unit vector")
+        return v
+
+
+AlignmentMethod = Literal["kinematic", "datums", "datum_icp", "features", "weighted", "best_fit"]
+
+
+class AlignmentConfig(Strict):
+    """How the measured part is put into its part frame before it is judged (dissertation 4.1-4.3).
+
+    ``kinematic``: the recipe's placement ``part.T_W_P`` through the robot and hand-eye chain (right for a
+    calibrated fixture); ``datums``: the 3-2-1 / RPS points below (at least 6 constraints fixing all six
+    degrees of freedom); ``datum_icp``: point-to-plane ICP on the datum regions only, started from the
+    datums; ``features``: curvature-feature matching (eqs 4.16-4.20); ``weighted``: the weighted combination
+    of kinematic, datums, features and datum ICP (eqs 4.21-4.22); ``best_fit``: ICP over the whole part,
+    which aligns global deviations away (the report warns)."""
+
+    method: AlignmentMethod = "kinematic"
+    datums: list[DatumPoint] = Field(default_factory=list)
+    weights: dict[Literal["kinematic", "datums", "datum_icp", "features"], Annotated[float, Field(ge=0)]] = (
+        Field(
+            default_factory=lambda: {"kinematic": 1.0, "features": 2.0, "datums": 4.0, "datum_icp": 4.0},
+            description="weights of the estimates in the weighted combination (Table I of the "
+            "dissertation: datums most, then features, then the kinematic chain)",
+        )
+    )
+    fixture_uncertainty_mm: Annotated[float, Field(ge=0, le=50)] | None = Field(
+        None, description="kinematic: the stated uncertainty of the fixture's placement, for the report"
+    )
+    max_correction_mm: Annotated[float, Field(gt=0, le=100)] = Field(
+        10.0,
+        description="an alignment moving any part point farther than this from the kinematic placement "
+        "is refused (wrong datums or a wrong part): the verdict becomes incomplete",
+    )
+
+    @model_validator(mode="after")
+    def _datums_given(self) -> AlignmentConfig:
+        names = [d.name for d in self.datums]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ValueError(f"datum names must be unique; repeated: {', '.join(twice)}")
+        if self.method in ("datums", "datum_icp") and len(self.datums) < 6:
+            raise ValueError(
+                f"method '{self.method}' needs at least 6 datum points (3-2-1), {len(self.datums)} given"
+            )
+        return self
+
+
 class Recipe(Strict):
     """An inspection recipe: the nominal part and its tolerance; everything else has defaults."""
 
@@ -275,6 +339,12 @@ class Recipe(Strict):
         "for a pass/fail verdict; below it the verdict is 'incomplete'",
     )
     plan: PlanSettings = PlanSettings()
+    alignment: AlignmentConfig = AlignmentConfig()
+    requires_calibration: bool = Field(
+        False,
+        description="the verdict is 'incomplete' unless the cell has a complete, current and good "
+        "calibration (sensor or intrinsics + projector, and hand-eye), made for this cell config",
+    )
     regions: list[RegionConfig] = Field(
         default_factory=list,
         description="regions judged on their own, optionally with a band of their own (in the report's "
@@ -370,6 +440,14 @@ def load_recipe(path: str | Path) -> Recipe:
             raise ConfigError(f"mesh file not found: {resolved}", path=str(p), field=f"part.{field}")
         setattr(recipe.part, field, resolved)
     return recipe
+
+
+def config_fingerprint(cfg: CellConfig) -> str:
+    """SHA-256 of the cell config as validated, without its ``calibration:`` section: what a calibration file
+    records as the config it was made for (``cell_config_sha256``). Adding the file to the config does not
+    change it; changing the robot, the sensor, the scene or the world does."""
+    data = cfg.model_dump(mode="json", exclude={"calibration"})
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
 DEFAULT_CELL = Path(__file__).resolve().parent.parent / "recipes" / "cells" / "sim.yaml"

@@ -26,12 +26,14 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
+from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.linkfilter import link_cluster
 from cell.analysis.merge import merge_views
 from cell.analysis.regions import Coverage, point_bands, region_from_config
 from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
 from cell.calibration import active_hand_eye, active_sensor_config, active_triangulator, calibration_source
+from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
 from cell.contracts import CameraSettings, PixelFormat, TriggerMode
 from cell.controller import Controller, ControllerSettings
@@ -97,6 +99,7 @@ class LambertianInspection:
         self.triangulator = active_triangulator(cfg)
         self.geometry_source = calibration_source(cfg)
         self._plan: Plan | None = None
+        self._aligner: Aligner | None = None
         self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
         self._nominal_rays = (
             trimesh.ray.ray_triangle.RayMeshIntersector(nominal_W)
@@ -265,9 +268,19 @@ class LambertianInspection:
         return [self._view_dict(v, k + 1) for v in new]
 
     # ------------------------------------------------------------------ results
+    @property
+    def aligner(self) -> Aligner:
+        """The recipe's alignment against the nominal in the part frame (datums resolved on first use)."""
+        if self._aligner is None:
+            nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
+            self._aligner = Aligner(self.recipe.alignment, nominal_P)
+        return self._aligner
+
     def register(self, run: RunFolder, views: list[dict[str, Any]]) -> dict[str, Any]:
         """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
-        already being in {W} through robot pose and hand-eye), merged on a voxel grid weighted by quality."""
+        already being in {W} through robot pose and hand-eye), merged on a voxel grid weighted by quality,
+        then moved by the recipe's alignment (cell.analysis.alignment). An alignment the measurement does
+        not allow leaves the kinematic cloud and makes the verdict incomplete (``alignment.error``)."""
         T_P_W = invert(self.T_W_P)
         points, weights = [], []
         for i in run.completed_views():
@@ -276,22 +289,35 @@ class LambertianInspection:
         if not points or not sum(len(p) for p in points):
             return {"n_points": 0, "views": len(points)}
         merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
-        np.save(run.results_dir / "points_P.npy", merged.points_mm)
+        method = self.recipe.alignment.method
+        try:
+            found = self.aligner.align(merged.points_mm)
+            points_P = transform_points(found.T, merged.points_mm)
+            alignment = found.to_json()
+        except AlignmentError as exc:
+            points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
+        np.save(run.results_dir / "points_P.npy", points_P)
         return {
-            "n_points": int(len(merged.points_mm)),
+            "n_points": int(len(points_P)),
             "n_points_views": int(sum(len(p) for p in points)),
             "views": len(points),
             "merge_voxel_mm": self.settings.merge_voxel_mm,
-            "method": "kinematic chain (robot pose, hand-eye, part placement); weighted voxel merge",
+            "method": "kinematic chain (robot pose, hand-eye, part placement); weighted voxel merge; "
+            f"alignment: {method}",
+            "alignment": alignment,
         }
 
-    def inspectable_coverage(self, run: RunFolder, views: list[dict[str, Any]]) -> Coverage:
+    def inspectable_coverage(
+        self, run: RunFolder, views: list[dict[str, Any]], T_P_cloud: NDArray[np.float64] | None = None
+    ) -> Coverage:
         """Coverage of the inspectable nominal surface (what the planner can see: not the underside on the
-        table) at the recipe's point density, from the measured views."""
+        table) at the recipe's point density, from the measured views moved by the alignment ``T_P_cloud``."""
         plan, st = self.plan_model, self.recipe.plan
         s = plan.surface
         measured = self._measured(run)
         pts = np.vstack([m.points_W for m in measured.values()]) if measured else np.zeros((0, 3))
+        if T_P_cloud is not None:
+            pts = transform_points(self.T_W_P @ T_P_cloud @ invert(self.T_W_P), pts)
         covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
         ins = s.inspectable
         return Coverage(
@@ -327,6 +353,12 @@ class LambertianInspection:
                 json.loads((run.view_dir(i) / "view.json").read_text()).get("excluded", {}).items()
             ):
                 excluded[f"{reason}_points"] = excluded.get(f"{reason}_points", 0) + int(n)
+        alignment = registration.get("alignment") or {"method": "kinematic"}
+        T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
+        calibration = calibration_state(self.cfg, self.recipe.requires_calibration)
+        reasons = list(calibration["incomplete_reasons"])
+        if "error" in alignment:
+            reasons.append(f"alignment ({alignment['method']}) failed: {alignment['error']}")
         inp = ReportInput(
             points_mm=pts_P,
             deviation_mm=deviation,
@@ -335,9 +367,12 @@ class LambertianInspection:
             excluded=excluded,
             source_face=faces,
             regions=regions,
-            coverage=self.inspectable_coverage(run, views),
+            coverage=self.inspectable_coverage(run, views, T_align),
             min_coverage=self.recipe.min_coverage,
-            warnings=[w for w in (nominal.sign_warning(),) if w],
+            warnings=[w for w in (nominal.sign_warning(),) if w] + list(alignment.get("warnings", [])),
+            incomplete_reasons=reasons,
+            alignment=alignment,
+            calibration=calibration,
             metadata={
                 "part": self.part_name,
                 "cad": Path(self.recipe.part.cad).name,

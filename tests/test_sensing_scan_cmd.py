@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
+import yaml
 from typer.testing import CliRunner
 
 from cell.cli import app
@@ -19,9 +20,12 @@ PARTS = Path(__file__).resolve().parent.parent / "recipes" / "parts"
 
 @pytest.mark.skipif(not (PARTS / "gauge.stl").is_file(), reason="gauge block not built")
 def test_scan_writes_cloud_masks_and_summary(tmp_path: Path) -> None:
+    # the ideal world (the simulator renders the config's geometry): the points are checked to 0.1 mm
+    ideal = tmp_path / "cell.yaml"
+    ideal.write_text(yaml.safe_dump({**yaml.safe_load(DEFAULT_CELL.read_text()), "world": "ideal"}))
     out = tmp_path / "scan"
     res = CliRunner().invoke(
-        app, ["scan", "--cell", str(DEFAULT_CELL), "--part", str(PARTS / "gauge.stl"), "--out", str(out)]
+        app, ["scan", "--cell", str(ideal), "--part", str(PARTS / "gauge.stl"), "--out", str(out)]
     )
     assert res.exit_code == 0, res.output
     summary = json.loads((out / "scan.json").read_text())

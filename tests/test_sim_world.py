@@ -77,6 +77,13 @@ def test_ideal_world_is_exactly_the_config() -> None:
     assert np.array_equal(w.landing_error(np.random.default_rng(0)), np.eye(4))
 
 
+def test_ideal_base_zeroes_every_error_not_written() -> None:
+    wc = world_config({"base": "ideal", "placement": {"translation_mm": 2.0}})
+    assert wc.placement.translation_mm == 2.0 and wc.placement.rotation_deg == 0.0
+    assert wc.model_copy(update={"placement": IDEAL.placement}) == IDEAL
+    assert world_config({"placement": {"translation_mm": 2.0}}).hand_eye.translation_mm == 1.5
+
+
 def test_robot_reports_nominal_kinematics_while_the_flange_follows_the_world() -> None:
     cfg = _small(None)  # absent world: the realistic defaults
     cell = build_sim_cell(cfg, None)

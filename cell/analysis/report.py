@@ -33,7 +33,7 @@ from cell.analysis.regions import (
 
 __all__ = ["ReportInput", "Tolerance", "out_of_tolerance_regions", "summarise", "write_report"]
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
 
 
@@ -58,6 +58,13 @@ class ReportInput:
     min_coverage: float | None = None
     link_radius_mm: float | None = None  # out-of-tolerance points closer than this form one region
     warnings: list[str] = field(default_factory=list)  # what the reader must know before trusting the map
+    # why the measurement cannot judge the part (calibration missing/stale/poor, alignment failed): a pass or
+    # fail becomes 'incomplete'
+    incomplete_reasons: list[str] = field(default_factory=list)
+    alignment: dict[str, Any] | None = (
+        None  # how the cloud was put into the part frame (cell.analysis.alignment)
+    )
+    calibration: dict[str, Any] | None = None  # the calibration files used (cell.calibration_state)
 
     @cached_property
     def bands(self) -> PointBands:
@@ -175,9 +182,12 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
         overall = "fail"
     elif overall == "pass" and region_states & {"incomplete", "no_data"}:
         overall = "incomplete"
+    if overall in ("pass", "fail") and inp.incomplete_reasons:
+        overall = "incomplete"  # a measurement that cannot be trusted neither passes nor fails a part
     return {
         "schema_version": SCHEMA_VERSION,
         "verdict": overall,
+        "incomplete_reasons": list(inp.incomplete_reasons),
         "tolerance": {"lower_mm": tol.lower_mm, "upper_mm": tol.upper_mm},
         "n_points": int(len(d)),
         "n_points_input": int(inp.n_points_input),
@@ -192,6 +202,8 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
         "excluded": inp.excluded,
         "views": views or [],
         "warnings": list(inp.warnings),
+        "alignment": inp.alignment,
+        "calibration": inp.calibration,
         "metadata": inp.metadata,
     }
 
@@ -277,6 +289,57 @@ def _percent(fraction: float | None) -> str:
     return "not measured" if fraction is None else f"{100 * fraction:.2f} % of the inspectable surface"
 
 
+def _alignment_html(al: dict[str, Any] | None) -> str:
+    """The alignment used, its correction, residuals per datum and the uncertainty it adds."""
+    if not al:
+        return "<p>kinematic chain (no alignment recorded)</p>"
+    if "error" in al:
+        return f"<p><b>{html.escape(al['method'])}</b>: failed: {html.escape(al['error'])}</p>"
+    c, u = al.get("correction", {}), al.get("uncertainty_mm")
+    unc = (
+        "not estimated"
+        if not u
+        else ", ".join(f"{k} {v:.4f} mm" for k, v in u.items()) + " (1 sigma along the surface normal)"
+    )
+    rows = "".join(
+        f"<tr><td>{html.escape(r['name'])}</td><td>{r['before_mm']:+.4f}</td><td>{r['after_mm']:+.4f}</td>"
+        f"<td>{r['spread_mm']:.4f}</td><td>{r['n_points']}</td></tr>"
+        for r in al.get("residuals", [])
+    )
+    table = (
+        "<table><tr><th>datum</th><th>before mm</th><th>after mm</th><th>spread mm</th><th>points</th></tr>"
+        f"{rows}</table>"
+        if rows
+        else ""
+    )
+    rms = "" if al.get("rms_mm") is None else f"; residual rms {al['rms_mm']:.4f} mm"
+    return (
+        f"<p><b>{html.escape(al['method'])}</b>: moved the measured part by up to "
+        f"{c.get('max_mm', 0):.4f} mm "
+        f"({c.get('translation_mm', 0):.4f} mm, {c.get('rotation_deg', 0):.4f} deg){rms}; uncertainty added: "
+        f"{unc}</p>{table}"
+    )
+
+
+def _calibration_html(cal: dict[str, Any] | None) -> str:
+    """The calibration files the run measured with, their age and state."""
+    if not cal:
+        return "<p>not recorded</p>"
+    rows = "".join(
+        f"<tr><td>{f['field']}</td><td>{html.escape(f['file'])}</td><td>{f['created_utc']}</td>"
+        f"<td>{f['age_days']:.2f}</td><td>{f['made_for_this_config']}</td>"
+        f"<td>{html.escape('; '.join(f['problems']) or 'ok')}</td></tr>"
+        for f in cal.get("files", [])
+    )
+    if not rows:
+        return f"<p>none: the cell config's nominal geometry (required by the recipe: {cal['required']})</p>"
+    return (
+        f"<p>required by the recipe: {cal['required']}</p><table><tr><th>calibration</th><th>file</th>"
+        "<th>created (UTC)</th><th>age (days)</th><th>made for this cell config</th><th>state</th></tr>"
+        f"{rows}</table>"
+    )
+
+
 def _html(doc: dict[str, Any], images: list, hist: str | None) -> str:
     colour = {"pass": "#2a2", "fail": "#c22", "incomplete": "#d80"}.get(doc["verdict"], "#888")
     st = doc["deviation"]
@@ -305,7 +368,9 @@ table{{border-collapse:collapse}}
 </head><body><div class="v">{doc["verdict"].upper()}</div>
 <p>tolerance {tol["lower_mm"]:+.3f} .. {tol["upper_mm"]:+.3f} mm; {doc["n_points"]} points,
 {doc["n_out_of_tolerance"]} out of tolerance; coverage {_percent(doc["coverage"])}</p>
+{"".join(f'<p style="color:#d80"><b>incomplete:</b> {html.escape(w)}</p>' for w in doc["incomplete_reasons"])}
 {"".join(f'<p style="color:#c22"><b>warning:</b> {html.escape(w)}</p>' for w in doc["warnings"])}
+<h2>Alignment</h2>{_alignment_html(doc["alignment"])}<h2>Calibration</h2>{_calibration_html(doc["calibration"])}
 <h2>Error map (mm, + outside the material)</h2>{pics}<h2>Histogram</h2>{hist_html}
 <h2>Regions</h2><table><tr><th>region</th><th>verdict</th><th>points</th><th>out</th><th>tolerance mm</th>
 <th>coverage</th></tr>{user_rows}</table><h2>Out-of-tolerance clusters</h2>

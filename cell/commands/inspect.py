@@ -58,7 +58,16 @@ def _start_run(
     from cell.calibration import active_sensor_config, active_triangulator
     from cell.commands.plan import load_part_W
 
-    load_part_W(recipe, recipe_path, cfg)  # refuses a part that is invalid or does not fit the cell
+    part_W = load_part_W(recipe, recipe_path, cfg)  # refuses a part that is invalid or does not fit the cell
+    if recipe.alignment.datums:  # refuses datums off the part or not fixing it
+        from cell.analysis.alignment import check_datums
+        from cell.geometry import invert
+
+        check_datums(
+            recipe.alignment.datums,
+            part_W.apply_transform(invert(recipe.part.T_W_P.matrix())),
+            str(recipe_path),
+        )
     active_sensor_config(cfg)  # refuses calibration files of the wrong kind or for another camera
     active_triangulator(cfg)
     actual = sim_actual or recipe.part.actual

@@ -82,6 +82,11 @@ class WorldConfig(Strict):
     """The ``world:`` section of a simulated cell config. Defaults are realistic for the prototype cell; each
     error is independent of the others. ``seed`` (default: ``sim.seed``) draws the directions and signs."""
 
+    base: Literal["realistic", "ideal"] = Field(
+        "realistic",
+        description="what the errors not written in the section are: the realistic defaults, or zero "
+        "('ideal': e.g. only a placement error)",
+    )
     seed: int | None = Field(None, description="draws every error's direction and sign; default sim.seed")
     hand_eye: RigidError = Field(
         RigidError(translation_mm=1.5, rotation_deg=0.4),
@@ -114,6 +119,7 @@ class WorldConfig(Strict):
 
 
 IDEAL = WorldConfig(
+    base="ideal",
     hand_eye=RigidError(translation_mm=0, rotation_deg=0),
     camera_projector=RigidError(translation_mm=0, rotation_deg=0),
     camera=IntrinsicsError(focal_fraction=0, principal_point_px=0),
@@ -126,11 +132,22 @@ IDEAL = WorldConfig(
 
 
 def world_config(section: Literal["ideal"] | dict[str, Any] | None) -> WorldConfig:
-    """The validated ``world:`` section: ``'ideal'``, a mapping (missing keys take the realistic defaults),
-    or None (absent: the realistic defaults). Raises pydantic's ValidationError on bad keys or values."""
+    """The validated ``world:`` section: ``'ideal'``, a mapping (missing keys take the realistic defaults,
+    or zero with ``base: ideal``), or None (absent: the realistic defaults). Raises pydantic's
+    ValidationError on bad keys or values."""
     if section == "ideal":
         return IDEAL
-    return WorldConfig.model_validate(section or {})
+    wc = WorldConfig.model_validate(section or {})
+    if wc.base == "ideal":
+        return WorldConfig.model_validate(_deep_update(IDEAL.model_dump(), section or {}))
+    return wc
+
+
+def _deep_update(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in update.items():
+        out[key] = _deep_update(out[key], value) if isinstance(value, dict) and key in out else value
+    return out
 
 
 def _unit(rng: np.random.Generator) -> NDArray[np.float64]:

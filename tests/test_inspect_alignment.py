@@ -1,0 +1,131 @@
+"""A pillar placed 1 mm / 0.5 deg off its fixture (the simulated world's placement error, everything else
+ideal), inspected end to end: with the recipe's datum alignment (3-2-1) the good part passes and the dented
+one fails at its dent; judged where the fixture says (kinematic alignment) the good part fails all along its
+walls. Truth: the world's placement (fakes.sim.world), which the pipeline never sees."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from cell.commands.inspect import _load_run_inputs
+from cell.geometry import transform_points
+from cell.inspection import LambertianInspection
+from cell.mesh import load_mesh
+from cell.runs import RunFolder
+from fakes.sim.world import build_world, place_about
+
+REPO = Path(__file__).resolve().parent.parent
+PILLAR = REPO / "recipes" / "pillar.yaml"
+PARTS = REPO / "recipes" / "parts"
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def misplaced_cell(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """sim_binned.yaml in a world that differs from it only by the part's placement on the fixture."""
+    data = yaml.safe_load((REPO / "recipes" / "cells" / "sim_binned.yaml").read_text())
+    data["world"] = {"base": "ideal", "seed": 1, "placement": {"translation_mm": 1.0, "rotation_deg": 0.5}}
+    path = tmp_path_factory.mktemp("cell") / "cell.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def inspect(recipe: Path, cell: Path, actual: Path, out: Path) -> dict:
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "cell",
+            "inspect",
+            str(recipe),
+            "--cell",
+            str(cell),
+            "--sim-actual",
+            str(actual),
+        ]
+        + ["--out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return json.loads((out / "results" / "report.json").read_text())
+
+
+def true_placement(cell: Path, actual: Path) -> np.ndarray:
+    """Where the world put the part: the map of world points from the recipe's placement (identity here)."""
+    from cell.config import load_cell_config
+
+    world = build_world(load_cell_config(cell))
+    return place_about(world.placement, trimesh.load(actual).bounds.mean(axis=0))
+
+
+def test_good_pillar_off_its_fixture_passes_with_datums_and_fails_kinematic(
+    misplaced_cell: Path, tmp_path: Path
+) -> None:
+    ok = PARTS / "pillar_actual_ok.stl"
+    doc = inspect(PILLAR, misplaced_cell, ok, tmp_path / "run")
+    assert doc["verdict"] == "pass", (doc["regions"], doc["alignment"])
+    al = doc["alignment"]
+    assert al["method"] == "datums" and not al["warnings"]
+    # the alignment undoes the world's placement: checked over the nominal surface
+    nominal = trimesh.load(PARTS / "pillar_nominal.stl")
+    samples = trimesh.sample.sample_surface(nominal, 5000, seed=0)[0]
+    truth = true_placement(misplaced_cell, ok)
+    moved = transform_points(np.asarray(al["T_P_cloud"]) @ truth, samples)
+    assert np.linalg.norm(moved - samples, axis=1).max() < 0.05
+    assert 1.0 < al["correction"]["max_mm"] < 4.0  # 1 mm and 0.5 deg about the centre of a 473 mm part
+    assert max(abs(r["before_mm"]) for r in al["residuals"]) > 0.3  # the datums saw the misplacement
+    assert al["uncertainty_mm"]["max"] < 0.02
+    assert abs(doc["deviation"]["mean_mm"]) < 0.05 and doc["deviation"]["std_mm"] < 0.05
+
+    # the same views judged where the fixture says the part is
+    kin_run = tmp_path / "kinematic"
+    shutil.copytree(tmp_path / "run", kin_run)
+    run = RunFolder.open(kin_run)
+    recipe, cfg, _ = _load_run_inputs(run)
+    recipe.alignment = recipe.alignment.model_copy(update={"method": "kinematic"})
+    nominal_W = load_mesh(recipe.part.cad)
+    job = LambertianInspection(recipe, cfg, nominal_W)
+    job.settings.pictures = False
+    views = (run.load_checkpoint() or {})["views"]
+    job.report(run, job.register(run, views))
+    kin = json.loads((kin_run / "results" / "report.json").read_text())
+    assert kin["verdict"] == "fail" and kin["alignment"]["method"] == "kinematic"
+    assert kin["n_out_of_tolerance"] > 0.2 * kin["n_points"]
+    ends = [r["centre_mm"][0] for r in kin["regions"]]
+    assert min(ends) < -100 and max(ends) > 100  # out of tolerance at both ends, not one defect
+
+    # a recipe that requires calibration cannot judge the part on this uncalibrated cell
+    recipe.requires_calibration = True
+    job = LambertianInspection(recipe, cfg, nominal_W)
+    job.settings.pictures = False
+    job.report(run, job.register(run, views))
+    strict = json.loads((kin_run / "results" / "report.json").read_text())
+    assert strict["verdict"] == "incomplete"
+    assert any("no hand-eye calibration" in r for r in strict["incomplete_reasons"])
+    assert strict["calibration"]["required"] and strict["calibration"]["files"] == []
+
+
+def test_dented_pillar_off_its_fixture_fails_at_its_dent_with_datums(
+    misplaced_cell: Path, tmp_path: Path
+) -> None:
+    doc = inspect(PILLAR, misplaced_cell, PARTS / "pillar_actual.stl", tmp_path / "run")
+    truth = json.loads((PARTS / "pillar_actual.truth.json").read_text())
+    assert doc["verdict"] == "fail"
+    assert len(doc["regions"]) == 1, doc["regions"]
+    dent = doc["regions"][0]
+    assert dent["kind"] == "dent"
+    assert np.linalg.norm(np.subtract(dent["centre_mm"], truth["centre_mm"])) < 2.0
+    assert abs(dent["extreme_mm"] - truth["signed_deviation_mm"]) < 0.05
