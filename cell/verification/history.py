@@ -111,7 +111,7 @@ def drift_warnings(
                 ahead = (mpe - (intercept + slope * x[-1])) / slope
                 if ahead <= horizon:
                     out.append(
-                        f"{k} drifts by {slope * 1000:+.1f} um per check and reaches its MPE "
+                        f"{k} drifts: its size grows {slope * 1000:.1f} um per check and reaches the MPE "
                         f"{mpe * 1000:.1f} um in about {max(ahead, 0):.0f} more checks"
                     )
     return out
