@@ -94,7 +94,8 @@ def _note(cfg_path: Path, result) -> str:  # noqa: ANN001
 
 def _print(result) -> None:  # noqa: ANN001
     for k, v in result.figures_mm.items():
-        shown = "not measured" if v is None else f"{v * 1000:+.1f} um"
+        sign = "+" if k in ("PS", "SD") else ""
+        shown = "not measured" if v is None else f"{v * 1000:{sign}.1f} um"
         mpe = result.mpe_mm[k] * 1000
         status = {True: "pass", False: "FAIL", None: "-"}[result.passed[k]]
         typer.echo(f"{k:>2}: {shown:>14}  (MPE {mpe:.1f} um)  {status}")

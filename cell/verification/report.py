@@ -20,8 +20,9 @@ NAMES = {
 }
 
 
-def _mm(v: float | None) -> str:
-    return "&ndash;" if v is None else f"{v * 1000:+.1f}"
+def _mm(v: float | None, signed: bool = True) -> str:
+    """Micrometres; ranges (PF, F) unsigned, errors (PS, SD) signed."""
+    return "&ndash;" if v is None else f"{v * 1000:+.1f}" if signed else f"{v * 1000:.1f}"
 
 
 def _ok(v: bool | None) -> str:
@@ -42,7 +43,7 @@ def write_html(path: Path, result: AcceptanceResult, certificate: Certificate, n
     """One page: verdict, the four figures against their MPEs, every position, the artefacts and the
     geometry the measurement rests on. Values in micrometres."""
     rows = "".join(
-        f"<tr><td>{k} ({NAMES[k]})</td><td>{_mm(result.figures_mm.get(k))}</td>"
+        f"<tr><td>{k} ({NAMES[k]})</td><td>{_mm(result.figures_mm.get(k), k in ('PS', 'SD'))}</td>"
         f"<td>{result.mpe_mm[k] * 1000:.1f}</td><td>{_ok(result.passed.get(k))}</td></tr>"
         for k in NAMES
     )
@@ -51,9 +52,10 @@ def write_html(path: Path, result: AcceptanceResult, certificate: Certificate, n
         return " / ".join(f"{v * 1000:.1f}" for v in values)
 
     pos_rows = "".join(
-        f"<tr><td>{escape(r.label)}</td><td>{' / '.join(_mm(v) for v in r.pf_mm) or '&ndash;'}</td>"
+        f"<tr><td>{escape(r.label)}</td><td>{' / '.join(_mm(v, False) for v in r.pf_mm) or '&ndash;'}</td>"
         f"<td>{' / '.join(_mm(v) for v in r.ps_mm) or '&ndash;'}</td><td>{_mm(r.sd_mm)}</td>"
-        f"<td>{_mm(r.f_mm)}</td><td>{rms(r.rms_mm)}</td><td>{r.n_points}</td><td>{r.excluded_points}</td>"
+        f"<td>{_mm(r.f_mm, False)}</td><td>{rms(r.rms_mm)}</td><td>{r.n_points}</td>"
+        f"<td>{r.excluded_points}</td>"
         f"<td>{escape(r.error or '')}</td></tr>"
         for r in result.positions
     )
