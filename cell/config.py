@@ -230,6 +230,24 @@ class CalibrationFiles(Strict):
     latency: Path | None = Field(None, description="display latency (cell calibrate latency)")
 
 
+class VerificationConfig(Strict):
+    """Maximum permissible errors of the VDI/VDE 2634 figures (``cell verify``), mm, and the certificate of
+    the artefacts (relative to the cell config file; default recipes/artefacts/certificate.yaml)."""
+
+    mpe_pf_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.05, description="probing error, form")
+    mpe_ps_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.05, description="probing error, size (+-)")
+    mpe_sd_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.025, description="sphere-spacing error (+-)")
+    mpe_f_mm: Annotated[float, Field(gt=0, le=10)] = Field(0.05, description="flatness measurement error")
+    mpe_sd_multiview_mm: Annotated[float, Field(gt=0, le=10)] = Field(
+        0.08,
+        description="sphere-spacing error of the long ball bar across views (Part 3, robot-moved sensor)",
+    )
+    warn_fraction: Annotated[float, Field(gt=0, le=1)] = Field(
+        0.7, description="`cell verify check` warns when a figure uses more than this share of its MPE"
+    )
+    certificate: Path | None = Field(None, description="artefact certificate YAML")
+
+
 class CellConfig(Strict):
     """A whole cell: one robot carrying one area sensor; the simulator section is used by sim devices."""
 
@@ -245,6 +263,7 @@ class CellConfig(Strict):
         "realistic defaults. Only the simulator reads it (schema: docs/world-schema.md)",
     )
     calibration: CalibrationFiles = CalibrationFiles()
+    verification: VerificationConfig = VerificationConfig()
 
 
 # --------------------------------------------------------------------------------------------- recipes

@@ -141,3 +141,21 @@ def build_devices(
         stage = OperatorBoardStage()
         names["stage"] = stage.name
     return DeviceBundle(robot=robot, camera=camera, projector=projector, names=names, stage=stage)
+
+
+
+# artefact stages for verification (cell.verification.stage.ArtefactStage): a simulated cell's stage puts the
+# artefact into the simulated scene; a real cell's technician places it by hand.
+ARTEFACT_STAGES: dict[str, str] = {
+    "sim": "fakes.artefact_stage:SimArtefactStage",
+    "operator": "cell.verification.stage:OperatorStage",
+}
+
+
+def build_artefact_stage(devices: DeviceBundle, certificate: Any) -> Any:
+    """The artefact stage of ``devices``' cell: the simulated one (rendering ``certificate``'s artefacts)
+    when the cell is simulated, else the technician's hands (cell.verification.stage.OperatorStage)."""
+    kind = "sim" if devices.sim is not None else "operator"
+    module_name, class_name = ARTEFACT_STAGES[kind].split(":")
+    cls = getattr(importlib.import_module(module_name), class_name)
+    return cls(devices.sim, certificate) if kind == "sim" else cls()

@@ -1,0 +1,301 @@
+"""The VDI/VDE 2634 Part 2 acceptance procedure for one view: the sensor stays at one pose, the artefact
+stage puts the ball bar and the plane at the guideline's positions in the measuring volume, each is measured
+through the structured-light pipeline (GCLS, the active calibration) and evaluated.
+
+Everything is measured in the camera frame {C}: the figures are lengths and forms, which no rigid transform
+changes, so the single-view figures do not depend on the hand-eye or the robot. The commanded artefact pose
+only seeds the segmentation (gates of several mm absorb placement and hand-eye errors).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.calibration import active_hand_eye, active_triangulator, calibration_source
+from cell.config import CellConfig
+from cell.contracts import CameraSettings, PixelFormat, ProjectorSource, TriggerMode
+from cell.devices import DeviceBundle
+from cell.geometry import invert, look_at, transform_points
+from cell.planning.kinematics import UR5E
+from cell.sensing.patterns import PatternSet, gcls_patterns
+from cell.sensing.scan import scan_view
+from cell.verification.certificate import BallBarArtefact, Certificate, PlaneArtefact
+from cell.verification.figures import (
+    OUTLIER_FRACTION,
+    FitError,
+    fit_plane,
+    fit_sphere,
+    flatness,
+    probing_form,
+    probing_size,
+    sphere_spacing,
+)
+from cell.verification.positions import Position, Volume, ball_bar_positions, plane_positions
+from cell.verification.stage import ArtefactStage
+
+COARSE_GATE_MM = 8.0  # first selection around the commanded artefact: placement + hand-eye errors
+FINE_GATE_MM = 1.0  # points farther than this from the first fit do not belong to the artefact surface
+BAR_CLEARANCE_MM = 1.5  # sphere points this close to the bar (beyond its radius) are left out
+PLANE_EDGE_MM = 5.0  # the plane's edge zone left out (mixed pixels where the face ends)
+VOLUME_CENTRE_HEIGHT_MM = 80.0  # the measuring volume's centre above the table (its far end clears it)
+
+
+@dataclass
+class PositionResult:
+    """One position's figures (mm; None where they do not apply or the fit failed)."""
+
+    label: str
+    artefact: str
+    n_points: int = 0
+    pf_mm: list[float] = field(default_factory=list)  # one per sphere
+    ps_mm: list[float] = field(default_factory=list)
+    sd_mm: float | None = None
+    f_mm: float | None = None
+    rms_mm: list[float] = field(default_factory=list)  # RMS residual of each fit: the noise under PF and F
+    excluded_points: int = 0
+    error: str | None = None
+
+
+@dataclass
+class AcceptanceResult:
+    """The acceptance test: every position, the worst figure of each kind and the verdict against the MPEs."""
+
+    cell: str
+    geometry_source: str
+    volume_mm: dict[str, float]
+    mpe_mm: dict[str, float]
+    positions: list[PositionResult]
+    figures_mm: dict[str, float | None] = field(default_factory=dict)
+    passed: dict[str, bool | None] = field(default_factory=dict)
+    verdict: str = "incomplete"
+    simulated: bool = False
+    kind: str = "VDI/VDE 2634 Part 2, single view"
+    required: tuple[str, ...] = ("PF", "PS", "SD", "F")
+
+    def summarise(self) -> None:
+        """Worst value (largest magnitude) per figure, pass/fail per figure and overall."""
+
+        def worst(values: list[float]) -> float | None:
+            return max(values, key=abs) if values else None
+
+        p = self.positions
+        self.figures_mm = {
+            "PF": worst([v for r in p for v in r.pf_mm]),
+            "PS": worst([v for r in p for v in r.ps_mm]),
+            "SD": worst([r.sd_mm for r in p if r.sd_mm is not None]),
+            "F": worst([r.f_mm for r in p if r.f_mm is not None]),
+        }
+        self.passed = {
+            k: (None if v is None else abs(v) <= self.mpe_mm[k]) for k, v in self.figures_mm.items()
+        }
+        if any(r.error for r in p) or any(self.passed[k] is None for k in self.required):
+            self.verdict = "incomplete"
+        else:
+            self.verdict = "pass" if all(v for v in self.passed.values() if v is not None) else "fail"
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+# ------------------------------------------------------------------------------------------ evaluation
+def evaluate_ball_bar(
+    points_C: NDArray[np.float64], T_C_A: NDArray[np.float64], bar: BallBarArtefact
+) -> PositionResult:
+    """PF and PS of both spheres and SD of a ball bar from its view's points (camera frame, mm); ``T_C_A``
+    is where the bar is expected (model), which only seeds the segmentation."""
+    res = PositionResult("", "ball_bar", n_points=0)
+    L = bar.centre_distance_mm
+    centres = transform_points(T_C_A, np.array([[-L / 2, 0, 0], [L / 2, 0, 0]]))
+    fits = []
+    # twice: first around the expected centres with a wide gate, then around the first fit with a narrow one
+    for gate, clearance in ((COARSE_GATE_MM, COARSE_GATE_MM / 2), (FINE_GATE_MM, BAR_CLEARANCE_MM)):
+        axis = (centres[1] - centres[0]) / np.linalg.norm(centres[1] - centres[0])
+        fits = []
+        for i, (c, d) in enumerate(zip(centres, bar.sphere_diameters_mm, strict=True)):
+            rel = points_C - c
+            dist = np.linalg.norm(rel, axis=1)
+            toward_other = rel @ (axis if i == 0 else -axis)
+            off_axis = np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)
+            on_bar = (toward_other > 0) & (off_axis < bar.bar_diameter_mm / 2 + clearance)
+            sel = (np.abs(dist - d / 2) < gate) & ~on_bar
+            fits.append(
+                fit_sphere(points_C[sel], outlier_fraction=0.0 if gate > FINE_GATE_MM else OUTLIER_FRACTION)
+            )
+        centres = np.array([f.centre for f in fits])
+    for fit, d in zip(fits, bar.sphere_diameters_mm, strict=True):
+        res.pf_mm.append(probing_form(fit))
+        res.ps_mm.append(probing_size(fit, d))
+        res.rms_mm.append(fit.rms)
+        res.n_points += fit.n_used
+        res.excluded_points += fit.n_excluded
+    res.sd_mm = sphere_spacing(fits[0], fits[1], L)
+    return res
+
+
+def evaluate_plane(
+    points_C: NDArray[np.float64], T_C_A: NDArray[np.float64], plate: PlaneArtefact
+) -> PositionResult:
+    """F of the plane standard from its view's points (camera frame, mm); ``T_C_A`` seeds the segmentation.
+    The face's extent is found from the points themselves and its edge zone left out."""
+    res = PositionResult("", "plane")
+    p_A = transform_points(invert(T_C_A), points_C)
+    hl, hw = plate.length_mm / 2 + COARSE_GATE_MM, plate.width_mm / 2 + COARSE_GATE_MM
+    near = (np.abs(p_A[:, 0]) < hl) & (np.abs(p_A[:, 1]) < hw) & (np.abs(p_A[:, 2]) < COARSE_GATE_MM)
+    coarse = fit_plane(points_C[near], outlier_fraction=0.0)
+    on_face = near & (np.abs((points_C - coarse.point) @ coarse.normal) < FINE_GATE_MM)
+    # in-plane coordinates along the artefact's nominal axes, projected onto the fitted plane
+    u = T_C_A[:3, 0] - (T_C_A[:3, 0] @ coarse.normal) * coarse.normal
+    u /= np.linalg.norm(u)
+    v = np.cross(coarse.normal, u)
+    rel = points_C[on_face] - coarse.point
+    cu, cv = rel @ u, rel @ v
+    inner = (
+        (cu > cu.min() + PLANE_EDGE_MM)
+        & (cu < cu.max() - PLANE_EDGE_MM)
+        & (cv > cv.min() + PLANE_EDGE_MM)
+        & (cv < cv.max() - PLANE_EDGE_MM)
+    )
+    fit = fit_plane(points_C[on_face][inner])
+    res.f_mm = flatness(fit)
+    res.rms_mm.append(fit.rms)
+    res.n_points, res.excluded_points = fit.n_used, fit.n_excluded
+    return res
+
+
+# ------------------------------------------------------------------------------------------ the procedure
+def single_view_pose(cfg: CellConfig) -> NDArray[np.float64]:
+    """T_W_C (mm) of the single-view test: looking straight down at the measuring volume's centre, which
+    sits :data:`VOLUME_CENTRE_HEIGHT_MM` above the table at the world origin."""
+    centre = np.array([0.0, 0.0, VOLUME_CENTRE_HEIGHT_MM])
+    return look_at(centre + (0.0, 0.0, cfg.sensor.standoff_mm), centre, up=(0.0, 1.0, 0.0))
+
+
+def acceptance_positions(cfg: CellConfig, certificate: Certificate) -> list[Position]:
+    """The Part 2 positions for this cell's measuring volume and these artefacts."""
+    vol = Volume.of(cfg.sensor)
+    bar = certificate.ball_bar
+    return ball_bar_positions(vol, bar.centre_distance_mm, max(bar.sphere_diameters_mm)) + plane_positions(
+        vol, certificate.plane.length_mm
+    )
+
+
+def check_positions(cfg: CellConfig, certificate: Certificate) -> list[Position]:
+    """The interim check's two positions: the ball bar along the first space diagonal (it spans the depth
+    and the field) and the plane flat in the middle."""
+    every = {p.label: p for p in acceptance_positions(cfg, certificate)}
+    return [every["ball bar, space diagonal 1"], every["plane, flat middle"]]
+
+
+class SingleView:
+    """Moves the sensor to the single-view pose and measures one artefact position at a time (points in the
+    camera frame {C}, mm) through the device contracts."""
+
+    def __init__(self, cfg: CellConfig, devices: DeviceBundle):
+        self.cfg, self.devices = cfg, devices
+        proj = cfg.sensor.projector
+        self.patterns: PatternSet = gcls_patterns(
+            proj.width_px, proj.height_px, 12, n_shifts=12, n_gray=6 if proj.width_px >= 768 else None
+        )
+        self.triangulator = active_triangulator(cfg)
+        self.T_T_C = active_hand_eye(cfg)
+        self.T_W_C_cmd = single_view_pose(cfg)
+
+    def start(self) -> None:
+        """Connect, switch on, configure the camera, move to the single-view pose."""
+        d, cam = self.devices, self.cfg.sensor.camera
+        for _, dev in d.items():
+            dev.connect()
+        d.projector.set_power(True)
+        d.projector.set_source(ProjectorSource.HDMI)
+        d.camera.configure(
+            CameraSettings(
+                cam.exposure_ms, cam.gain_db, PixelFormat(f"Mono{cam.bit_depth}"), TriggerMode.SOFTWARE
+            )
+        )
+        T_W_B = self.cfg.robot.T_W_B.matrix()
+        T_B_T = invert(T_W_B) @ self.T_W_C_cmd @ invert(self.T_T_C)
+        q = UR5E.ik_nearest(T_B_T, d.robot.joints())
+        d.robot.move_joint(q, self.cfg.robot.max_joint_speed_rad_s, self.cfg.robot.max_joint_accel_rad_s2)
+
+    def stop(self) -> None:
+        for _, dev in self.devices.items():
+            dev.close()
+
+    def T_W_C_model(self) -> NDArray[np.float64]:
+        """Where the cell believes the camera is: the robot's reported flange pose and the active hand-eye."""
+        return self.cfg.robot.T_W_B.matrix() @ self.devices.robot.tool_pose() @ self.T_T_C
+
+    def measure(self, index: int) -> NDArray[np.float64]:
+        """One GCLS view; the valid points in {C} (mm)."""
+        if self.devices.sim is not None:
+            self.devices.sim.reseed(1000 + index)
+        view = scan_view(
+            self.devices.camera,
+            self.devices.projector,
+            self.patterns,
+            self.triangulator,
+            bit_depth=self.cfg.sensor.camera.bit_depth,
+        )
+        return view.cloud.points_C[view.cloud.valid]
+
+
+def run_acceptance(
+    cfg: CellConfig,
+    devices: DeviceBundle,
+    stage: ArtefactStage,
+    certificate: Certificate,
+    *,
+    positions: list[Position] | None = None,
+    progress: Any = None,
+) -> tuple[AcceptanceResult, dict[str, NDArray[np.float64]]]:
+    """Run the single-view acceptance test; returns the result and each position's measured points ({C}).
+    ``positions`` defaults to :func:`acceptance_positions`; ``progress(k, n, label)`` is told each one."""
+    positions = positions if positions is not None else acceptance_positions(cfg, certificate)
+    vol = Volume.of(cfg.sensor)
+    v = cfg.verification
+    result = AcceptanceResult(
+        cell=cfg.name,
+        geometry_source=calibration_source(cfg),
+        volume_mm={
+            "width": vol.width_mm,
+            "height": vol.height_mm,
+            "depth": vol.depth_mm,
+            "L0": vol.diagonal_mm,
+        },
+        mpe_mm={"PF": v.mpe_pf_mm, "PS": v.mpe_ps_mm, "SD": v.mpe_sd_mm, "F": v.mpe_f_mm},
+        positions=[],
+        simulated=devices.sim is not None,
+    )
+    clouds: dict[str, NDArray[np.float64]] = {}
+    sv = SingleView(cfg, devices)
+    sv.start()
+    try:
+        T_W_V = sv.T_W_C_cmd @ np.array(
+            [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, cfg.sensor.standoff_mm], [0, 0, 0, 1.0]]
+        )
+        for k, pos in enumerate(positions):
+            if progress is not None:
+                progress(k, len(positions), pos.label)
+            T_W_A = T_W_V @ pos.T_V_A
+            stage.place(pos.artefact, T_W_A, pos.label)
+            points_C = sv.measure(k)
+            clouds[pos.label] = points_C
+            T_C_A = invert(sv.T_W_C_model()) @ T_W_A
+            try:
+                if pos.artefact == "plane":
+                    r = evaluate_plane(points_C, T_C_A, certificate.plane)
+                else:
+                    r = evaluate_ball_bar(points_C, T_C_A, certificate.ball_bar)
+            except FitError as exc:
+                r = PositionResult(pos.label, pos.artefact, error=f"too few points on the artefact: {exc}")
+            r.label = pos.label
+            result.positions.append(r)
+        stage.clear()
+    finally:
+        sv.stop()
+    result.summarise()
+    return result, clouds
