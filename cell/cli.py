@@ -32,7 +32,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "scan": ("scan", "One structured-light scan of a mesh in the simulated cell, from one pose."),
     "compare": ("compare", "Error map and report of any cloud against any nominal mesh."),
     "glass": ("glass", "Back-imaging inspection of a glass pane on the glass rig."),
-    "calibrate": ("calibrate", "Calibration routines: sensor, intrinsics, projector, gamma, hand-eye."),
+    "calibrate": (
+        "calibrate",
+        "Calibration routines: sensor, intrinsics, projector, gamma, hand-eye, latency, validate, all.",
+    ),
+    "verify": ("verify", "VDI/VDE 2634 acceptance test, interim check and verification history."),
     "sensor": ("sensor", "Structured-light sensor model utilities."),
     "devices": ("devices", "Connect each configured device and print its status."),
     "docs": ("docs", "Regenerate the schema pages and the state diagram in docs/ from the code."),
@@ -86,8 +90,12 @@ def _root() -> None:
 def _fail(message: str, exit_code: int) -> None:
     """One line on stderr, then exit: no traceback for errors a user can fix."""
     from rich.console import Console
+    from rich.text import Text
 
-    Console(stderr=True).print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    # Text, not markup: a message quoting user input (a file name with brackets) is printed as it is
+    Console(stderr=True).print(
+        Text.assemble(("error: ", "bold red"), message), highlight=False, soft_wrap=True
+    )
     sys.exit(exit_code)
 
 

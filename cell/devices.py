@@ -143,7 +143,6 @@ def build_devices(
     return DeviceBundle(robot=robot, camera=camera, projector=projector, names=names, stage=stage)
 
 
-
 # artefact stages for verification (cell.verification.stage.ArtefactStage): a simulated cell's stage puts the
 # artefact into the simulated scene; a real cell's technician places it by hand.
 ARTEFACT_STAGES: dict[str, str] = {

@@ -23,7 +23,9 @@ CellOpt = typer.Option(DEFAULT_CELL, "--cell", help="cell config YAML")
 OutOpt = typer.Option(..., "--out", help="run folder to write (an unfinished one is resumed)")
 ForceOpt = typer.Option(False, "--force", help="replace a better existing calibration")
 FromOpt = typer.Option(
-    None, "--from", help="capture folder of images taken elsewhere (docs/capture-folders.md); no device is used"
+    None,
+    "--from",
+    help="capture folder of images taken elsewhere (docs/capture-folders.md); no device is used",
 )
 FIELDS = {
     "camera_intrinsics": "intrinsics",
@@ -216,4 +218,7 @@ def all_cmd(
 
 
 def register(app: typer.Typer) -> None:
+    from cell.commands.latency import latency_cmd
+
+    calibrate_app.command("latency")(latency_cmd)
     app.add_typer(calibrate_app, name="calibrate")

@@ -1,6 +1,5 @@
 """``cell calibrate latency``: measure the display latency on the configured cell (real or simulated) and
-write it as a calibration file. Registered into the ``calibrate`` group that cell/commands/calibrate.py
-creates (modules register in name order, so that group exists by now)."""
+write it as a calibration file. Added to the ``calibrate`` group by cell/commands/calibrate.py."""
 
 from __future__ import annotations
 
@@ -11,7 +10,6 @@ import typer
 
 from cell.config import DEFAULT_CELL, load_cell_config
 from cell.contracts import CameraSettings, PixelFormat, ProjectorSource, TriggerMode
-from cell.errors import ConfigError
 
 
 def latency_cmd(
@@ -56,13 +54,3 @@ def latency_cmd(
     )
     typer.echo(json.dumps({k: meta[k] for k in ("latency_ms", "figures")}, indent=2)[:2000])
     typer.echo(f"\nTo use it, put this into the cell config:\ncalibration:\n  latency: {path.resolve()}")
-
-
-def register(app: typer.Typer) -> None:
-    for group in app.registered_groups:
-        if group.name == "calibrate" and group.typer_instance is not None:
-            group.typer_instance.command("latency")(latency_cmd)
-            return
-    raise ConfigError(
-        "the 'calibrate' command group is not registered; cell/commands/calibrate.py must load first"
-    )
