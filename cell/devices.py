@@ -8,6 +8,7 @@ missing or broken hardware library only matters when its driver is configured.
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -158,3 +159,23 @@ def build_artefact_stage(devices: DeviceBundle, certificate: Any) -> Any:
     module_name, class_name = ARTEFACT_STAGES[kind].split(":")
     cls = getattr(importlib.import_module(module_name), class_name)
     return cls(devices.sim, certificate) if kind == "sim" else cls()
+
+
+def build_glass_rig(
+    cfg: Any, actual_W: trimesh.Trimesh, operator_places_board: Callable[[float | None], None]
+) -> tuple[Any, Callable[[float | None], None], Callable[..., None] | None]:
+    """The glass rig of ``cfg`` (cell.glass.config.GlassRigConfig), how its dot-grid board gets placed and how
+    its screen moves (None: it cannot). A simulated rig renders ``actual_W`` (world, mm) and places its board
+    and screen itself; a real or replayed rig asks the operator to place the board."""
+    if cfg.driver == "sim":
+        from fakes.glass_rig import SimGlassRig
+
+        rig = SimGlassRig(cfg, actual_W)
+        return rig, rig.place_board, rig.move_screen
+    if cfg.driver == "genicam":
+        from drivers.glass_rig import GenICamGlassRig
+
+        return GenICamGlassRig(cfg, cfg.options), operator_places_board, None
+    from fakes.replay import ReplayGlassRig
+
+    return ReplayGlassRig(cfg), operator_places_board, None

@@ -29,12 +29,12 @@ def glass_cmd(
     """Measure a glass pane: view vectors, marker search, multi-camera feedback, error map and report."""
     from rich.console import Console
 
+    from cell.devices import build_glass_rig
     from cell.errors import ConfigError
     from cell.glass.config import load_glass_recipe, load_glass_rig
     from cell.glass.job import run_glass_inspection
     from cell.mesh import load_mesh
     from cell.runs import RunFolder
-    from fakes.glass_rig import SimGlassRig
 
     rec = load_glass_recipe(recipe)
     if method is not None:
@@ -65,21 +65,7 @@ def glass_cmd(
     for src, name in inputs:
         run.copy_input(Path(src), name)
     run.log("run_created", part=part, recipe=str(recipe), rig=str(rig_path), actual=str(actual_path))
-    if cfg.driver == "sim":
-        rig = SimGlassRig(cfg, actual_W)
-        place_board = rig.place_board
-        move_screen = rig.move_screen
-    elif cfg.driver == "genicam":
-        from drivers.glass_rig import GenICamGlassRig
-
-        rig = GenICamGlassRig(cfg, cfg.options)
-        place_board = _operator_places_board
-    else:
-        from fakes.replay import ReplayGlassRig
-
-        rig = ReplayGlassRig(cfg)
-        place_board = _operator_places_board
-        move_screen = None
+    rig, place_board, move_screen = build_glass_rig(cfg, actual_W, _operator_places_board)
     summary = run_glass_inspection(
         run, rec, cfg, rig, place_board, nominal_W, frames, board_frames, move_screen
     )
