@@ -164,7 +164,8 @@ def _status(powered: bool, muted: bool) -> list[tuple[bytes, bytes]]:
     return out
 
 
-PING, ON, OFF = (b"\r", b":"), (b"PWR ON\r", b":"), (b"PWR OFF\r", b":")
+PING, OFF = (b"\r", b":"), (b"PWR OFF\r", b":")
+ON = [(b"PWR ON\r", b":"), (b"PWR?\r", b"PWR=01\r:")]  # power on, then polled until it projects
 HDMI = [(b"SOURCE 30\r", b":"), (b"MUTE OFF\r", b":")]
 # The ESC/VP21 traffic each contract test causes, as the projector answers it.
 CONTRACT_TRANSCRIPTS: dict[str, list[tuple[bytes, bytes]]] = {
@@ -172,7 +173,7 @@ CONTRACT_TRANSCRIPTS: dict[str, list[tuple[bytes, bytes]]] = {
     "test_connect_and_close_are_idempotent": [PING, PING, PING],
     "test_power_and_source_show_in_status": [
         PING,
-        ON,
+        *ON,
         *HDMI,
         *_status(True, False),
         (b"MUTE ON\r", b":"),
@@ -181,9 +182,9 @@ CONTRACT_TRANSCRIPTS: dict[str, list[tuple[bytes, bytes]]] = {
         *_status(False, True),
         *_status(False, True),
     ],
-    "test_show_is_pixel_exact": [PING, ON],
+    "test_show_is_pixel_exact": [PING, *ON],
     "test_show_refuses_wrong_shape_or_dtype": [PING],
-    "test_sequence_steps_in_order": [PING, ON],
+    "test_sequence_steps_in_order": [PING, *ON],
 }
 
 

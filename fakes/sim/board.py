@@ -300,17 +300,11 @@ class TexturedBoardRenderer:
             self._view = (key, view, uv, float(blur_sigma_px(self.proj, np.array([depth]))[0]))
         return self._view[1], self._view[2], self._view[3]
 
-    def render(
-        self,
-        T_W_C: NDArray[np.float64],
-        pattern: NDArray[np.uint8],
-        exposure_ms: float,
-        gain_db: float,
-        rng: np.random.Generator | None,
-        bit_depth: int | None = None,
-    ) -> NDArray[np.integer]:
-        """One camera image of the board lit by projector image ``pattern`` (its response curve and
-        defocus)."""
+    def signal_e(
+        self, T_W_C: NDArray[np.float64], pattern: NDArray[np.uint8], exposure_ms: float
+    ) -> NDArray[np.float32]:
+        """Noise-free electrons per pixel (H, W) of the board lit by projector image ``pattern`` (its response
+        curve and defocus) and of the scene around it; the simulated camera sums these over its exposure."""
         view, uv, p_sigma = self._geometry(T_W_C)
         proj = self.proj
         lut = (proj.black_level + (1 - proj.black_level) * (np.arange(256) / 255.0) ** proj.gamma).astype(
@@ -334,8 +328,29 @@ class TexturedBoardRenderer:
             signal = cv2.GaussianBlur(signal, (0, 0), sigma)
         # around the board the camera sees the rest of the scene (the table)
         behind = self.base.signal_e(T_W_C, pattern, exposure_ms)
-        signal = np.where(self._on_board, signal, behind).astype(np.float32)
-        return self.base.sensor_dn(signal, gain_db, rng, bit_depth)
+        return np.where(self._on_board, signal, behind).astype(np.float32)
+
+    def sensor_dn(
+        self,
+        signal_e: NDArray[np.float32],
+        gain_db: float,
+        rng: np.random.Generator | None,
+        bit_depth: int | None = None,
+    ) -> NDArray[np.integer]:
+        """Electrons to digital numbers with the base renderer's noise model."""
+        return self.base.sensor_dn(signal_e, gain_db, rng, bit_depth)
+
+    def render(
+        self,
+        T_W_C: NDArray[np.float64],
+        pattern: NDArray[np.uint8],
+        exposure_ms: float,
+        gain_db: float,
+        rng: np.random.Generator | None,
+        bit_depth: int | None = None,
+    ) -> NDArray[np.integer]:
+        """One camera image of the board lit by projector image ``pattern``."""
+        return self.sensor_dn(self.signal_e(T_W_C, pattern, exposure_ms), gain_db, rng, bit_depth)
 
     def render_stack(
         self,
