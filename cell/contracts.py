@@ -215,8 +215,8 @@ class RobotMode(StrEnum):
 
 @dataclass(frozen=True)
 class RobotState:
-    """Safety and program state of a robot (the UR safety status bits: protective stop 2, emergency stop 7
-    or 8, safeguard stop 6 (a guard, door or light curtain), fault 9, violation 10; reduced mode 1)."""
+    """Safety and program state of a robot (the UR RTDE safety status bits: reduced mode 1, protective stop 2,
+    safeguard stop 4 (a guard, door or light curtain), emergency stop 5-7, violation 8, fault 9)."""
 
     mode: RobotMode
     protective_stop: bool = False

@@ -254,8 +254,15 @@ class RunFolder:
             "since": datetime.now(UTC).isoformat(timespec="seconds"),
         }
         for _ in range(3):
+            # the lock appears with its content at once (written aside, then hard-linked into place), so a
+            # racing process never reads an empty lock and mistakes it for a torn, stale one
+            mine = self.lock_path.with_name(f".{LOCK_NAME}.new-{os.getpid()}")
+            with open(mine, "w") as f:
+                f.write(json.dumps(me))
+                f.flush()
+                os.fsync(f.fileno())
             try:
-                fd = os.open(self.lock_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+                os.link(mine, self.lock_path)
             except FileExistsError:
                 holder = self.lock_holder()
                 if holder is None:
@@ -280,10 +287,8 @@ class RunFolder:
                 if (self.path / "journal.jsonl").exists():
                     self.log("lock", action="stale lock taken over", stale_holder=holder, holder=me)
                 continue
-            with os.fdopen(fd, "w") as f:
-                f.write(json.dumps(me))
-                f.flush()
-                os.fsync(f.fileno())
+            finally:
+                mine.unlink(missing_ok=True)
             return
         raise ConfigError(
             "could not take the run folder's lock (another process races for it)", path=str(self.path)
