@@ -8,13 +8,14 @@ import multiprocessing
 import os
 import socket
 import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from cell.config import RobotConfig
-from cell.contracts import RobotMode
+from cell.contracts import RobotMode, RobotState
 from cell.errors import DeviceFault, DeviceTimeout, MotionStopped, PlanningError
 from cell.geometry import pose_from_xyz_rpy
 from drivers.ur_robot import URRobot
@@ -220,6 +221,17 @@ def test_dashboard_power_and_brakes(fake) -> None:
 
 
 # ------------------------------------------------------------------------------------------ safety (issue 13)
+def _state_when(robot: URRobot, seen: Callable[[RobotState], bool], timeout_s: float = 2.0) -> RobotState:
+    """The robot's state once ``seen`` holds, or the last state read after ``timeout_s``: the fake's change
+    reaches the client with the next RTDE packet, which a loaded machine may delay past any fixed sleep."""
+    deadline = time.monotonic() + timeout_s
+    state = robot.state()
+    while not seen(state) and time.monotonic() < deadline:
+        time.sleep(0.01)
+        state = robot.state()
+    return state
+
+
 @pytest.mark.parametrize(
     "bits,flag,normal",
     [
@@ -235,8 +247,7 @@ def test_every_safety_status_bit_is_read(fake, bits: int, flag: str, normal: boo
     robot.connect()
     try:
         fake.set("safety_bits", bits)
-        time.sleep(0.05)
-        state = robot.state()
+        state = _state_when(robot, lambda st: getattr(st, flag))
         assert getattr(state, flag) and state.normal is normal
         if not normal:
             with pytest.raises(DeviceFault, match="not ready for motion"):
@@ -270,8 +281,7 @@ def test_brakes_on_is_not_ready() -> None:
         robot.connect()
         try:
             fake.set("robot_mode", 5)  # IDLE: powered, brakes on
-            time.sleep(0.05)
-            state = robot.state()
+            state = _state_when(robot, lambda st: st.mode is RobotMode.BRAKES_ON)
             assert state.mode is RobotMode.BRAKES_ON and not state.normal
         finally:
             robot.close()
