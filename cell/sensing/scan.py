@@ -40,11 +40,13 @@ MAX_SAMPLES = 50_000  # pixels checked per image, evenly spread
 
 @dataclass
 class ViewScan:
-    """What one view produced: the organised cloud in {C}, the decoding, and timings (s) per stage."""
+    """What one view produced: the organised cloud in {C}, the decoding, timings (s) per stage, and what
+    synchronisation re-captured."""
 
     cloud: SensorCloud
     decoded: Decoded
     timings_s: dict[str, float] = field(default_factory=dict)
+    capture: CaptureLog | None = None
 
     def reason_counts(self) -> dict[str, int]:
         """Pixels per reason (a pixel can count under several) and valid points."""
@@ -273,4 +275,4 @@ def scan_view(
     cloud = triangulator.triangulate(decoded)
     t3 = time.perf_counter()
     timings = {"capture": t1 - t0, "decode": t2 - t1, "triangulate": t3 - t2}
-    return ViewScan(cloud, decoded, timings)
+    return ViewScan(cloud, decoded, timings, log)
