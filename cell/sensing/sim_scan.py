@@ -98,7 +98,9 @@ def run_sim_scan(
         # A joint move: a straight line from home may pass the base axis; IK picks the branch nearest to now.
         q = UR5E.ik_nearest(T_B_T, dev.robot.joints())
         dev.robot.move_joint(q, cfg.robot.max_joint_speed_rad_s, cfg.robot.max_joint_accel_rad_s2)
-        T_W_C_actual = dev.sim.camera_pose()
+        # where the cell believes the camera is: the robot's reported flange pose through the configured
+        # hand-eye (what a real cell knows; the simulator's true camera pose is not the pipeline's to read)
+        T_W_C_reported = cfg.robot.T_W_B.matrix() @ dev.robot.tool_pose() @ cfg.sensor.T_T_C.matrix()
         make = gcls_patterns if codec == "gcls" else gcps_patterns
         extra = {"n_shifts": 12} if codec == "gcls" else {"n_phase": 24}  # same number of images (38 at XGA)
         patterns = make(
@@ -115,7 +117,7 @@ def run_sim_scan(
             d.close()
     out.mkdir(parents=True, exist_ok=True)
     pts_C = view.cloud.points_C[view.cloud.valid]
-    pts_W = transform_points(T_W_C_actual, pts_C)
+    pts_W = transform_points(T_W_C_reported, pts_C)
     write_ply(out / "cloud.ply", pts_W)
     cv2.imwrite(str(out / "masks.png"), masks_image(view.cloud))
     return {
@@ -126,9 +128,9 @@ def run_sim_scan(
         "geometry_source": "simulator: the cell config's sensor geometry (no sensor calibration yet)",
         "part": str(part_path) if part_path else None,
         "pose": {
-            "T_W_C": T_W_C_actual.tolist(),
+            "T_W_C": T_W_C_reported.tolist(),
             "T_B_T": T_B_T.tolist(),
-            "camera_xyz_rotvec": pose_to_xyz_rotvec(T_W_C_actual).tolist(),
+            "camera_xyz_rotvec": pose_to_xyz_rotvec(T_W_C_reported).tolist(),
         },
         "counts": view.reason_counts(),
         "mask_colours_bgr": {r.name.lower(): c for r, c in MASK_COLOURS},
