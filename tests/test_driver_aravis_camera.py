@@ -47,7 +47,14 @@ _WHY = _missing()
 if _WHY and os.environ.get("CELL_REQUIRE_ARAVIS"):
     raise RuntimeError(f"CELL_REQUIRE_ARAVIS is set but the Aravis tests cannot run: {_WHY}")
 
-pytestmark = [pytest.mark.timeout(120), pytest.mark.skipif(_WHY is not None, reason=_WHY or "")]
+# Known flake, not understood yet: on a loaded 2-core machine the clean emulator has once handed every buffer
+# back as 'cleared' (block id 0) for six grabs in a row right after the stream started (CI check, 23 Nov). A
+# failing test is run again up to twice; a real driver fault fails all three runs. docs/cameras.md says so.
+pytestmark = [
+    pytest.mark.timeout(120),
+    pytest.mark.skipif(_WHY is not None, reason=_WHY or ""),
+    pytest.mark.flaky(reruns=2, reruns_delay=1),
+]
 
 WIDTH, HEIGHT = 160, 120
 
