@@ -15,9 +15,9 @@ from cell.errors import ConfigError
 from cell.planning.feedback import run_loop
 from cell.planning.planner import plan_initial, plan_recipe
 from cell.planning.settings import PlanSettings
-from cell.planning.truth_model import measure_from_truth
 from fakes.sim.render import SceneRenderer
 from fakes.sim.scene import Scene
+from fakes.sim.truth_model import measure_from_truth
 from fakes.sim_cell import build_sim_cell
 
 ROOT = Path(__file__).resolve().parent.parent

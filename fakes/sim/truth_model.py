@@ -5,8 +5,8 @@ Given the ground truth of one camera pose (hit points, normals, part and lit mas
 measured when it sees the part, is lit by the projector, lies within the focus range, and its white-pattern
 signal is neither saturated (glare: ambient + Lambert + Phong specular reach the full well, eq 3.23) nor too
 weak (low contrast). Shadowed pixels (inside the projector frustum, not lit) form the shadow masks. Used
-by tests and benchmarks where the real scan pipeline would run; it lives here so that the feedback loop can be
-exercised without importing the simulator.
+by tests and benchmarks where the real scan pipeline would be too slow; it reads ground truth, so it lives
+beside the simulator, never under cell/.
 """
 
 from __future__ import annotations
