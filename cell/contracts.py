@@ -338,21 +338,57 @@ class GlassRig(Protocol):
         ...
 
 
-def frames_by_id(camera: Camera, count: int, timeout_ms: float) -> list[Frame | None]:
-    """Grab the frames of one sequence run and place them by the camera's frame id (the first frame received
-    is pattern 0); a skipped id is a lost frame (None), so are missing frames at the end. A frame id beyond
-    the sequence is a DeviceProtocolError: the trigger fired more often than there are patterns."""
+def expected_frame_id(camera: Camera) -> int | None:
+    """The id the camera's next frame will carry (``next_frame_id``), when the camera can tell; read right
+    after a flush, it lets :func:`frames_by_id` see a lost *first* frame of a sequence."""
+    value = getattr(camera, "next_frame_id", None)
+    return None if value is None else int(value)
+
+
+def grab_ready(camera: Camera) -> list[Frame]:
+    """Every frame the camera already holds (a grab that does not wait). A real driver keeps only a few
+    buffers (4-8), so a sequence longer than that must be fetched while it runs, as a host thread would."""
+    from cell.errors import DeviceTimeout
+
+    out: list[Frame] = []
+    while True:
+        try:
+            out.append(camera.grab(0.0))
+        except DeviceTimeout:
+            return out
+
+
+def frames_by_id(
+    camera: Camera,
+    count: int,
+    timeout_ms: float,
+    *,
+    first_id: int | None = None,
+    received: Sequence[Frame] = (),
+) -> list[Frame | None]:
+    """Grab the rest of one sequence run (after the frames already ``received`` during it) and place every
+    frame by the camera's frame id: pattern 0 is ``first_id`` (the camera's expected id when the run began;
+    without it, the first frame received). A skipped id is a lost frame (None), so are missing frames at the
+    end; without ``first_id`` a short run is all None (a lost first frame and a lost last one look alike).
+    A frame id beyond the sequence is a DeviceProtocolError: the trigger fired more often than there are
+    patterns."""
     from cell.errors import DeviceProtocolError, DeviceTimeout
 
-    frames: list[Frame] = []
-    while not frames or frames[-1].frame_id - frames[0].frame_id < count - 1:
+    frames: list[Frame] = list(received)
+
+    def first() -> int:
+        return first_id if first_id is not None else frames[0].frame_id
+
+    while not frames or frames[-1].frame_id - first() < count - 1:
         try:
             frames.append(camera.grab(timeout_ms))
         except DeviceTimeout:
             break
     out: list[Frame | None] = [None] * count
+    if first_id is None and frames and frames[-1].frame_id - frames[0].frame_id < count - 1:
+        return out  # frames missing and no known first id: a lost first frame would shift them all
     for f in frames:
-        k = f.frame_id - frames[0].frame_id
+        k = f.frame_id - first()
         if not 0 <= k < count:
             raise DeviceProtocolError(camera.name, f"frame id {f.frame_id} beyond the sequence of {count}")
         out[k] = f

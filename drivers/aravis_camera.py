@@ -103,6 +103,18 @@ class AravisCamera:
         return self._model
 
     @property
+    def next_frame_id(self) -> int | None:
+        """The frame id the next frame will get; None until a frame has come since acquisition start."""
+        return self._ids.expected
+
+    def flush(self) -> None:
+        """Requeue frames already waiting, so that a sequence starting now gets only its own frames."""
+        self._require()
+        if self._stream is None:
+            return
+        self._flush()
+
+    @property
     def resolution(self) -> tuple[int, int]:
         if self._dev is None:
             return (self._config.width_px, self._config.height_px)

@@ -41,7 +41,9 @@ from cell.contracts import (
     ProjectorStatus,
     SystemClock,
     TriggerMode,
+    expected_frame_id,
     frames_by_id,
+    grab_ready,
 )
 from cell.errors import ConfigError, DeviceFault, DeviceProtocolError, DeviceTimeout
 from drivers.hdmi_display import HdmiDisplay, HdmiDisplayOptions
@@ -411,13 +413,16 @@ class Dlpc350Projector:
         flush = getattr(camera, "flush", None)
         if flush is not None:
             flush()
+        first = expected_frame_id(camera)
         self._next = 0
         self._start()
         try:
+            received: list[Frame] = []
             if self.options.source == "video":
                 for image in self._sequence:
                     self.show(image)
-            frames = frames_by_id(camera, count, timeout_ms)
+                    received += grab_ready(camera)  # the camera holds only a few frames: fetch as they come
+            frames = frames_by_id(camera, count, timeout_ms, first_id=first, received=received)
         finally:
             self._stop()
         hw = self._read(STATUS_HW, 1)[0]

@@ -78,6 +78,12 @@ class FrameIdTracker:
         step = (block_id - self._last) % 65536
         return step - 1 if block_id != 0 and step > 1 else step  # wrapped past the reserved id 0
 
+    @property
+    def expected(self) -> int | None:
+        """The frame id the next frame will get, once a frame has been seen since the last reset (before
+        that the device's next block id is unknown)."""
+        return None if self._last is None else self._count + 1 + self._unidentified
+
     def observe(self, block_id: int | None) -> None:
         """A frame the driver saw but drops (incomplete, stale): it is not a lost one. None or 0: no id."""
         if not block_id:
@@ -158,6 +164,16 @@ class GenICamCamera:
     @property
     def model(self) -> str:
         return self._model
+
+    @property
+    def next_frame_id(self) -> int | None:
+        """The frame id the next frame will get; None until a frame has come since acquisition start."""
+        return self._ids.expected
+
+    def flush(self) -> None:
+        """Requeue frames already waiting, so that a sequence starting now gets only its own frames."""
+        self._require()
+        self._flush()
 
     @property
     def resolution(self) -> tuple[int, int]:

@@ -33,7 +33,7 @@ GAIN_STEP_DB = 0.1
 EXPOSURE_RANGE_MS = (0.01, 10000.0)
 DLP_BITS = 8  # grey levels by 8 binary-weighted bit planes per frame, least significant first
 GAIN_RANGE_DB = (0.0, 48.0)
-MAX_QUEUED_FRAMES = 64  # frames beyond this are dropped, like a driver's full buffer pool
+DEFAULT_BUFFERS = 8  # frame buffers of the driver (Aravis's default; harvesters announces 4 by default)
 
 
 @dataclass
@@ -53,6 +53,11 @@ class SimCamera:
     :meth:`grab` exposes a new frame now. Timestamps (exposure start) come from ``clock``, which the projector
     shares; a timed-out grab advances that clock by the timeout instead of waiting. Frame ids count every
     exposure, so a lost frame leaves a gap.
+
+    Buffers: like a real driver the camera holds ``options.buffers`` frames (default 8) from exposure start
+    until they are grabbed; an exposure that finds every buffer taken is lost (its id is skipped), so a
+    sequence longer than the buffers must be fetched while it runs. A grab waits at most its timeout on the
+    shared clock: a frame whose exposure ends later is not returned (``grab(0)`` polls).
     """
 
     def __init__(
@@ -81,6 +86,7 @@ class SimCamera:
             pixel_format=self._native_format(),
             trigger=TriggerMode.SOFTWARE,
         )
+        self.buffers = self._buffer_count(config)
         self._queue: deque[Frame] = deque()
         self._pending: deque[tuple[float, int, NDArray[np.float64], tuple[int, int]]] = deque()
         self._busy_until = -np.inf
@@ -117,6 +123,22 @@ class SimCamera:
     @property
     def settings(self) -> CameraSettings:
         return self._settings
+
+    @staticmethod
+    def _buffer_count(config: CameraConfig) -> int:
+        value = config.options.get("buffers", DEFAULT_BUFFERS)
+        if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= 64:
+            raise ConfigError(
+                f"camera '{config.name}': options.buffers must be a whole number of frame buffers in 1..64, "
+                f"not {value!r}",
+                field="sensor.camera.options.buffers",
+            )
+        return value
+
+    @property
+    def next_frame_id(self) -> int:
+        """The id the next exposure will carry (frames pending or queued already have theirs)."""
+        return self._next_id
 
     def _native_format(self) -> PixelFormat:
         return PixelFormat(f"Mono{self.config.bit_depth}")
@@ -248,17 +270,22 @@ class SimCamera:
         return frame
 
     def _start(self, t0: float) -> None:
-        """An exposure starting at ``t0`` (s): queued to render once its window is over; a lost frame only
-        takes its id."""
+        """An exposure starting at ``t0`` (s): queued to render once its window is over; a lost frame (an
+        injected loss, or no free buffer) only takes its id."""
         if self.faults.drop_frames > 0:
             self.faults.drop_frames -= 1
             self._next_id += 1
             return
-        if len(self._queue) + len(self._pending) < MAX_QUEUED_FRAMES:
+        if len(self._queue) + len(self._pending) < self.buffers:
             T_W_C = np.asarray(self.pose_source(), dtype=np.float64)
             self._pending.append((t0, self._next_id, T_W_C, self._noise_key()))
-            self._next_id += 1
+        self._next_id += 1  # every buffer taken: the exposure happens, its frame is lost on the way
         self._busy_until = t0 + self._settings.exposure_ms * 1e-3
+
+    def _ends_within(self, timeout_ms: float) -> bool:
+        """Whether the oldest pending exposure is over within ``timeout_ms`` from now."""
+        t_end = self._pending[0][0] + self._settings.exposure_ms * 1e-3
+        return t_end <= self.clock.now() + timeout_ms * 1e-3 + 1e-12
 
     def _develop(self) -> None:
         """Render the oldest pending exposure (advancing the clock to its end if it is not over yet)."""
@@ -296,7 +323,7 @@ class SimCamera:
         if not self.faults.grab_timeout:
             if self._settings.trigger is TriggerMode.FREE_RUN and not self._queue and not self._pending:
                 self._start(self.clock.now())
-            if not self._queue and self._pending:
+            if not self._queue and self._pending and self._ends_within(timeout_ms):
                 self._develop()
             if self._queue:
                 return self._queue.popleft()

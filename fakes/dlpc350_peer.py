@@ -9,7 +9,9 @@ Commands the controller would refuse in its current state get a NACK reply: conf
 runs, starting an unvalidated or invalid LUT, mailbox data with the mailbox closed.
 
 ``trigger_out`` is called once per pattern exposure while the sequence runs (VSYNC mode: on every
-:meth:`vsync`; internal trigger: :meth:`run_internal` for a number of patterns), like TRIG_OUT_1.
+:meth:`vsync`; internal trigger: :meth:`run_internal` for a number of patterns), like TRIG_OUT_1. With
+``autoplay`` a sequence started in internal-trigger mode (patterns from flash) plays its whole LUT at once,
+as the controller does by itself once started.
 """
 
 from __future__ import annotations
@@ -80,9 +82,16 @@ class Dlpc350State:
 class Dlpc350Peer:
     """The controller behind :class:`drivers.dlpc350.HidTransport`: ``write(report)``, ``read(64, ms)``."""
 
-    def __init__(self, *, trigger_out: Callable[[int], None] | None = None, hw_status: int = 0x01) -> None:
+    def __init__(
+        self,
+        *,
+        trigger_out: Callable[[int], None] | None = None,
+        hw_status: int = 0x01,
+        autoplay: bool = False,
+    ) -> None:
         self.state = Dlpc350State()
         self.trigger_out = trigger_out
+        self.autoplay = autoplay
         self.hw_status = hw_status  # bit 0 init done; bits 6, 7 sequencer abort / error
         self.log: list[tuple[str, int, bytes]] = []  # (read|write, command, data)
         self.triggers = 0
@@ -236,6 +245,8 @@ class Dlpc350Peer:
                 return False  # not validated, invalid, or not in pattern mode
             s.running = data[0]
             s.lut_position = 0
+            if self.autoplay and s.running == 2 and s.trigger_mode == 1:
+                self.run_internal(len(s.pattern_lut))
             return data[0] in (0, 1, 2)
         return False
 

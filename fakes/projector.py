@@ -17,7 +17,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config import ProjectorConfig
-from cell.contracts import Camera, Frame, ProjectorSource, ProjectorStatus, TriggerMode, frames_by_id
+from cell.contracts import (
+    Camera,
+    Frame,
+    ProjectorSource,
+    ProjectorStatus,
+    TriggerMode,
+    expected_frame_id,
+    frames_by_id,
+    grab_ready,
+)
 from cell.errors import ConfigError, DeviceFault, DeviceProtocolError, DeviceTimeout
 from fakes.clock import SimClock
 
@@ -168,7 +177,8 @@ class SimProjector:
 
     def run_sequence(self, camera: Camera, count: int, timeout_ms: float) -> list[Frame | None]:
         """Pattern mode: flush the camera, present ``count`` patterns of the loaded sequence back to back (one
-        per refresh), grab what the trigger output exposed and place frames by their ids."""
+        per refresh), fetching finished frames between refreshes (the camera has only a few buffers) and
+        placing them by their ids from the camera's expected first id (so a lost first frame shows)."""
         self._require_connection()
         if (
             getattr(getattr(camera, "settings", None), "trigger", TriggerMode.HARDWARE)
@@ -180,10 +190,13 @@ class SimProjector:
         flush = getattr(camera, "flush", None)
         if flush is not None:
             flush()
+        first = expected_frame_id(camera)
         self._index = -1
+        received: list[Frame] = []
         for _ in range(count):
             self.step()
-        return frames_by_id(camera, count, timeout_ms)
+            received += grab_ready(camera)
+        return frames_by_id(camera, count, timeout_ms, first_id=first, received=received)
 
     # -------------------------------------------------------------------------------------- simulator side
     @property

@@ -11,8 +11,8 @@ import pytest
 import trimesh
 
 from cell.config import ProjectorConfig, SimConfig
-from cell.contracts import CameraSettings, PixelFormat, Projector, ProjectorSource, TriggerMode
-from cell.errors import ConfigError, DeviceFault
+from cell.contracts import CameraSettings, Frame, PixelFormat, Projector, ProjectorSource, TriggerMode
+from cell.errors import ConfigError, DeviceFault, DeviceTimeout
 from cell.geometry import make_pose
 from cell.sensing.patterns import gcls_patterns
 from cell.sensing.scan import CaptureLog, capture_stack
@@ -232,3 +232,51 @@ def test_a_real_lightcrafter_takes_and_validates_a_pattern_sequence() -> None:
     finally:
         projector.set_source(ProjectorSource.INTERNAL)
         projector.close()
+
+
+class _TriggeredCamera:
+    """A hardware-triggered camera wired to TRIG_OUT_1: each pulse exposes the pattern the controller shows
+    (pixels = that pattern, the camera seeing the projector's image plane); ``lose`` holds the pulse numbers
+    (from 1) whose frames never reach the host. Ids count every exposure, as a camera's block ids do."""
+
+    name = "trigger-cam"
+    settings = CameraSettings(pixel_format=PixelFormat.MONO8, trigger=TriggerMode.HARDWARE)
+    resolution = (128, 96)
+
+    def __init__(self, images: list[np.ndarray], lose: set[int]) -> None:
+        self.images, self.lose, self.pulses, self.queue, self.next_frame_id = images, lose, 0, [], 100
+
+    def expose(self, lut_position: int) -> None:
+        self.pulses += 1
+        if self.pulses not in self.lose:
+            pixels = self.images[lut_position % len(self.images)]
+            self.queue.append(Frame(pixels=pixels, timestamp_s=0.0, frame_id=self.next_frame_id))
+        self.next_frame_id += 1
+
+    def flush(self) -> None:
+        self.queue.clear()
+
+    def grab(self, timeout_ms: float) -> Frame:
+        if not self.queue:
+            raise DeviceTimeout(self.name, "no frame")
+        return self.queue.pop(0)
+
+
+@pytest.mark.parametrize("lost_pulse", [1, 9])
+def test_a_flash_sequence_recaptures_a_lost_frame_by_running_the_sequence_again(lost_pulse: int) -> None:
+    """Patterns stored in flash cannot be shown one by one: a lost frame (the first too, which the expected
+    frame id reveals) is taken from a second run of the whole sequence."""
+    camera = _TriggeredCamera(list(GCLS.frames), lose={lost_pulse})
+    peer = Dlpc350Peer(trigger_out=camera.expose, autoplay=True)
+    projector = Dlpc350Projector(
+        config(source="flash", flash_images=[4, 5], exposure_us=8333, period_us=8333),
+        transport=peer,
+        display=_NullDisplay(peer),
+    )
+    projector.connect()
+    projector.set_power(True)
+    log = CaptureLog()
+    stack = capture_stack(camera, projector, GCLS, log=log)
+    np.testing.assert_array_equal(np.stack(stack), GCLS.frames)
+    assert log.recaptured == [GCLS.names[lost_pulse - 1]]
+    assert peer.triggers == 2 * len(GCLS) and peer.state.running == 0

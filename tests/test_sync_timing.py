@@ -17,7 +17,7 @@ from cell.calibration.latency import KIND, latency_meta, measure_latency
 from cell.calibration.store import save_calibration
 from cell.config import DEFAULT_CELL, CellConfig, SimConfig, load_cell_config, read_yaml, validate
 from cell.contracts import CameraSettings, PixelFormat, TriggerMode
-from cell.errors import ConfigError, DeviceProtocolError
+from cell.errors import ConfigError, DeviceProtocolError, DeviceTimeout
 from cell.geometry import make_pose
 from cell.sensing.patterns import gcls_patterns
 from cell.sensing.scan import CaptureLog, capture_stack
@@ -259,3 +259,47 @@ def test_serial_projector_path_waits_from_the_hdmi_displays_present_stamp() -> N
     capture_stack(camera, projector, GCLS)
     assert len(camera.triggers) == len(presents) == len(GCLS)
     np.testing.assert_allclose(np.array(camera.triggers) - np.array(presents), 0.030, atol=1e-12)
+
+
+def test_a_camera_with_four_buffers_takes_a_long_hardware_sequence_exactly() -> None:
+    """A real driver keeps 4-8 frame buffers: the 26-frame sequence is fetched while it runs, not after."""
+    reference, _ = _stack(_rig(TriggerMode.HARDWARE))
+    rig = _rig(TriggerMode.HARDWARE)
+    rig.camera.buffers = 4
+    stack, log = _stack(rig)
+    assert log.recaptured == []
+    np.testing.assert_array_equal(stack, reference)
+
+
+def test_frames_left_in_the_camera_beyond_its_buffers_are_lost_and_leave_an_id_gap() -> None:
+    rig = _rig()
+    rig.camera.buffers = 4
+    for _ in range(6):
+        rig.camera.trigger()
+    ids = [rig.camera.grab(100).frame_id for _ in range(4)]
+    with pytest.raises(DeviceTimeout):
+        rig.camera.grab(100)
+    rig.camera.trigger()
+    assert ids == [0, 1, 2, 3] and rig.camera.grab(100).frame_id == 6
+
+
+def test_a_lost_first_frame_of_a_hardware_sequence_is_placed_by_the_expected_id_and_recaptured() -> None:
+    reference, _ = _stack(_rig(TriggerMode.HARDWARE))
+    rig = _rig(TriggerMode.HARDWARE)
+    original = rig.projector.step
+
+    def step() -> int:
+        if rig.projector._index == -1 and rig.camera.faults.drop_frames == 0 and not step.done:
+            rig.camera.faults.drop_frames, step.done = 1, True  # the very first exposure never arrives
+        return original()
+
+    step.done = False
+    rig.projector.step = step
+    stack, log = _stack(rig)
+    assert log.recaptured == [GCLS.names[0]]
+    np.testing.assert_array_equal(stack, reference)
+
+
+def test_the_camera_buffer_count_is_validated() -> None:
+    with pytest.raises(ConfigError, match="options.buffers"):
+        small_rig(part_W=PLATE, camera={"options": {"buffers": 0}})

@@ -197,17 +197,35 @@ def capture_stack(
     n = len(patterns)
     frames = list(patterns.frames)
     projector.load_sequence(frames)
-    if cap.hardware and isinstance(projector, SequenceProjector):
-        got = projector.run_sequence(camera, n, timeout_ms)
+    sequencer = projector if cap.hardware and isinstance(projector, SequenceProjector) else None
+    if sequencer is not None:
+        got = sequencer.run_sequence(camera, n, timeout_ms)
     else:
         got = []
         for _ in range(n):
             projector.step()
             got.append(cap.after_present())
     images: list[NDArray | None] = [None if f is None else f.pixels for f in got]
-    for k, f in enumerate(got):
-        if f is None:
-            images[k] = _retake(cap, frames[k], patterns.names[k], log)
+
+    def retake(indices: list[int]) -> None:
+        """Capture ``indices`` again (twice if lost again): one by one, or, on a projector that plays its
+        stored sequence by itself (DLP pattern mode, possibly from flash), by running the sequence again."""
+        log.recaptured += [patterns.names[k] for k in indices]
+        if sequencer is None:
+            for k in indices:
+                images[k] = _retake(cap, frames[k])
+            return
+        for _ in range(2):  # a second loss in a row: let the pair check count it as missing
+            again = sequencer.run_sequence(camera, n, timeout_ms)
+            for k in indices:
+                if images[k] is None or again[k] is not None:
+                    images[k] = None if again[k] is None else again[k].pixels
+            if all(again[k] is not None for k in indices):
+                return
+
+    lost_first = [k for k, f in enumerate(got) if f is None]
+    if lost_first:
+        retake(lost_first)
     depth = bit_depth or _bit_depth(camera, images)
     pairs = pattern_pairs(patterns)
     groups = pair_groups(patterns, pairs)
@@ -226,9 +244,7 @@ def capture_stack(
                 f"{(cap.latency_s + cap.extra_s) * 1e3:.1f} ms after each present: the display latency has "
                 "changed or frames are being mixed; run `cell calibrate latency` and check the sync wiring",
             )
-        for a, b in ([pairs[0]] if pairs[0] not in bad else []) + bad:
-            for k in (a, b):
-                images[k] = _retake(cap, frames[k], patterns.names[k], log)
+        retake([k for a, b in ([pairs[0]] if pairs[0] not in bad else []) + bad for k in (a, b)])
     log.extra_wait_s = cap.extra_s
     lost = [patterns.names[k] for k, im in enumerate(images) if im is None]
     if lost:
@@ -236,8 +252,7 @@ def capture_stack(
     return [im for im in images if im is not None]
 
 
-def _retake(cap: _Capture, image: NDArray[np.uint8], name: str, log: CaptureLog) -> NDArray | None:
-    log.recaptured.append(name)
+def _retake(cap: _Capture, image: NDArray[np.uint8]) -> NDArray | None:
     frame = cap.one(image)
     if frame is None:
         frame = cap.one(image)  # a second loss in a row: let the pair check count it as missing
