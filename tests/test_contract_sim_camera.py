@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from cell.contracts import CameraSettings, PixelFormat
 from fakes.camera import SimCamera
 from fakes.sim.testing import small_rig
 from tests.contracts.camera_contract import CameraContract
@@ -16,4 +17,8 @@ def camera() -> SimCamera:
 
 
 class TestSimCamera(CameraContract):
-    pass
+    # Mono8 and the sensor's native MonoN only (fakes/camera.py)
+    refused_settings = (
+        CameraSettings(pixel_format=PixelFormat.RGB8),
+        CameraSettings(pixel_format=PixelFormat.MONO10),
+    )

@@ -137,6 +137,7 @@ CLEAN = CameraSettings(exposure_ms=10.0, gain_db=0.0, trigger=TriggerMode.SOFTWA
 
 class TestAravisOnEmulator(CameraContract):
     timeout_ms = 1000.0
+    refused_settings = (CameraSettings(pixel_format=PixelFormat.MONO12),)  # the emulator offers Mono8/16
 
     @pytest.fixture
     def camera(self, emulator: Emulator):

@@ -42,6 +42,7 @@ def _viky(**options: object) -> GenICamCamera:
 
 class TestGenICamOnViky(CameraContract):
     timeout_ms = 500.0
+    refused_settings = (CameraSettings(pixel_format=PixelFormat.MONO10),)  # viky offers Mono8 and colour
 
     @pytest.fixture
     def camera(self):

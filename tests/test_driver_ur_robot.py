@@ -370,6 +370,25 @@ def test_protective_stop_ends_the_script_unlock_waits_then_reuploads() -> None:
             robot.close()
 
 
+def test_a_stopped_script_is_uploaded_again_once_and_the_move_sent_once(fake) -> None:
+    """No double retry: when the control script has ended (a stop on the pendant, a watchdog trip), the next
+    move uploads it once and sends the move once; the driver does not retry on top of that."""
+    robot = URRobot(robot_config(fake.host))
+    robot.connect()
+    try:
+        fake.set("runtime_state", 1)  # the program stopped between two moves
+        _state_when(robot, lambda st: not st.program_running)
+        target = robot.tool_pose()
+        target[2, 3] -= 10.0
+        robot.move_linear(target, 100.0, 1000.0)
+        snap = fake.snapshot()
+        assert snap["scripts_received"] == 2 and len(snap["moves"]) == 1
+        robot.move_linear(robot.tool_pose(), 100.0, 1000.0)  # running again: no further upload
+        assert fake.snapshot()["scripts_received"] == 2
+    finally:
+        robot.close()
+
+
 def _move_until_killed(pipe, host: str) -> None:
     robot = URRobot(robot_config(host))
     robot.connect()
