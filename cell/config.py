@@ -83,6 +83,11 @@ class CameraConfig(PinholeConfig):
     dark_offset_dn: Annotated[float, Field(ge=0)] = 0.0
     exposure_ms: Annotated[float, Field(gt=0, le=10000)]
     gain_db: Annotated[float, Field(ge=0, le=48)] = 0.0
+    trigger: Literal["software", "hardware"] = Field(
+        "software",
+        description="how a scan starts each exposure: software (wait for the display latency, then trigger) "
+        "or hardware (the projector's sync or trigger output wired to a camera input line)",
+    )
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific settings")
 
 

@@ -417,6 +417,9 @@ class Controller:
             raise DeviceFault(
                 self.devices.names.get("projector", "projector"), f"not ready: {projector.status()}"
             )
+        prepare = getattr(self.job, "prepare", None)
+        if prepare is not None:  # device settings the job needs (camera trigger lines...): refused before motion
+            prepare(self.devices)
         self.connected()
 
     def _do_homing(self) -> None:

@@ -142,14 +142,16 @@ class LambertianInspection:
 
     # ------------------------------------------------------------------ one view
     def prepare(self, devices: DeviceBundle) -> None:
-        """Camera settings for the stack: software trigger, the camera's native bit depth."""
+        """Camera settings for the stack: the configured trigger, the camera's native bit depth. The
+        controller calls it once while connecting, so a camera that cannot do them is refused before the
+        robot moves."""
         cam = self.cfg.sensor.camera
         devices.camera.configure(
             CameraSettings(
                 cam.exposure_ms,
                 cam.gain_db,
                 PixelFormat(f"Mono{cam.bit_depth}") if cam.bit_depth != 8 else PixelFormat.MONO8,
-                TriggerMode.SOFTWARE,
+                TriggerMode(cam.trigger),
             )
         )
 

@@ -14,6 +14,8 @@ import pytest
 import trimesh
 
 from cell.config import CellConfig, load_recipe
+from cell.contracts import CameraSettings, TriggerMode
+from cell.errors import DeviceFault
 from cell.controller import Controller, ControllerSettings
 from cell.devices import DeviceBundle, build_devices
 from cell.inspection import LambertianInspection, inspection_controller
@@ -31,8 +33,11 @@ def calibrated_cell() -> CellConfig:
     return cfg
 
 
-def make_controller(recipe_path: Path, run_dir: Path) -> tuple[Controller, DeviceBundle]:
+def make_controller(
+    recipe_path: Path, run_dir: Path, trigger: str = "software"
+) -> tuple[Controller, DeviceBundle]:
     cfg = calibrated_cell()
+    cfg.sensor.camera.trigger = trigger
     recipe = load_recipe(recipe_path)
     nominal = trimesh.load(recipe.part.cad)
     devices = build_devices(cfg, part_W=nominal, seed=5)
@@ -91,3 +96,33 @@ def test_timing_faults_end_in_done_with_every_view_and_the_same_result(
         assert not [e for e in journal if e["event"] == "error"]
         assert projector.present_count > reference["presents"]
     assert_same_result(result_of(ctl.run.path), reference["result"], fault)
+
+
+def test_a_hardware_triggered_inspection_gives_the_software_triggered_result(
+    recipe_path: Path, tmp_path: Path, reference: dict
+) -> None:
+    """``sensor.camera.trigger: hardware``: the projector's frame sync exposes the camera, frames are placed
+    by their ids; with the latency calibrated the two paths see the same light."""
+    ctl, devices = make_controller(recipe_path, tmp_path / "run", trigger="hardware")
+    configured = []
+    original = devices.camera.configure
+    devices.camera.configure = lambda s: configured.append(s.trigger) or original(s)
+    assert ctl.execute() == "done", ctl.message
+    assert set(configured) == {TriggerMode.HARDWARE}
+    assert_same_result(result_of(ctl.run.path), reference["result"], "hardware trigger")
+
+
+def test_a_camera_without_the_trigger_lines_is_refused_before_the_robot_moves(
+    recipe_path: Path, tmp_path: Path
+) -> None:
+    ctl, devices = make_controller(recipe_path, tmp_path / "run", trigger="hardware")
+
+    def refuse(settings: CameraSettings) -> CameraSettings:
+        raise DeviceFault(
+            devices.camera.name, "hardware trigger needs GenApi node(s) LineSelector, absent on simulated"
+        )
+
+    devices.camera.configure = refuse
+    state = ctl.execute()
+    assert state in ("paused", "fault") and "LineSelector" in ctl.message
+    assert [c["command"] for c in devices.robot.command_log] in ([], ["stop"])  # not even homing
