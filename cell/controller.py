@@ -418,7 +418,7 @@ class Controller:
                 self.devices.names.get("projector", "projector"), f"not ready: {projector.status()}"
             )
         prepare = getattr(self.job, "prepare", None)
-        if prepare is not None:  # device settings the job needs (camera trigger lines...): refused before motion
+        if prepare is not None:  # the job's device settings (camera trigger lines...): refused before motion
             prepare(self.devices)
         self.connected()
 

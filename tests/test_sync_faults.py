@@ -15,9 +15,9 @@ import trimesh
 
 from cell.config import CellConfig, load_recipe
 from cell.contracts import CameraSettings, TriggerMode
-from cell.errors import DeviceFault
 from cell.controller import Controller, ControllerSettings
 from cell.devices import DeviceBundle, build_devices
+from cell.errors import DeviceFault
 from cell.inspection import LambertianInspection, inspection_controller
 from cell.runs import RunFolder
 from tests.box_part import small_cell, write_box_recipe
