@@ -28,7 +28,8 @@ from pydantic import Field
 from cell.config import CameraConfig, Strict, validate
 from cell.contracts import CameraSettings, Frame, PixelFormat, TriggerMode
 from cell.errors import DeviceFault, DeviceTimeout
-from drivers.genicam_camera import AUTO_FEATURES, FrameIdTracker, IncompleteFrame, LostFrames, to_numpy
+from drivers.genapi_trigger import auto_features_off, configure_trigger
+from drivers.genicam_camera import FrameIdTracker, IncompleteFrame, LostFrames, to_numpy
 
 log = logging.getLogger(__name__)
 
@@ -273,9 +274,7 @@ class AravisCamera:
         report. Raises DeviceFault naming the node when the camera lacks one the settings need."""
         self._require()
         self._stop()
-        for auto in AUTO_FEATURES:
-            if self._has(auto):
-                self._set_enum(auto, "Off")
+        auto_features_off(self._has, self._set_enum)
         exposure_ms, gain_db = settings.exposure_ms, settings.gain_db
         if node := self._first("ExposureTime", "ExposureTimeAbs", need="the exposure"):
             exposure_ms = self._set_in_range(node, settings.exposure_ms * 1000.0, "us") / 1000.0
@@ -303,32 +302,16 @@ class AravisCamera:
         raise DeviceFault(self.name, f"GenApi node Gain is absent on {self._model}{raw}")
 
     def _configure_trigger(self, mode: TriggerMode) -> None:
-        needed = ["TriggerMode"] if mode is TriggerMode.FREE_RUN else ["TriggerMode", "TriggerSource"]
-        if mode is TriggerMode.SOFTWARE:
-            needed.append("TriggerSoftware")
-        if mode is TriggerMode.HARDWARE:
-            needed += ["TriggerActivation", "LineSelector", "LineMode"]
-        missing = [n for n in needed if not self._has(n) and n not in self.options.ignore_missing]
-        if missing:
-            raise DeviceFault(
-                self.name,
-                f"{mode.value} trigger needs GenApi node(s) {', '.join(missing)}, absent on {self._model}",
-            )
-        if self._has("TriggerSelector"):
-            self._set_enum("TriggerSelector", "FrameStart")
-        if self._has("AcquisitionMode"):
-            self._set_enum("AcquisitionMode", "Continuous")
-        self._set_enum("TriggerMode", "Off" if mode is TriggerMode.FREE_RUN else "On")
-        if mode is TriggerMode.SOFTWARE:
-            self._set_enum("TriggerSource", "Software")
-        elif mode is TriggerMode.HARDWARE:
-            line = self.options.trigger_source
-            if self._has("LineSelector"):
-                self._set_enum("LineSelector", line)
-                self._set_enum("LineMode", "Input")
-            self._set_enum("TriggerSource", line)
-            if self._has("TriggerActivation"):
-                self._set_enum("TriggerActivation", self.options.trigger_activation)
+        configure_trigger(
+            self.name,
+            self._model,
+            mode,
+            has=self._has,
+            set_enum=self._set_enum,
+            ignore_missing=self.options.ignore_missing,
+            line=self.options.trigger_source,
+            activation=self.options.trigger_activation,
+        )
 
     def _start(self) -> None:
         """A fresh stream with empty buffers (nothing of a previous sequence survives), then acquire."""

@@ -26,6 +26,7 @@ from pydantic import Field
 from cell.config import CameraConfig, Strict, validate
 from cell.contracts import CameraSettings, Frame, PixelFormat, TriggerMode
 from cell.errors import DeviceFault, DeviceTimeout
+from drivers.genapi_trigger import auto_features_off, configure_trigger
 
 log = logging.getLogger(__name__)
 
@@ -46,9 +47,6 @@ _PFNC = {
 
 
 # auto features a camera may have; all are turned off so that every frame of a stack has the same response
-AUTO_FEATURES = ("ExposureAuto", "GainAuto", "BalanceWhiteAuto")
-
-
 class IncompleteFrame(Exception):
     """A frame whose data did not all arrive (lost packets); never handed to the pipeline."""
 
@@ -304,9 +302,7 @@ class GenICamCamera:
         a DeviceFault naming it."""
         self._require()
         self._stop()
-        for auto in AUTO_FEATURES:
-            if self._has(auto):
-                self._write_enum(auto, "Off")
+        auto_features_off(self._has, self._write_enum)
         exposure_ms, gain_db = settings.exposure_ms, settings.gain_db
         if self._node("ExposureTime") is not None:
             exposure_ms = float(self._write("ExposureTime", settings.exposure_ms * 1000.0)) / 1000.0
@@ -332,30 +328,16 @@ class GenICamCamera:
         return self._settings
 
     def _configure_trigger(self, mode: TriggerMode) -> None:
-        needed = ["TriggerMode"] if mode is TriggerMode.FREE_RUN else ["TriggerMode", "TriggerSource"]
-        if mode is TriggerMode.SOFTWARE:
-            needed.append("TriggerSoftware")
-        if mode is TriggerMode.HARDWARE:
-            needed += ["TriggerActivation", "LineSelector", "LineMode"]
-        missing = [n for n in needed if not self._has(n) and n not in self.options.ignore_missing]
-        if missing:
-            raise DeviceFault(
-                self.name,
-                f"{mode.value} trigger needs GenApi node(s) {', '.join(missing)}, absent on {self._model}",
-            )
-        if self._has("TriggerSelector"):
-            self._write_enum("TriggerSelector", "FrameStart")
-        self._write_enum("TriggerMode", "Off" if mode is TriggerMode.FREE_RUN else "On")
-        if mode is TriggerMode.SOFTWARE:
-            self._write_enum("TriggerSource", "Software")
-        elif mode is TriggerMode.HARDWARE:
-            line = self.options.trigger_source
-            if self._has("LineSelector"):
-                self._write_enum("LineSelector", line)
-                self._write_enum("LineMode", "Input")
-            self._write_enum("TriggerSource", line)
-            if self._has("TriggerActivation"):
-                self._write_enum("TriggerActivation", self.options.trigger_activation)
+        configure_trigger(
+            self.name,
+            self._model,
+            mode,
+            has=self._has,
+            set_enum=self._write_enum,
+            ignore_missing=self.options.ignore_missing,
+            line=self.options.trigger_source,
+            activation=self.options.trigger_activation,
+        )
 
     def _start(self) -> None:
         try:
