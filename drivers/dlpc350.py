@@ -46,7 +46,7 @@ from cell.contracts import (
     grab_ready,
 )
 from cell.errors import ConfigError, DeviceFault, DeviceProtocolError, DeviceTimeout
-from drivers.hdmi_display import HdmiDisplay, HdmiDisplayOptions
+from drivers.hdmi_display import HdmiDisplay, HdmiDisplayOptions, open_at_projector_resolution
 
 VID, PID = 0x0451, 0x6401  # Texas Instruments, DLPC350 (LightCrafter 4500)
 REPORT = 64
@@ -207,14 +207,7 @@ class Dlpc350Projector:
             self._transport = HidapiTransport(self.name, self.options.serial, self.options.hid_path)
         self.version = self._read(GET_VERSION, 16)
         if self._display is not None and self.options.source == "video":
-            self._display.open()
-            if tuple(self._display.size) != self.resolution:
-                self._display.close()
-                raise DeviceFault(
-                    self.name,
-                    f"HDMI output is {self._display.size[0]}x{self._display.size[1]}, the DLPC350 pattern "
-                    f"input is {self.resolution[0]}x{self.resolution[1]}: set options.display.mode",
-                )
+            open_at_projector_resolution(self._display, self.resolution, self.name)
 
     def close(self) -> None:
         if self._transport is not None and self._owns_transport:

@@ -332,3 +332,17 @@ class HdmiDisplay:
         if h.get("video"):
             sdl.SDL_QuitSubSystem(sdl.SDL_INIT_VIDEO)
         h.clear()
+
+
+def open_at_projector_resolution(display: Any, resolution: tuple[int, int], projector: str) -> None:
+    """Open a projector's pattern display and refuse an output mode other than the projector's input
+    resolution (patterns are pixel-exact: a scaled image would blur every stripe edge)."""
+    display.open()
+    if tuple(display.size) != tuple(resolution):
+        display.close()
+        raise DeviceFault(
+            projector,
+            f"HDMI display mode is {display.size[0]}x{display.size[1]} but the projector is "
+            f"{resolution[0]}x{resolution[1]}; set the output to the projector's native mode "
+            "(options.display.mode) or fix width_px/height_px",
+        )

@@ -26,7 +26,7 @@ from pydantic import Field
 from cell.config import ProjectorConfig, Strict, validate
 from cell.contracts import Clock, ProjectorSource, ProjectorStatus, SystemClock
 from cell.errors import DeviceError, DeviceFault, DeviceProtocolError, DeviceTimeout
-from drivers.hdmi_display import HdmiDisplay, HdmiDisplayOptions
+from drivers.hdmi_display import HdmiDisplay, HdmiDisplayOptions, open_at_projector_resolution
 from drivers.projector_profile import ProjectorProfile, load_profile
 from drivers.serial_transport import PySerialTransport, Transport, read_frame
 
@@ -122,15 +122,7 @@ class SerialProjector:
                 raise DeviceFault(self.name, f"cannot open serial port {self.options.port!r}: {exc}") from exc
         self._exchange("ping")
         if self._display is not None:
-            self._display.open()
-            if tuple(self._display.size) != self.resolution:
-                self._display.close()
-                raise DeviceFault(
-                    self.name,
-                    f"HDMI display mode is {self._display.size[0]}x{self._display.size[1]} but the projector "
-                    f"is {self.resolution[0]}x{self.resolution[1]}; set the output to the projector's native "
-                    "mode (options.display.mode) or fix width_px/height_px",
-                )
+            open_at_projector_resolution(self._display, self.resolution, self.name)
 
     def close(self) -> None:
         if self._transport is not None and self._owns_transport:
