@@ -390,7 +390,8 @@ class GenICamCamera:
         except ImportError:  # pragma: no cover - genicam comes with harvesters
             TimeoutException = TimeoutError  # noqa: N806
         try:
-            with ia.fetch(timeout=timeout_ms / 1000.0) as buffer:
+            # harvesters reads timeout 0 as "wait forever": a poll (grab(0), grab_ready) waits 0.1 ms instead
+            with ia.fetch(timeout=max(timeout_ms / 1000.0, 1e-4)) as buffer:
                 c = buffer.payload.components[0]
                 pixels = to_numpy(c.data, c.width, c.height, c.data_format)
                 device_frame_id = int(buffer.frame_id)

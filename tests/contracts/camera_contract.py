@@ -134,6 +134,21 @@ class CameraContract:
         finally:
             camera.close()
 
+    def test_grab_with_timeout_zero_polls(self, camera: Camera) -> None:
+        """grab(0) returns a frame that is waiting or raises DeviceTimeout at once (never waits forever):
+        a sequence is fetched while it runs by polling (cell.contracts.grab_ready)."""
+        camera.connect()
+        try:
+            camera.configure(CameraSettings(exposure_ms=5.0, trigger=TriggerMode.SOFTWARE))
+            t0 = time.monotonic()
+            with pytest.raises(DeviceTimeout):
+                camera.grab(0.0)
+            assert time.monotonic() - t0 <= self.timeout_slack_s
+            camera.trigger()
+            assert camera.grab(self.timeout_ms * 10).pixels.ndim == 2
+        finally:
+            camera.close()
+
     def test_grab_without_trigger_times_out_in_time(self, camera: Camera) -> None:
         camera.connect()
         try:
