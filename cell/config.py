@@ -185,6 +185,14 @@ class RobotConfig(Strict):
     max_joint_speed_rad_s: Annotated[float, Field(gt=0, le=math.pi)]
     max_joint_accel_rad_s2: Annotated[float, Field(gt=0, le=40)]
     home_joints_deg: tuple[float, float, float, float, float, float]
+    view_pose_sigma_mm: Annotated[float, Field(gt=0, le=20)] = Field(
+        1.0,
+        description="1-sigma translation error of a view's camera pose through the kinematic chain (robot "
+        "kinematics, repeatability, what the hand-eye calibration left): the multi-view refinement's prior",
+    )
+    view_pose_sigma_deg: Annotated[float, Field(gt=0, le=5)] = Field(
+        0.2, description="1-sigma rotation error of a view's camera pose (as view_pose_sigma_mm)"
+    )
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific settings")
 
     @model_validator(mode="after")

@@ -32,6 +32,7 @@ from cell.analysis.linkfilter import link_cluster
 from cell.analysis.merge import merge_views
 from cell.analysis.regions import Coverage, point_bands, region_from_config
 from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
+from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
 from cell.calibration import active_hand_eye, active_sensor_config, active_triangulator, calibration_source
 from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
@@ -100,6 +101,8 @@ class LambertianInspection:
         self.geometry_source = calibration_source(cfg)
         self._plan: Plan | None = None
         self._aligner: Aligner | None = None
+        self._refinement: tuple[tuple[int, ...], ViewRefinement] | None = None
+        self._planes: dict[int, LocalPlanes] = {}  # each view's local planes, kept between evaluations
         self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
         self._nominal_rays = (
             trimesh.ray.ray_triangle.RayMeshIntersector(nominal_W)
@@ -233,31 +236,92 @@ class LambertianInspection:
         return measured_view_from_masks(T_W_C, np.zeros(reasons.shape + (3,)), empty, masks, nominal).defects
 
     # ------------------------------------------------------------------ feedback
-    def _measured(self, run: RunFolder) -> dict[int, MeasuredView]:
-        """The measured views by view index (skipped or unmeasured views are absent)."""
+    def refinement(self, run: RunFolder) -> tuple[list[int], ViewRefinement]:
+        """The completed views' pose corrections against each other (cell.analysis.view_refinement), from
+        their evaluation points, under the robot config's pose prior; recomputed when views were added
+        (deterministic, so a resumed run gets the same)."""
+        done = tuple(run.completed_views())
+        if self._refinement is None or self._refinement[0] != done:
+            robot = self.cfg.robot
+            points = [np.load(run.view_dir(i) / "points_eval_W.npy") for i in done]
+            for i, p in zip(done, points, strict=True):
+                if i not in self._planes:
+                    self._planes[i] = estimate_normals(p)
+            found = refine_views(
+                points,
+                robot.view_pose_sigma_mm,
+                np.deg2rad(robot.view_pose_sigma_deg),
+                seed=len(done),
+                planes=[self._planes[i] for i in done],
+            )
+            self._refinement = (done, found)
+        return list(self._refinement[0]), self._refinement[1]
+
+    def _measured(
+        self, run: RunFolder, T_W_align: NDArray[np.float64] | None = None
+    ) -> dict[int, MeasuredView]:
+        """The measured views by view index (skipped or unmeasured views are absent), each moved by its
+        refinement (and by ``T_W_align``, the alignment's correction in {W}, when given), with its deviations
+        from the nominal measured there."""
+        done, found = self.refinement(run)
         out = {}
-        for i in run.completed_views():
+        for i, T_fix in zip(done, found.T, strict=True):
             d = run.view_dir(i)
             meta = json.loads((d / "view.json").read_text())
+            T = T_fix if T_W_align is None else T_W_align @ T_fix
+            points = transform_points(T, np.load(d / "points_eval_W.npy"))
             out[i] = MeasuredView(
-                np.asarray(meta["T_W_C"]),
-                np.load(d / "points_eval_W.npy"),
+                T @ np.asarray(meta["T_W_C"]),
+                points,
                 _load_regions(d / "defects.npz"),
-                deviation_mm=np.load(d / "deviation_eval.npy"),
+                deviation_mm=signed_distance(self.nominal, points).deviation_mm,
             )
         return out
 
-    def evaluate(self, run: RunFolder, views: list[dict[str, Any]], iteration: int) -> dict[str, Any]:
+    def _evaluation_alignment(self, run: RunFolder) -> tuple[NDArray[np.float64] | None, str]:
+        """The recipe's alignment of what is measured so far, as a correction in {W} (None for kinematic
+        alignment, or while the measurement does not allow it yet: a datum not seen). Coverage and holes are
+        judged on the aligned points, so a part off its fixture shows no false holes."""
+        if self.recipe.alignment.method == "kinematic":
+            return None, "kinematic"
+        measured = self._measured(run)
+        if not measured:
+            return None, "no points yet"
+        T_P_W = invert(self.T_W_P)
+        points_P = transform_points(T_P_W, np.vstack([m.points_W for m in measured.values()]))
+        try:
+            found = self.aligner.align(points_P)
+        except AlignmentError as exc:
+            return None, f"kinematic until the alignment can be made: {exc}"
+        return self.T_W_P @ found.T @ T_P_W, self.recipe.alignment.method
+
+    def _evaluate(self, run: RunFolder) -> tuple[Any, dict[int, MeasuredView], str]:
+        T_W_align, how = self._evaluation_alignment(run)
+        measured = self._measured(run, T_W_align)
         fb = FeedbackPlanner(self.plan_model)
-        ev = evaluate(fb, list(self._measured(run).values()), first_new=1, ia_before=np.zeros((0, 3)))
-        return {**ev.to_json(), "iteration": iteration, "views": len(views)}
+        ev = evaluate(fb, list(measured.values()), first_new=1, ia_before=np.zeros((0, 3)))
+        return ev, measured, how
+
+    def evaluate(self, run: RunFolder, views: list[dict[str, Any]], iteration: int) -> dict[str, Any]:
+        ev, measured, how = self._evaluate(run)
+        _, found = self.refinement(run)
+        return {
+            **ev.to_json(),
+            "iteration": iteration,
+            "views": len(views),
+            "alignment": how,
+            "refinement": {
+                "rms_before_mm": round(found.rms_before_mm, 4),
+                "rms_after_mm": round(found.rms_after_mm, 4),
+                "unregistered_views": [list(measured)[k] for k in found.unregistered if k < len(measured)],
+            },
+        }
 
     def replan(
         self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]
     ) -> list[dict[str, Any]]:
-        measured = self._measured(run)
         fb = FeedbackPlanner(self.plan_model)
-        ev = evaluate(fb, list(measured.values()), first_new=1, ia_before=np.zeros((0, 3)))
+        ev, measured, _ = self._evaluate(run)
         k = int(evaluation.get("iteration", 0))
         latest = [m for i, m in measured.items() if int(views[i].get("iteration", 0)) == k]
         start = len(fb.log)
@@ -284,12 +348,18 @@ class LambertianInspection:
         then moved by the recipe's alignment (cell.analysis.alignment). An alignment the measurement does
         not allow leaves the kinematic cloud and makes the verdict incomplete (``alignment.error``)."""
         T_P_W = invert(self.T_W_P)
+        done, refined = self.refinement(run)
         points, weights = [], []
-        for i in run.completed_views():
-            points.append(transform_points(T_P_W, np.load(run.view_dir(i) / "points_W.npy")))
+        for i, T_fix in zip(done, refined.T, strict=True):
+            points.append(transform_points(T_P_W @ T_fix, np.load(run.view_dir(i) / "points_W.npy")))
             weights.append(np.square(np.load(run.view_dir(i) / "quality.npy")).astype(np.float64) + 1e-6)
         if not points or not sum(len(p) for p in points):
             return {"n_points": 0, "views": len(points)}
+        eval_points = [np.load(run.view_dir(i) / "points_eval_W.npy") for i in done]
+        refinement = {
+            **refined.to_json(eval_points),
+            "unregistered_views": [done[k] for k in refined.unregistered],
+        }
         merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
         method = self.recipe.alignment.method
         try:
@@ -304,8 +374,9 @@ class LambertianInspection:
             "n_points_views": int(sum(len(p) for p in points)),
             "views": len(points),
             "merge_voxel_mm": self.settings.merge_voxel_mm,
-            "method": "kinematic chain (robot pose, hand-eye, part placement); weighted voxel merge; "
-            f"alignment: {method}",
+            "method": "kinematic chain (robot pose, hand-eye, part placement); views refined against each "
+            f"other; weighted voxel merge; alignment: {method}",
+            "refinement": refinement,
             "alignment": alignment,
         }
 
@@ -361,6 +432,13 @@ class LambertianInspection:
         reasons = list(calibration["incomplete_reasons"])
         if "error" in alignment:
             reasons.append(f"alignment ({alignment['method']}) failed: {alignment['error']}")
+        evaluation = checkpoint.get("evaluation", {})
+        if evaluation.get("v_mm2", 0.0) > evaluation.get("setpoint", float("inf")):
+            reasons.append(
+                f"overlapping views disagree by more than {self.recipe.plan.accuracy_tol_mm} mm over "
+                f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
+                f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
+            )
         inp = ReportInput(
             points_mm=pts_P,
             deviation_mm=deviation,

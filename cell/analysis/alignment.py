@@ -137,6 +137,14 @@ def check_datums(datums: list[DatumPoint], nominal_mesh_P: trimesh.Trimesh, reci
         raise ConfigError(str(exc), path=recipe_path, field=exc.field) from exc
 
 
+def _own_surface(mesh: trimesh.Trimesh, datum: Datum, margin_mm: float = 5.0) -> NominalMesh:
+    """The datum's own surface: the nominal faces near it (within its radius + ``margin_mm``) whose normal
+    is within ~25 deg of the datum's."""
+    near = np.linalg.norm(mesh.triangles_center - datum.point, axis=1) <= datum.radius_mm + margin_mm
+    facing = mesh.face_normals @ datum.normal > SAME_SURFACE_COS
+    return NominalMesh.from_trimesh(mesh.submesh([np.flatnonzero(near & facing)], append=True))
+
+
 def _constraint_rows(points: NDArray, normals: NDArray) -> NDArray:
     """Rows [p x n, n] of the linearised normal constraint n . (w x p + t) of a small motion (w, t)."""
     return np.column_stack([np.cross(points, normals), normals])
@@ -167,6 +175,7 @@ class Aligner:
         self.mesh = nominal_mesh_P
         self.nominal = NominalMesh.from_trimesh(nominal_mesh_P)
         self.datums = resolve_datums(config.datums, self.nominal)
+        self.datum_surfaces = [_own_surface(nominal_mesh_P, d) for d in self.datums]
         self.samples = _surface_samples(nominal_mesh_P)
 
     # ------------------------------------------------------------------ per datum
@@ -174,22 +183,33 @@ class Aligner:
         """(mean deviation, its std, point count) of each datum region with the cloud moved by ``T``."""
         T_inv = np.linalg.inv(T)
         out = []
-        for d in self.datums:
+        for k, d in enumerate(self.datums):
             idx = tree.query_ball_point(transform_points(T_inv, d.point), d.radius_mm)
             if len(idx) < MIN_DATUM_POINTS:
                 raise AlignmentError(
                     f"datum '{d.name}' not measured: {len(idx)} points within {d.radius_mm} mm of it "
                     f"(needs {MIN_DATUM_POINTS}); plan views that see it or move it"
                 )
-            em = signed_distance(self.nominal, transform_points(T, points[idx]))
-            # only points of the datum's own surface: not the other skin of a sheet or a face across an edge
-            own = self.nominal.face_normals[em.face] @ d.normal > SAME_SURFACE_COS
+            # deviations from the datum's own surface only (its faces near it that face its way): a point
+            # of a thin sheet displaced by the placement error may lie nearer the sheet's other skin, and
+            # points across an edge or a fillet belong to another face; those are the robust outliers
+            surface = self.datum_surfaces[k]
+            moved = transform_points(T, points[idx])
+            em = signed_distance(surface, moved)
+            dev = em.deviation_mm
+            # a point whose closest point is on the surface's rim (not straight below it) is off its faces
+            along = np.abs(np.einsum("ij,ij->i", moved - em.closest_mm, surface.face_normals[em.face]))
+            inside = along >= 0.99 * np.abs(dev) - 1e-6
+            if not inside.any():
+                inside[:] = True
+            spread = np.abs(dev - np.median(dev[inside]))
+            own = inside & (spread <= max(3 * 1.4826 * float(np.median(spread[inside])), 0.05))
             if own.sum() < MIN_DATUM_POINTS:
                 raise AlignmentError(
                     f"datum '{d.name}' not measured: {int(own.sum())} points of its surface within "
                     f"{d.radius_mm} mm of it (needs {MIN_DATUM_POINTS}); plan views that see it or move it"
                 )
-            dev = em.deviation_mm[own]
+            dev = dev[own]
             out.append((float(dev.mean()), float(dev.std()), int(own.sum())))
         return out
 

@@ -173,12 +173,16 @@ def _execute(run: RunFolder, *, resume: bool, record: Path | None = None) -> str
 def _execute_locked(run: RunFolder, *, resume: bool, record: Path | None) -> str:
     started = run_settings(run)
     seed = started.get("seed")
-    settings = ControllerSettings(pipelining=bool(started.get("pipelining", True)))
     from cell.devices import build_devices
     from cell.inspection import LambertianInspection, inspection_controller
     from cell.mesh import load_mesh
 
     recipe, cfg, actual_path = _load_run_inputs(run)
+    settings = ControllerSettings(  # the recipe's view budget and feedback iterations (initial views + k)
+        pipelining=bool(started.get("pipelining", True)),
+        view_budget=recipe.plan.view_budget,
+        max_iterations=recipe.plan.max_iterations + 1,
+    )
     T_W_P = recipe.part.T_W_P.matrix()
     nominal_W = load_mesh(recipe.part.cad).apply_transform(T_W_P)
     actual_W = load_mesh(actual_path).apply_transform(T_W_P) if actual_path else nominal_W
