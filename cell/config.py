@@ -145,6 +145,11 @@ class ProjectorConfig(PinholeConfig):
     serial: str = "SIM-PROJ-0001"
     model: str = "simulated"
     T_C_P: PoseConfig = Field(description="projector optical frame in the camera frame {C}")
+    distortion: Distortion = Field(
+        Distortion(),
+        description="projector lens distortion, OpenCV order, projector pixels; zero: a pinhole "
+        "(`cell calibrate projector` measures it, and the calibration carries it)",
+    )
     irradiance_e_per_ms: PositiveFloat = Field(
         description="camera signal (electrons/ms) from a white pixel on an albedo-1 surface facing the "
         "projector at its focus distance"

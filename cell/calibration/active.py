@@ -60,12 +60,18 @@ def _pinhole_update(K: NDArray) -> dict[str, float]:
     return {"fx_px": fx, "fy_px": fy, "cx_px": cx, "cy_px": cy}
 
 
+def _lens(coefficients: NDArray) -> Distortion:
+    """OpenCV distortion coefficients (any length) as the config's five (k1, k2, p1, p2, k3)."""
+    dist = np.zeros(5)
+    dist[: min(5, np.size(coefficients))] = np.ravel(coefficients)[:5]
+    return Distortion(**dict(zip(Distortion.model_fields, dist.tolist(), strict=True)))
+
+
 def active_sensor_config(cfg: CellConfig) -> SensorConfig:
     """``cfg.sensor`` with the calibrated values put in (a copy; ``cfg`` is not changed):
 
     * ``calibration.intrinsics`` (cell calibrate intrinsics): camera fx, fy, cx, cy and distortion;
-    * ``calibration.projector`` (cell calibrate projector): projector fx, fy, cx, cy and T_C_P (its fitted
-      lens distortion is not carried: the pinhole model treats the projector as distortion-free);
+    * ``calibration.projector`` (cell calibrate projector): projector fx, fy, cx, cy, distortion and T_C_P;
     * ``calibration.hand_eye`` (cell calibrate handeye): T_T_C.
 
     Each file must be of the right kind and made for the configured device (resolution, serial)."""
@@ -75,15 +81,15 @@ def active_sensor_config(cfg: CellConfig) -> SensorConfig:
     if cal.intrinsics is not None:
         meta, a = load_calibration(cal.intrinsics, "camera_intrinsics")
         _check_device(meta, "camera", cal.intrinsics, cam.serial, (cam.width_px, cam.height_px))
-        dist = np.zeros(5)
-        dist[: min(5, np.size(a["dist"]))] = np.ravel(a["dist"])[:5]
-        lens = Distortion(**dict(zip(Distortion.model_fields, dist.tolist())))
-        cam = cam.model_copy(update={**_pinhole_update(a["K"]), "distortion": lens})
+        cam = cam.model_copy(update={**_pinhole_update(a["K"]), "distortion": _lens(a["dist"])})
     if cal.projector is not None:
         meta, a = load_calibration(cal.projector, "projector")
         _check_device(meta, "projector", cal.projector, proj.serial, (proj.width_px, proj.height_px))
         T_C_P = _rigid(a["T_C_P"], cal.projector, "T_C_P")
-        proj = proj.model_copy(update={**_pinhole_update(a["K"]), "T_C_P": _pose_config(T_C_P)})
+        update_p = {**_pinhole_update(a["K"]), "T_C_P": _pose_config(T_C_P)}
+        if "dist" in a:
+            update_p["distortion"] = _lens(a["dist"])
+        proj = proj.model_copy(update=update_p)
     update: dict = {"camera": cam, "projector": proj}
     if cal.hand_eye is not None:
         update["T_T_C"] = _pose_config(active_hand_eye(cfg))

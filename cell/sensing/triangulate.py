@@ -3,8 +3,8 @@
 Two models behind one interface (:class:`Triangulator`):
 
 * :class:`PinholeTriangulator` -- the standard model: the camera ray of each pixel (OpenCV intrinsics and
-  distortion, cv2.undistortPoints) meets the plane of its decoded projector column (pinhole projector at
-  ``T_C_P``).
+  distortion, cv2.undistortPoints) meets the plane of its decoded projector column (projector at ``T_C_P``;
+  with its lens distortion, the decoded column is corrected at the point's own projector row, iterated).
 * :class:`ReferencePlaneTriangulator` -- the dissertation's per-pixel model (2.1.1, 2.2): L is the distance on
   the reference plane between where the camera sees the pixel (C) and where the same code is seen on the
   reference plane in the same row (A), corrected by the offset angle (L' = L sec alpha, eq 2.9); then
@@ -87,10 +87,17 @@ class PinholeTriangulator:
     """Camera ray / projector column-plane (or row-plane) intersection; OpenCV conventions, mm."""
 
     def __init__(
-        self, K_cam: NDArray, dist_cam: NDArray, size: tuple[int, int], K_proj: NDArray, T_C_P: NDArray
+        self,
+        K_cam: NDArray,
+        dist_cam: NDArray,
+        size: tuple[int, int],
+        K_proj: NDArray,
+        T_C_P: NDArray,
+        dist_proj: NDArray | None = None,
     ):
         self.K_proj = np.asarray(K_proj, dtype=np.float64)
         self.T_C_P = np.asarray(T_C_P, dtype=np.float64)
+        self.dist_proj = np.zeros(5) if dist_proj is None else np.asarray(dist_proj, dtype=np.float64)
         self.xn, self.yn = normalized_coords(np.asarray(K_cam, float), np.asarray(dist_cam, float), *size)
         R, t = self.T_C_P[:3, :3], self.T_C_P[:3, 3]
         # Column plane of projector coordinate u: n_P = e_x - a e_z, a = (u - cx)/fx, through the projector
@@ -103,7 +110,12 @@ class PinholeTriangulator:
     def from_sensor(cls, sensor: SensorConfig) -> PinholeTriangulator:
         cam, proj = sensor.camera, sensor.projector
         return cls(
-            cam.K(), cam.distortion.as_array(), (cam.width_px, cam.height_px), proj.K(), proj.T_C_P.matrix()
+            cam.K(),
+            cam.distortion.as_array(),
+            (cam.width_px, cam.height_px),
+            proj.K(),
+            proj.T_C_P.matrix(),
+            proj.distortion.as_array(),
         )
 
     def depth(self, u: NDArray, axis: str = "columns") -> NDArray[np.float64]:
@@ -114,14 +126,32 @@ class PinholeTriangulator:
         with np.errstate(invalid="ignore", divide="ignore"):
             return (self._t_dot[k] - a * self._t_dot[2]) / (self._r_dot[k] - a * self._r_dot[2])
 
-    def triangulate(self, decoded: Decoded) -> SensorCloud:
-        """One fused compiled pass (:func:`_cloud_kernel.pinhole_cloud`); same arithmetic as :meth:`depth`."""
+    def triangulate(self, decoded: Decoded, iterations: int = 3) -> SensorCloud:
+        """One fused compiled pass (:func:`_cloud_kernel.pinhole_cloud`); same arithmetic as :meth:`depth`.
+        A projector lens with distortion bends its column planes: the decoded column ``u`` is where the lens
+        put the stripe, so each point is projected back through the lens (cv2.projectPoints) and the column
+        the pinhole plane uses is moved by what the lens added, ``iterations`` times (Newton with the lens's
+        derivative taken as 1: the distortion is a few pixels, the step converges to well under 0.01 px)."""
         ad = decoded.primary()
         k = 0 if ad.axis == "columns" else 1
+        u_plane = ad.u
+        pts, reasons = self._pinhole(u_plane, ad.reasons, k)
+        if np.any(self.dist_proj):
+            T_P_C = np.linalg.inv(self.T_C_P)
+            for _ in range(iterations):
+                ok = reasons == 0
+                P = pts[ok].astype(np.float64) @ T_P_C[:3, :3].T + T_P_C[:3, 3]
+                seen, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), self.K_proj, self.dist_proj)
+                u_plane = u_plane.copy()
+                u_plane[ok] += ad.u[ok] - seen.reshape(-1, 2)[:, k].astype(u_plane.dtype)
+                pts, reasons = self._pinhole(u_plane, ad.reasons, k)
+        return SensorCloud(pts, reasons, decoded.contrast, ad.sharpness)
+
+    def _pinhole(self, u: NDArray, reasons: NDArray, k: int) -> tuple[NDArray, NDArray]:
         R = self.T_C_P[:3, :3]
-        pts, reasons = _cloud_kernel.pinhole_cloud(
-            ad.u,
-            ad.reasons,
+        return _cloud_kernel.pinhole_cloud(
+            u,
+            reasons,
             self.xn,
             self.yn,
             float(self.K_proj[k, k]),
@@ -131,7 +161,6 @@ class PinholeTriangulator:
             self._t_dot[k],
             self._t_dot[2],
         )
-        return SensorCloud(pts, reasons, decoded.contrast, ad.sharpness)
 
 
 def fit_d_S(h_steps: NDArray, L_steps: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
