@@ -33,7 +33,14 @@ from cell.analysis.merge import merge_views
 from cell.analysis.regions import Coverage, point_bands, region_from_config
 from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
 from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
-from cell.calibration import active_hand_eye, active_sensor_config, active_triangulator, calibration_source
+from cell.calibration import (
+    active_gamma_lut,
+    active_hand_eye,
+    active_sensor_config,
+    active_triangulator,
+    calibration_source,
+)
+from cell.calibration.gamma import apply_lut
 from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
 from cell.contracts import CameraSettings, PixelFormat, TriggerMode
@@ -97,6 +104,9 @@ class LambertianInspection:
         self.patterns: PatternSet = gcls_patterns(
             proj.width_px, proj.height_px, 12, n_shifts=12, n_gray=6 if proj.width_px >= 768 else None
         )
+        lut = active_gamma_lut(cfg)  # the projector's measured response, linearised (cell calibrate gamma)
+        if lut is not None:
+            self.patterns = apply_lut(self.patterns, lut)
         self.triangulator = active_triangulator(cfg)
         self.geometry_source = calibration_source(cfg)
         self._plan: Plan | None = None

@@ -57,3 +57,32 @@ def test_bad_response_input():
         measure_response(np.zeros((3, 8, 8)), np.array([0, 200, 100]))
     with pytest.raises(CalibrationError, match="too few pixels"):
         measure_response(np.zeros((3, 20, 20)), np.array([0, 128, 255]))
+
+
+def test_the_inspection_projects_through_the_active_gamma_lut(tmp_path) -> None:  # noqa: ANN001
+    """A cell whose `calibration.gamma` names a LUT gets every inspection pattern sent through it (what the
+    projector then shows is linear in the coded intensity); a file that is not a 256-level LUT is refused
+    with its name."""
+    import trimesh
+
+    from cell.calibration.store import save_calibration
+    from cell.config import DEFAULT_CELL, CalibrationFiles, load_cell_config, load_recipe
+    from cell.errors import ConfigError
+    from cell.inspection import LambertianInspection
+
+    recipe = load_recipe(DEFAULT_CELL.parent.parent / "pillar.yaml")
+    cfg = load_cell_config(DEFAULT_CELL)
+    part = trimesh.creation.box((50, 50, 10))
+    plain = LambertianInspection(recipe, cfg, part).patterns.frames
+    # a linearising LUT keeps 0 and 255, which leaves GCLS's binary frames as they are; this one also lifts
+    # the black and caps the white, so the test sees whether the frames went through it
+    lut = np.clip(np.round(255 * (np.arange(256) / 255) ** (1 / 2.2)), 10, 245).astype(np.uint8)
+    good = save_calibration(tmp_path / "gamma", "projector_gamma", {"lut": lut}, {"projector": {}})
+    with_lut = cfg.model_copy(update={"calibration": CalibrationFiles(gamma=good)})
+    frames = LambertianInspection(recipe, with_lut, part).patterns.frames
+    np.testing.assert_array_equal(frames, lut[plain])
+    assert not np.array_equal(frames, plain)
+    bad = save_calibration(tmp_path / "bad", "projector_gamma", {"lut": lut[:128]}, {"projector": {}})
+    with pytest.raises(ConfigError, match="256 grey levels"):
+        bad_cfg = cfg.model_copy(update={"calibration": CalibrationFiles(gamma=bad)})
+        LambertianInspection(recipe, bad_cfg, part)

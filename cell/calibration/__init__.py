@@ -2,10 +2,17 @@
 projector intrinsics, projector response, hand-eye, and the validation tests that judge them."""
 
 from cell.calibration.active import (
+    active_gamma_lut,
     active_hand_eye,
     active_sensor_config,
     active_triangulator,
     calibration_source,
 )
 
-__all__ = ["active_hand_eye", "active_sensor_config", "active_triangulator", "calibration_source"]
+__all__ = [
+    "active_gamma_lut",
+    "active_hand_eye",
+    "active_sensor_config",
+    "active_triangulator",
+    "calibration_source",
+]

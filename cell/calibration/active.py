@@ -114,6 +114,22 @@ def active_hand_eye(cfg: CellConfig) -> Pose:
     return _rigid(arrays["T_T_C"], cfg.calibration.hand_eye, "T_T_C")
 
 
+def active_gamma_lut(cfg: CellConfig) -> NDArray[np.uint8] | None:
+    """The projector's linearising LUT (256 grey levels) of ``calibration.gamma`` (cell calibrate gamma), or
+    None without one; ConfigError when the file is not a 256-entry LUT."""
+    if cfg.calibration.gamma is None:
+        return None
+    _, arrays = load_calibration(cfg.calibration.gamma, "projector_gamma")
+    lut = np.asarray(arrays["lut"])
+    if lut.shape != (256,):
+        raise ConfigError(
+            f"{cfg.calibration.gamma}: 'lut' must hold 256 grey levels, it holds {lut.shape}; run "
+            "`cell calibrate gamma` again",
+            field="calibration.gamma",
+        )
+    return lut.astype(np.uint8)
+
+
 def calibration_source(cfg: CellConfig) -> str:
     """One line saying what the measurements rest on, for reports: the active calibration files (name and
     creation date) and what still comes from the config's nominal geometry."""
