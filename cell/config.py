@@ -264,6 +264,11 @@ class VerificationConfig(Strict):
         0.7, description="`cell verify check` warns when a figure uses more than this share of its MPE"
     )
     certificate: Path | None = Field(None, description="artefact certificate YAML")
+    block_inspections: bool = Field(
+        True,
+        description="`cell inspect` refuses to start while this cell's newest `cell verify check` (or "
+        "acceptance test) in the runs root exceeded a maximum permissible error, until one passes again",
+    )
 
 
 class CellConfig(Strict):

@@ -80,3 +80,48 @@ def test_check_command_stores_its_figures(tmp_path, capsys) -> None:
     assert (folders[0] / "inputs" / "certificate.yaml").is_file()
     main(["verify", "history", "--runs", str(tmp_path)])
     assert "check" in capsys.readouterr().out.splitlines()[1]
+
+
+def test_a_failed_check_blocks_inspections_until_one_passes(tmp_path) -> None:  # noqa: ANN001
+    """`cell inspect` refuses to start a run of a cell whose newest verification in the runs root failed,
+    naming the figures and how to clear it; a later passing check (or the config switch) lets it start."""
+    from pathlib import Path
+
+    import yaml
+
+    from cell.commands.inspect import _start_run
+    from cell.config import load_cell_config
+    from cell.errors import ConfigError
+
+    repo = Path(__file__).resolve().parent.parent
+    cell = repo / "recipes" / "cells" / "sim_binned.yaml"
+    recipe = repo / "recipes" / "pillar.yaml"
+    name = load_cell_config(cell).name
+    failed = AcceptanceResult(
+        name,
+        "nominal",
+        {},
+        MPE,
+        [],
+        figures_mm={"PF": 0.01, "PS": 0.002, "SD": 0.031, "F": 0.02},
+        verdict="fail",
+    )
+    history = VerificationHistory(tmp_path)
+    history.add(tmp_path / "check-1", "check", failed, time="2026-11-02T06:00:00+00:00")
+    with pytest.raises(
+        ConfigError, match=r"failed its last verification \(check.*SD 31.0 um.*cell verify check"
+    ):
+        _start_run(recipe, cell, tmp_path / "run-1", None)
+    assert not (tmp_path / "run-1").exists()  # refused before anything was written
+
+    data = yaml.safe_load(cell.read_text())
+    data.setdefault("verification", {})["block_inspections"] = False
+    unblocked = tmp_path / "unblocked.yaml"
+    unblocked.write_text(yaml.safe_dump(data))
+    assert _start_run(recipe, unblocked, tmp_path / "run-2", None).path.is_dir()
+
+    passed = AcceptanceResult(
+        name, "nominal", {}, MPE, [], figures_mm=dict(failed.figures_mm), verdict="pass"
+    )
+    history.add(tmp_path / "check-2", "check", passed, time="2026-11-02T07:00:00+00:00")
+    assert _start_run(recipe, cell, tmp_path / "run-3", None).path.is_dir()

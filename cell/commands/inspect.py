@@ -78,6 +78,11 @@ def _start_run(
         load_mesh(sim_actual, what="simulated actual part")
     part = recipe.name or recipe.part.cad.stem
     final = out if out else REPO / "runs" / f"{part}-{time.strftime('%Y%m%dT%H%M%S')}"
+    from cell.verification.history import inspection_block
+
+    blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections)
+    if blocked:
+        raise ConfigError(blocked, path=str(cell_path))
     holder = RunFolder(final).lock_holder() if final.is_dir() else None
     if holder is not None and RunFolder(final).holder_is_live(holder):
         raise ConfigError(

@@ -115,3 +115,22 @@ def drift_warnings(
                         f"{mpe * 1000:.1f} um in about {max(ahead, 0):.0f} more checks"
                     )
     return out
+
+
+def inspection_block(root: Path, cell: str, block: bool = True) -> str | None:
+    """Why ``cell`` may not inspect now: its newest verification in ``root``'s history failed (the figures
+    over their MPE, when and where), or None (no verification yet, the newest passed, or ``block`` is off).
+    A cell never checked is not blocked: the check is the technician's shift routine, not a precondition."""
+    if not block or not (Path(root) / INDEX_NAME).is_file():
+        return None
+    entries = VerificationHistory(root).entries(cell)
+    if not entries or entries[-1].verdict != "fail":
+        return None
+    last = entries[-1]
+    shown = ", ".join(f"{k} {abs(v) * 1000:.1f} um" for k, v in last.figures_mm.items() if v is not None)
+    return (
+        f"cell '{cell}' failed its last verification ({last.kind}, {last.time}: {shown}; "
+        f"folder {last.folder}): inspections are blocked until a `cell verify check` passes again "
+        "(recalibrate first: `cell calibrate all`), or the cell config sets verification.block_inspections: "
+        "false"
+    )
