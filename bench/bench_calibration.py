@@ -18,10 +18,12 @@ from pathlib import Path
 
 import yaml
 
+from cell.calibration import active_kinematics
 from cell.calibration.handeye import pose_error
 from cell.calibration.routines import calibrate_all
 from cell.calibration.store import load_calibration
 from cell.config import DEFAULT_CELL, load_cell_config
+from fakes.sim.pose_truth import part_error_spread
 from fakes.sim.world import build_world
 
 
@@ -38,11 +40,11 @@ def seeded_cell(seed: int, folder: Path) -> Path:
 def compare(cell: Path, out: Path) -> dict[str, float]:
     """Recovered vs true values for one calibrated world."""
     cfg = load_cell_config(cell)
-    true = build_world(cfg).sensor
+    world = build_world(cfg)
+    true = world.sensor
     _, intr = load_calibration(out / "intrinsics" / "intrinsics.yaml", "camera_intrinsics")
     _, proj = load_calibration(out / "projector" / "projector.yaml", "projector")
-    _, board = load_calibration(out / "handeye-board" / "handeye.yaml", "hand_eye")
-    _, icp = load_calibration(out / "handeye" / "handeye.yaml", "hand_eye")
+    _, hand_eye = load_calibration(out / "kinematics" / "handeye.yaml", "hand_eye")
     T_true = true.T_T_C.matrix()
     row = {
         "camera_fx_err_pct": 100 * (intr["K"][0, 0] / true.camera.fx_px - 1),
@@ -52,8 +54,10 @@ def compare(cell: Path, out: Path) -> dict[str, float]:
     }
     row["T_C_P_err_mm"], row["T_C_P_err_deg"] = pose_error(proj["T_C_P"], true.projector.T_C_P.matrix())
     row["handeye_config_mm"], row["handeye_config_deg"] = pose_error(cfg.sensor.T_T_C.matrix(), T_true)
-    row["handeye_board_mm"], row["handeye_board_deg"] = pose_error(board["T_T_C"], T_true)
-    row["handeye_icp_mm"], row["handeye_icp_deg"] = pose_error(icp["T_T_C"], T_true)
+    row["handeye_mm"], row["handeye_deg"] = pose_error(hand_eye["T_T_C"], T_true)
+    calibrated = load_cell_config(out / "cell.yaml")
+    row["part_error_spread_mm"] = part_error_spread(calibrated, world, active_kinematics(calibrated))
+    row["part_error_spread_uncalibrated_mm"] = part_error_spread(cfg, world, None)
     validation = json.loads((out / "validate" / "validation.json").read_text())["summary"]
     row["plane_std_mm"] = validation["plane"]["std_mm"]
     row["plane_height_err_mm"] = validation["plane"]["height_error_mm"]

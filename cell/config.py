@@ -246,6 +246,11 @@ class CalibrationFiles(Strict):
     intrinsics: Path | None = Field(None, description="camera K and distortion (cell calibrate intrinsics)")
     projector: Path | None = Field(None, description="projector K and T_C_P (cell calibrate projector)")
     latency: Path | None = Field(None, description="display latency (cell calibrate latency)")
+    kinematics: Path | None = Field(
+        None,
+        description="the robot's link-length and joint-zero errors (cell calibrate kinematics): the flange "
+        "pose is computed from the reported joints with them instead of taken from the robot",
+    )
 
 
 class VerificationConfig(Strict):

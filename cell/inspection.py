@@ -39,6 +39,7 @@ from cell.calibration import (
     active_sensor_config,
     active_triangulator,
     calibration_source,
+    flange_pose,
 )
 from cell.calibration.gamma import apply_lut
 from cell.calibration_state import calibration_state
@@ -172,7 +173,7 @@ class LambertianInspection:
         if devices.sim is not None:
             devices.sim.reseed(index)
         self.prepare(devices)
-        T_B_T = devices.robot.tool_pose()
+        T_B_T = flange_pose(self.cfg, devices.robot)
         images = capture_stack(devices.camera, devices.projector, self.patterns)
         status = devices.projector.status()
         if not status.ready:  # a lamp that failed mid-stack leaves dark frames: measure again after the fix
@@ -257,12 +258,17 @@ class LambertianInspection:
             for i, p in zip(done, points, strict=True):
                 if i not in self._planes:
                     self._planes[i] = estimate_normals(p)
+            cameras = [
+                np.asarray(json.loads((run.view_dir(i) / "view.json").read_text())["T_W_C"])[:3, 3]
+                for i in done
+            ]
             found = refine_views(
                 points,
                 robot.view_pose_sigma_mm,
                 np.deg2rad(robot.view_pose_sigma_deg),
                 seed=len(done),
                 planes=[self._planes[i] for i in done],
+                cameras=cameras,
             )
             self._refinement = (done, found)
         return list(self._refinement[0]), self._refinement[1]

@@ -37,6 +37,9 @@ Array = NDArray[np.float64]
 SAME_NORMAL_COS = float(np.cos(np.deg2rad(20.0)))  # across an edge or the other skin of a sheet: no match
 MAX_PAIRS_PER_OVERLAP = 2000  # matches used per ordered view pair (a random, seeded sample)
 EFFECTIVE_PAIRS = 100  # independent observations one overlap is worth (see the weight in refine_views)
+MAX_INCIDENCE_DEG = 70.0  # pairs seen at more than this from the normal by either view are not used
+MIN_INCIDENCE_COS = float(np.cos(np.deg2rad(MAX_INCIDENCE_DEG)))
+MIN_VIEW_PAIRS = 500  # a view held by fewer (incidence-weighted) pairs is not refined
 MIN_PAIRS = 50  # an overlap with fewer matches does not constrain the views
 
 
@@ -95,6 +98,12 @@ def estimate_normals(points: Array, k: int = 20) -> LocalPlanes:
     return LocalPlanes(centroid, v[:, :, 0], w[:, 0] < 0.1 * np.maximum(w[:, 1], 1e-12))
 
 
+def _incidence_cos(points: Array, normals: Array, eye: Array) -> Array:
+    """|cos| of the angle between each point's normal and its line of sight from ``eye``."""
+    sight = points - eye
+    return np.abs(np.einsum("ij,ij->i", sight, normals)) / np.linalg.norm(sight, axis=1)
+
+
 def _observable(J: Array, ratio: float = 1e-4) -> Array:
     """Projector onto the motions an overlap observes. On a plane a slide along it changes no gap, yet the
     normals' estimation noise gives it a small, spurious information that would couple the overlap's normal
@@ -136,11 +145,16 @@ def refine_views(
     radii_mm: tuple[float, ...] = (2.0, 1.0, 0.6),
     seed: int = 0,
     planes: list[LocalPlanes] | None = None,
+    cameras: list[Array] | None = None,
 ) -> ViewRefinement:
     """Corrections for ``views`` (points in {W}, mm; one array per view) under the prior (``sigma_t_mm``,
     ``sigma_r_rad``: 1-sigma translation and rotation of a view's pose) with point gaps of ``noise_mm`` noise,
-    matching within each of ``radii_mm`` in turn (one linearised solve each). ``planes``: the views' local
-    planes (:func:`estimate_normals`) when the caller keeps them between calls."""
+    matching within each of ``radii_mm`` in turn (one linearised solve each). ``planes``: the views'
+    local planes (:func:`estimate_normals`) when the caller keeps them between calls. ``cameras``: each
+    view's camera centre ({W}, mm): a point seen at incidence theta is noisier by 1/cos(theta) (and biased by
+    what the sensor's model misses, which grows with it), so pairs are weighted by their incidence and pairs
+    beyond ``MAX_INCIDENCE_DEG`` for either view are not used: a view that overlaps the others only at
+    grazing incidence is held by the prior, not slid along by its least reliable points."""
     n_views = len(views)
     T = [np.eye(4) for _ in range(n_views)]
     if n_views < 2:
@@ -159,6 +173,7 @@ def refine_views(
         moved = [transform_points(Ti, v) for Ti, v in zip(T, views, strict=True)]
         moved_n = [(Ti[:3, :3] @ lp.normal.T).T for Ti, lp in zip(T, normals, strict=True)]
         moved_c = [transform_points(Ti, lp.centroid) for Ti, lp in zip(T, normals, strict=True)]
+        eyes = None if cameras is None else [transform_points(Ti, e) for Ti, e in zip(T, cameras)]
         trees = [cKDTree(m) if len(m) else None for m in moved]
         boxes = [(m.min(0), m.max(0)) if len(m) else (np.zeros(3), np.zeros(3)) for m in moved]
         H = np.zeros((6 * n_views, 6 * n_views))
@@ -166,6 +181,7 @@ def refine_views(
         gaps_all: list[Array] = []
         pairs: list[tuple[int, int, Array, Array]] = []
         overlaps = [0] * n_views
+        used = np.zeros(n_views)  # pairs (incidence-weighted) that hold each view, as source or target
         for i in range(n_views):
             for j in range(n_views):
                 if i == j or trees[j] is None or not len(moved[i]):
@@ -192,10 +208,18 @@ def refine_views(
                 scale = 1.4826 * np.median(np.abs(r - np.median(r)))
                 inlier = np.abs(r - np.median(r)) <= max(3 * scale, 2 * noise_mm)
                 p, q, nj, r = p[inlier], q[inlier], nj[inlier], r[inlier]
+                w_row = np.ones(len(r))
+                if eyes is not None:
+                    cos_i, cos_j = _incidence_cos(p, nj, eyes[i]), _incidence_cos(q, nj, eyes[j])
+                    seen = np.minimum(cos_i, cos_j) >= MIN_INCIDENCE_COS
+                    p, q, nj, r = p[seen], q[seen], nj[seen], r[seen]
+                    w_row = 2.0 / (1.0 / cos_i[seen] ** 2 + 1.0 / cos_j[seen] ** 2)
                 if len(r) < MIN_PAIRS:
                     continue
                 overlaps[i] += 1
                 gaps_all.append(r)
+                used[i] += w_row.sum()
+                used[j] += w_row.sum()
                 # a gap holds two points' noise; each unordered pair is seen twice (i->j, j->i): half weight.
                 # The pairs of one overlap are not independent (a view's calibration residual is smooth over
                 # it, estimated normals share neighbours): together they count as EFFECTIVE_PAIRS, or the
@@ -205,16 +229,21 @@ def refine_views(
                 # the prior's alone)
                 Ji = np.column_stack([np.cross((p + q) / 2 - centre, nj) / lever, nj])
                 Ji = Ji @ _observable(Ji)
-                Jj = -Ji
                 si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
-                H[si, si] += w * Ji.T @ Ji
-                H[sj, sj] += w * Jj.T @ Jj
-                H[si, sj] += w * Ji.T @ Jj
-                H[sj, si] += w * Jj.T @ Ji
-                g[si] += w * Ji.T @ r
-                g[sj] += w * Jj.T @ r
+                Wi = Ji * (w * w_row)[:, None]
+                H[si, si] += Wi.T @ Ji
+                H[sj, sj] += Wi.T @ Ji
+                H[si, sj] -= Wi.T @ Ji
+                H[sj, si] -= Wi.T @ Ji
+                g[si] += Wi.T @ r
+                g[sj] -= Wi.T @ r
                 pairs.append((i, j, Ji, r))
         rms.append(float(np.sqrt(np.mean(np.concatenate(gaps_all) ** 2))) if gaps_all else 0.0)
+        # a view that too few good pairs hold (it overlaps the others only at grazing incidence, or hardly at
+        # all) stays at its kinematic pose: a few biased pairs would slide it where nothing checks it
+        held = used < MIN_VIEW_PAIRS
+        for v in np.flatnonzero(held):
+            H[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] += np.eye(6) * 1e12
         # prior on the total correction x + dx: the solve is for the step dx
         H += np.diag(np.tile(prior_w, n_views))
         g += np.tile(prior_w, n_views) * x.ravel()
@@ -224,5 +253,5 @@ def refine_views(
         T = [_apply(xi, centre, lever) for xi in x]
     # the gaps of the last matching moved by the last step (linearised): what the corrections leave
     after = float(np.sqrt(np.mean(np.concatenate(last_gaps) ** 2))) if last_gaps else 0.0
-    unregistered = [i for i in range(n_views) if overlaps[i] == 0]
+    unregistered = [i for i in range(n_views) if held[i]] if radii_mm else list(range(n_views))
     return ViewRefinement(T, rms[0], after, overlaps, unregistered)

@@ -4,15 +4,19 @@ projector intrinsics, projector response, hand-eye, and the validation tests tha
 from cell.calibration.active import (
     active_gamma_lut,
     active_hand_eye,
+    active_kinematics,
     active_sensor_config,
     active_triangulator,
     calibration_source,
+    flange_pose,
 )
 
 __all__ = [
     "active_gamma_lut",
     "active_hand_eye",
+    "active_kinematics",
     "active_sensor_config",
     "active_triangulator",
     "calibration_source",
+    "flange_pose",
 ]

@@ -9,9 +9,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from cell.calibration.kinematics import KinematicErrors
 from cell.calibration.sensor import load_sensor_model
 from cell.calibration.store import load_calibration, load_metadata
 from cell.config import CellConfig, Distortion, PoseConfig, SensorConfig
+from cell.contracts import Robot
 from cell.errors import ConfigError
 from cell.geometry import Pose
 from cell.sensing.triangulate import PinholeTriangulator, Triangulator
@@ -114,6 +116,29 @@ def active_hand_eye(cfg: CellConfig) -> Pose:
     return _rigid(arrays["T_T_C"], cfg.calibration.hand_eye, "T_T_C")
 
 
+def active_kinematics(cfg: CellConfig) -> KinematicErrors | None:
+    """The robot's calibrated kinematic errors (``calibration.kinematics``, cell calibrate kinematics), or
+    None: the robot's own reported flange pose is used."""
+    if cfg.calibration.kinematics is None:
+        return None
+    _, a = load_calibration(cfg.calibration.kinematics, "robot_kinematics")
+    for key in ("dd", "da", "dq"):
+        if np.shape(a[key]) != (6,):
+            raise ConfigError(
+                f"{cfg.calibration.kinematics}: '{key}' must hold 6 values, it holds {np.shape(a[key])}; run "
+                "`cell calibrate kinematics` again",
+                field="calibration.kinematics",
+            )
+    return KinematicErrors(*(np.asarray(a[k], dtype=np.float64) for k in ("dd", "da", "dq")))
+
+
+def flange_pose(cfg: CellConfig, robot: Robot) -> Pose:
+    """``T_B_T`` where the flange is: the calibrated kinematics at the robot's reported joints when the cell
+    has them, else the pose the robot reports (its nominal kinematics)."""
+    errors = active_kinematics(cfg)
+    return robot.tool_pose() if errors is None else errors.flange(robot.joints())
+
+
 def active_gamma_lut(cfg: CellConfig) -> NDArray[np.uint8] | None:
     """The projector's linearising LUT (256 grey levels) of ``calibration.gamma`` (cell calibrate gamma), or
     None without one; ConfigError when the file is not a 256-entry LUT."""
@@ -135,7 +160,7 @@ def calibration_source(cfg: CellConfig) -> str:
     creation date) and what still comes from the config's nominal geometry."""
     cal = cfg.calibration
     parts = []
-    for field in ("sensor", "intrinsics", "projector", "hand_eye", "gamma"):
+    for field in ("sensor", "intrinsics", "projector", "hand_eye", "kinematics", "gamma"):
         path = getattr(cal, field)
         if path is not None:
             created = load_metadata(path).get("created_utc", "undated")

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from cell.calibration.active import active_hand_eye
+from cell.calibration.active import active_hand_eye, flange_pose
 from cell.config import CellConfig
 from cell.contracts import BoardKind, CalibrationBoard, CameraSettings, PixelFormat, TriggerMode
 from cell.devices import DeviceBundle
@@ -175,11 +175,16 @@ class CalibrationJob:
         stack = check_stack(
             images, ps, (cam.width_px, cam.height_px), cam.bit_depth, source=f"camera '{devices.camera.name}'"
         )
-        return {"images": stack, "T_B_T": devices.robot.tool_pose()}
+        return {
+            "images": stack,
+            "T_B_T": flange_pose(self.cfg, devices.robot),
+            "joints": devices.robot.joints(),
+        }
 
     def decode(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         summary = self.decode_view(view, captured, out_dir)
         summary["T_B_T"] = np.asarray(captured["T_B_T"]).tolist()
+        summary["joints"] = np.asarray(captured["joints"]).tolist()
         write_json_atomic(out_dir / "view.json", summary)
         return summary
 

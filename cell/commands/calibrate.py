@@ -178,6 +178,21 @@ def handeye_cmd(
     _run(job, out, cell, seed)
 
 
+@calibrate_app.command("kinematics")
+def kinematics_cmd(
+    cell: Path = CellOpt,
+    out: Path = OutOpt,
+    views: int = typer.Option(24, min=8, help="robot poses looking at the still board"),
+    force: bool = ForceOpt,
+    seed: int = 1,
+) -> None:
+    """The robot's link-length and joint-zero errors with the hand-eye, from board views (writes
+    OUT/kinematics.yaml and the hand-eye found with it, OUT/handeye.yaml; set both in the cell config)."""
+    from cell.calibration.routines import KinematicsJob
+
+    _run(KinematicsJob(load_cell_config(cell), views=views, force=force, seed=seed), out, cell, seed)
+
+
 @calibrate_app.command("validate")
 def validate_cmd(
     calibration: Path | None = typer.Argument(None, help="a sensor calibration (.yaml) to validate instead"),
@@ -208,8 +223,8 @@ def all_cmd(
     sensor: bool = typer.Option(False, "--sensor", help="also the per-pixel sensor model (31 board steps)"),
     seed: int = 1,
 ) -> None:
-    """Intrinsics, projector, hand-eye (board poses, then ICP of gauge scans from the mounting drawing),
-    optionally the per-pixel sensor, then validation; writes OUT/cell.yaml that uses them."""
+    """Intrinsics, projector, robot kinematics with the hand-eye (board poses), optionally the per-pixel
+    sensor, then validation; writes OUT/cell.yaml that uses them."""
     from cell.calibration.routines import calibrate_all
 
     cell_out, summary = calibrate_all(cell, out, sensor=sensor, seed=seed, say=typer.echo)

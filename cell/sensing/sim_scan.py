@@ -14,6 +14,7 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
+from cell.calibration import active_hand_eye, flange_pose
 from cell.config import CellConfig
 from cell.contracts import CameraSettings, PixelFormat, ProjectorSource, TriggerMode
 from cell.errors import ConfigError
@@ -98,9 +99,10 @@ def run_sim_scan(
         # A joint move: a straight line from home may pass the base axis; IK picks the branch nearest to now.
         q = UR5E.ik_nearest(T_B_T, dev.robot.joints())
         dev.robot.move_joint(q, cfg.robot.max_joint_speed_rad_s, cfg.robot.max_joint_accel_rad_s2)
-        # where the cell believes the camera is: the robot's reported flange pose through the configured
-        # hand-eye (what a real cell knows; the simulator's true camera pose is not the pipeline's to read)
-        T_W_C_reported = cfg.robot.T_W_B.matrix() @ dev.robot.tool_pose() @ cfg.sensor.T_T_C.matrix()
+        # where the cell believes the camera is: the flange pose (calibrated kinematics when the cell has
+        # them) through the active hand-eye (what a real cell knows; the simulator's true camera pose is not
+        # the pipeline's to read)
+        T_W_C_reported = cfg.robot.T_W_B.matrix() @ flange_pose(cfg, dev.robot) @ active_hand_eye(cfg)
         make = gcls_patterns if codec == "gcls" else gcps_patterns
         extra = {"n_shifts": 12} if codec == "gcls" else {"n_phase": 24}  # same number of images (38 at XGA)
         patterns = make(
