@@ -1,6 +1,6 @@
-"""Robot kinematic calibration (cell/calibration/kinematics.py) on synthetic board views of an arm whose links
-and joint zeros differ from the nominal UR5e as the simulated world's do: the truth is that arm, so how well the
-calibrated model predicts the flange at poses it never saw is known exactly."""
+"""Robot kinematic calibration (cell/calibration/kinematics.py) on synthetic board views of an arm whose
+links and joint zeros differ from the nominal UR5e as the simulated world's do: the truth is that arm, so how
+well the calibrated model predicts the flange at poses it never saw is known exactly."""
 
 from __future__ import annotations
 

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from cell.calibration.handeye import pose_error
 from cell.calibration.operator_stage import OperatorBoardStage
