@@ -38,8 +38,8 @@ from cell.calibration import (
     active_hand_eye,
     active_sensor_config,
     active_triangulator,
+    believed_flange,
     calibration_source,
-    flange_pose,
 )
 from cell.calibration.gamma import apply_lut
 from cell.calibration_state import calibration_state
@@ -173,7 +173,7 @@ class LambertianInspection:
         if devices.sim is not None:
             devices.sim.reseed(index)
         self.prepare(devices)
-        T_B_T = flange_pose(self.cfg, devices.robot)
+        T_B_T = believed_flange(self.cfg, devices.robot)
         images = capture_stack(devices.camera, devices.projector, self.patterns)
         status = devices.projector.status()
         if not status.ready:  # a lamp that failed mid-stack leaves dark frames: measure again after the fix

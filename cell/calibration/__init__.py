@@ -7,8 +7,8 @@ from cell.calibration.active import (
     active_kinematics,
     active_sensor_config,
     active_triangulator,
+    believed_flange,
     calibration_source,
-    flange_pose,
 )
 
 __all__ = [
@@ -17,6 +17,6 @@ __all__ = [
     "active_kinematics",
     "active_sensor_config",
     "active_triangulator",
+    "believed_flange",
     "calibration_source",
-    "flange_pose",
 ]

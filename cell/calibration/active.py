@@ -132,7 +132,7 @@ def active_kinematics(cfg: CellConfig) -> KinematicErrors | None:
     return KinematicErrors(*(np.asarray(a[k], dtype=np.float64) for k in ("dd", "da", "dq")))
 
 
-def flange_pose(cfg: CellConfig, robot: Robot) -> Pose:
+def believed_flange(cfg: CellConfig, robot: Robot) -> Pose:
     """``T_B_T`` where the flange is: the calibrated kinematics at the robot's reported joints when the cell
     has them, else the pose the robot reports (its nominal kinematics)."""
     errors = active_kinematics(cfg)

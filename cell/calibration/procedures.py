@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from cell.calibration.active import active_hand_eye, flange_pose
+from cell.calibration.active import active_hand_eye, believed_flange
 from cell.config import CellConfig
 from cell.contracts import BoardKind, CalibrationBoard, CameraSettings, PixelFormat, TriggerMode
 from cell.devices import DeviceBundle
@@ -177,7 +177,7 @@ class CalibrationJob:
         )
         return {
             "images": stack,
-            "T_B_T": flange_pose(self.cfg, devices.robot),
+            "T_B_T": believed_flange(self.cfg, devices.robot),
             "joints": devices.robot.joints(),
         }
 

@@ -14,7 +14,7 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
-from cell.calibration import active_hand_eye, flange_pose
+from cell.calibration import active_hand_eye, believed_flange
 from cell.config import CellConfig
 from cell.contracts import CameraSettings, PixelFormat, ProjectorSource, TriggerMode
 from cell.errors import ConfigError
@@ -102,7 +102,7 @@ def run_sim_scan(
         # where the cell believes the camera is: the flange pose (calibrated kinematics when the cell has
         # them) through the active hand-eye (what a real cell knows; the simulator's true camera pose is not
         # the pipeline's to read)
-        T_W_C_reported = cfg.robot.T_W_B.matrix() @ flange_pose(cfg, dev.robot) @ active_hand_eye(cfg)
+        T_W_C_reported = cfg.robot.T_W_B.matrix() @ believed_flange(cfg, dev.robot) @ active_hand_eye(cfg)
         make = gcls_patterns if codec == "gcls" else gcps_patterns
         extra = {"n_shifts": 12} if codec == "gcls" else {"n_phase": 24}  # same number of images (38 at XGA)
         patterns = make(

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.calibration import active_hand_eye, active_triangulator, calibration_source, flange_pose
+from cell.calibration import active_hand_eye, active_triangulator, believed_flange, calibration_source
 from cell.config import CellConfig
 from cell.contracts import CameraSettings, PixelFormat, ProjectorSource, TriggerMode
 from cell.devices import DeviceBundle
@@ -228,7 +228,7 @@ class SingleView:
     def T_W_C_model(self) -> NDArray[np.float64]:
         """Where the cell believes the camera is: the flange pose (calibrated kinematics at the reported
         joints, or the robot's reported pose) and the active hand-eye."""
-        return self.cfg.robot.T_W_B.matrix() @ flange_pose(self.cfg, self.devices.robot) @ self.T_T_C
+        return self.cfg.robot.T_W_B.matrix() @ believed_flange(self.cfg, self.devices.robot) @ self.T_T_C
 
     def measure(self, index: int) -> NDArray[np.float64]:
         """One GCLS view; the valid points in {C} (mm)."""
