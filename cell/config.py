@@ -193,7 +193,8 @@ class RobotConfig(Strict):
     view_pose_sigma_mm: Annotated[float, Field(gt=0, le=20)] = Field(
         1.0,
         description="1-sigma translation error of a view's camera pose through the kinematic chain (robot "
-        "kinematics, repeatability, what the hand-eye calibration left): the multi-view refinement's prior",
+        "kinematics, repeatability, what the hand-eye calibration left): the multi-view refinement's prior "
+        "while the cell has no kinematic calibration (with one, each view's prior is what it left there)",
     )
     view_pose_sigma_deg: Annotated[float, Field(gt=0, le=5)] = Field(
         0.2, description="1-sigma rotation error of a view's camera pose (as view_pose_sigma_mm)"
@@ -249,7 +250,8 @@ class CalibrationFiles(Strict):
     kinematics: Path | None = Field(
         None,
         description="the robot's link-length and joint-zero errors (cell calibrate kinematics): the flange "
-        "pose is computed from the reported joints with them instead of taken from the robot",
+        "pose is computed from the reported joints with them instead of taken from the robot, and the fit's "
+        "covariance gives each view's pose prior in the multi-view refinement",
     )
 
 

@@ -40,6 +40,7 @@ from cell.calibration import (
     active_triangulator,
     believed_flange,
     calibration_source,
+    view_pose_prior,
 )
 from cell.calibration.gamma import apply_lut
 from cell.calibration_state import calibration_state
@@ -112,7 +113,7 @@ class LambertianInspection:
         self.geometry_source = calibration_source(cfg)
         self._plan: Plan | None = None
         self._aligner: Aligner | None = None
-        self._refinement: tuple[tuple[int, ...], ViewRefinement] | None = None
+        self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._planes: dict[int, LocalPlanes] = {}  # each view's local planes, kept between evaluations
         self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
         self._nominal_rays = (
@@ -174,12 +175,13 @@ class LambertianInspection:
             devices.sim.reseed(index)
         self.prepare(devices)
         T_B_T = believed_flange(self.cfg, devices.robot)
+        joints = np.asarray(devices.robot.joints(), dtype=np.float64)
         images = capture_stack(devices.camera, devices.projector, self.patterns)
         status = devices.projector.status()
         if not status.ready:  # a lamp that failed mid-stack leaves dark frames: measure again after the fix
             why = ", ".join(status.errors) or str(status)
             raise DeviceFault(devices.projector.name, f"not ready after the pattern stack: {why}")
-        return {"images": images, "T_B_T": T_B_T, "camera": devices.camera.name}
+        return {"images": images, "T_B_T": T_B_T, "joints": joints, "camera": devices.camera.name}
 
     def decode(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         cam = self.cfg.sensor.camera
@@ -216,6 +218,7 @@ class LambertianInspection:
         summary = {
             "T_W_C": T_W_C.tolist(),
             "T_B_T": captured["T_B_T"].tolist(),
+            "joints_rad": captured["joints"].tolist(),
             "points": int(len(points_W)),
             "decoded": int(valid.sum()),
             "link_filtered": int((valid & ~kept.keep).sum()),
@@ -249,28 +252,33 @@ class LambertianInspection:
     # ------------------------------------------------------------------ feedback
     def refinement(self, run: RunFolder) -> tuple[list[int], ViewRefinement]:
         """The completed views' pose corrections against each other (cell.analysis.view_refinement), from
-        their evaluation points, under the robot config's pose prior; recomputed when views were added
-        (deterministic, so a resumed run gets the same)."""
+        their evaluation points, under the views' pose prior (:func:`view_pose_prior`: the kinematic
+        calibration's, else the robot config's); recomputed when views were added (deterministic, so a resumed
+        run gets the same)."""
         done = tuple(run.completed_views())
         if self._refinement is None or self._refinement[0] != done:
-            robot = self.cfg.robot
             points = [np.load(run.view_dir(i) / "points_eval_W.npy") for i in done]
             for i, p in zip(done, points, strict=True):
                 if i not in self._planes:
                     self._planes[i] = estimate_normals(p)
-            cameras = [
-                np.asarray(json.loads((run.view_dir(i) / "view.json").read_text())["T_W_C"])[:3, 3]
-                for i in done
-            ]
+            meta = [json.loads((run.view_dir(i) / "view.json").read_text()) for i in done]
+            cameras = [np.asarray(m["T_W_C"])[:3, 3] for m in meta]
+            joints = [np.asarray(m["joints_rad"]) for m in meta if "joints_rad" in m]
+            sigma, source = view_pose_prior(self.cfg, joints if len(joints) == len(meta) else None)
             found = refine_views(
                 points,
-                robot.view_pose_sigma_mm,
-                np.deg2rad(robot.view_pose_sigma_deg),
+                sigma[:, 0],
+                sigma[:, 1],
                 seed=len(done),
                 planes=[self._planes[i] for i in done],
                 cameras=cameras,
             )
-            self._refinement = (done, found)
+            prior = {
+                "prior": source,
+                "prior_sigma_mm": np.round(sigma[:, 0], 4).tolist(),
+                "prior_sigma_deg": np.round(np.rad2deg(sigma[:, 1]), 5).tolist(),
+            }
+            self._refinement = (done, found, prior)
         return list(self._refinement[0]), self._refinement[1]
 
     def _measured(
@@ -375,6 +383,7 @@ class LambertianInspection:
         refinement = {
             **refined.to_json(eval_points),
             "unregistered_views": [done[k] for k in refined.unregistered],
+            **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
         }
         merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
         method = self.recipe.alignment.method

@@ -94,6 +94,20 @@ def test_a_flat_overlap_does_not_let_a_view_slide_along_it() -> None:
     assert np.abs(relative[:2, 3]).max() < 0.05  # no slide in x, y (the normals' noise alone drove 0.47 mm)
 
 
+def test_a_view_known_better_moves_less() -> None:
+    """Per-view priors: of two views 0.4 mm apart along the plane's normal, the one whose pose is known to
+    0.01 mm stays and the one known to 1 mm takes the whole correction."""
+    rng = np.random.default_rng(6)
+    a = np.column_stack([rng.uniform(-50, 50, 4000), rng.uniform(-50, 50, 4000), rng.normal(0, 0.02, 4000)])
+    b = np.column_stack([rng.uniform(0, 100, 4000), rng.uniform(-50, 50, 4000), rng.normal(0, 0.02, 4000)])
+    b_seen = transform_points(make_pose(np.eye(3), [0.0, 0.0, 0.4]), b)
+    result = refine_views(
+        [a, b_seen], sigma_t_mm=np.array([0.01, 1.0]), sigma_r_rad=np.deg2rad([0.002, 0.2]), noise_mm=0.02
+    )
+    assert abs(result.T[0][2, 3]) < 0.01
+    assert result.T[1][2, 3] == pytest.approx(-0.4, abs=0.02)
+
+
 def test_normals_of_a_plane_are_its_normal() -> None:
     rng = np.random.default_rng(7)
     pts = np.column_stack([rng.uniform(0, 10, 500), rng.uniform(0, 10, 500), np.zeros(500)])

@@ -139,8 +139,8 @@ def _apply(x: NDArray[np.float64], centre: Array, lever_mm: float) -> Pose:
 
 def refine_views(
     views: list[Array],
-    sigma_t_mm: float,
-    sigma_r_rad: float,
+    sigma_t_mm: float | Array,
+    sigma_r_rad: float | Array,
     noise_mm: float = 0.05,
     radii_mm: tuple[float, ...] = (2.0, 1.0, 0.6),
     seed: int = 0,
@@ -148,7 +148,8 @@ def refine_views(
     cameras: list[Array] | None = None,
 ) -> ViewRefinement:
     """Corrections for ``views`` (points in {W}, mm; one array per view) under the prior (``sigma_t_mm``,
-    ``sigma_r_rad``: 1-sigma translation and rotation of a view's pose) with point gaps of ``noise_mm`` noise,
+    ``sigma_r_rad``: 1-sigma translation and rotation of a view's pose, one for all or one per view) with
+    point gaps of ``noise_mm`` noise,
     matching within each of ``radii_mm`` in turn (one linearised solve each). ``planes``: the views'
     local planes (:func:`estimate_normals`) when the caller keeps them between calls. ``cameras``: each
     view's camera centre ({W}, mm): a point seen at incidence theta is noisier by 1/cos(theta) (and biased by
@@ -164,7 +165,10 @@ def refine_views(
     centre = np.vstack(nonempty).mean(axis=0) if nonempty else np.zeros(3)
     lever = max(float(np.linalg.norm(np.vstack(nonempty) - centre, axis=1).max()), 1.0) if nonempty else 1.0
     normals = planes if planes is not None else [estimate_normals(v) for v in views]
-    prior_w = np.array([1 / (sigma_r_rad * lever) ** 2] * 3 + [1 / sigma_t_mm**2] * 3)
+    sigma_r = np.broadcast_to(np.asarray(sigma_r_rad, dtype=np.float64), (n_views,))
+    sigma_t = np.broadcast_to(np.asarray(sigma_t_mm, dtype=np.float64), (n_views,))
+    # per view: three rotation weights (as mm at the lever arm), three translation weights
+    prior_w = np.repeat(np.column_stack([1 / (sigma_r * lever) ** 2, 1 / sigma_t**2]), 3, axis=1).ravel()
     x = np.zeros((n_views, 6))
     rms: list[float] = []
     overlaps = [0] * n_views
@@ -245,8 +249,8 @@ def refine_views(
         for v in np.flatnonzero(held):
             H[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] += np.eye(6) * 1e12
         # prior on the total correction x + dx: the solve is for the step dx
-        H += np.diag(np.tile(prior_w, n_views))
-        g += np.tile(prior_w, n_views) * x.ravel()
+        H += np.diag(prior_w)
+        g += prior_w * x.ravel()
         step = -np.linalg.solve(H, g).reshape(n_views, 6)
         x += step
         last_gaps = [r + Ji @ (step[i] - step[j]) for i, j, Ji, r in pairs]

@@ -9,6 +9,7 @@ from cell.calibration.active import (
     active_triangulator,
     believed_flange,
     calibration_source,
+    view_pose_prior,
 )
 
 __all__ = [
@@ -19,4 +20,5 @@ __all__ = [
     "active_triangulator",
     "believed_flange",
     "calibration_source",
+    "view_pose_prior",
 ]

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from cell.calibration.kinematics import KinematicErrors
+from cell.calibration.kinematics import KinematicErrors, camera_pose_spread
 from cell.calibration.sensor import load_sensor_model
 from cell.calibration.store import load_calibration, load_metadata
 from cell.config import CellConfig, Distortion, PoseConfig, SensorConfig
@@ -130,6 +130,26 @@ def active_kinematics(cfg: CellConfig) -> KinematicErrors | None:
                 field="calibration.kinematics",
             )
     return KinematicErrors(*(np.asarray(a[k], dtype=np.float64) for k in ("dd", "da", "dq")))
+
+
+def view_pose_prior(cfg: CellConfig, joints: list[NDArray[np.float64]] | None) -> tuple[NDArray, str]:
+    """Per view, the 1-sigma error (per axis) of its camera pose relative to the other views: column 0 in mm
+    (at the stand-off), column 1 in rad; the multi-view refinement's prior. From the kinematic calibration's
+    covariance at the views' reported ``joints`` (rad) when the cell has one that holds it, else the robot
+    config's ``view_pose_sigma_mm/deg`` for every view. Also says which."""
+    robot = cfg.robot
+    n = 0 if joints is None else len(joints)
+    if cfg.calibration.kinematics is not None and joints is not None and n >= 2:
+        _, a = load_calibration(cfg.calibration.kinematics, "robot_kinematics")
+        if "x" in a and "covariance" in a:
+            return camera_pose_spread(
+                np.asarray(a["x"], dtype=np.float64),
+                np.asarray(a["covariance"], dtype=np.float64),
+                joints,
+                cfg.sensor.standoff_mm,
+            ), f"kinematic calibration {cfg.calibration.kinematics}"
+    sigma = np.tile([robot.view_pose_sigma_mm, np.deg2rad(robot.view_pose_sigma_deg)], (n, 1))
+    return sigma, "robot.view_pose_sigma_mm/deg"
 
 
 def believed_flange(cfg: CellConfig, robot: Robot) -> Pose:

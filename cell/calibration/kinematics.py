@@ -15,6 +15,11 @@ least_squares), with a prior on the kinematic errors (``sigma_link_mm``, ``sigma
 maker tolerates) that keeps the combinations the views cannot separate (e.g. d6 against the hand-eye's z) at
 zero. A constant offset of every flange pose is the board's pose to the fit, harmless (the part's datums take
 it); what the calibration removes is the pose-dependent rest, which moves views against each other.
+
+What it leaves is known too: the fit's posterior covariance (corner noise and the prior), carried through the
+chain to the camera, says how far apart two views' poses may still be (:func:`camera_pose_spread`).
+That is the multi-view refinement's prior for a calibrated cell: a cell that knows its views to 0.1 mm must
+not let noise slide them by the millimetre an uncalibrated arm may be off.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from cell.errors import CalibrationError
 from cell.geometry import Pose, invert, pose_from_xyz_rotvec, pose_to_xyz_rotvec
@@ -84,6 +90,48 @@ class KinematicCalibration:
     rms_px: float
     rms_px_nominal_arm: float
     per_view_px: list[float]
+    x: Array  # the fitted parameters, in :func:`_unpack`'s order
+    covariance: Array  # their posterior covariance (wider when the corners are noisier than assumed)
+
+
+def camera_pose_spread(
+    x: Array,
+    covariance: Array,
+    joints: Sequence[Array],
+    standoff_mm: float,
+    nominal: URKinematics = UR5E,
+) -> Array:
+    """Per pose of ``joints`` (rad, at least 2), the 1-sigma error per axis of the camera pose that the
+    calibration ``x`` (:func:`_unpack`'s order, with ``covariance``) gives there, relative to the mean over
+    the poses: column 0 of the point ``standoff_mm`` in front of the camera (mm), column 1 of the camera's
+    rotation (rad). A common error of all poses is left out (the part's alignment takes it). The covariance
+    is carried through the chain by finite differences (one forward kinematics per pose and parameter)."""
+    if len(joints) < 2:
+        raise CalibrationError("robot kinematic calibration: a pose spread needs at least 2 poses")
+
+    def cameras(p: Array) -> tuple[Array, list[Rotation]]:
+        errors, T_T_C, _ = _unpack(p, nominal, True)
+        model = errors.model(nominal)
+        points, rotations = [], []
+        for q in joints:
+            T_B_C = model.fk(np.asarray(q, dtype=np.float64) + errors.dq) @ T_T_C
+            points.append(T_B_C[:3, :3] @ [0.0, 0.0, standoff_mm] + T_B_C[:3, 3])
+            rotations.append(Rotation.from_matrix(T_B_C[:3, :3]))
+        return np.array(points), rotations
+
+    base_points, base_rot = cameras(x)
+    steps = np.sqrt(np.maximum(np.diag(covariance), 1e-18)) * 1e-2
+    J = np.empty((6 * len(joints), len(x)))
+    for k, h in enumerate(steps):
+        p = x.copy()
+        p[k] += h
+        points, rot = cameras(p)
+        turn = np.array([(r * b.inv()).as_rotvec() for r, b in zip(rot, base_rot, strict=True)])
+        J[:, k] = np.column_stack([points - base_points, turn]).ravel() / h
+    n = len(joints)
+    relative = np.kron(np.eye(n) - 1.0 / n, np.eye(6)) @ J  # each pose's error minus the poses' mean
+    var = np.einsum("ij,jk,ik->i", relative, covariance, relative).reshape(n, 6)
+    return np.column_stack([np.sqrt(var[:, :3].mean(axis=1)), np.sqrt(var[:, 3:].mean(axis=1))])
 
 
 def _free(nominal: URKinematics) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -163,6 +211,12 @@ def fit_kinematics(
     errors, T_T_C, T_B_Bd = _unpack(full.x, nominal, True)
     per_view = _reprojection(full.x, views, K, dist, nominal, True)
     nominal_px = _reprojection(hand_eye_only.x, views, K, dist, nominal, False)
+    # residuals are in sigmas, so inv(J^T J) is the covariance when the corners are as noisy as assumed;
+    # noisier corners (chi^2 per degree of freedom above 1) widen it, quieter ones do not narrow it
+    n_px = sum(r.size for r in per_view)
+    chi2_dof = float(np.sum((np.concatenate([r.ravel() for r in per_view]) / corner_noise_px) ** 2))
+    chi2_dof /= max(n_px - len(full.x), 1)
+    covariance = np.linalg.pinv(full.jac.T @ full.jac) * max(1.0, chi2_dof)
     return KinematicCalibration(
         errors,
         T_T_C,
@@ -170,6 +224,8 @@ def fit_kinematics(
         _rms(per_view),
         _rms(nominal_px),
         [float(np.sqrt(np.mean(r**2))) for r in per_view],
+        full.x,
+        covariance,
     )
 
 

@@ -458,6 +458,8 @@ class KinematicsJob(HandEyeBoardJob):
                 "dq": fit.errors.dq,
                 "T_T_C": fit.T_T_C,
                 "T_B_Bd": fit.T_B_Bd,
+                "x": fit.x,  # with its covariance: how far apart views may still be (view_pose_prior)
+                "covariance": fit.covariance,
             },
             {
                 "robot": {"name": self.cfg.robot.name, "model": self.cfg.robot.model},
