@@ -17,12 +17,15 @@ import time
 from pathlib import Path
 
 import yaml
+from scipy.spatial.transform import Rotation
 
 from cell.calibration import active_kinematics
 from cell.calibration.handeye import pose_error
 from cell.calibration.routines import calibrate_all
 from cell.calibration.store import load_calibration
 from cell.config import DEFAULT_CELL, load_cell_config
+from cell.geometry import Pose, make_pose
+from cell.planning.kinematics import UR5E
 from fakes.sim.pose_truth import part_error_spread
 from fakes.sim.world import build_world
 
@@ -35,6 +38,14 @@ def seeded_cell(seed: int, folder: Path) -> Path:
     path = folder / f"sim_world{seed}.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
+
+
+def camera_on_last_link(joint_zero_rad: float, d6_mm: float, T_T_C: Pose) -> Pose:
+    """The camera in the frame of the arm's fifth link at joint 6 = 0: Rz(zero) Tz(d6) T_T_C (the UR's last DH
+    link has a = alpha = 0). The last joint's zero and length move the camera exactly as a hand-eye rotation
+    about and translation along the flange's z do, so no data separates them: this is the hand-eye a
+    kinematic calibration can be held to."""
+    return make_pose(Rotation.from_rotvec([0.0, 0.0, joint_zero_rad]).as_matrix(), [0.0, 0.0, d6_mm]) @ T_T_C
 
 
 def compare(cell: Path, out: Path) -> dict[str, float]:
@@ -56,6 +67,11 @@ def compare(cell: Path, out: Path) -> dict[str, float]:
     row["handeye_config_mm"], row["handeye_config_deg"] = pose_error(cfg.sensor.T_T_C.matrix(), T_true)
     row["handeye_mm"], row["handeye_deg"] = pose_error(hand_eye["T_T_C"], T_true)
     calibrated = load_cell_config(out / "cell.yaml")
+    arm = active_kinematics(calibrated)
+    if arm is not None:
+        fitted = camera_on_last_link(arm.dq[5], UR5E.dh.d[5] + arm.dd[5], hand_eye["T_T_C"])
+        truth = camera_on_last_link(world.joint_zero_rad[5], world.kinematics.dh.d[5], T_true)
+        row["handeye_last_link_mm"], row["handeye_last_link_deg"] = pose_error(fitted, truth)
     row["part_error_spread_mm"] = part_error_spread(calibrated, world, active_kinematics(calibrated))
     row["part_error_spread_uncalibrated_mm"] = part_error_spread(cfg, world, None)
     validation = json.loads((out / "validate" / "validation.json").read_text())["summary"]
