@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import trimesh
 import yaml
+from numpy.typing import NDArray
 
 from cell.calibration.active import active_hand_eye, active_sensor_config, active_triangulator
 from cell.calibration.boards import board_pose_from_corners
@@ -324,14 +325,18 @@ class HandEyeBoardJob(CalibrationJob):
         super().__init__(cfg, **kw)
         self.n_views, self.method = views, method
 
-    def plan(self) -> list[dict[str, Any]]:
+    def still_board(self) -> tuple[NDArray[np.float64], Pose]:
+        """The board lying still on the station: its top centre ({W}, mm) and ``T_W_Bd``, centred under the
+        camera looking straight down from the stand-off."""
         top = self.station.point(self.station.board_top_mm)
-        T_W_C0 = camera_over(self.cfg, top)
         nx, ny = CHARUCO.squares
         T_C_Bd = make_pose(
             np.eye(3), (-nx * CHARUCO.square_mm / 2, -ny * CHARUCO.square_mm / 2, self.cfg.sensor.standoff_mm)
         )
-        T_W_Bd = T_W_C0 @ T_C_Bd
+        return top, camera_over(self.cfg, top) @ T_C_Bd
+
+    def plan(self) -> list[dict[str, Any]]:
+        top, T_W_Bd = self.still_board()
         out = []
         for k in range(self.n_views):
             tilt = 15.0 + 15.0 * (k % 2)
@@ -391,13 +396,7 @@ class KinematicsJob(HandEyeBoardJob):
         super().__init__(cfg, views=views, **kw)
 
     def plan(self) -> list[dict[str, Any]]:
-        top = self.station.point(self.station.board_top_mm)
-        T_W_C0 = camera_over(self.cfg, top)
-        nx, ny = CHARUCO.squares
-        T_C_Bd = make_pose(
-            np.eye(3), (-nx * CHARUCO.square_mm / 2, -ny * CHARUCO.square_mm / 2, self.cfg.sensor.standoff_mm)
-        )
-        T_W_Bd = T_W_C0 @ T_C_Bd
+        top, T_W_Bd = self.still_board()
         out = []
         for k in range(self.n_views):
             tilt = 10.0 + 12.5 * (k % 3)
