@@ -193,11 +193,20 @@ class RobotConfig(Strict):
     view_pose_sigma_mm: Annotated[float, Field(gt=0, le=20)] = Field(
         1.0,
         description="1-sigma translation error of a view's camera pose through the kinematic chain (robot "
-        "kinematics, repeatability, what the hand-eye calibration left): the multi-view refinement's prior "
-        "while the cell has no kinematic calibration (with one, each view's prior is what it left there)",
+        "kinematics, repeatability, what the hand-eye calibration left), at the stand-off: the multi-view "
+        "refinement's prior while the cell has no kinematic calibration",
     )
     view_pose_sigma_deg: Annotated[float, Field(gt=0, le=5)] = Field(
         0.2, description="1-sigma rotation error of a view's camera pose (as view_pose_sigma_mm)"
+    )
+    calibrated_view_pose_sigma_mm: Annotated[float, Field(gt=0, le=20)] = Field(
+        0.2,
+        description="with a kinematic calibration: the least 1-sigma translation error of a view's camera "
+        "pose, under what the fit's covariance gives at the view (which counts its residuals' scatter, not "
+        "the bias that imperfect lenses put into its board poses; docs/analysis.md)",
+    )
+    calibrated_view_pose_sigma_deg: Annotated[float, Field(gt=0, le=5)] = Field(
+        0.05, description="with a kinematic calibration: the least 1-sigma rotation error (as above)"
     )
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific settings")
 

@@ -84,3 +84,9 @@ def rotation_angle_between(Ta: Pose, Tb: Pose) -> float:
     """Angle (rad) of the relative rotation between two poses."""
     R = Ta[:3, :3].T @ Tb[:3, :3]
     return float(np.linalg.norm(Rotation.from_matrix(R).as_rotvec()))
+
+
+def incidence_cos(points: ArrayLike, normals: ArrayLike, eye: ArrayLike) -> NDArray[np.float64]:
+    """|cos| of the angle between each point's unit normal and its line of sight from ``eye`` (same frame)."""
+    sight = np.asarray(points, dtype=np.float64) - np.asarray(eye, dtype=np.float64)
+    return np.abs(np.einsum("ij,ij->i", sight, np.asarray(normals))) / np.linalg.norm(sight, axis=1)

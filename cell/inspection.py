@@ -28,8 +28,8 @@ from numpy.typing import NDArray
 
 from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.errormap import NominalMesh, signed_distance
-from cell.analysis.linkfilter import link_cluster
-from cell.analysis.merge import merge_views
+from cell.analysis.linkfilter import depth_edges, link_cluster
+from cell.analysis.merge import measured_elsewhere, merge_views
 from cell.analysis.regions import Coverage, point_bands, region_from_config
 from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
 from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
@@ -76,6 +76,7 @@ class InspectionSettings:
     min_cluster_px: int = 200
     table_margin_mm: float = 0.5  # points lower than this above the table top (world z) are the table
     crop_mm: float = 5.0  # points farther than this from the nominal surface are background, not part
+    edge_jump_mm: float = 3.0  # a 3x3 neighbourhood spanning more depth (or invalid) is a rim (depth_edges)
     eval_voxel_mm: float = 0.5  # coverage and the accuracy map use one point per voxel: ample for 0.5 pt/mm^2
     merge_voxel_mm: float = 0.2  # views are averaged on this grid (quality-weighted)
     lift_mm: float = 80.0  # retract height between views
@@ -199,7 +200,8 @@ class LambertianInspection:
         kept = link_cluster(
             cloud.points_C, link_mm=self.settings.link_mm, min_cluster_px=self.settings.min_cluster_px
         )
-        keep = valid & kept.keep
+        edges = depth_edges(np.where(valid, cloud.points_C[..., 2], np.nan), self.settings.edge_jump_mm)
+        keep = valid & kept.keep & ~edges
         points_W = transform_points(T_W_C, cloud.points_C[keep])
         quality = cloud.contrast[keep].astype(np.float32)
         on_table = points_W[:, 2] < self.settings.table_margin_mm
@@ -222,6 +224,7 @@ class LambertianInspection:
             "points": int(len(points_W)),
             "decoded": int(valid.sum()),
             "link_filtered": int((valid & ~kept.keep).sum()),
+            "rim_filtered": int((valid & kept.keep & edges).sum()),
             "excluded": {"table": int(on_table.sum()), "background": int((far & ~on_table).sum())},
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
         }
@@ -368,8 +371,10 @@ class LambertianInspection:
 
     def register(self, run: RunFolder, views: list[dict[str, Any]]) -> dict[str, Any]:
         """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
-        already being in {W} through robot pose and hand-eye), merged on a voxel grid weighted by quality,
-        then moved by the recipe's alignment (cell.analysis.alignment). An alignment the measurement does
+        already being in {W} through robot pose and hand-eye), refined against each other, merged on a voxel
+        grid weighted by quality (a view the refinement could not register gives only the surface no
+        registered view measured: :func:`measured_elsewhere`), then moved by the recipe's alignment
+        (cell.analysis.alignment). An alignment the measurement does
         not allow leaves the kinematic cloud and makes the verdict incomplete (``alignment.error``)."""
         T_P_W = invert(self.T_W_P)
         done, refined = self.refinement(run)
@@ -385,6 +390,15 @@ class LambertianInspection:
             "unregistered_views": [done[k] for k in refined.unregistered],
             **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
         }
+        n_points_views = int(sum(len(p) for p in points))
+        held = set(refined.unregistered)
+        dropped = 0
+        for k in sorted(held):
+            others = [p for m, p in enumerate(points) if m not in held]
+            redundant = measured_elsewhere(points[k], others, self.recipe.plan.coverage_radius_mm)
+            points[k], weights[k] = points[k][~redundant], weights[k][~redundant]
+            dropped += int(redundant.sum())
+        refinement["unregistered_points_dropped"] = dropped
         merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
         method = self.recipe.alignment.method
         try:
@@ -396,7 +410,7 @@ class LambertianInspection:
         np.save(run.results_dir / "points_P.npy", points_P)
         return {
             "n_points": int(len(points_P)),
-            "n_points_views": int(sum(len(p) for p in points)),
+            "n_points_views": n_points_views,
             "views": len(points),
             "merge_voxel_mm": self.settings.merge_voxel_mm,
             "method": "kinematic chain (robot pose, hand-eye, part placement); views refined against each "
@@ -446,6 +460,9 @@ class LambertianInspection:
         views = checkpoint.get("views", [])
         excluded: dict[str, int] = dict(nominal.excluded)
         excluded["isolated_out_of_tolerance_points"] = int(isolated.sum())
+        excluded["unregistered_view_measured_elsewhere_points"] = int(
+            registration.get("refinement", {}).get("unregistered_points_dropped", 0)
+        )
         for i in run.completed_views():
             for reason, n in (
                 json.loads((run.view_dir(i) / "view.json").read_text()).get("excluded", {}).items()

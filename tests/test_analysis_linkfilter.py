@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from cell.analysis.linkfilter import link_cluster
+from cell.analysis.linkfilter import depth_edges, link_cluster
+from cell.errors import ConfigError
 
 
 def _surface(h: int = 240, w: int = 320) -> tuple[np.ndarray, np.ndarray]:
@@ -68,3 +70,35 @@ def test_labels_match_opencv_on_the_doubled_link_grid() -> None:
     pairs = np.unique(np.column_stack([res.labels.ravel(), ref.ravel()]), axis=0)
     assert len(pairs) == len(np.unique(ref)) >= 4  # a one-to-one map between the two labellings
     assert len(np.unique(pairs[:, 0])) == len(pairs)
+
+
+def test_depth_edges_are_the_rim_of_a_step_not_a_steep_continuous_surface() -> None:
+    """A sheet 30 mm above the table ending at column 50, with a mixed pixel column at the edge 0.3 mm below
+    the sheet (what a blend of the two codes gives), beside a continuous 70-degree slope (1.1 mm per 2 px on
+    the demo camera) and a shadow (invalid) patch on the sheet."""
+    z = np.full((40, 100), 430.0)  # the table, 430 mm from the camera
+    z[:, :50] = 400.0  # the sheet
+    z[:, 49] = 400.3  # mixed pixels at its edge
+    slope = 400.0 + 0.55 * np.arange(30)  # 0.55 mm per pixel
+    z[:10, 60:90] = slope
+    z[20:30, 10:20] = np.nan  # shadow
+    edges = depth_edges(z, jump_mm=3.0)
+    assert edges[:, 49].all() and edges[:, 50].all()  # the mixed pixel and the table pixel beside it
+    shadow_rim = np.zeros_like(edges)
+    shadow_rim[19:31, 9:21] = True
+    shadow_rim[20:30, 10:20] = False
+    assert edges[shadow_rim].all()  # the pixels around the shadow
+    rest_of_sheet = np.ones_like(edges)
+    rest_of_sheet[19:31, 9:21] = False
+    rest_of_sheet[:, 48:] = False
+    assert not edges[rest_of_sheet].any()
+    assert not edges[:9, 61:89].any()  # the steep slope is continuous (its rim on the table is a step)
+    assert not edges[np.isnan(z)].any()
+    assert not edges[0, :48].any()  # the image border is not a rim
+
+
+def test_depth_edges_refuse_a_bad_map() -> None:
+    with pytest.raises(ConfigError, match="depth map"):
+        depth_edges(np.zeros((4, 4, 3)), 3.0)
+    with pytest.raises(ConfigError, match="jump"):
+        depth_edges(np.zeros((4, 4)), 0.0)

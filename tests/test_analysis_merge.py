@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.analysis.merge import merge_views
+from cell.analysis.merge import measured_elsewhere, merge_views
 from cell.errors import ConfigError
 
 
@@ -71,3 +71,18 @@ def test_bad_input() -> None:
         merge_views([np.full((3, 3), np.nan)])
     with pytest.raises(ConfigError):
         merge_views([np.zeros((3, 3))], voxel_mm=0.0)
+
+
+def test_an_unregistered_view_gives_only_what_no_registered_view_measured() -> None:
+    """A view held 0.4 mm off (its kinematic pose) over a plane two registered views measured in part: its
+    points over their surface are redundant, the rest (surface only it saw) are kept."""
+    rng = np.random.default_rng(3)
+    left = np.column_stack([rng.uniform(-20, 0, (5000, 2)), np.zeros(5000)])
+    right = np.column_stack([rng.uniform(0, 20, (5000, 1)), rng.uniform(-20, 0, (5000, 1)), np.zeros(5000)])
+    held = np.column_stack([rng.uniform(-20, 40, (9000, 2)), np.full(9000, 0.4)])
+    redundant = measured_elsewhere(held, [left, right], radius_mm=2.0)
+    registered_area = (held[:, 0] < 20) & (held[:, 1] < 0)  # where left and right lie
+    far = (held[:, 0] > 22) | (held[:, 1] > 2)  # beyond the radius of both
+    assert redundant[registered_area].all()
+    assert not redundant[far].any()
+    assert not measured_elsewhere(held, [], radius_mm=2.0).any()

@@ -114,7 +114,8 @@ def test_calibrated_arm_predicts_the_flange_where_the_nominal_arm_cannot(seed: i
 
 def test_the_views_pose_prior_comes_from_the_kinematic_calibration(tmp_path) -> None:  # noqa: ANN001
     """Without a kinematic calibration (or with one that holds no covariance) every view gets the robot
-    config's sigma; with one, each view gets what the fit left at its joints."""
+    config's sigma; with one, each view gets what the fit left at its joints, but no less than the config's
+    calibrated_view_pose_sigma."""
     cfg = load_cell_config(DEFAULT_CELL)
     joints = _poses(cfg, 4, np.array([0.0, 0.0, 40.0]))
     sigma, source = view_pose_prior(cfg, joints)
@@ -141,9 +142,18 @@ def test_the_views_pose_prior_comes_from_the_kinematic_calibration(tmp_path) -> 
         return cfg.model_copy(update={"calibration": cfg.calibration.model_copy(update={"kinematics": path})})
 
     sigma, source = view_pose_prior(calibrated(with_cov), joints)
-    np.testing.assert_allclose(sigma, camera_pose_spread(x, covariance, joints, cfg.sensor.standoff_mm))
+    spread = camera_pose_spread(x, covariance, joints, cfg.sensor.standoff_mm)
+    floor = [cfg.robot.calibrated_view_pose_sigma_mm, np.deg2rad(cfg.robot.calibrated_view_pose_sigma_deg)]
+    np.testing.assert_allclose(sigma, np.maximum(spread, floor))
     assert str(with_cov) in source
-    assert len(np.unique(np.round(sigma[:, 0], 6))) > 1  # one per pose
+    assert (spread[:, 0] > floor[0]).any() and len(np.unique(np.round(sigma[:, 0], 6))) > 1  # one per pose
+    # a fit that claims to know the poses better than the floor is held to the floor (its covariance does not
+    # see the bias that the calibrated lenses put into its board poses)
+    confident = save_calibration(
+        tmp_path / "k3", "robot_kinematics", {**zeros, "x": x, "covariance": covariance * 1e-6}, meta
+    )
+    sigma, _ = view_pose_prior(calibrated(confident), joints)
+    np.testing.assert_allclose(sigma, np.tile(floor, (len(joints), 1)))
     for cell, known in ((calibrated(without), joints), (calibrated(with_cov), None)):
         sigma, _ = view_pose_prior(cell, known)
         assert np.all(sigma[:, 0] == cfg.robot.view_pose_sigma_mm)

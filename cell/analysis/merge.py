@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from cell.errors import ConfigError
 
@@ -88,3 +89,18 @@ def merge_views(
     n_views = np.bincount(np.unique(inv * len(pts) + view) // len(pts), minlength=m)
     source[ok] = inv
     return MergedCloud(points_mm=mean, weight=wsum, count=count, n_views=n_views, source=source)
+
+
+def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm: float) -> NDArray[np.bool_]:
+    """Which of ``points`` ((N, 3) mm) have a point of ``others`` (views in the same frame) within
+    ``radius_mm``: where a view that could not be registered against the rest is redundant. Such a view
+    keeps its kinematic pose (off by up to the chain's error, tenths of a millimetre); merged where
+    registered views measured the same surface, its points would sit beside theirs, a voxel apart, as a
+    false deviation."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    rest = [np.asarray(o, dtype=np.float64).reshape(-1, 3) for o in others]
+    rest = [o for o in rest if len(o)]
+    if not len(p) or not rest:
+        return np.zeros(len(p), dtype=bool)
+    d, _ = cKDTree(np.vstack(rest)).query(p, distance_upper_bound=radius_mm)
+    return np.isfinite(d)

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from cell.geometry import Pose, make_pose, transform_points
+from cell.geometry import Pose, incidence_cos, make_pose, transform_points
 
 Array = NDArray[np.float64]
 SAME_NORMAL_COS = float(np.cos(np.deg2rad(20.0)))  # across an edge or the other skin of a sheet: no match
@@ -96,12 +96,6 @@ def estimate_normals(points: Array, k: int = 20) -> LocalPlanes:
     cov = np.einsum("nki,nkj->nij", nb, nb) / k
     w, v = np.linalg.eigh(cov)
     return LocalPlanes(centroid, v[:, :, 0], w[:, 0] < 0.1 * np.maximum(w[:, 1], 1e-12))
-
-
-def _incidence_cos(points: Array, normals: Array, eye: Array) -> Array:
-    """|cos| of the angle between each point's normal and its line of sight from ``eye``."""
-    sight = points - eye
-    return np.abs(np.einsum("ij,ij->i", sight, normals)) / np.linalg.norm(sight, axis=1)
 
 
 def _observable(J: Array, ratio: float = 1e-4) -> Array:
@@ -214,7 +208,7 @@ def refine_views(
                 p, q, nj, r = p[inlier], q[inlier], nj[inlier], r[inlier]
                 w_row = np.ones(len(r))
                 if eyes is not None:
-                    cos_i, cos_j = _incidence_cos(p, nj, eyes[i]), _incidence_cos(q, nj, eyes[j])
+                    cos_i, cos_j = incidence_cos(p, nj, eyes[i]), incidence_cos(q, nj, eyes[j])
                     seen = np.minimum(cos_i, cos_j) >= MIN_INCIDENCE_COS
                     p, q, nj, r = p[seen], q[seen], nj[seen], r[seen]
                     w_row = 2.0 / (1.0 / cos_i[seen] ** 2 + 1.0 / cos_j[seen] ** 2)

@@ -770,7 +770,7 @@ def ensure_calibration(cell: Path, folder: Path, say: Callable[[str], None] = pr
         return found
     say(
         f"no valid calibration of {cell} in {folder}: running `cell calibrate all` there first "
-        "(about a minute)"
+        "(about two minutes)"
     )
     cell_out, _ = calibrate_all(cell, folder, say=say)
     return cell_out

@@ -346,8 +346,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """A full simulated inspection of the demo pillar (with its dented actual), ending in a report. By
         default in the honest simulated world (recipes/cells/sim.yaml: hand-eye, lens, projector, robot and
-        placement errors the pipeline does not know), calibrated first by `cell calibrate all` (about a
-        minute, reused while the cell file is unchanged); `--cell recipes/cells/sim_ideal.yaml
+        placement errors the pipeline does not know), calibrated first by `cell calibrate all` (about two
+        minutes, reused while the cell file is unchanged); `--cell recipes/cells/sim_ideal.yaml
         --no-calibrate` runs it in the ideal world, whose figures are a noise floor."""
         recipe = load_recipe(DEMO_RECIPE)
         part = recipe.name or recipe.part.cad.stem

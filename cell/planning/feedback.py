@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from cell.geometry import Pose, make_pose
+from cell.geometry import Pose, incidence_cos, make_pose
 from cell.planning.clustering import cluster_points
 from cell.planning.coverage import coverage_fraction, covered_by_points
 from cell.planning.measured import DefectRegion, MeasuredView
@@ -42,8 +42,11 @@ def cost_q(hole_area_mm2: float, distance_area_mm2: float, w: float) -> float:
     return float(abs(complex(w * hole_area_mm2, distance_area_mm2)))
 
 
-def _boxes_overlap(a: Array, b: Array) -> bool:
-    return bool(np.all(a.min(axis=0) <= b.max(axis=0)) and np.all(b.min(axis=0) <= a.max(axis=0)))
+def _boxes_overlap(a: Array, b: Array, margin: float) -> bool:
+    """Whether the bounding boxes of point sets ``a`` and ``b`` come within ``margin`` (mm) of each other."""
+    return bool(
+        np.all(a.min(axis=0) <= b.max(axis=0) + margin) and np.all(b.min(axis=0) <= a.max(axis=0) + margin)
+    )
 
 
 def accuracy_map(
@@ -52,14 +55,19 @@ def accuracy_map(
     tol_mm: float,
     link_mm: float = 0.5,
     first_new: int = 1,
+    max_incidence_deg: float = 90.0,
 ) -> Array:
     """IA (eq 3.9): points of a view that disagree along the surface normal by more than ``tol_mm`` with the
     nearest point (within ``link_mm``) of an earlier overlapping view. Pairs whose nominal normals differ by
     more than 10 deg (across an edge or a thin sheet) are not compared. Normals: the views' own when they
     carry them, else the nominal normal at the point; views that carry their points' deviations from the
-    nominal are
-    compared by those instead. Only views from index ``first_new`` on are compared (with every
-    earlier one), so each iteration checks what it added."""
+    nominal are compared by those instead. Only views from index ``first_new`` on are compared (with every
+    earlier one), so each iteration checks what it added.
+
+    A pair is compared only where both cameras see the surface within ``max_incidence_deg`` of its nominal
+    normal (the task constraint theta_th2 of eq 3.5): a view measures more than it was planned for, and its
+    points beyond the constraint are the grazing ones the sensor is not qualified for."""
+    min_cos = float(np.cos(np.deg2rad(max_incidence_deg)))
     out = []
     trees = [cKDTree(v.points_W) if len(v.points_W) else None for v in views[:-1]]
     for j in range(max(1, first_new), len(views)):
@@ -68,39 +76,47 @@ def accuracy_map(
             continue
         for i in range(j):
             pi = views[i].points_W
-            if trees[i] is None or not _boxes_overlap(pi, pj):
+            if trees[i] is None or not _boxes_overlap(pi, pj, link_mm):
                 continue
             d, k = trees[i].query(pj, distance_upper_bound=link_mm)
             near = np.isfinite(d)
+            if min_cos > 0.0 and near.any():
+                n_nom = normals_at(pj[near])
+                seen = (incidence_cos(pj[near], n_nom, views[j].T_W_C[:3, 3]) >= min_cos) & (
+                    incidence_cos(pi[k[near]], n_nom, views[i].T_W_C[:3, 3]) >= min_cos
+                )
+                near[np.flatnonzero(near)[~seen]] = False
             if not near.any():
                 continue
             dj, di = views[j].deviation_mm, views[i].deviation_mm
+            points, matched = pj[near], pi[k[near]]
             if dj is not None and di is not None:
                 # deviations from the nominal: robust on bends and sheet edges, where normals are not
-                gap = np.abs(dj[near] - di[k[near]])
-                same = np.ones(len(gap), dtype=bool)
+                value_j, value_i = dj[near], di[k[near]]
             else:
-                nj = views[j].normals_W[near] if views[j].normals_W is not None else normals_at(pj[near])
-                ni = (
-                    views[i].normals_W[k[near]] if views[i].normals_W is not None else normals_at(pi[k[near]])
-                )
-                same = np.einsum("ij,ij->i", nj, ni) > np.cos(np.deg2rad(10.0))
-                gap = np.abs(np.einsum("ij,ij->i", pj[near] - pi[k[near]], nj))
-            out.append(_consistent(pj[near][same], gap[same] > tol_mm))
+                normal = views[j].normals_W[near] if views[j].normals_W is not None else normals_at(points)
+                n_i = views[i].normals_W[k[near]] if views[i].normals_W is not None else normals_at(matched)
+                same = np.einsum("ij,ij->i", normal, n_i) > np.cos(np.deg2rad(10.0))
+                points, matched, normal = points[same], matched[same], normal[same]
+                value_j, value_i = np.zeros(len(points)), np.einsum("ij,ij->i", matched - points, normal)
+            keep = _consistent(points, np.abs(value_j - value_i) > tol_mm)
+            out.append(points[keep])
     return np.vstack(out) if out else np.zeros((0, 3))
 
 
 def _consistent(
     points: Array, flagged: NDArray[np.bool_], radius_mm: float = 1.0, share: float = 0.5, min_points: int = 5
-) -> Array:
-    """The flagged points whose neighbourhood (``radius_mm``) is mostly flagged too: a real disagreement
-    between two views covers an area, while isolated mixed pixels at sheet edges do not."""
+) -> NDArray[np.bool_]:
+    """Which of ``points`` are flagged with a neighbourhood (``radius_mm``) mostly flagged too: a real
+    disagreement between two views covers an area, while isolated mixed pixels at sheet edges do not."""
+    keep = np.zeros(len(points), dtype=bool)
     if not flagged.any():
-        return np.zeros((0, 3))
+        return keep
     candidates = points[flagged]
     n_all = cKDTree(points).query_ball_point(candidates, radius_mm, return_length=True)
     n_flag = cKDTree(candidates).query_ball_point(candidates, radius_mm, return_length=True)
-    return candidates[(n_flag >= min_points) & (n_flag >= share * n_all)]
+    keep[np.flatnonzero(flagged)[(n_flag >= min_points) & (n_flag >= share * n_all)]] = True
+    return keep
 
 
 def rotate_about(T: Pose, point: Array, axis: Array, angle: float) -> Pose:
@@ -266,7 +282,18 @@ def evaluate(fb: FeedbackPlanner, views: list[MeasuredView], first_new: int, ia_
     pts = np.vstack([v.points_W for v in views]) if views else np.zeros((0, 3))
     covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
     u = float(s.area[s.inspectable & ~covered].sum())
-    ia = np.vstack([ia_before, accuracy_map(views, fb.normals_at, st.accuracy_tol_mm, first_new=first_new)])
+    ia = np.vstack(
+        [
+            ia_before,
+            accuracy_map(
+                views,
+                fb.normals_at,
+                st.accuracy_tol_mm,
+                first_new=first_new,
+                max_incidence_deg=st.theta_camera_deg,
+            ),
+        ]
+    )
     v_area = float(s.area[fb.samples_near(ia, 1.0)].sum()) if len(ia) else 0.0
     q = cost_q(u, v_area, st.hole_weight)
     return Evaluation(

@@ -1,0 +1,59 @@
+"""The accuracy map IA (eq 3.9) against planted truth: views of a plane z = 0 whose points are offset by known
+amounts, seen by cameras at known incidence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cell.geometry import make_pose
+from cell.planning.feedback import accuracy_map
+from cell.planning.measured import MeasuredView
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def normals_up(points: np.ndarray) -> np.ndarray:
+    return np.tile(UP, (len(points), 1))
+
+
+def view_of_plane(
+    offset_mm: float, incidence_deg: float = 0.0, seed: int = 0, with_deviations: bool = True
+) -> MeasuredView:
+    """A 40 x 40 mm patch of the plane z = 0 measured ``offset_mm`` too high with 0.01 mm noise, by a camera
+    400 mm away whose line of sight meets the plane's normal at ``incidence_deg``."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-20.0, 20.0, (20000, 2))
+    z = offset_mm + rng.normal(0.0, 0.01, len(xy))
+    points = np.column_stack([xy, z])
+    a = np.deg2rad(incidence_deg)
+    eye = 400.0 * np.array([np.sin(a), 0.0, np.cos(a)])
+    T_W_C = make_pose(np.eye(3), eye)  # only the camera centre matters to the map
+    return MeasuredView(T_W_C, points, deviation_mm=z if with_deviations else None)
+
+
+def ia_area_fraction(views: list[MeasuredView], **kw: float) -> float:
+    """Flagged points as a share of one view's points."""
+    return len(accuracy_map(views, normals_up, 0.1, **kw)) / len(views[0].points_W)
+
+
+@pytest.mark.parametrize("with_deviations", [True, False])
+def test_views_that_agree_are_not_flagged_and_views_that_differ_are(with_deviations: bool) -> None:
+    agree = [
+        view_of_plane(0.0, seed=0, with_deviations=with_deviations),
+        view_of_plane(0.03, seed=1, with_deviations=with_deviations),
+    ]
+    assert ia_area_fraction(agree) == 0.0
+    differ = [
+        view_of_plane(0.0, seed=0, with_deviations=with_deviations),
+        view_of_plane(0.2, seed=1, with_deviations=with_deviations),
+    ]
+    assert ia_area_fraction(differ) > 0.5  # the whole overlap (the link radius trims a few points)
+
+
+def test_a_pair_beyond_the_incidence_limit_is_not_compared() -> None:
+    grazing = [view_of_plane(0.0, seed=0), view_of_plane(0.2, incidence_deg=72.0, seed=1)]
+    assert ia_area_fraction(grazing, max_incidence_deg=90.0) > 0.5
+    assert ia_area_fraction(grazing, max_incidence_deg=60.0) == 0.0
+    within = [view_of_plane(0.0, seed=0), view_of_plane(0.2, incidence_deg=45.0, seed=1)]
+    assert ia_area_fraction(within, max_incidence_deg=60.0) > 0.5
