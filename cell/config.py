@@ -203,7 +203,9 @@ class RobotConfig(Strict):
         0.2,
         description="with a kinematic calibration: the least 1-sigma translation error of a view's camera "
         "pose, under what the fit's covariance gives at the view (which counts its residuals' scatter, not "
-        "the bias that imperfect lenses put into its board poses; docs/analysis.md)",
+        "the bias that imperfect lenses put into its board poses). The default is what the honest simulated "
+        "world showed (docs/analysis.md); on a real cell, set it from the refinement's corrections that its "
+        "runs record (registration.refinement.corrections_mm)",
     )
     calibrated_view_pose_sigma_deg: Annotated[float, Field(gt=0, le=5)] = Field(
         0.05, description="with a kinematic calibration: the least 1-sigma rotation error (as above)"

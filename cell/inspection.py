@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.linkfilter import depth_edges, link_cluster
-from cell.analysis.merge import measured_elsewhere, merge_views
+from cell.analysis.merge import cut_unregistered, merge_views
 from cell.analysis.regions import Coverage, point_bands, region_from_config
 from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
 from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
@@ -373,7 +373,7 @@ class LambertianInspection:
         """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
         already being in {W} through robot pose and hand-eye), refined against each other, merged on a voxel
         grid weighted by quality (a view the refinement could not register gives only the surface no
-        registered view measured: :func:`measured_elsewhere`), then moved by the recipe's alignment
+        registered view measured: :func:`cut_unregistered`), then moved by the recipe's alignment
         (cell.analysis.alignment). An alignment the measurement does
         not allow leaves the kinematic cloud and makes the verdict incomplete (``alignment.error``)."""
         T_P_W = invert(self.T_W_P)
@@ -391,14 +391,9 @@ class LambertianInspection:
             **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
         }
         n_points_views = int(sum(len(p) for p in points))
-        held = set(refined.unregistered)
-        dropped = 0
-        for k in sorted(held):
-            others = [p for m, p in enumerate(points) if m not in held]
-            redundant = measured_elsewhere(points[k], others, self.recipe.plan.coverage_radius_mm)
-            points[k], weights[k] = points[k][~redundant], weights[k][~redundant]
-            dropped += int(redundant.sum())
-        refinement["unregistered_points_dropped"] = dropped
+        refinement["unregistered_points_dropped"] = cut_unregistered(
+            points, weights, refined.unregistered, self.recipe.plan.coverage_radius_mm
+        )
         merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
         method = self.recipe.alignment.method
         try:

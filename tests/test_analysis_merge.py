@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.analysis.merge import measured_elsewhere, merge_views
+from cell.analysis.merge import cut_unregistered, measured_elsewhere, merge_views
 from cell.errors import ConfigError
 
 
@@ -86,3 +86,17 @@ def test_an_unregistered_view_gives_only_what_no_registered_view_measured() -> N
     assert redundant[registered_area].all()
     assert not redundant[far].any()
     assert not measured_elsewhere(held, [], radius_mm=2.0).any()
+
+
+def test_two_unregistered_views_over_one_spot_give_it_once() -> None:
+    """Two unregistered views 0.4 mm apart over the same surface, which no registered view measured: the
+    merge must not get both (the second would sit beside the first as a false deviation)."""
+    rng = np.random.default_rng(4)
+    registered = np.column_stack([rng.uniform(-20, 0, (4000, 2)), np.zeros(4000)])
+    first = np.column_stack([rng.uniform(10, 30, (4000, 2)), np.zeros(4000)])
+    second = np.column_stack([rng.uniform(10, 30, (4000, 2)), np.full(4000, 0.4)])
+    points = [registered, first, second]
+    weights = [np.ones(len(p)) for p in points]
+    cut = cut_unregistered(points, weights, [1, 2], radius_mm=2.0)
+    assert len(points[0]) == 4000 and len(points[1]) == 4000  # nothing registered there: the first stays
+    assert len(points[2]) == len(weights[2]) == 0 and cut == 4000  # the second repeats the first

@@ -55,5 +55,15 @@ def test_a_pair_beyond_the_incidence_limit_is_not_compared() -> None:
     grazing = [view_of_plane(0.0, seed=0), view_of_plane(0.2, incidence_deg=72.0, seed=1)]
     assert ia_area_fraction(grazing, max_incidence_deg=90.0) > 0.5
     assert ia_area_fraction(grazing, max_incidence_deg=60.0) == 0.0
+    earlier_grazing = [view_of_plane(0.0, incidence_deg=72.0, seed=0), view_of_plane(0.2, seed=1)]
+    assert ia_area_fraction(earlier_grazing, max_incidence_deg=60.0) == 0.0
     within = [view_of_plane(0.0, seed=0), view_of_plane(0.2, incidence_deg=45.0, seed=1)]
     assert ia_area_fraction(within, max_incidence_deg=60.0) > 0.5
+
+
+def test_views_apart_along_the_normal_by_less_than_the_link_are_compared() -> None:
+    """Two views of a horizontal plane 0.2 mm apart have bounding boxes that do not overlap in z: the box test
+    must allow the link distance, or they are never compared."""
+    apart = [view_of_plane(0.0, seed=0), view_of_plane(0.3, seed=1)]
+    assert apart[0].points_W[:, 2].max() < apart[1].points_W[:, 2].min()
+    assert ia_area_fraction(apart) > 0.5

@@ -104,3 +104,23 @@ def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm
         return np.zeros(len(p), dtype=bool)
     d, _ = cKDTree(np.vstack(rest)).query(p, distance_upper_bound=radius_mm)
     return np.isfinite(d)
+
+
+def cut_unregistered(
+    points: list[NDArray[np.float64]],
+    weights: list[NDArray[np.float64]],
+    unregistered: Sequence[int],
+    radius_mm: float,
+) -> int:
+    """Cut each unregistered view (index into ``points``/``weights``, changed in place) back to the surface
+    that neither a registered view nor an earlier unregistered one measured (:func:`measured_elsewhere`);
+    returns how many points were cut."""
+    held = set(unregistered)
+    others = [p for m, p in enumerate(points) if m not in held]
+    cut = 0
+    for k in sorted(held):
+        redundant = measured_elsewhere(points[k], others, radius_mm)
+        points[k], weights[k] = points[k][~redundant], weights[k][~redundant]
+        others.append(points[k])
+        cut += int(redundant.sum())
+    return cut

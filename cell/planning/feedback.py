@@ -66,8 +66,10 @@ def accuracy_map(
 
     A pair is compared only where both cameras see the surface within ``max_incidence_deg`` of its nominal
     normal (the task constraint theta_th2 of eq 3.5): a view measures more than it was planned for, and its
-    points beyond the constraint are the grazing ones the sensor is not qualified for."""
-    min_cos = float(np.cos(np.deg2rad(max_incidence_deg)))
+    points beyond the constraint are the grazing ones the sensor is not qualified for. (Coverage and the merge
+    still take them: coverage counts what was measured at all, and the merge weighs points by decode quality,
+    not incidence.)"""
+    min_cos = float(np.cos(np.deg2rad(max_incidence_deg)))  # used below 90 deg only
     out = []
     trees = [cKDTree(v.points_W) if len(v.points_W) else None for v in views[:-1]]
     for j in range(max(1, first_new), len(views)):
@@ -80,7 +82,7 @@ def accuracy_map(
                 continue
             d, k = trees[i].query(pj, distance_upper_bound=link_mm)
             near = np.isfinite(d)
-            if min_cos > 0.0 and near.any():
+            if max_incidence_deg < 90.0 and near.any():
                 n_nom = normals_at(pj[near])
                 seen = (incidence_cos(pj[near], n_nom, views[j].T_W_C[:3, 3]) >= min_cos) & (
                     incidence_cos(pi[k[near]], n_nom, views[i].T_W_C[:3, 3]) >= min_cos
