@@ -91,34 +91,32 @@ def accuracy_map(
             if not near.any():
                 continue
             dj, di = views[j].deviation_mm, views[i].deviation_mm
-            points, matched = pj[near], pi[k[near]]
             if dj is not None and di is not None:
                 # deviations from the nominal: robust on bends and sheet edges, where normals are not
-                value_j, value_i = dj[near], di[k[near]]
+                gap = np.abs(dj[near] - di[k[near]])
+                same = np.ones(len(gap), dtype=bool)
             else:
-                normal = views[j].normals_W[near] if views[j].normals_W is not None else normals_at(points)
-                n_i = views[i].normals_W[k[near]] if views[i].normals_W is not None else normals_at(matched)
-                same = np.einsum("ij,ij->i", normal, n_i) > np.cos(np.deg2rad(10.0))
-                points, matched, normal = points[same], matched[same], normal[same]
-                value_j, value_i = np.zeros(len(points)), np.einsum("ij,ij->i", matched - points, normal)
-            keep = _consistent(points, np.abs(value_j - value_i) > tol_mm)
-            out.append(points[keep])
+                nj = views[j].normals_W[near] if views[j].normals_W is not None else normals_at(pj[near])
+                ni = (
+                    views[i].normals_W[k[near]] if views[i].normals_W is not None else normals_at(pi[k[near]])
+                )
+                same = np.einsum("ij,ij->i", nj, ni) > np.cos(np.deg2rad(10.0))
+                gap = np.abs(np.einsum("ij,ij->i", pj[near] - pi[k[near]], nj))
+            out.append(_consistent(pj[near][same], gap[same] > tol_mm))
     return np.vstack(out) if out else np.zeros((0, 3))
 
 
 def _consistent(
     points: Array, flagged: NDArray[np.bool_], radius_mm: float = 1.0, share: float = 0.5, min_points: int = 5
-) -> NDArray[np.bool_]:
-    """Which of ``points`` are flagged with a neighbourhood (``radius_mm``) mostly flagged too: a real
-    disagreement between two views covers an area, while isolated mixed pixels at sheet edges do not."""
-    keep = np.zeros(len(points), dtype=bool)
+) -> Array:
+    """The flagged points whose neighbourhood (``radius_mm``) is mostly flagged too: a real disagreement
+    between two views covers an area, while isolated mixed pixels at sheet edges do not."""
     if not flagged.any():
-        return keep
+        return np.zeros((0, 3))
     candidates = points[flagged]
     n_all = cKDTree(points).query_ball_point(candidates, radius_mm, return_length=True)
     n_flag = cKDTree(candidates).query_ball_point(candidates, radius_mm, return_length=True)
-    keep[np.flatnonzero(flagged)[(n_flag >= min_points) & (n_flag >= share * n_all)]] = True
-    return keep
+    return candidates[(n_flag >= min_points) & (n_flag >= share * n_all)]
 
 
 def rotate_about(T: Pose, point: Array, axis: Array, angle: float) -> Pose:
