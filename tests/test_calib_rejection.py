@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from cell.calibration.rejection import robust_fit, spatial_outliers
-from cell.calibration.validation import slot_test
+from cell.calibration.validation import GaugeSlot, slot_test
 
 D_MM, S_MM = 429.3, 393.7
 
@@ -48,18 +48,39 @@ def test_spatial_outliers_flag_only_the_odd_point():
 def test_slot_test_robust_to_stray_points():
     rng = np.random.default_rng(2)
     slots = [
-        {"index": i, "depth_um": dep, "x_range_mm": [x0, x0 + 10.0], "y_range_mm": [-50.0, 50.0]}
-        for i, (dep, x0) in enumerate([(32.0, -50.0), (14.0, -20.0), (6.0, 10.0), (0.0, 40.0)])
+        GaugeSlot(depth_um=dep, x_range_mm=(x0, x0 + 10.0), y_range_mm=(-50.0, 50.0))
+        for dep, x0 in [(32.0, -50.0), (14.0, -20.0), (6.0, 10.0), (0.0, 40.0)]
     ]
     p = np.column_stack([rng.uniform(-70, 70, 200_000), rng.uniform(-50, 50, 200_000), np.zeros(200_000)])
     for s in slots:
-        inside = (p[:, 0] > s["x_range_mm"][0]) & (p[:, 0] < s["x_range_mm"][1])
-        p[inside, 2] -= s["depth_um"] / 1000
+        inside = (p[:, 0] > s.x_range_mm[0]) & (p[:, 0] < s.x_range_mm[1])
+        p[inside, 2] -= s.depth_um / 1000
     p[:, 2] += rng.normal(0, 0.016, len(p))  # the sensor's noise
     stray = rng.choice(len(p), 400, replace=False)
     p[stray, 2] += rng.choice([-3.0, 3.0], 400)  # 0.2 % gross outliers (multipath, edges)
     res = {r["index"]: r for r in slot_test(p, slots)}
     for i in range(3):
         assert res[i]["resolved"], res[i]
-        assert res[i]["measured_um"] == pytest.approx(slots[i]["depth_um"], abs=2.0)
+        assert res[i]["measured_um"] == pytest.approx(slots[i].depth_um, abs=2.0)
     assert not res[3]["resolved"]  # no slot: nothing to find
+
+
+def test_slot_test_takes_out_tilt_and_placement():
+    """The gauge measured through a robot pose and hand-eye: tilted 0.05 deg about y (9 um over a slot's
+    10 mm) and 0.05 deg about x, and 1.5 mm off its drawing position in x and y. Depths within 1.5 um."""
+    rng = np.random.default_rng(3)
+    slots = [
+        GaugeSlot(depth_um=dep, x_range_mm=(x0, x0 + 10.0), y_range_mm=(-50.0, 50.0))
+        for dep, x0 in [(32.0, -50.0), (24.0, -20.0), (14.0, 10.0), (6.0, 40.0)]
+    ]
+    n = 300_000
+    p = np.column_stack([rng.uniform(-75, 75, n), rng.uniform(-50, 50, n), np.zeros(n)])
+    for s in slots:  # the real gauge, where it lies
+        inside = (p[:, 0] > s.x_range_mm[0] + 1.5) & (p[:, 0] < s.x_range_mm[1] + 1.5)
+        p[inside, 2] -= s.depth_um / 1000
+    p[:, 1] += 1.5
+    p[:, 2] += np.tan(np.radians(0.05)) * (p[:, 0] + p[:, 1]) + rng.normal(0, 0.004, n)
+    res = slot_test(p, slots)
+    for r, s in zip(res, slots, strict=True):
+        assert r["resolved"], r
+        assert r["measured_um"] == pytest.approx(s.depth_um, abs=1.5)

@@ -165,3 +165,28 @@ def test_glossy_recipe_is_glossier_than_the_plain_one():
     glossy = load_recipe(ROOT / "recipes" / "pillar_glossy.yaml").part.material
     assert glossy.specular > 10 * plain.specular and glossy.shininess > 5 * plain.shininess
     assert glossy.specular > glossy.albedo  # the highlight outshines the diffuse return
+
+
+def test_the_gauge_is_as_its_certificate_says():
+    """The simulated gauge is exactly as certified (as the verification artefacts): the certificate's slots
+    are the mesh's; a certificate with a wrong field is refused, naming the file and the field."""
+    from cell.calibration.validation import load_gauge_certificate
+
+    cert = load_gauge_certificate(PARTS / "gauge.certificate.yaml")
+    truth = _truth("gauge.truth.json")
+    assert cert.mesh == (PARTS / truth["part"]).resolve() and cert.top_z_mm == truth["top_z_mm"]
+    for s, t in zip(cert.slots, truth["slots"], strict=True):
+        assert s.depth_um == t["depth_um"]
+        assert list(s.x_range_mm) == t["x_range_mm"] and list(s.y_range_mm) == t["y_range_mm"]
+
+
+def test_a_bad_gauge_certificate_names_its_field(tmp_path):
+    from cell.calibration.validation import load_gauge_certificate
+    from cell.errors import ConfigError
+
+    bad = tmp_path / "gauge.yaml"
+    text = (PARTS / "gauge.certificate.yaml").read_text()
+    bad.write_text(text.replace("depth_um: 24.0", "depth_um: -24.0"))
+    with pytest.raises(ConfigError) as err:
+        load_gauge_certificate(bad)
+    assert "gauge.yaml" in str(err.value) and "slots.1.depth_um" in str(err.value)

@@ -41,6 +41,7 @@ from cell.sensing.stack import check_stack
 
 REPO = Path(__file__).resolve().parents[2]
 GAUGE_STL = REPO / "recipes" / "parts" / "gauge.stl"
+GAUGE_CERTIFICATE = REPO / "recipes" / "parts" / "gauge.certificate.yaml"
 
 CHARUCO = CalibrationBoard(
     "charuco 11x8 15 mm", BoardKind.CHARUCO, squares=(11, 8), square_mm=15.0, marker_mm=11.0
@@ -228,10 +229,11 @@ def _white(ps: PatternSet) -> PatternSet:
 
 
 def _board(view: dict[str, Any]) -> CalibrationBoard:
-    return {b.name: b for b in (CHARUCO, FLAT, GAUGE)}.get(view["board"]) or _sphere_board(view)
+    return {b.name: b for b in (CHARUCO, FLAT, GAUGE)}.get(view["board"]) or _mesh_board(view)
 
 
-def _sphere_board(view: dict[str, Any]) -> CalibrationBoard:
+def _mesh_board(view: dict[str, Any]) -> CalibrationBoard:
+    """A target the view names by its mesh (the validation sphere, a gauge from its certificate)."""
     return CalibrationBoard(view["board"], BoardKind.MESH, mesh_path=view["mesh_path"])
 
 

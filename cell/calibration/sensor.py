@@ -35,6 +35,7 @@ from cell.calibration.rejection import fit_residuals, robust_fit, spatial_outlie
 from cell.calibration.store import load_calibration, save_calibration, save_map_png
 from cell.config import CameraConfig, ProjectorConfig
 from cell.errors import CalibrationError, ConfigError
+from cell.geometry import Pose
 from cell.sensing.decode import Decoded
 from cell.sensing.triangulate import ReferencePlaneTriangulator, normalized_coords, reference_table
 
@@ -265,11 +266,17 @@ def predicted_height_sigma(h: NDArray, L: NDArray, d: NDArray, S: NDArray, eval_
 
 
 def save_sensor_calibration(
-    cal: SensorCalibration, path: Path, camera: CameraConfig, projector: ProjectorConfig, force: bool = False
+    cal: SensorCalibration,
+    path: Path,
+    camera: CameraConfig,
+    projector: ProjectorConfig,
+    force: bool = False,
+    reference_T_B_T: Pose | None = None,
 ) -> Path:
     """Versioned file of the per-pixel model (see :mod:`cell.calibration.store`); worse-than-existing files
     (by :attr:`SensorCalibration.height_sigma_mm`, :func:`predicted_height_sigma`) are refused unless
-    ``force``. Writes d/S/alpha maps as PNG beside it."""
+    ``force``. Writes d/S/alpha maps as PNG beside it. ``reference_T_B_T`` is the robot flange pose the
+    reference plane was seen from: heights above that plane (the flat test) need the camera there again."""
     m = cal.model
     arrays = {
         "d": m.d,
@@ -293,6 +300,7 @@ def save_sensor_calibration(
         "projector": {"serial": projector.serial, "resolution": [projector.width_px, projector.height_px]},
         "model": {"u0": m.u0, "du": m.du, "res_mm": m.res_mm, "sign": m.sign},
         "figures": cal.figures,
+        "reference_T_B_T": None if reference_T_B_T is None else np.asarray(reference_T_B_T).tolist(),
         "quality": {
             "median_residual_mm": float(np.nanmedian(cal.residual_mm)),
             "height_sigma_mm": cal.height_sigma_mm,

@@ -1,17 +1,22 @@
 """Validation of a sensor calibration (dissertation 5.1): the flat test at a known height (Table 5.1), the
-gauge
-slot test (Fig 5.4: which slot depths are resolved) and plane / sphere fits of measured clouds."""
+gauge slot test against the gauge's certificate (Fig 5.4: which slot depths are resolved) and plane / sphere
+fits of measured clouds."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import Field
 from scipy import stats
 from scipy.optimize import least_squares
 
+from cell.config import read_yaml, validate
 from cell.errors import CalibrationError
+from cell.schema import Strict
 from cell.sensing.triangulate import SensorCloud
 
 
@@ -38,52 +43,101 @@ def flat_test(
     }
 
 
+class GaugeSlot(Strict):
+    """One slot of the gauge: its certified depth (um, with the certificate's uncertainty) and where it is in
+    the gauge's frame (mm; the slot runs across the top face)."""
+
+    depth_um: float = Field(ge=0, lt=1000)
+    uncertainty_um: float = Field(0.0, ge=0, lt=100)
+    x_range_mm: tuple[float, float]
+    y_range_mm: tuple[float, float]
+
+
+class GaugeCertificate(Strict):
+    """The slot gauge's certificate (``recipes/parts/gauge.certificate.yaml``): the certified slot depths of
+    dissertation Fig 5.4 and the slot layout of its drawing. ``mesh`` is its CAD, relative to the file."""
+
+    name: str
+    serial: str = Field(min_length=1)
+    laboratory: str = ""
+    date: str = ""
+    mesh: Path
+    top_z_mm: float = Field(gt=0)
+    slots: list[GaugeSlot] = Field(min_length=1)
+
+
+def load_gauge_certificate(path: str | Path) -> GaugeCertificate:
+    """Read a gauge certificate; ConfigError naming the file and field when it is wrong. The mesh path is
+    made absolute (relative to the certificate)."""
+    cert = validate(GaugeCertificate, read_yaml(path), path)
+    cert.mesh = (Path(path).parent / cert.mesh).resolve()
+    return cert
+
+
 def slot_test(
     points_P: NDArray,
-    slots: list[dict[str, Any]],
-    margin_mm: float = 1.0,
+    slots: Sequence[GaugeSlot],
+    margin_mm: float = 2.0,
     band_mm: float = 6.0,
     alpha: float = 0.001,
 ) -> list[dict[str, Any]]:
-    """Per gauge slot (``gauge.truth.json`` entries, part frame mm): measured depth = z of the bands beside
-    the
-    slot minus z inside it, as robust statistics (difference of medians, and of 10 % trimmed means, so that a
-    few stray points cannot fake or hide a slot), and whether it is resolved: the surround is significantly
-    higher than the slot floor by a rank test (Mann-Whitney U, one-sided, p < ``alpha``; no normality
-    assumed) and the median depth is within half the nominal of it."""
+    """Per gauge slot (gauge frame mm, z up): the depth as ISO 5436-1 evaluates a groove. A plane is fitted
+    to the two bands of top face beside the slot (``band_mm`` wide, ``margin_mm`` clear of its walls, so that
+    a placement error up to the margin neither puts wall nor floor into them); the depth is the plane's height
+    over the slot floor (its middle, ``margin_mm`` in from each wall): median and 10 % trimmed mean of the
+    residuals, so that a few stray points cannot fake or hide a slot. The fitted plane takes out the tilt that
+    the robot pose and hand-eye leave (0.05 deg is 9 um over the 10 mm slot). Resolved: the band residuals
+    are significantly above the floor's (Mann-Whitney U, one-sided, p < ``alpha``; no normality assumed) and
+    the median depth is within half the certified depth of it."""
     p = np.asarray(points_P, dtype=np.float64)
     out = []
-    for s in slots:
-        (x0, x1), (y0, y1) = s["x_range_mm"], s["y_range_mm"]
+    for i, s in enumerate(slots):
+        (x0, x1), (y0, y1) = s.x_range_mm, s.y_range_mm
         iny = (p[:, 1] > y0 + margin_mm) & (p[:, 1] < y1 - margin_mm)
         inside = iny & (p[:, 0] > x0 + margin_mm) & (p[:, 0] < x1 - margin_mm)
         beside = iny & (
             ((p[:, 0] > x0 - margin_mm - band_mm) & (p[:, 0] < x0 - margin_mm))
             | ((p[:, 0] > x1 + margin_mm) & (p[:, 0] < x1 + margin_mm + band_mm))
         )
-        zi, zb = p[inside, 2], p[beside, 2]
-        if len(zi) < 10 or len(zb) < 10:
+        if inside.sum() < 10 or beside.sum() < 10:
             raise CalibrationError(
-                f"slot test: slot {s['index']} has {len(zi)} points inside and {len(zb)} "
+                f"slot test: slot {i} has {inside.sum()} points inside and {beside.sum()} "
                 "beside it; is the gauge in view?"
             )
-        depth_um = 1000 * (np.median(zb) - np.median(zi))
-        trimmed_um = 1000 * (stats.trim_mean(zb, 0.1) - stats.trim_mean(zi, 0.1))
-        test = stats.mannwhitneyu(zb, zi, alternative="greater")
-        nominal = float(s["depth_um"])
+        surround = _robust_plane(p[beside])
+        rb = p[beside, 2] - surround(p[beside])
+        ri = p[inside, 2] - surround(p[inside])
+        depth_um = -1000 * float(np.median(ri))
+        trimmed_um = 1000 * float(stats.trim_mean(rb, 0.1) - stats.trim_mean(ri, 0.1))
+        test = stats.mannwhitneyu(rb, ri, alternative="greater")
+        nominal = s.depth_um
         out.append(
             {
-                "index": s["index"],
+                "index": i,
                 "nominal_um": nominal,
-                "measured_um": float(depth_um),
-                "trimmed_mean_um": float(trimmed_um),
+                "certificate_uncertainty_um": s.uncertainty_um,
+                "measured_um": depth_um,
+                "trimmed_mean_um": trimmed_um,
+                "surround_sigma_um": 1000 * float(1.4826 * np.median(np.abs(rb - np.median(rb)))),
                 "p_value": float(test.pvalue),
-                "points_inside": int(len(zi)),
-                "points_beside": int(len(zb)),
+                "points_inside": int(inside.sum()),
+                "points_beside": int(beside.sum()),
                 "resolved": bool(test.pvalue < alpha and abs(depth_um - nominal) < 0.5 * nominal),
             }
         )
     return out
+
+
+def _robust_plane(points: NDArray) -> Callable[[NDArray], NDArray]:
+    """z = a x + b y + c fitted by SciPy least squares with a soft-L1 loss (stray points weigh little);
+    returns the plane's height at given (N, 3) points."""
+    x, y, z = points.T
+    x0, y0 = x.mean(), y.mean()
+    A = np.column_stack([x - x0, y - y0, np.ones_like(x)])
+    start = np.linalg.lstsq(A, z, rcond=None)[0]
+    scale = max(1.4826 * float(np.median(np.abs(z - A @ start))), 1e-6)
+    coef = least_squares(lambda c: A @ c - z, start, loss="soft_l1", f_scale=scale).x
+    return lambda q: coef[0] * (q[:, 0] - x0) + coef[1] * (q[:, 1] - y0) + coef[2]
 
 
 def fit_plane(points: NDArray) -> dict[str, Any]:

@@ -200,10 +200,13 @@ def validate_cmd(
     out: Path = OutOpt,
     height_mm: float = 12.5,
     sphere_radius_mm: float = typer.Option(12.5, min=1.0, help="radius of the sphere of the sphere test"),
+    gauge: Path = typer.Option(None, "--gauge", help="the slot gauge's certificate (YAML)"),
+    gauge_height_mm: float = typer.Option(15.0, help="the gauge's top above the reference plane"),
     seed: int = 2,
 ) -> None:
-    """Flat board at HEIGHT_MM and a sphere of known radius on the stage, measured with the cell's active
-    calibration (or CALIBRATION): plane height error and residual, sphere radius error and residual."""
+    """Flat board at HEIGHT_MM, a sphere of known radius and the slot gauge on the stage, measured with the
+    cell's active calibration (or CALIBRATION): plane height error and residual, the flat test (Table 5.1),
+    sphere radius error and residual, slot depths against the gauge's certificate (Fig 5.4)."""
     from cell.calibration.routines import ValidateJob
     from cell.errors import ConfigError
 
@@ -212,7 +215,15 @@ def validate_cmd(
         if not calibration.is_file():
             raise ConfigError("sensor calibration file not found; check the path", path=str(calibration))
         cfg.calibration.sensor = calibration.resolve()
-    job = ValidateJob(cfg, height_mm=height_mm, sphere_radius_mm=sphere_radius_mm, seed=seed)
+    certificate = {} if gauge is None else {"gauge_certificate": gauge}
+    job = ValidateJob(
+        cfg,
+        height_mm=height_mm,
+        sphere_radius_mm=sphere_radius_mm,
+        gauge_height_mm=gauge_height_mm,
+        seed=seed,
+        **certificate,
+    )
     _run(job, out, cell, seed)
 
 
