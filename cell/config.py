@@ -168,6 +168,13 @@ class SensorConfig(Strict):
     depth_of_field_mm: Annotated[float, Field(gt=0, lt=2000)]
     camera: CameraConfig
     projector: ProjectorConfig
+    max_projector_incidence_deg: Annotated[float, Field(gt=0, le=90)] = Field(
+        80.0,
+        description="the sensor drops points the projector lights more obliquely than this (angle of the "
+        "measured normal to the projector ray): near the terminator the stripe edges blur and points land "
+        "up to 0.18 mm inside the surface (docs/verification.md). The planner's eq 3.5 limit is the "
+        "recipe's plan.theta_projector_deg",
+    )
 
     @model_validator(mode="after")
     def _exposure_synchronises(self) -> SensorConfig:

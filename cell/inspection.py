@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.errormap import NominalMesh, signed_distance
-from cell.analysis.linkfilter import depth_edges, link_cluster
+from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
 from cell.analysis.merge import cut_unregistered, merge_views
 from cell.analysis.regions import Coverage, point_bands, region_from_config
 from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
@@ -76,7 +76,7 @@ class InspectionSettings:
     min_cluster_px: int = 200
     table_margin_mm: float = 0.5  # points lower than this above the table top (world z) are the table
     crop_mm: float = 5.0  # points farther than this from the nominal surface are background, not part
-    edge_jump_mm: float = 3.0  # a 3x3 neighbourhood spanning more depth (or invalid) is a rim (depth_edges)
+    edge_jump_mm: float = RIM_JUMP_MM  # a 3x3 neighbourhood spanning more depth (or invalid) is a rim
     eval_voxel_mm: float = 0.5  # coverage and the accuracy map use one point per voxel: ample for 0.5 pt/mm^2
     merge_voxel_mm: float = 0.2  # views are averaged on this grid (quality-weighted)
     lift_mm: float = 80.0  # retract height between views
@@ -111,6 +111,8 @@ class LambertianInspection:
         if lut is not None:
             self.patterns = apply_lut(self.patterns, lut)
         self.triangulator = active_triangulator(cfg)
+        # the projector's centre in {C} (mm): the incidence filter needs it only to a degree or so
+        self.projector_C = self.sensor.projector.T_C_P.matrix()[:3, 3]
         self.geometry_source = calibration_source(cfg)
         self._plan: Plan | None = None
         self._aligner: Aligner | None = None
@@ -200,8 +202,14 @@ class LambertianInspection:
         kept = link_cluster(
             cloud.points_C, link_mm=self.settings.link_mm, min_cluster_px=self.settings.min_cluster_px
         )
-        edges = depth_edges(np.where(valid, cloud.points_C[..., 2], np.nan), self.settings.edge_jump_mm)
-        keep = valid & kept.keep & ~edges
+        edges, oblique = unreliable_pixels(
+            cloud.points_C,
+            valid,
+            self.projector_C,
+            self.cfg.sensor.max_projector_incidence_deg,
+            self.settings.edge_jump_mm,
+        )
+        keep = valid & kept.keep & ~edges & ~oblique
         points_W = transform_points(T_W_C, cloud.points_C[keep])
         quality = cloud.contrast[keep].astype(np.float32)
         on_table = points_W[:, 2] < self.settings.table_margin_mm
@@ -225,6 +233,7 @@ class LambertianInspection:
             "decoded": int(valid.sum()),
             "link_filtered": int((valid & ~kept.keep).sum()),
             "rim_filtered": int((valid & kept.keep & edges).sum()),
+            "oblique_filtered": int((valid & kept.keep & ~edges & oblique).sum()),
             "excluded": {"table": int(on_table.sum()), "background": int((far & ~on_table).sum())},
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
         }

@@ -9,37 +9,48 @@ import json
 import numpy as np
 import pytest
 
+from cell.calibration.routines import run_routine
 from cell.cli import main
 from cell.config import load_cell_config
-from cell.devices import build_artefact_stage, build_devices
+from cell.errors import CalibrationError
+from cell.verification import job as job_module
 from cell.verification.certificate import load_certificate
-from cell.verification.procedure import AcceptanceResult, PositionResult, acceptance_positions, run_acceptance
+from cell.verification.job import VerificationJob
+from cell.verification.procedure import AcceptanceResult, PositionResult, acceptance_positions
 from cell.verification.report import write_html, write_json
 
 CELL = "recipes/cells/sim_binned.yaml"
 
 
-def _run(world, labels):  # noqa: ANN001, ANN202
+def _run(world, labels, out, monkeypatch):  # noqa: ANN001, ANN202
+    """The Part 2 job on the binned cell at the positions named ``labels``; the result and the true
+    placements (commanded, where the simulated stage really put the artefact)."""
     cfg = load_cell_config(CELL)
     cfg.world = world
     cert = load_certificate()
-    dev = build_devices(cfg)
-    stage = build_artefact_stage(dev, cert)
-    positions = [p for p in acceptance_positions(cfg, cert) if p.label in labels]
     placed = []
-    place = stage.place
+    build = job_module.build_artefact_stage
 
-    def spy(artefact, T_W_A, label):  # noqa: ANN001, ANN202 - records the true placement
-        place(artefact, T_W_A, label)
-        placed.append((T_W_A, stage.placed_W.copy()))
+    def spying_stage(devices, certificate):  # noqa: ANN001, ANN202 - records the true placement
+        stage = build(devices, certificate)
+        place = stage.place
 
-    stage.place = spy
-    result, clouds = run_acceptance(cfg, dev, stage, cert, positions=positions)
-    return result, clouds, placed
+        def spy(artefact, T_W_A, label):  # noqa: ANN001, ANN202
+            place(artefact, T_W_A, label)
+            placed.append((T_W_A, stage.placed_W.copy()))
+
+        stage.place = spy
+        return stage
+
+    monkeypatch.setattr(job_module, "build_artefact_stage", spying_stage)
+    positions = [p for p in acceptance_positions(cfg, cert) if p.label in labels]
+    doc = run_routine(VerificationJob(cfg, cert, positions=positions), out, None)
+    return AcceptanceResult.from_dict(doc), placed
 
 
-def test_ideal_world_figures_are_a_noise_floor() -> None:
-    result, clouds, placed = _run("ideal", {"ball bar, face diagonal 1", "plane, flat middle"})
+def test_ideal_world_figures_are_a_noise_floor(tmp_path, monkeypatch) -> None:
+    labels = {"ball bar, face diagonal 1", "plane, flat middle"}
+    result, placed = _run("ideal", labels, tmp_path / "v", monkeypatch)
     assert all(np.allclose(cmd, true) for cmd, true in placed)  # ideal: exactly where commanded
     bar, flat = result.positions
     assert bar.error is None and flat.error is None
@@ -52,8 +63,8 @@ def test_ideal_world_figures_are_a_noise_floor() -> None:
     assert result.figures_mm["SD"] == bar.sd_mm and result.verdict in ("pass", "fail")
 
 
-def test_honest_world_places_off_command_and_still_measures() -> None:
-    result, _, placed = _run(None, {"ball bar, space diagonal 2"})
+def test_honest_world_places_off_command_and_still_measures(tmp_path, monkeypatch) -> None:
+    result, placed = _run(None, {"ball bar, space diagonal 2"}, tmp_path / "v", monkeypatch)
     cmd, true = placed[0]
     assert np.linalg.norm(cmd[:3, 3] - true[:3, 3]) > 0.5  # the technician's hand is off by the placement
     (bar,) = result.positions
@@ -61,6 +72,39 @@ def test_honest_world_places_off_command_and_still_measures() -> None:
     # uncalibrated: sizes are off, but by a plausible amount (lens and baseline errors of the world)
     assert abs(bar.sd_mm) < 2.0 and all(abs(v) < 1.0 for v in bar.ps_mm)
     assert result.passed["F"] is None and result.verdict == "incomplete"  # no plane measured
+
+
+def test_a_paused_acceptance_test_resumes_where_it_stopped(tmp_path) -> None:
+    """The procedure is a controller job: paused after its first position (as Ctrl-C does), it ends
+    'paused' with the message saying so; run again on the same folder, it measures only what is left and
+    gives the figures of an uninterrupted run (the same noise draws per view)."""
+    cfg = load_cell_config(CELL)
+    cert = load_certificate()
+    labels = {"ball bar, face diagonal 1", "ball bar, axis-parallel x", "plane, flat middle"}
+    positions = [p for p in acceptance_positions(cfg, cert) if p.label in labels]
+
+    def pause_after_one(controller) -> None:  # noqa: ANN001
+        if controller.views_done >= 1:
+            controller.request_pause("test")
+
+    out = tmp_path / "paused"
+    with pytest.raises(CalibrationError, match="paused"):
+        run_routine(VerificationJob(cfg, cert, positions=positions), out, None, on_progress=pause_after_one)
+    assert not (out / "verification.json").exists()
+    job = VerificationJob(cfg, cert, positions=positions)
+    resumed = AcceptanceResult.from_dict(run_routine(job, out, None))
+    whole = AcceptanceResult.from_dict(
+        run_routine(VerificationJob(cfg, cert, positions=positions), tmp_path / "whole", None)
+    )
+    assert [p.label for p in resumed.positions] == [p.label for p in whole.positions]
+    assert resumed.figures_mm == whole.figures_mm and resumed.verdict == whole.verdict
+    events = [json.loads(line) for line in (out / "journal.jsonl").read_text().splitlines()]
+    k = next(i for i, e in enumerate(events) if e["event"] == "resume")
+    assert 1 <= events[k]["views_done"] < len(positions)  # it stopped part-way
+    before = {e["view"] for e in events[:k] if e["event"] == "capture"}
+    after = {e["view"] for e in events[k:] if e["event"] == "capture"}
+    assert before | after == set(range(len(positions))) and not before & after  # nothing measured twice
+    assert (out / "report.html").is_file()
 
 
 def test_cli_refuses_a_non_empty_output_folder(tmp_path, capsys) -> None:

@@ -72,7 +72,7 @@ def test_check_command_stores_its_figures(tmp_path, capsys) -> None:
     assert "check:" in out
     folders = list(tmp_path.glob("verify-check-*"))
     assert len(folders) == 1
-    doc = json.loads((folders[0] / "results" / "verification.json").read_text())
+    doc = json.loads((folders[0] / "verification.json").read_text())
     assert [p["label"] for p in doc["positions"]] == ["ball bar, space diagonal 1", "plane, flat middle"]
     assert all(v is not None for v in doc["figures_mm"].values())
     (entry,) = VerificationHistory(tmp_path).entries()

@@ -6,11 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cell.calibration.routines import run_routine
 from cell.config import load_cell_config
-from cell.devices import build_artefact_stage, build_devices
 from cell.verification.certificate import load_certificate
-from cell.verification.multiview import VIEW_SHIFT_MM, bar_pose, run_multiview, view_targets
+from cell.verification.job import VerificationJob
+from cell.verification.multiview import VIEW_SHIFT_MM, bar_pose, view_targets
 from cell.verification.positions import Volume
+from cell.verification.procedure import AcceptanceResult
 
 
 def test_each_sphere_is_inside_both_of_its_views() -> None:
@@ -26,12 +28,11 @@ def test_each_sphere_is_inside_both_of_its_views() -> None:
             assert VIEW_SHIFT_MM + 12.7 < vol.height_mm / 2  # the sphere stays in the field whatever the yaw
 
 
-def test_ideal_world_spacing_across_views() -> None:
+def test_ideal_world_spacing_across_views(tmp_path) -> None:
     cfg = load_cell_config("recipes/cells/sim_binned.yaml")  # world: ideal
     cert = load_certificate()
-    dev = build_devices(cfg)
-    stage = build_artefact_stage(dev, cert)
-    result, clouds = run_multiview(cfg, dev, stage, cert, directions={"along x": 0.0})
+    job = VerificationJob(cfg, cert, part=3, directions={"along x": 0.0})
+    result = AcceptanceResult.from_dict(run_routine(job, tmp_path / "v", None))
     (bar,) = result.positions
     assert bar.error is None and len(bar.ps_mm) == 2
     # exact robot, exact hand-eye: the views agree and the spacing error is the noise floor

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.errors import ConfigError
+from cell.sensing.incidence import lit_too_obliquely
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,9 @@ def link_cluster(
     return LinkFilterResult(
         keep=keep, labels=labels, removed_small=removed_small, removed_stripes=removed_stripes
     )
+
+
+RIM_JUMP_MM = 3.0  # a 3x3 neighbourhood spanning more depth than this is a rim (see depth_edges)
 
 
 def depth_edges(depth_map: NDArray[np.floating], jump_mm: float) -> NDArray[np.bool_]:
@@ -159,3 +163,17 @@ def _judge(labels, interior, size, min_px):
         for j in range(W):
             keep[i, j] = good[labels[i, j]]
     return keep, small, stripes
+
+
+def unreliable_pixels(
+    points_C: NDArray[np.floating],
+    valid: NDArray[np.bool_],
+    projector_centre_C: NDArray[np.floating],
+    max_incidence_deg: float,
+    jump_mm: float = RIM_JUMP_MM,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """The valid pixels of a view's organised cloud (camera frame, mm) that the sensor does not deliver:
+    rims (:func:`depth_edges`) and points lit more obliquely than ``max_incidence_deg``
+    (:func:`cell.sensing.incidence.lit_too_obliquely`). Returns (rim, oblique); a pixel may be both."""
+    rim = depth_edges(np.where(valid, points_C[..., 2], np.nan), jump_mm)
+    return rim, lit_too_obliquely(points_C, valid, projector_centre_C, max_incidence_deg)

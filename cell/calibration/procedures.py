@@ -138,6 +138,7 @@ class CalibrationJob:
 
     kind = ""
     file_stem = ""
+    result_file = "calibration.json"  # what the routine leaves in its run folder
     part_name = "calibration"
 
     def __init__(
@@ -215,11 +216,14 @@ class CalibrationJob:
     def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
         raise NotImplementedError
 
+    def fitted(self, run: RunFolder) -> dict[str, Any]:
+        """The fit's result: kept from :meth:`register`, or read back from results/fit.json when the run
+        resumed after it."""
+        return self.result or json.loads((run.results_dir / "fit.json").read_text())
+
     def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
-        result = self.result or json.loads((run.results_dir / "fit.json").read_text())
-        write_json_atomic(
-            run.path / ("validation.json" if self.kind == "validation" else "calibration.json"), result
-        )
+        result = self.fitted(run)
+        write_json_atomic(run.path / self.result_file, result)
         return {"kind": self.kind, "file": result.get("file")}
 
 

@@ -564,7 +564,7 @@ class ValidateJob(_FlatBoardJob):
     flat test of Table 5.1 (per-pixel model only), sphere radius error and fit residual, and the slot depths
     of Fig 5.4 against the gauge's certificate."""
 
-    kind, file_stem = "validation", "validation"
+    kind, file_stem, result_file = "validation", "validation", "validation.json"
 
     def __init__(
         self,
@@ -670,9 +670,12 @@ class ValidateJob(_FlatBoardJob):
 
 
 # --------------------------------------------------------------------------------------------- runner
-def _calibration_folder(out: Path, cell: Path | None) -> tuple[RunFolder, bool]:
+def _calibration_folder(
+    out: Path, cell: Path | None, inputs: dict[str, Path] | None = None
+) -> tuple[RunFolder, bool]:
     """The run folder ``out``: a new one, an unfinished one to resume (True), or a finished one whose previous
-    views and checkpoint are moved into ``previous-<time>/`` before a new attempt."""
+    views and checkpoint are moved into ``previous-<time>/`` before a new attempt. ``cell`` and ``inputs``
+    (name in inputs/ -> file) are copied into a new one."""
     out = Path(out)
     if (out / "journal.jsonl").exists():
         run = RunFolder.open(out)
@@ -687,8 +690,9 @@ def _calibration_folder(out: Path, cell: Path | None) -> tuple[RunFolder, bool]:
         (out / "views").mkdir()
     else:
         run = RunFolder.create(out.parent, "calibration", name=out.name)
-    if cell is not None:
-        run.copy_input(cell, "cell.yaml")
+    for name, path in {"cell.yaml": cell, **(inputs or {})}.items():
+        if path is not None:
+            run.copy_input(path, name)
     return run, False
 
 
@@ -699,12 +703,14 @@ def run_routine(
     *,
     seed: int | None = None,
     on_progress: Callable[[Controller], None] | None = None,
+    inputs: dict[str, Path] | None = None,
 ) -> dict[str, Any]:
     """Run ``job`` under the controller on the cell's devices (with a board stage) into run folder ``out``;
-    an unfinished ``out`` is resumed. Returns the result (``calibration.json``); CalibrationError when the
-    routine ended paused, faulted or aborted (the message says why; running it again resumes)."""
+    an unfinished ``out`` is resumed. Returns the result (``job.result_file``); CalibrationError when the
+    routine ended paused, faulted or aborted (the message says why; running it again resumes). ``inputs``
+    are further files the run reads (copied into its inputs/)."""
     cfg = job.cfg
-    run, resume = _calibration_folder(out, cell)
+    run, resume = _calibration_folder(out, cell, inputs)
     devices = build_devices(cfg, seed=seed, with_stage=True)
     r = cfg.robot
     controller = Controller(
@@ -728,8 +734,7 @@ def run_routine(
             f"{job.kind} routine ended '{state}': {controller.message} (run folder {run.path}; run it "
             "again to resume)"
         )
-    name = "validation.json" if job.kind == "validation" else "calibration.json"
-    return json.loads((run.path / name).read_text())
+    return json.loads((run.path / job.result_file).read_text())
 
 
 ALL_STEPS = ("intrinsics", "projector", "kinematics", "validate")

@@ -4,7 +4,6 @@ history``."""
 
 from __future__ import annotations
 
-import shutil
 import sys
 from pathlib import Path
 
@@ -20,7 +19,7 @@ verify_app = typer.Typer(
 
 @verify_app.command("acceptance")
 def acceptance_cmd(
-    out: Path = typer.Option(..., "--out", help="output folder (created; must be empty)"),
+    out: Path = typer.Option(..., "--out", help="run folder to write (an unfinished one is resumed)"),
     cell: Path = typer.Option(None, "--cell", help="cell config YAML (default: recipes/cells/sim.yaml)"),
     certificate: Path = typer.Option(
         None, "--certificate", help="artefact certificate YAML (default: the cell's verification.certificate)"
@@ -30,27 +29,15 @@ def acceptance_cmd(
     ),
 ) -> None:
     """Part 2: the ball bar (7 positions) and the plane (6 positions) in the single-view measuring volume.
-    Part 3: the long ball bar in 3 directions, each across 4 views of the robot-moved sensor. Writes
-    report.html and verification.json to OUT and prints PF, PS, SD and F against their MPEs."""
-    from cell.errors import ConfigError
-    from cell.verification.report import write_html, write_json
+    Part 3: the long ball bar in 3 directions, each across 4 views of the robot-moved sensor. Runs under the
+    controller (pause with Ctrl-C, run again to resume); writes report.html and verification.json to OUT and
+    prints PF, PS, SD and F against their MPEs."""
+    from cell.verification.job import VerificationJob
 
-    if part not in (2, 3):
-        raise ConfigError(f"--part {part}: give 2 (single view) or 3 (multi-view)", field="--part")
     cfg_path, cfg, cert_path, cert = _load(cell, certificate)
-    out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        raise ConfigError("output folder exists and is not empty; choose another --out", path=str(out))
-    (out / "inputs").mkdir(parents=True, exist_ok=True)
-    shutil.copy2(cfg_path, out / "inputs" / "cell.yaml")
-    shutil.copy2(cert_path, out / "inputs" / "certificate.yaml")
-
-    result = _measure(cfg, cert, positions=None, multiview=part == 3)
-    note = _note(cfg_path, result)
-    write_json(out / "verification.json", result, cert, note)
-    write_html(out / "report.html", result, cert, note)
-    _print(result)
-    typer.echo(f"verdict: {result.verdict} -> {out / 'report.html'}")
+    job = VerificationJob(cfg, cert, part=part)
+    result = _run(job, out, cfg_path, cert_path)
+    typer.echo(f"verdict: {result.verdict} -> {Path(out) / 'report.html'}")
 
 
 def _load(cell: Path | None, certificate: Path | None):  # noqa: ANN202 - (cfg path, cfg, cert path, cert)
@@ -65,40 +52,29 @@ def _load(cell: Path | None, certificate: Path | None):  # noqa: ANN202 - (cfg p
     return cfg_path, cfg, cert_path, load_certificate(cert_path)
 
 
-def _measure(cfg, cert, positions, multiview: bool = False):  # noqa: ANN001, ANN202 - AcceptanceResult
-    from cell.devices import build_artefact_stage, build_devices
-    from cell.verification.multiview import run_multiview
-    from cell.verification.procedure import run_acceptance
+def _run(job, out: Path, cfg_path: Path, cert_path: Path):  # noqa: ANN001, ANN202 - AcceptanceResult
+    """Run the verification job into ``out`` under the controller, print its figures; the result."""
+    from cell.calibration.routines import run_routine
+    from cell.verification.procedure import AcceptanceResult
 
-    devices = build_devices(cfg)
-    stage = build_artefact_stage(devices, cert)
+    shown: set[int] = set()
 
-    def progress(k: int, n: int, label: str) -> None:
-        typer.echo(f"position {k + 1}/{n}: {label}")
+    def progress(controller) -> None:  # noqa: ANN001
+        done, total = controller.views_done, controller.views_total
+        if total and done not in shown:
+            shown.add(done)
+            typer.echo(f"view {done}/{total}")
 
-    if multiview:
-        result, _ = run_multiview(cfg, devices, stage, cert, progress=progress)
-    else:
-        result, _ = run_acceptance(cfg, devices, stage, cert, positions=positions, progress=progress)
-    return result
-
-
-def _note(cfg_path: Path, result) -> str:  # noqa: ANN001
-    if result.simulated:
-        return (
-            f"Simulated cell ({cfg_path}): its world: section says how the simulated world differs from the "
-            "config; where it is 'ideal' these figures are a noise floor."
-        )
-    return f"Cell {cfg_path}."
-
-
-def _print(result) -> None:  # noqa: ANN001
+    doc = run_routine(
+        job, Path(out), cfg_path, on_progress=progress, inputs={"certificate.yaml": Path(cert_path)}
+    )
+    result = AcceptanceResult.from_dict(doc)
     for k, v in result.figures_mm.items():
         sign = "+" if k in ("PS", "SD") else ""
-        shown = "not measured" if v is None else f"{v * 1000:{sign}.1f} um"
-        mpe = result.mpe_mm[k] * 1000
+        shown_value = "not measured" if v is None else f"{v * 1000:{sign}.1f} um"
         status = {True: "pass", False: "FAIL", None: "-"}[result.passed[k]]
-        typer.echo(f"{k:>2}: {shown:>14}  (MPE {mpe:.1f} um)  {status}")
+        typer.echo(f"{k:>2}: {shown_value:>14}  (MPE {result.mpe_mm[k] * 1000:.1f} um)  {status}")
+    return result
 
 
 @verify_app.command("check")
@@ -109,26 +85,23 @@ def check_cmd(
 ) -> None:
     """The interim check for the start of a shift: one ball-bar and one plane position. Its figures join the
     verification history in RUNS; warns when a figure drifts toward its MPE, exits 1 when one exceeds it."""
-    from cell.runs import RunFolder
+    from datetime import UTC, datetime
+
     from cell.verification.history import VerificationHistory, drift_warnings
+    from cell.verification.job import VerificationJob
     from cell.verification.procedure import check_positions
-    from cell.verification.report import write_html, write_json
 
     cfg_path, cfg, cert_path, cert = _load(cell, certificate)
-    folder = RunFolder.create(runs, "verify-check")
-    shutil.copy2(cfg_path, folder.path / "inputs" / "cell.yaml")
-    shutil.copy2(cert_path, folder.path / "inputs" / "certificate.yaml")
-    result = _measure(cfg, cert, positions=check_positions(cfg, cert))
-    note = "Interim check (one ball-bar and one plane position). " + _note(cfg_path, result)
-    write_json(folder.results_dir / "verification.json", result, cert, note)
-    write_html(folder.results_dir / "report.html", result, cert, note)
+    note = "Interim check (one ball-bar and one plane position)."
+    job = VerificationJob(cfg, cert, positions=check_positions(cfg, cert), note=note)
+    folder = Path(runs) / f"verify-check-{datetime.now(UTC).strftime('%Y%m%dT%H%M%S%fZ')}"
+    result = _run(job, folder, cfg_path, cert_path)
     history = VerificationHistory(runs)
-    history.add(folder.path, "check", result)
-    _print(result)
+    history.add(folder, "check", result)
     checks = [e for e in history.entries(cfg.name) if e.kind == "check"]
     for warning in drift_warnings(checks, result.mpe_mm, warn_fraction=cfg.verification.warn_fraction):
         typer.echo(f"WARNING: {warning}")
-    typer.echo(f"check: {result.verdict} -> {folder.path}")
+    typer.echo(f"check: {result.verdict} -> {folder}")
     if result.verdict == "fail":
         sys.exit(1)  # typer.Exit would be swallowed by the non-standalone app (cell.cli.main)
 

@@ -9,24 +9,17 @@ only seeds the segmentation (gates of several mm absorb placement and hand-eye e
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.calibration import active_hand_eye, active_triangulator, believed_flange, calibration_source
 from cell.config import CellConfig
-from cell.contracts import CameraSettings, PixelFormat, ProjectorSource, TriggerMode
-from cell.devices import DeviceBundle
 from cell.geometry import invert, look_at, transform_points
-from cell.planning.kinematics import UR5E
-from cell.sensing.patterns import PatternSet, gcls_patterns
-from cell.sensing.scan import scan_view
 from cell.verification.certificate import BallBarArtefact, Certificate, PlaneArtefact
 from cell.verification.figures import (
     OUTLIER_FRACTION,
-    FitError,
     fit_plane,
     fit_sphere,
     flatness,
@@ -35,7 +28,6 @@ from cell.verification.figures import (
     sphere_spacing,
 )
 from cell.verification.positions import Position, Volume, ball_bar_positions, plane_positions
-from cell.verification.stage import ArtefactStage
 
 COARSE_GATE_MM = 8.0  # first selection around the commanded artefact: placement + hand-eye errors
 FINE_GATE_MM = 1.0  # points farther than this from the first fit do not belong to the artefact surface
@@ -99,6 +91,14 @@ class AcceptanceResult:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> AcceptanceResult:
+        """The result back from :meth:`to_dict` (a run's results/fit.json)."""
+        names = {f.name for f in fields(cls)}
+        positions = [PositionResult(**p) for p in d["positions"]]
+        kept = {k: v for k, v in d.items() if k in names}  # a report's extra keys (note, certificate) go
+        return cls(**{**kept, "positions": positions, "required": tuple(d["required"])})
 
 
 # ------------------------------------------------------------------------------------------ evaluation
@@ -188,115 +188,3 @@ def check_positions(cfg: CellConfig, certificate: Certificate) -> list[Position]
     and the field) and the plane flat in the middle."""
     every = {p.label: p for p in acceptance_positions(cfg, certificate)}
     return [every["ball bar, space diagonal 1"], every["plane, flat middle"]]
-
-
-class SingleView:
-    """Moves the sensor to the single-view pose and measures one artefact position at a time (points in the
-    camera frame {C}, mm) through the device contracts."""
-
-    def __init__(self, cfg: CellConfig, devices: DeviceBundle):
-        self.cfg, self.devices = cfg, devices
-        proj = cfg.sensor.projector
-        self.patterns: PatternSet = gcls_patterns(
-            proj.width_px, proj.height_px, 12, n_shifts=12, n_gray=6 if proj.width_px >= 768 else None
-        )
-        self.triangulator = active_triangulator(cfg)
-        self.T_T_C = active_hand_eye(cfg)
-        self.T_W_C_cmd = single_view_pose(cfg)
-
-    def start(self) -> None:
-        """Connect, switch on, configure the camera, move to the single-view pose."""
-        d, cam = self.devices, self.cfg.sensor.camera
-        for _, dev in d.items():
-            dev.connect()
-        d.projector.set_power(True)
-        d.projector.set_source(ProjectorSource.HDMI)
-        d.camera.configure(
-            CameraSettings(
-                cam.exposure_ms, cam.gain_db, PixelFormat(f"Mono{cam.bit_depth}"), TriggerMode.SOFTWARE
-            )
-        )
-        T_W_B = self.cfg.robot.T_W_B.matrix()
-        T_B_T = invert(T_W_B) @ self.T_W_C_cmd @ invert(self.T_T_C)
-        q = UR5E.ik_nearest(T_B_T, d.robot.joints())
-        d.robot.move_joint(q, self.cfg.robot.max_joint_speed_rad_s, self.cfg.robot.max_joint_accel_rad_s2)
-
-    def stop(self) -> None:
-        for _, dev in self.devices.items():
-            dev.close()
-
-    def T_W_C_model(self) -> NDArray[np.float64]:
-        """Where the cell believes the camera is: the flange pose (calibrated kinematics at the reported
-        joints, or the robot's reported pose) and the active hand-eye."""
-        return self.cfg.robot.T_W_B.matrix() @ believed_flange(self.cfg, self.devices.robot) @ self.T_T_C
-
-    def measure(self, index: int) -> NDArray[np.float64]:
-        """One GCLS view; the valid points in {C} (mm)."""
-        if self.devices.sim is not None:
-            self.devices.sim.reseed(1000 + index)
-        view = scan_view(
-            self.devices.camera,
-            self.devices.projector,
-            self.patterns,
-            self.triangulator,
-            bit_depth=self.cfg.sensor.camera.bit_depth,
-        )
-        return view.cloud.points_C[view.cloud.valid]
-
-
-def run_acceptance(
-    cfg: CellConfig,
-    devices: DeviceBundle,
-    stage: ArtefactStage,
-    certificate: Certificate,
-    *,
-    positions: list[Position] | None = None,
-    progress: Any = None,
-) -> tuple[AcceptanceResult, dict[str, NDArray[np.float64]]]:
-    """Run the single-view acceptance test; returns the result and each position's measured points ({C}).
-    ``positions`` defaults to :func:`acceptance_positions`; ``progress(k, n, label)`` is told each one."""
-    positions = positions if positions is not None else acceptance_positions(cfg, certificate)
-    vol = Volume.of(cfg.sensor)
-    v = cfg.verification
-    result = AcceptanceResult(
-        cell=cfg.name,
-        geometry_source=calibration_source(cfg),
-        volume_mm={
-            "width": vol.width_mm,
-            "height": vol.height_mm,
-            "depth": vol.depth_mm,
-            "L0": vol.diagonal_mm,
-        },
-        mpe_mm={"PF": v.mpe_pf_mm, "PS": v.mpe_ps_mm, "SD": v.mpe_sd_mm, "F": v.mpe_f_mm},
-        positions=[],
-        simulated=devices.sim is not None,
-    )
-    clouds: dict[str, NDArray[np.float64]] = {}
-    sv = SingleView(cfg, devices)
-    sv.start()
-    try:
-        T_W_V = sv.T_W_C_cmd @ np.array(
-            [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, cfg.sensor.standoff_mm], [0, 0, 0, 1.0]]
-        )
-        for k, pos in enumerate(positions):
-            if progress is not None:
-                progress(k, len(positions), pos.label)
-            T_W_A = T_W_V @ pos.T_V_A
-            stage.place(pos.artefact, T_W_A, pos.label)
-            points_C = sv.measure(k)
-            clouds[pos.label] = points_C
-            T_C_A = invert(sv.T_W_C_model()) @ T_W_A
-            try:
-                if pos.artefact == "plane":
-                    r = evaluate_plane(points_C, T_C_A, certificate.plane)
-                else:
-                    r = evaluate_ball_bar(points_C, T_C_A, certificate.ball_bar)
-            except FitError as exc:
-                r = PositionResult(pos.label, pos.artefact, error=f"too few points on the artefact: {exc}")
-            r.label = pos.label
-            result.positions.append(r)
-        stage.clear()
-    finally:
-        sv.stop()
-    result.summarise()
-    return result, clouds

@@ -1,0 +1,206 @@
+"""The VDI/VDE 2634 procedures as a controller job, run like an inspection or a calibration routine (state
+machine, pause and resume, checkpoint after every view, journal, run folder): every view is a sensor pose with
+an artefact placed by the artefact stage; the figures come from the saved view points once all are measured.
+
+Part 2 (one view): the sensor stays at the single-view pose and the stage puts the ball bar and the plane at
+the guideline's positions; points stay in the camera frame {C}, so the figures do not depend on the robot or
+the hand-eye. Part 3 (multi-view): the long ball bar in each direction, four sensor poses per position; the
+points go to the world with the cell's believed flange pose and the active hand-eye, as an inspection merges
+its views, so SD contains the robot's and the hand-eye's errors.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cell.analysis.linkfilter import unreliable_pixels
+from cell.calibration import active_hand_eye, active_sensor_config, active_triangulator, calibration_source
+from cell.calibration.procedures import CalibrationJob, _view, flange_for_camera
+from cell.config import CellConfig
+from cell.devices import DeviceBundle, build_artefact_stage
+from cell.errors import ConfigError
+from cell.geometry import invert, look_at, make_pose, transform_points
+from cell.runs import RunFolder
+from cell.sensing.decode import decode
+from cell.sensing.patterns import PatternSet, gcls_patterns
+from cell.verification.certificate import Certificate
+from cell.verification.figures import FitError
+from cell.verification.multiview import BAR_DIRECTIONS_DEG, bar_pose, view_targets
+from cell.verification.positions import Position, Volume
+from cell.verification.procedure import (
+    AcceptanceResult,
+    PositionResult,
+    acceptance_positions,
+    evaluate_ball_bar,
+    evaluate_plane,
+    single_view_pose,
+)
+from cell.verification.report import write_html, write_json
+
+
+class VerificationJob(CalibrationJob):
+    """``part`` 2: the single-view acceptance test at ``positions`` (default: every Part 2 position; the
+    interim check passes two). ``part`` 3: the long ball bar in ``directions`` (default: along x, along y,
+    diagonal), each across four views. ``note`` heads the report (after what kind of cell measured)."""
+
+    kind, file_stem, result_file = "verification", "verification", "verification.json"
+    part_name = "verification"
+
+    def __init__(
+        self,
+        cfg: CellConfig,
+        certificate: Certificate,
+        *,
+        part: int = 2,
+        positions: list[Position] | None = None,
+        directions: dict[str, float] | None = None,
+        note: str = "",
+        **kw: Any,
+    ) -> None:
+        super().__init__(cfg, **kw)
+        if part not in (2, 3):
+            raise ConfigError(f"--part {part}: give 2 (single view) or 3 (multi-view)", field="--part")
+        if part == 3 and certificate.ball_bar_long is None:
+            raise ConfigError("the certificate has no ball_bar_long (Part 3 needs a bar of about 300 mm)")
+        self.certificate, self.part, self.note = certificate, part, note
+        self.positions = positions if positions is not None else acceptance_positions(cfg, certificate)
+        self.directions = directions if directions is not None else BAR_DIRECTIONS_DEG
+        self.T_W_B, self.T_T_C = cfg.robot.T_W_B.matrix(), active_hand_eye(cfg)
+        self.projector_C = active_sensor_config(cfg).projector.T_C_P.matrix()[:3, 3]
+        self._stage: Any = None
+
+    # ------------------------------------------------------------------ the views
+    def plan(self) -> list[dict[str, Any]]:
+        standoff = self.cfg.sensor.standoff_mm
+        if self.part == 3:
+            bar = self.certificate.ball_bar_long
+            assert bar is not None  # checked in __init__
+            out = []
+            for label, deg in self.directions.items():
+                T_W_A = bar_pose(deg)
+                for target in view_targets(T_W_A, bar.centre_distance_mm):
+                    T_W_C = look_at(target + (0.0, 0.0, standoff), target, up=(0.0, 1.0, 0.0))
+                    name = f"long ball bar, {label}"
+                    out.append(self._artefact_view(T_W_C, "ball_bar_long", T_W_A, name, len(out)))
+            return out
+        T_W_C = single_view_pose(self.cfg)
+        T_W_V = T_W_C @ make_pose(np.eye(3), (0.0, 0.0, standoff))  # the volume's centre, camera axes
+        return [
+            self._artefact_view(T_W_C, p.artefact, T_W_V @ p.T_V_A, p.label, k)
+            for k, p in enumerate(self.positions)
+        ]
+
+    def _artefact_view(self, T_W_C: Any, artefact: str, T_W_A: Any, label: str, index: int) -> dict[str, Any]:
+        view = _view(flange_for_camera(self.cfg, T_W_C), index=index)
+        view.update(artefact=artefact, T_W_A=np.asarray(T_W_A).tolist(), label=label)
+        return view
+
+    def patterns(self, view: dict[str, Any]) -> PatternSet:
+        proj = self.cfg.sensor.projector
+        return gcls_patterns(
+            proj.width_px, proj.height_px, 12, n_shifts=12, n_gray=6 if proj.width_px >= 768 else None
+        )
+
+    def capture(self, devices: DeviceBundle, view: dict[str, Any], index: int) -> dict[str, Any]:
+        """Place the view's artefact (the technician's hand on a real cell), then grab the stack."""
+        if self._stage is None:
+            self._stage = build_artefact_stage(devices, self.certificate)
+        self._stage.place(view["artefact"], np.asarray(view["T_W_A"], dtype=np.float64), view["label"])
+        if devices.sim is not None:  # one noise draw per view, the same on a resumed run
+            devices.sim.reseed(1000 + index)
+        return {**super().capture(devices, view, index), "simulated": devices.sim is not None}
+
+    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+        """The points the sensor delivers in an inspection too (valid, off the rims, lit within
+        ``sensor.max_projector_incidence_deg``), in {C}, and where the cell believes the camera was."""
+        cam = self.cfg.sensor.camera
+        decoded = decode(captured["images"], self.patterns(view), cam.bit_depth)
+        cloud = active_triangulator(self.cfg).triangulate(decoded)
+        p, valid = cloud.points_C, cloud.valid
+        max_deg = self.cfg.sensor.max_projector_incidence_deg
+        rim, oblique = unreliable_pixels(p, valid, self.projector_C, max_deg)
+        points_C = p[valid & ~rim & ~oblique]
+        T_W_C = self.T_W_B @ np.asarray(captured["T_B_T"]) @ self.T_T_C
+        with open(out_dir / "data.npz", "wb") as f:
+            np.savez(f, points_C=points_C, T_W_C=T_W_C)
+        return {
+            "simulated": bool(captured["simulated"]),
+            "points": int(len(points_C)),
+            "rim_filtered": int((valid & rim).sum()),
+            "oblique_filtered": int((valid & ~rim & oblique).sum()),
+        }
+
+    # ------------------------------------------------------------------ the figures
+    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
+        by_label: dict[str, list[int]] = {}
+        for i in run.completed_views():
+            by_label.setdefault(views[i]["label"], []).append(i)
+        result = self._empty_result(all(s.get("simulated") for _, s in self.view_summaries(run)))
+        for label, indices in by_label.items():
+            v0 = views[indices[0]]
+            T_W_A = np.asarray(v0["T_W_A"])
+            data = [np.load(run.view_dir(i) / "data.npz") for i in indices]
+            try:
+                if self.part == 3:
+                    points_W = np.vstack([transform_points(d["T_W_C"], d["points_C"]) for d in data])
+                    bar = self.certificate.ball_bar_long
+                    assert bar is not None  # checked in __init__
+                    r = evaluate_ball_bar(points_W, T_W_A, bar)
+                else:
+                    (d,) = data
+                    T_C_A = invert(d["T_W_C"]) @ T_W_A
+                    if v0["artefact"] == "plane":
+                        r = evaluate_plane(d["points_C"], T_C_A, self.certificate.plane)
+                    else:
+                        r = evaluate_ball_bar(d["points_C"], T_C_A, self.certificate.ball_bar)
+            except FitError as exc:
+                r = PositionResult(label, v0["artefact"], error=f"too few points on the artefact: {exc}")
+            r.label, r.artefact = label, v0["artefact"]
+            result.positions.append(r)
+        result.summarise()
+        return result.to_dict(), run.path / self.result_file
+
+    def _empty_result(self, simulated: bool) -> AcceptanceResult:
+        vol, v = Volume.of(self.cfg.sensor), self.cfg.verification
+        mpe = {"PF": v.mpe_pf_mm, "PS": v.mpe_ps_mm, "SD": v.mpe_sd_mm, "F": v.mpe_f_mm}
+        extra: dict[str, Any] = {}
+        if self.part == 3:
+            mpe["SD"] = v.mpe_sd_multiview_mm
+            extra = {
+                "kind": "VDI/VDE 2634 Part 3, multi-view (robot-moved sensor)",
+                "required": ("PF", "PS", "SD"),
+            }
+        return AcceptanceResult(
+            cell=self.cfg.name,
+            geometry_source=calibration_source(self.cfg),
+            volume_mm={
+                "width": vol.width_mm,
+                "height": vol.height_mm,
+                "depth": vol.depth_mm,
+                "L0": vol.diagonal_mm,
+            },
+            mpe_mm=mpe,
+            positions=[],
+            simulated=simulated,
+            **extra,
+        )
+
+    def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
+        """verification.json and report.html in the run folder (from the fit saved in results/fit.json, so a
+        run resumed after its fit writes the same report)."""
+        if self._stage is not None:
+            self._stage.clear()
+        result = AcceptanceResult.from_dict(self.fitted(run)["summary"])
+        where = (
+            f"Simulated cell '{self.cfg.name}': its world: section says how the simulated world differs from "
+            "the config; where it is 'ideal' these figures are a noise floor."
+            if result.simulated
+            else f"Cell '{self.cfg.name}'."
+        )
+        note = f"{self.note} {where}".strip()
+        write_json(run.path / self.result_file, result, self.certificate, note)
+        write_html(run.path / "report.html", result, self.certificate, note)
+        return {"kind": self.kind, "verdict": result.verdict}
