@@ -18,7 +18,7 @@ from typing import Any
 import typer
 from typer.core import TyperCommand, TyperGroup
 
-from cell.errors import CellError
+from cell.errors import CellError, RoutinePaused
 
 # name -> (module under cell.commands that registers it, one-line help for `cell --help`).
 # tests/test_cli.py checks that this table and the modules' registrations name the same commands.
@@ -104,6 +104,9 @@ def main(argv: list[str] | None = None) -> None:
     exit code with one line of explanation."""
     try:
         app(args=argv, prog_name="cell", standalone_mode=False)
+    except RoutinePaused as exc:
+        print(f"paused: {exc}", file=sys.stderr)
+        sys.exit(exc.exit_code)
     except CellError as exc:
         _fail(str(exc), exc.exit_code)
     except (typer.Abort, KeyboardInterrupt):

@@ -291,8 +291,8 @@ class VerificationConfig(Strict):
     certificate: Path | None = Field(None, description="artefact certificate YAML")
     block_inspections: bool = Field(
         True,
-        description="`cell inspect` refuses to start while this cell's newest `cell verify check` (or "
-        "acceptance test) in the runs root exceeded a maximum permissible error, until one passes again",
+        description="`cell inspect` refuses to start while this cell's newest `cell verify check` in the "
+        "runs root exceeded a maximum permissible error, until one passes again",
     )
 
 

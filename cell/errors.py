@@ -71,5 +71,12 @@ class CalibrationError(CellError):
     """A calibration routine failed or would be worse than the active calibration."""
 
 
+class RoutinePaused(CalibrationError):
+    """A calibration or verification routine paused safely (Ctrl-C, a device asking for the operator): not a
+    failure; the same command on the same folder resumes it. Exit code 3, as a paused inspection's."""
+
+    exit_code = 3
+
+
 class PlanningError(CellError):
     """No viewpoint plan satisfies the constraints, or a pose is unreachable."""

@@ -67,7 +67,9 @@ def test_slot_test_robust_to_stray_points():
 
 def test_slot_test_takes_out_tilt_and_placement():
     """The gauge measured through a robot pose and hand-eye: tilted 0.05 deg about y (9 um over a slot's
-    10 mm) and 0.05 deg about x, and 1.5 mm off its drawing position in x and y. Depths within 1.5 um."""
+    10 mm) and 0.05 deg about x, and 1.5 mm off its drawing position in x and y, with most points on one side
+    of each slot missing (a shadow, a glint): a difference of medians would take the tilt between the two
+    sides' unequal shares for depth; the plane through both bands does not. Depths within 1.5 um."""
     rng = np.random.default_rng(3)
     slots = [
         GaugeSlot(depth_um=dep, x_range_mm=(x0, x0 + 10.0), y_range_mm=(-50.0, 50.0))
@@ -80,6 +82,11 @@ def test_slot_test_takes_out_tilt_and_placement():
         p[inside, 2] -= s.depth_um / 1000
     p[:, 1] += 1.5
     p[:, 2] += np.tan(np.radians(0.05)) * (p[:, 0] + p[:, 1]) + rng.normal(0, 0.004, n)
+    beyond = np.zeros(n, bool)
+    for s in slots:  # keep one point in ten in the band beyond each slot's +x wall
+        x1 = s.x_range_mm[1]
+        beyond |= (p[:, 0] > x1 + 2.0) & (p[:, 0] < x1 + 8.0)
+    p = p[~beyond | (rng.random(n) < 0.1)]
     res = slot_test(p, slots)
     for r, s in zip(res, slots, strict=True):
         assert r["resolved"], r

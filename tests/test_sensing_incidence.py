@@ -69,16 +69,19 @@ def test_projector_incidence_and_the_filter_follow_the_true_angle():
     assert not drop[~valid].any()
 
 
-def test_a_plane_facing_the_projector_is_kept_and_one_turned_away_is_dropped():
+def test_planes_either_side_of_the_limit():
+    """Planes turned about camera y so that the projector lights them at 72 +- 5 deg and at 88 +- 5 deg over
+    the image (the ray to the projector leans 47 deg off the camera axis): one kept, one dropped whole."""
     d = _rays()
-    for tilt_deg, kept in ((20.0, True), (-85.0, False)):  # turned about camera y toward / away from it
+    for tilt_deg, kept in ((-25.0, True), (-41.0, False)):
         a = np.radians(tilt_deg)
-        normal = np.array([np.sin(a), 0.0, -np.cos(a)])  # facing the camera, leaning toward +x for a > 0
+        normal = np.array([np.sin(a), 0.0, -np.cos(a)])  # faces the camera; a < 0: away from the projector
         point = np.array([0.0, 0.0, 400.0])
         t = (point @ normal) / (d @ normal)
         p = d * t[..., None]
-        valid = np.ones((H, W), bool)
-        drop = lit_too_obliquely(p, valid, PROJECTOR_C, 80.0)
+        truth = _true_angle(p, np.broadcast_to(-normal if normal[2] > 0 else normal, p.shape))
+        assert (truth[3:-3, 3:-3] < 78).all() if kept else (truth[3:-3, 3:-3] > 82).all()
+        drop = lit_too_obliquely(p, np.ones((H, W), bool), PROJECTOR_C, 80.0)
         inner = drop[3:-3, 3:-3]
         assert (not inner.any()) if kept else inner.all()
 

@@ -139,6 +139,7 @@ class CalibrationJob:
     kind = ""
     file_stem = ""
     result_file = "calibration.json"  # what the routine leaves in its run folder
+    rerun_finished = True  # a finished run folder is measured again (the previous views kept aside)
     part_name = "calibration"
 
     def __init__(

@@ -42,7 +42,7 @@ from cell.calibration.validation import fit_plane, flat_test, load_gauge_certifi
 from cell.config import CellConfig, load_cell_config
 from cell.controller import Controller, ControllerSettings
 from cell.devices import build_devices
-from cell.errors import CalibrationError
+from cell.errors import CalibrationError, ConfigError, RoutinePaused
 from cell.geometry import Pose, invert, make_pose, transform_points
 from cell.planning.kinematics import UR5E
 from cell.runs import RunFolder, write_json_atomic
@@ -671,17 +671,32 @@ class ValidateJob(_FlatBoardJob):
 
 # --------------------------------------------------------------------------------------------- runner
 def _calibration_folder(
-    out: Path, cell: Path | None, inputs: dict[str, Path] | None = None
+    out: Path,
+    cell: Path | None,
+    inputs: dict[str, Path] | None = None,
+    kind: str = "",
+    rerun_finished: bool = True,
 ) -> tuple[RunFolder, bool]:
-    """The run folder ``out``: a new one, an unfinished one to resume (True), or a finished one whose previous
-    views and checkpoint are moved into ``previous-<time>/`` before a new attempt. ``cell`` and ``inputs``
-    (name in inputs/ -> file) are copied into a new one."""
+    """The run folder ``out`` of a routine of ``kind``: a new one, an unfinished one to resume (True), or a
+    finished one whose previous views and checkpoint are moved into ``previous-<time>/`` before a new attempt
+    (refused unless ``rerun_finished``). A folder of another kind is refused. ``cell`` and ``inputs`` (name in
+    inputs/ -> file) are copied into a new one, with the kind (``inputs/routine.txt``)."""
     out = Path(out)
     if (out / "journal.jsonl").exists():
         run = RunFolder.open(out)
+        marker = run.path / "inputs" / "routine.txt"
+        held = marker.read_text().strip() if marker.is_file() else None
+        if not marker.is_file() and (run.path / "inputs" / "manifest.json").is_file():
+            held = "inspection"
+        if kind and held is not None and held != kind:
+            raise ConfigError(
+                f"this folder holds a '{held}' run, not '{kind}'; choose another --out", path=str(out)
+            )
         cp = run.load_checkpoint()
         if cp is not None and cp.get("phase") != "done":
             return run, True
+        if not rerun_finished:
+            raise ConfigError(f"this {kind} run is already done; choose another --out", path=str(out))
         keep = out / f"previous-{time.strftime('%Y%m%dT%H%M%S')}"
         keep.mkdir()
         for name in ("views", "checkpoint.json"):
@@ -690,9 +705,10 @@ def _calibration_folder(
         (out / "views").mkdir()
     else:
         run = RunFolder.create(out.parent, "calibration", name=out.name)
-    for name, path in {"cell.yaml": cell, **(inputs or {})}.items():
-        if path is not None:
-            run.copy_input(path, name)
+        for name, path in {"cell.yaml": cell, **(inputs or {})}.items():
+            if path is not None:
+                run.copy_input(path, name)
+        (run.path / "inputs" / "routine.txt").write_text(kind + "\n")
     return run, False
 
 
@@ -710,7 +726,7 @@ def run_routine(
     routine ended paused, faulted or aborted (the message says why; running it again resumes). ``inputs``
     are further files the run reads (copied into its inputs/)."""
     cfg = job.cfg
-    run, resume = _calibration_folder(out, cell, inputs)
+    run, resume = _calibration_folder(out, cell, inputs, job.kind, job.rerun_finished)
     devices = build_devices(cfg, seed=seed, with_stage=True)
     r = cfg.robot
     controller = Controller(
@@ -729,6 +745,11 @@ def run_routine(
         on_progress=on_progress,
     )
     state = controller.execute(resume=resume)
+    if state == "paused":
+        raise RoutinePaused(
+            f"{job.kind} routine paused: {controller.message}; the same command with --out {run.path} "
+            "resumes it"
+        )
     if state != "done":
         raise CalibrationError(
             f"{job.kind} routine ended '{state}': {controller.message} (run folder {run.path}; run it "

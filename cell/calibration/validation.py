@@ -15,7 +15,7 @@ from scipy import stats
 from scipy.optimize import least_squares
 
 from cell.config import read_yaml, validate
-from cell.errors import CalibrationError
+from cell.errors import CalibrationError, ConfigError
 from cell.schema import Strict
 from cell.sensing.triangulate import SensorCloud
 
@@ -71,6 +71,12 @@ def load_gauge_certificate(path: str | Path) -> GaugeCertificate:
     made absolute (relative to the certificate)."""
     cert = validate(GaugeCertificate, read_yaml(path), path)
     cert.mesh = (Path(path).parent / cert.mesh).resolve()
+    if not cert.mesh.is_file():
+        raise ConfigError(
+            f"the gauge's mesh {cert.mesh} does not exist; give its path relative to the certificate",
+            path=str(path),
+            field="mesh",
+        )
     return cert
 
 
@@ -81,14 +87,15 @@ def slot_test(
     band_mm: float = 6.0,
     alpha: float = 0.001,
 ) -> list[dict[str, Any]]:
-    """Per gauge slot (gauge frame mm, z up): the depth as ISO 5436-1 evaluates a groove. A plane is fitted
-    to the two bands of top face beside the slot (``band_mm`` wide, ``margin_mm`` clear of its walls, so that
-    a placement error up to the margin neither puts wall nor floor into them); the depth is the plane's height
-    over the slot floor (its middle, ``margin_mm`` in from each wall): median and 10 % trimmed mean of the
-    residuals, so that a few stray points cannot fake or hide a slot. The fitted plane takes out the tilt that
-    the robot pose and hand-eye leave (0.05 deg is 9 um over the 10 mm slot). Resolved: the band residuals
-    are significantly above the floor's (Mann-Whitney U, one-sided, p < ``alpha``; no normality assumed) and
-    the median depth is within half the certified depth of it."""
+    """Per gauge slot (gauge frame mm, z up): the depth after ISO 5436-1's groove evaluation (its idea, not
+    its W/3 regions). A plane is fitted to the two bands of top face beside the slot (``band_mm`` wide,
+    ``margin_mm`` clear of its walls, so that a placement error up to the margin neither puts wall nor floor
+    into them); the depth is the plane's height over the slot floor (its middle, ``margin_mm`` in from each
+    wall): median and 10 % trimmed mean of the residuals, so that a few stray points cannot fake or hide a
+    slot. The fitted plane takes out the tilt that the robot pose and hand-eye leave (0.05 deg is 9 um over
+    the 10 mm slot) even where one side of a slot has fewer points than the other (a difference of medians
+    would not). Resolved: the band residuals are significantly above the floor's (Mann-Whitney U, one-sided,
+    p < ``alpha``; no normality assumed) and the median depth is within half the certified depth of it."""
     p = np.asarray(points_P, dtype=np.float64)
     out = []
     for i, s in enumerate(slots):

@@ -36,10 +36,10 @@ FIELDS = {
 }
 
 
-def _run(job: Any, out: Path, cell: Path, seed: int) -> None:
+def _run(job: Any, out: Path, cell: Path, seed: int, inputs: dict[str, Path] | None = None) -> None:
     from cell.calibration.routines import run_routine
 
-    result = run_routine(job, out, cell, seed=seed)
+    result = run_routine(job, out, cell, seed=seed, inputs=inputs)
     typer.echo(json.dumps(result.get("summary", result), indent=2, default=str))
     field = FIELDS.get(result.get("kind", ""))
     if field:
@@ -198,15 +198,20 @@ def validate_cmd(
     calibration: Path | None = typer.Argument(None, help="a sensor calibration (.yaml) to validate instead"),
     cell: Path = CellOpt,
     out: Path = OutOpt,
-    height_mm: float = 12.5,
+    height_mm: float = typer.Option(12.5, help="the flat board's height above the reference plane (mm)"),
     sphere_radius_mm: float = typer.Option(12.5, min=1.0, help="radius of the sphere of the sphere test"),
-    gauge: Path = typer.Option(None, "--gauge", help="the slot gauge's certificate (YAML)"),
-    gauge_height_mm: float = typer.Option(15.0, help="the gauge's top above the reference plane"),
-    seed: int = 2,
+    gauge: Path = typer.Option(
+        None,
+        "--gauge",
+        help="the slot gauge's certificate (YAML; default recipes/parts/gauge.certificate.yaml)",
+    ),
+    gauge_height_mm: float = typer.Option(15.0, help="the gauge's top above the reference plane (mm)"),
+    seed: int = typer.Option(2, help="simulated cells: the camera noise seed"),
 ) -> None:
-    """Flat board at HEIGHT_MM, a sphere of known radius and the slot gauge on the stage, measured with the
-    cell's active calibration (or CALIBRATION): plane height error and residual, the flat test (Table 5.1),
-    sphere radius error and residual, slot depths against the gauge's certificate (Fig 5.4)."""
+    """The flat board at --height-mm above the reference plane, a sphere of known radius and the slot gauge
+    on the stage, measured with the cell's active calibration (or CALIBRATION): plane height error and
+    residual, the flat test (Table 5.1), sphere radius error and residual, slot depths against the gauge's
+    certificate (Fig 5.4)."""
     from cell.calibration.routines import ValidateJob
     from cell.errors import ConfigError
 
@@ -215,16 +220,18 @@ def validate_cmd(
         if not calibration.is_file():
             raise ConfigError("sensor calibration file not found; check the path", path=str(calibration))
         cfg.calibration.sensor = calibration.resolve()
-    certificate = {} if gauge is None else {"gauge_certificate": gauge}
+    from cell.calibration.procedures import GAUGE_CERTIFICATE
+
+    gauge = gauge or GAUGE_CERTIFICATE
     job = ValidateJob(
         cfg,
         height_mm=height_mm,
         sphere_radius_mm=sphere_radius_mm,
         gauge_height_mm=gauge_height_mm,
         seed=seed,
-        **certificate,
+        gauge_certificate=gauge,
     )
-    _run(job, out, cell, seed)
+    _run(job, out, cell, seed, inputs={"gauge.certificate.yaml": gauge})
 
 
 @calibrate_app.command("all")

@@ -144,6 +144,18 @@ def _copy_cell_with_calibration(run: RunFolder, cell_path: Path, cfg: Any) -> st
     return "cell.yaml"
 
 
+def _inspection_run(run_dir: Path) -> RunFolder:
+    """An inspection's run folder; a calibration or verification folder is resumed by its own command."""
+    run = RunFolder.open(run_dir)
+    if not (run.path / "inputs" / "manifest.json").is_file():
+        raise ConfigError(
+            "not an inspection run (no inputs/manifest.json); a calibration or verification run resumes by "
+            "running its `cell calibrate ...` or `cell verify ...` command again with this folder as --out",
+            path=str(run_dir),
+        )
+    return run
+
+
 def run_settings(run: RunFolder) -> dict[str, Any]:
     """The settings a run was started with (seed, pipelining)."""
     manifest = json.loads((run.path / "inputs" / "manifest.json").read_text())
@@ -267,7 +279,7 @@ def register(app: typer.Typer) -> None:
     @app.command("resume")
     def resume_cmd(run_dir: Path = typer.Argument(..., help="run folder of an interrupted run")) -> None:
         """Finish an interrupted or paused run from its last checkpoint, with the settings it started with."""
-        run = RunFolder.open(run_dir)
+        run = _inspection_run(run_dir)
         if (run.load_checkpoint() or {}).get("phase") == "done":
             raise ConfigError(
                 "this run is already done; `cell report` rebuilds its report", path=str(run_dir)
@@ -280,7 +292,7 @@ def register(app: typer.Typer) -> None:
         from cell.inspection import LambertianInspection
         from cell.mesh import load_mesh
 
-        run = RunFolder.open(run_dir)
+        run = _inspection_run(run_dir)
         checkpoint = run.load_checkpoint() or {}
         if checkpoint.get("phase") not in ("reporting", "done"):
             raise ConfigError("the run has not reached reporting; `cell resume` it first", path=str(run_dir))

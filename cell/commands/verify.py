@@ -31,7 +31,8 @@ def acceptance_cmd(
     """Part 2: the ball bar (7 positions) and the plane (6 positions) in the single-view measuring volume.
     Part 3: the long ball bar in 3 directions, each across 4 views of the robot-moved sensor. Runs under the
     controller (pause with Ctrl-C, run again to resume); writes report.html and verification.json to OUT and
-    prints PF, PS, SD and F against their MPEs."""
+    prints PF, PS, SD and F against their MPEs. Exit code 0 whatever the verdict (the report holds it); an
+    acceptance test is a record in its folder, not part of the shift history `cell verify check` keeps."""
     from cell.verification.job import VerificationJob
 
     cfg_path, cfg, cert_path, cert = _load(cell, certificate)
@@ -87,21 +88,27 @@ def check_cmd(
     verification history in RUNS; warns when a figure drifts toward its MPE, exits 1 when one exceeds it."""
     from datetime import UTC, datetime
 
+    from cell.errors import RoutinePaused
     from cell.verification.history import VerificationHistory, drift_warnings
     from cell.verification.job import VerificationJob
     from cell.verification.procedure import check_positions
 
     cfg_path, cfg, cert_path, cert = _load(cell, certificate)
     note = "Interim check (one ball-bar and one plane position)."
-    job = VerificationJob(cfg, cert, positions=check_positions(cfg, cert), note=note)
+    job = VerificationJob(cfg, cert, positions=check_positions(cfg, cert), note=note, interim=True)
     folder = Path(runs) / f"verify-check-{datetime.now(UTC).strftime('%Y%m%dT%H%M%S%fZ')}"
-    result = _run(job, folder, cfg_path, cert_path)
+    try:
+        result = _run(job, folder, cfg_path, cert_path)
+    except RoutinePaused as exc:  # a check is short: start a new one rather than resume an old one
+        raise RoutinePaused(
+            f"interim check paused ({exc}); run `cell verify check` again for a new check"
+        ) from exc
     history = VerificationHistory(runs)
     history.add(folder, "check", result)
     checks = [e for e in history.entries(cfg.name) if e.kind == "check"]
     for warning in drift_warnings(checks, result.mpe_mm, warn_fraction=cfg.verification.warn_fraction):
         typer.echo(f"WARNING: {warning}")
-    typer.echo(f"check: {result.verdict} -> {folder}")
+    typer.echo(f"check: {result.verdict} -> {folder / 'report.html'}")
     if result.verdict == "fail":
         sys.exit(1)  # typer.Exit would be swallowed by the non-standalone app (cell.cli.main)
 
@@ -111,15 +118,15 @@ def history_cmd(
     cell: str = typer.Option(None, "--cell-name", help="only this cell (its config's name)"),
     runs: Path = typer.Option(REPO / "runs", "--runs", help="runs root holding index.sqlite"),
 ) -> None:
-    """Every stored acceptance test and check, oldest first: PF, PS, SD, F (um) and the verdict."""
+    """Every stored interim check, oldest first: PF, PS, SD, F (um) and the verdict."""
     from cell.verification.history import FIGURES, VerificationHistory
 
-    typer.echo(f"{'time':<26}{'kind':<8}{'cell':<18}" + "".join(f"{k:>9}" for k in FIGURES) + "  verdict")
+    typer.echo(f"{'time':<26}{'kind':<12}{'cell':<24}" + "".join(f"{k:>9}" for k in FIGURES) + "  verdict")
     for e in VerificationHistory(runs).entries(cell):
         values = "".join(
             f"{'-':>9}" if e.figures_mm[k] is None else f"{e.figures_mm[k] * 1000:>9.1f}" for k in FIGURES
         )
-        typer.echo(f"{e.time:<26}{e.kind:<8}{e.cell[:17]:<18}{values}  {e.verdict}")
+        typer.echo(f"{e.time:<26}{e.kind:<12}{e.cell:<24}{values}  {e.verdict}")
 
 
 def register(app: typer.Typer) -> None:

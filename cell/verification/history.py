@@ -1,5 +1,6 @@
-"""The verification history: every acceptance test and interim check's figures in the runs root's SQLite
-index (its own table beside the inspections' ``runs`` table), their trend and the drift warning.
+"""The verification history: every interim check's figures (and any acceptance test stored with them) in the
+runs root's SQLite index (its own table beside the inspections' ``runs`` table), their trend and the drift
+warning.
 
 Drift: a check warns when a figure has used more than ``warn_fraction`` of its maximum permissible error, or
 when the straight line through the last checks of a figure (at least three) reaches the MPE within

@@ -44,10 +44,12 @@ from cell.verification.report import write_html, write_json
 class VerificationJob(CalibrationJob):
     """``part`` 2: the single-view acceptance test at ``positions`` (default: every Part 2 position; the
     interim check passes two). ``part`` 3: the long ball bar in ``directions`` (default: along x, along y,
-    diagonal), each across four views. ``note`` heads the report (after what kind of cell measured)."""
+    diagonal), each across four views. ``note`` heads the report (after what kind of cell measured);
+    ``interim``: the start-of-shift check (the report says so)."""
 
     kind, file_stem, result_file = "verification", "verification", "verification.json"
     part_name = "verification"
+    rerun_finished = False  # a finished test is a record: a new one goes into a new folder
 
     def __init__(
         self,
@@ -58,6 +60,7 @@ class VerificationJob(CalibrationJob):
         positions: list[Position] | None = None,
         directions: dict[str, float] | None = None,
         note: str = "",
+        interim: bool = False,
         **kw: Any,
     ) -> None:
         super().__init__(cfg, **kw)
@@ -65,12 +68,13 @@ class VerificationJob(CalibrationJob):
             raise ConfigError(f"--part {part}: give 2 (single view) or 3 (multi-view)", field="--part")
         if part == 3 and certificate.ball_bar_long is None:
             raise ConfigError("the certificate has no ball_bar_long (Part 3 needs a bar of about 300 mm)")
-        self.certificate, self.part, self.note = certificate, part, note
+        self.certificate, self.part, self.note, self.interim = certificate, part, note, interim
         self.positions = positions if positions is not None else acceptance_positions(cfg, certificate)
         self.directions = directions if directions is not None else BAR_DIRECTIONS_DEG
         self.T_W_B, self.T_T_C = cfg.robot.T_W_B.matrix(), active_hand_eye(cfg)
         self.projector_C = active_sensor_config(cfg).projector.T_C_P.matrix()[:3, 3]
         self._stage: Any = None
+        self._placed: tuple[Any, ...] | None = None  # what the stage holds now (artefact, label, pose)
 
     # ------------------------------------------------------------------ the views
     def plan(self) -> list[dict[str, Any]]:
@@ -95,7 +99,7 @@ class VerificationJob(CalibrationJob):
 
     def _artefact_view(self, T_W_C: Any, artefact: str, T_W_A: Any, label: str, index: int) -> dict[str, Any]:
         view = _view(flange_for_camera(self.cfg, T_W_C), index=index)
-        view.update(artefact=artefact, T_W_A=np.asarray(T_W_A).tolist(), label=label)
+        view.update(artefact=artefact, T_W_A=np.asarray(T_W_A).tolist(), label=label, part=self.part)
         return view
 
     def patterns(self, view: dict[str, Any]) -> PatternSet:
@@ -105,10 +109,20 @@ class VerificationJob(CalibrationJob):
         )
 
     def capture(self, devices: DeviceBundle, view: dict[str, Any], index: int) -> dict[str, Any]:
-        """Place the view's artefact (the technician's hand on a real cell), then grab the stack."""
+        """Place the view's artefact (the technician's hand on a real cell) when it differs from the one
+        placed for the previous view (the views of one Part 3 position share one placement: placing the bar
+        again between them would measure two placements), then grab the stack."""
+        if view.get("part", self.part) != self.part:
+            raise ConfigError(
+                f"this run folder holds a Part {view['part']} test; run it again with --part {view['part']}",
+                field="--part",
+            )
         if self._stage is None:
             self._stage = build_artefact_stage(devices, self.certificate)
-        self._stage.place(view["artefact"], np.asarray(view["T_W_A"], dtype=np.float64), view["label"])
+        placement = (view["artefact"], view["label"], tuple(np.ravel(view["T_W_A"])))
+        if placement != self._placed:  # a resumed run places its first view's artefact again
+            self._stage.place(view["artefact"], np.asarray(view["T_W_A"], dtype=np.float64), view["label"])
+            self._placed = placement
         if devices.sim is not None:  # one noise draw per view, the same on a resumed run
             devices.sim.reseed(1000 + index)
         return {**super().capture(devices, view, index), "simulated": devices.sim is not None}
@@ -135,12 +149,28 @@ class VerificationJob(CalibrationJob):
 
     # ------------------------------------------------------------------ the figures
     def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
-        by_label: dict[str, list[int]] = {}
-        for i in run.completed_views():
-            by_label.setdefault(views[i]["label"], []).append(i)
-        result = self._empty_result(all(s.get("simulated") for _, s in self.view_summaries(run)))
-        for label, indices in by_label.items():
+        if views and views[0].get("part", self.part) != self.part:
+            raise ConfigError(
+                f"this run folder holds a Part {views[0]['part']} test; run it again with "
+                f"--part {views[0]['part']}",
+                field="--part",
+            )
+        planned: dict[str, list[int]] = {}
+        for i, v in enumerate(views):
+            planned.setdefault(v["label"], []).append(i)
+        done = set(run.completed_views())
+        summaries = self.view_summaries(run)
+        result = self._empty_result(bool(summaries) and all(s.get("simulated") for _, s in summaries))
+        for label, indices in planned.items():
             v0 = views[indices[0]]
+            missing = [i for i in indices if i not in done]
+            if missing:  # a view the robot could not reach (skipped and logged): the position is not measured
+                result.positions.append(
+                    PositionResult(
+                        label, v0["artefact"], error=f"view(s) {missing} not measured (see journal)"
+                    )
+                )
+                continue
             T_W_A = np.asarray(v0["T_W_A"])
             data = [np.load(run.view_dir(i) / "data.npz") for i in indices]
             try:
@@ -185,6 +215,7 @@ class VerificationJob(CalibrationJob):
             mpe_mm=mpe,
             positions=[],
             simulated=simulated,
+            interim=self.interim,
             **extra,
         )
 

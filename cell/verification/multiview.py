@@ -1,9 +1,9 @@
-"""The VDI/VDE 2634 Part 3 procedure: the sensor moves between views on the robot, and the long ball bar
-(about 300 mm, longer than one view's field) is measured across views and combined in the world frame.
+"""The VDI/VDE 2634 Part 3 layout: the sensor moves between views on the robot, and the long ball bar (about
+300 mm, longer than one view's field) is measured across views (cell/verification/job.py runs it).
 
 Each bar position lies in the table's plane at the height of the single-view volume's centre; each sphere is
 measured from two views (the sensor over the sphere, shifted 40 mm either way along the bar), so the bar spans
-four views. Points go to the world with the robot's reported flange pose and the active hand-eye, exactly as
+four views. Points go to the world with the cell's believed flange pose and the active hand-eye, exactly as
 an inspection merges its views, so SD here contains the robot's and the hand-eye's errors.
 """
 

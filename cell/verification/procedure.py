@@ -1,10 +1,11 @@
-"""The VDI/VDE 2634 Part 2 acceptance procedure for one view: the sensor stays at one pose, the artefact
-stage puts the ball bar and the plane at the guideline's positions in the measuring volume, each is measured
-through the structured-light pipeline (GCLS, the active calibration) and evaluated.
+"""The VDI/VDE 2634 Part 2 acceptance test's pieces: where the artefacts go in the single-view measuring
+volume, how each position's points are evaluated (ball bar: PF, PS, SD; plane: F) and the result against the
+maximum permissible errors. The procedure that measures them runs as a controller job
+(cell/verification/job.py).
 
-Everything is measured in the camera frame {C}: the figures are lengths and forms, which no rigid transform
-changes, so the single-view figures do not depend on the hand-eye or the robot. The commanded artefact pose
-only seeds the segmentation (gates of several mm absorb placement and hand-eye errors).
+Single-view points are in the camera frame {C}: the figures are lengths and forms, which no rigid transform
+changes, so they do not depend on the hand-eye or the robot. The commanded artefact pose only seeds the
+segmentation (gates of several mm absorb placement and hand-eye errors).
 """
 
 from __future__ import annotations
@@ -67,6 +68,7 @@ class AcceptanceResult:
     simulated: bool = False
     kind: str = "VDI/VDE 2634 Part 2, single view"
     required: tuple[str, ...] = ("PF", "PS", "SD", "F")
+    interim: bool = False  # a start-of-shift check on a few positions, not the whole acceptance test
 
     def summarise(self) -> None:
         """Worst value (largest magnitude) per figure, pass/fail per figure and overall."""

@@ -82,12 +82,13 @@ def write_html(path: Path, result: AcceptanceResult, certificate: Certificate, n
         for name, serial, text, a in arts
     )
     v = result.volume_mm
+    title = "Interim check" if result.interim else "Acceptance test"
     html = f"""<!doctype html><html><head><meta charset="utf-8">
-<title>Acceptance test {escape(result.cell)}</title>
+<title>{escape(title)} {escape(result.cell)}</title>
 <style>body{{font-family:sans-serif;max-width:60em;margin:2em auto}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #aaa;padding:.2em .6em;text-align:right}}td:first-child{{text-align:left}}
 .pass{{color:#070}}.fail{{color:#b00}}</style></head><body>
-<h1>Acceptance test after {escape(result.kind)}: {escape(result.verdict.upper())}</h1>
+<h1>{escape(title)} after {escape(result.kind)}: {escape(result.verdict.upper())}</h1>
 <p>Cell <b>{escape(result.cell)}</b>; measuring volume {v["width"]:.0f} x {v["height"]:.0f} x {v["depth"]:.0f}
 mm (L0 = {v["L0"]:.0f} mm); geometry: {escape(result.geometry_source)}.</p>
 <p>{escape(note)}</p>
