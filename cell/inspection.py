@@ -59,7 +59,7 @@ from cell.planning.planner import Plan, plan_initial
 from cell.planning.viewpoints import Viewpoint
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
-from cell.sensing.patterns import PatternSet, gcls_patterns
+from cell.sensing.patterns import PatternSet, measuring_patterns
 from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
 from cell.sensing.triangulate import normalized_coords
@@ -103,10 +103,7 @@ class LambertianInspection:
         self.T_W_B = cfg.robot.T_W_B.matrix()
         self.T_T_C = active_hand_eye(cfg)
         self.sensor = active_sensor_config(cfg)  # the calibrated geometry where calibration files exist
-        proj = cfg.sensor.projector
-        self.patterns: PatternSet = gcls_patterns(
-            proj.width_px, proj.height_px, 12, n_shifts=12, n_gray=6 if proj.width_px >= 768 else None
-        )
+        self.patterns: PatternSet = measuring_patterns(cfg.sensor.projector)
         lut = active_gamma_lut(cfg)  # the projector's measured response, linearised (cell calibrate gamma)
         if lut is not None:
             self.patterns = apply_lut(self.patterns, lut)

@@ -5,8 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cell.config import DEFAULT_CELL, load_cell_config
 from cell.errors import ConfigError
-from cell.sensing.patterns import dissertation_gcls, gcls_patterns, gcps_patterns
+from cell.sensing.patterns import (
+    dissertation_gcls,
+    gcls_patterns,
+    gcps_patterns,
+    measuring_patterns,
+    sensor_calibration_patterns,
+)
+from fakes.sim.testing import small_sensor
 
 
 def test_dissertation_set_has_64_stripes_of_12px_and_768_codes() -> None:
@@ -56,3 +64,16 @@ def test_gcps_same_image_count_and_bad_parameters() -> None:
         gcls_patterns(stripe_px=12, n_shifts=5)
     with pytest.raises(ConfigError, match="direction"):
         gcls_patterns(direction="diagonal")  # type: ignore[arg-type]
+
+
+def test_the_cells_measuring_code_is_the_dissertations_set():
+    """On the prototype's 1024x768 projector the measuring code is the dissertation's GCLS set (6 Gray
+    patterns, 64 stripes of 12 px, 12 shifts of 1 px: 768 codes); on a small projector as few Gray patterns
+    as cover it. The sensor calibration codes both axes with shifts of 2 px."""
+    proj = load_cell_config(DEFAULT_CELL).sensor.projector
+    assert (proj.width_px, proj.height_px) == (1024, 768)
+    np.testing.assert_array_equal(measuring_patterns(proj).frames, dissertation_gcls("full").frames)
+    small = small_sensor().projector
+    assert len(measuring_patterns(small).frames) < len(measuring_patterns(proj).frames)
+    both = sensor_calibration_patterns(proj)
+    assert {c.axis for c in both.codes} == {"columns", "rows"}

@@ -47,7 +47,7 @@ from cell.geometry import Pose, invert, make_pose, transform_points
 from cell.planning.kinematics import UR5E
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import decode
-from cell.sensing.patterns import PatternSet, gcls_patterns, gcps_patterns
+from cell.sensing.patterns import PatternSet, gcps_patterns, measuring_patterns, sensor_calibration_patterns
 from cell.sensing.triangulate import ReferencePlaneTriangulator
 
 
@@ -265,8 +265,7 @@ class SensorJob(_FlatBoardJob):
         return [self.board_view(k * self.step_mm, index=k) for k in range(self.steps + 1)]
 
     def patterns(self, view: dict[str, Any]) -> PatternSet:
-        p = self.cfg.sensor.projector
-        return gcls_patterns(p.width_px, p.height_px, 12, 6, "both", n_gray=6 if p.width_px >= 768 else None)
+        return sensor_calibration_patterns(self.cfg.sensor.projector)
 
     def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         dec = decode(captured["images"], self.patterns(view), self.cfg.sensor.camera.bit_depth)
@@ -503,10 +502,7 @@ class HandEyeIcpJob(CalibrationJob):
         return out
 
     def patterns(self, view: dict[str, Any]) -> PatternSet:
-        p = self.cfg.sensor.projector
-        return gcls_patterns(
-            p.width_px, p.height_px, 12, 12, "columns", n_gray=6 if p.width_px >= 768 else None
-        )
+        return measuring_patterns(self.cfg.sensor.projector)
 
     def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         dec = decode(captured["images"], self.patterns(view), self.cfg.sensor.camera.bit_depth)
@@ -609,10 +605,7 @@ class ValidateJob(_FlatBoardJob):
         return path
 
     def patterns(self, view: dict[str, Any]) -> PatternSet:
-        p = self.cfg.sensor.projector
-        return gcls_patterns(
-            p.width_px, p.height_px, 12, 12, "columns", n_gray=6 if p.width_px >= 768 else None
-        )
+        return measuring_patterns(self.cfg.sensor.projector)
 
     def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         dec = decode(captured["images"], self.patterns(view), self.cfg.sensor.camera.bit_depth)

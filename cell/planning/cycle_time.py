@@ -177,10 +177,6 @@ def cycle_time(cfg: CellConfig, tour_T_B_T: Sequence[NDArray], n_frames: int) ->
 
 def inspection_frames(cfg: CellConfig) -> int:
     """Patterns per view of ``cell inspect`` on this cell (the GCLS set cell/inspection.py projects)."""
-    from cell.sensing.patterns import gcls_patterns
+    from cell.sensing.patterns import measuring_patterns
 
-    proj = cfg.sensor.projector
-    ps = gcls_patterns(
-        proj.width_px, proj.height_px, 12, n_shifts=12, n_gray=6 if proj.width_px >= 768 else None
-    )
-    return len(ps.frames)
+    return len(measuring_patterns(cfg.sensor.projector).frames)

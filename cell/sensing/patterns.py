@@ -16,12 +16,15 @@ one-stripe Gray error at a boundary is still unwrapped correctly.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cell.errors import ConfigError
+
+if TYPE_CHECKING:
+    from cell.config import ProjectorConfig
 
 Codec = Literal["gcls", "gcps", "graycode"]  # graycode: plain Gray code, cell/sensing/graycode.py
 Axis = Literal["columns", "rows"]
@@ -189,6 +192,27 @@ def gcps_patterns(
         for a in _axes(direction)
     ]
     return _assemble("gcps", width_px, height_px, codes)
+
+
+def _gray_bits(projector: ProjectorConfig) -> int | None:
+    """6 Gray patterns (the dissertation's 64 stripes of 12 px) on a projector of 768 px or more, else as
+    few as cover it."""
+    return 6 if projector.width_px >= 768 else None
+
+
+def measuring_patterns(projector: ProjectorConfig, direction: Direction = "columns") -> PatternSet:
+    """The cell's measuring code for ``projector`` (inspection, validation, verification, the hand-eye's
+    gauge scans, and the cycle-time model that counts its frames): GCLS, 12 px Gray stripes and 12 line
+    shifts of 1 px."""
+    w, h = projector.width_px, projector.height_px
+    return gcls_patterns(w, h, 12, 12, direction, n_gray=_gray_bits(projector))
+
+
+def sensor_calibration_patterns(projector: ProjectorConfig) -> PatternSet:
+    """The per-pixel sensor calibration's code (dissertation 5.1.1): GCLS in both directions, 12 px stripes
+    and 6 shifts of 2 px, so that the code points of both axes cross."""
+    w, h = projector.width_px, projector.height_px
+    return gcls_patterns(w, h, 12, 6, "both", n_gray=_gray_bits(projector))
 
 
 def dissertation_gcls(

@@ -25,7 +25,7 @@ from cell.errors import ConfigError
 from cell.geometry import invert, look_at, make_pose, transform_points
 from cell.runs import RunFolder
 from cell.sensing.decode import decode
-from cell.sensing.patterns import PatternSet, gcls_patterns
+from cell.sensing.patterns import PatternSet, measuring_patterns
 from cell.verification.certificate import Certificate
 from cell.verification.figures import FitError
 from cell.verification.multiview import BAR_DIRECTIONS_DEG, bar_pose, view_targets
@@ -103,10 +103,7 @@ class VerificationJob(CalibrationJob):
         return view
 
     def patterns(self, view: dict[str, Any]) -> PatternSet:
-        proj = self.cfg.sensor.projector
-        return gcls_patterns(
-            proj.width_px, proj.height_px, 12, n_shifts=12, n_gray=6 if proj.width_px >= 768 else None
-        )
+        return measuring_patterns(self.cfg.sensor.projector)
 
     def capture(self, devices: DeviceBundle, view: dict[str, Any], index: int) -> dict[str, Any]:
         """Place the view's artefact (the technician's hand on a real cell) when it differs from the one
