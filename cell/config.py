@@ -494,7 +494,9 @@ def validate(model: type[M], data: dict[str, Any], path: str | Path) -> M:
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        err = exc.errors()[0]
+        errors = exc.errors()
+        # a misspelled key shows as an unknown key and a missing one: name the typo, its cause
+        err = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
         msg = err["msg"]
         if err["type"] == "extra_forbidden":
             msg = "unknown key (typo?); remove it or check the schema in docs/"

@@ -44,6 +44,12 @@ def test_default_cell_matches_the_prototype_geometry() -> None:
     [
         (lambda d: d["sensor"]["camera"].update(fx_pix=2000), "sensor.camera.fx_pix", "unknown key"),
         (lambda d: d["sensor"].pop("standoff_mm"), "sensor.standoff_mm", "missing"),
+        # a misspelled required key is both unknown and missing: the typo is named, not the missing key
+        (
+            lambda d: d["sensor"].update(standof_mm=d["sensor"].pop("standoff_mm")),
+            "sensor.standof_mm",
+            "typo",
+        ),
         (lambda d: d["sensor"].update(standoff_mm=0.3937), "sensor.standoff_mm", "greater than 50"),
         (lambda d: d["robot"].update(envelope_min_mm=[1000, 0, 0]), "robot", "envelope_min_mm"),
         (lambda d: d["sensor"]["camera"].update(bit_depth=9), "sensor.camera.bit_depth", ""),

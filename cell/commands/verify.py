@@ -74,7 +74,8 @@ def _run(job, out: Path, cfg_path: Path, cert_path: Path):  # noqa: ANN001, ANN2
         sign = "+" if k in ("PS", "SD") else ""
         shown_value = "not measured" if v is None else f"{v * 1000:{sign}.1f} um"
         status = {True: "pass", False: "FAIL", None: "-"}[result.passed[k]]
-        typer.echo(f"{k:>2}: {shown_value:>14}  (MPE {result.mpe_mm[k] * 1000:.1f} um)  {status}")
+        mpe = f"{'+-' if sign else ''}{result.mpe_mm[k] * 1000:.1f}"
+        typer.echo(f"{k:>2}: {shown_value:>14}  (MPE {mpe} um)  {status}")
     return result
 
 
