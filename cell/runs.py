@@ -104,11 +104,15 @@ class RunFolder:
     path: Path
 
     # ------------------------------------------------------------------ creation
+    @staticmethod
+    def new_name(part_name: str) -> str:
+        """``<part>-<UTC time>``: the name :meth:`create` gives a run folder."""
+        return f"{part_name}-{datetime.now(UTC).strftime('%Y%m%dT%H%M%S%fZ')}"
+
     @classmethod
     def create(cls, root: Path, part_name: str, *, name: str | None = None) -> RunFolder:
-        """A new, empty run folder under ``root`` named ``<part>-<UTC time>`` unless ``name`` is given."""
-        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
-        path = Path(root) / (name or f"{part_name}-{stamp}")
+        """A new, empty run folder under ``root`` named :meth:`new_name` unless ``name`` is given."""
+        path = Path(root) / (name or cls.new_name(part_name))
         if path.exists() and any(path.iterdir()):
             raise ConfigError(
                 "run folder exists and is not empty; choose another --out or `cell resume` it", path=str(path)
@@ -117,6 +121,19 @@ class RunFolder:
         (path / "views").mkdir(exist_ok=True)
         (path / "results").mkdir(exist_ok=True)
         return cls(path)
+
+    @property
+    def kind(self) -> str | None:
+        """What ran in this folder: ``inspection`` (its inputs hold the manifest), the routine's kind that
+        :meth:`mark_kind` recorded (a calibration or verification routine), or None (an older routine)."""
+        marker = self.path / "inputs" / "routine.txt"
+        if marker.is_file():
+            return marker.read_text().strip()
+        return "inspection" if (self.path / "inputs" / "manifest.json").is_file() else None
+
+    def mark_kind(self, kind: str) -> None:
+        """Record that a routine of ``kind`` runs in this folder (see :attr:`kind`)."""
+        (self.path / "inputs" / "routine.txt").write_text(kind + "\n")
 
     @classmethod
     def open(cls, path: Path) -> RunFolder:

@@ -673,14 +673,11 @@ def _calibration_folder(
     """The run folder ``out`` of a routine of ``kind``: a new one, an unfinished one to resume (True), or a
     finished one whose previous views and checkpoint are moved into ``previous-<time>/`` before a new attempt
     (refused unless ``rerun_finished``). A folder of another kind is refused. ``cell`` and ``inputs`` (name in
-    inputs/ -> file) are copied into a new one, with the kind (``inputs/routine.txt``)."""
+    inputs/ -> file) are copied into a new one, and its kind recorded (:meth:`RunFolder.mark_kind`)."""
     out = Path(out)
     if (out / "journal.jsonl").exists():
         run = RunFolder.open(out)
-        marker = run.path / "inputs" / "routine.txt"
-        held = marker.read_text().strip() if marker.is_file() else None
-        if not marker.is_file() and (run.path / "inputs" / "manifest.json").is_file():
-            held = "inspection"
+        held = run.kind
         if kind and held is not None and held != kind:
             raise ConfigError(
                 f"this folder holds a '{held}' run, not '{kind}'; choose another --out", path=str(out)
@@ -701,7 +698,7 @@ def _calibration_folder(
         for name, path in {"cell.yaml": cell, **(inputs or {})}.items():
             if path is not None:
                 run.copy_input(path, name)
-        (run.path / "inputs" / "routine.txt").write_text(kind + "\n")
+        run.mark_kind(kind)
     return run, False
 
 

@@ -147,7 +147,7 @@ def _copy_cell_with_calibration(run: RunFolder, cell_path: Path, cfg: Any) -> st
 def _inspection_run(run_dir: Path) -> RunFolder:
     """An inspection's run folder; a calibration or verification folder is resumed by its own command."""
     run = RunFolder.open(run_dir)
-    if not (run.path / "inputs" / "manifest.json").is_file():
+    if run.kind != "inspection":
         raise ConfigError(
             "not an inspection run (no inputs/manifest.json); a calibration or verification run resumes by "
             "running its `cell calibrate ...` or `cell verify ...` command again with this folder as --out",

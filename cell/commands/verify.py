@@ -87,9 +87,8 @@ def check_cmd(
 ) -> None:
     """The interim check for the start of a shift: one ball-bar and one plane position. Its figures join the
     verification history in RUNS; warns when a figure drifts toward its MPE, exits 1 when one exceeds it."""
-    from datetime import UTC, datetime
-
     from cell.errors import RoutinePaused
+    from cell.runs import RunFolder
     from cell.verification.history import VerificationHistory, drift_warnings
     from cell.verification.job import VerificationJob
     from cell.verification.procedure import check_positions
@@ -97,7 +96,7 @@ def check_cmd(
     cfg_path, cfg, cert_path, cert = _load(cell, certificate)
     note = "Interim check (one ball-bar and one plane position)."
     job = VerificationJob(cfg, cert, positions=check_positions(cfg, cert), note=note, interim=True)
-    folder = Path(runs) / f"verify-check-{datetime.now(UTC).strftime('%Y%m%dT%H%M%S%fZ')}"
+    folder = Path(runs) / RunFolder.new_name("verify-check")
     try:
         result = _run(job, folder, cfg_path, cert_path)
     except RoutinePaused as exc:  # a check is short: start a new one rather than resume an old one
