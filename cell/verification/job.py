@@ -73,6 +73,7 @@ class VerificationJob(CalibrationJob):
         self.directions = directions if directions is not None else BAR_DIRECTIONS_DEG
         self.T_W_B, self.T_T_C = cfg.robot.T_W_B.matrix(), active_hand_eye(cfg)
         self.projector_C = active_sensor_config(cfg).projector.T_C_P.matrix()[:3, 3]
+        self.triangulator = active_triangulator(cfg)  # once: a per-pixel model is read from its files
         self._stage: Any = None
         self._placed: tuple[Any, ...] | None = None  # what the stage holds now (artefact, label, pose)
 
@@ -129,7 +130,7 @@ class VerificationJob(CalibrationJob):
         ``sensor.max_projector_incidence_deg``), in {C}, and where the cell believes the camera was."""
         cam = self.cfg.sensor.camera
         decoded = decode(captured["images"], self.patterns(view), cam.bit_depth)
-        cloud = active_triangulator(self.cfg).triangulate(decoded)
+        cloud = self.triangulator.triangulate(decoded)
         p, valid = cloud.points_C, cloud.valid
         max_deg = self.cfg.sensor.max_projector_incidence_deg
         rim, oblique = unreliable_pixels(p, valid, self.projector_C, max_deg)
