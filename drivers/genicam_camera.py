@@ -388,7 +388,7 @@ class GenICamCamera:
         try:
             from genicam.gentl import TimeoutException
         except ImportError:  # pragma: no cover - genicam comes with harvesters
-            TimeoutException = TimeoutError  # noqa: N806
+            TimeoutException = TimeoutError
         try:
             # harvesters reads timeout 0 as "wait forever": a poll (grab(0), grab_ready) waits 0.1 ms instead
             with ia.fetch(timeout=max(timeout_ms / 1000.0, 1e-4)) as buffer:

@@ -7,8 +7,8 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from cell.analysis.errormap import NominalMesh, signed_distance
-from cell.analysis.registration import datum_align, horn_quaternion, icp_point_to_plane, kinematic_chain
-from cell.geometry import invert, make_pose, pose_from_xyz_rpy, transform_points
+from cell.analysis.registration import datum_align, horn_quaternion, icp_point_to_plane
+from cell.geometry import make_pose, pose_from_xyz_rpy, transform_points
 
 
 def test_horn_recovers_known_transform() -> None:
@@ -16,17 +16,6 @@ def test_horn_recovers_known_transform() -> None:
     a = rng.uniform(-50, 50, (20, 3))
     T = make_pose(Rotation.from_rotvec([0.3, -0.5, 1.2]).as_matrix(), [10.0, -4.0, 7.5])
     assert np.allclose(horn_quaternion(a, transform_points(T, a)), T, atol=1e-10)
-
-
-def test_kinematic_chain_composes_in_order() -> None:
-    T_W_B, T_B_T = pose_from_xyz_rpy([1, 2, 3], [0.1, 0, 0]), pose_from_xyz_rpy([400, 0, 300], [0, 0.2, 0])
-    T_T_C, T_W_P = pose_from_xyz_rpy([0, 50, 80], [0, 0, 0.3]), pose_from_xyz_rpy([500, 100, 0], [0, 0, 1.0])
-    p_C = np.array([3.0, -2.0, 400.0])
-    p_W = transform_points(T_W_B @ T_B_T @ T_T_C, p_C)
-    assert np.allclose(
-        transform_points(kinematic_chain(T_W_B, T_B_T, T_T_C, T_W_P), p_C),
-        transform_points(invert(T_W_P), p_W),
-    )
 
 
 def test_icp_recovers_small_misplacement() -> None:

@@ -9,7 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cell.analysis.errormap import NominalMesh
-from cell.calibration.boards import board_pose_from_corners, grid_points
+from cell.calibration.boards import board_pose_from_corners
+from cell.calibration.capture_folder import ChessboardTarget
 from cell.calibration.handeye import GaugeView, handeye_from_board_poses, handeye_icp, pose_error
 from cell.config import DEFAULT_CELL, PoseConfig, load_cell_config
 from cell.errors import CalibrationError
@@ -58,7 +59,7 @@ def test_board_pose_solvers_recover_hand_eye(cfg):
     T_W_B, T_T_C = cfg.robot.T_W_B.matrix(), cfg.sensor.T_T_C.matrix()
     target = np.array([-100.0, 50.0, 0.0])
     T_W_Bd = make_pose(Rotation.from_euler("z", 20, degrees=True).as_matrix(), target - (80, 60, 0))
-    obj = grid_points(9, 7, 20.0)
+    obj = ChessboardTarget((9, 7), 20.0).getChessboardCorners().astype(np.float64)
     flange, board = [], []
     for T_B_T in _reachable_views(cfg, target, 25, rng, tilt_deg=45):
         T_C_Bd = invert(T_W_B @ T_B_T @ T_T_C) @ T_W_Bd

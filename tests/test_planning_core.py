@@ -13,7 +13,6 @@ from cell.config import DEFAULT_CELL, load_cell_config
 from cell.planning.feedback import cost_q, rotate_about
 from cell.planning.patches import cluster_patches
 from cell.planning.sensor_model import SensorModel
-from cell.planning.setcover import greedy_cover
 from cell.planning.settings import PlanSettings
 from cell.planning.tour import order_tour, pose_costs, tour_length
 
@@ -60,13 +59,6 @@ def test_two_opt_matches_brute_force_on_small_tours():
         got = tour_length(cost, order_tour(cost, 0))
         best = min(tour_length(cost, [0, *perm]) for perm in itertools.permutations(range(1, 7)))
         assert got <= 1.25 * best  # 2-opt is a local optimum, not the optimum: within 25% on these
-
-
-def test_greedy_cover_picks_the_known_cover():
-    # universe of 6 elements; one set covers all, greedy must take it alone
-    masks = np.array([[1, 1, 0, 0, 0, 0], [0, 0, 1, 1, 0, 0], [1, 1, 1, 1, 1, 1], [0, 0, 0, 0, 1, 1]], bool)
-    assert greedy_cover(masks, np.ones(6), 6.0) == [2]
-    assert greedy_cover(masks[[0, 1, 3]], np.ones(6), 6.0) == [0, 1, 2]
 
 
 def test_patches_of_a_box_are_its_faces():

@@ -1,9 +1,12 @@
 """The planner against the simulator's ground truth (renderer hit/lit masks), the simulated robot, and
-bad input."""
+bad input. The feedback steps run in :func:`run_loop`, the controller's evaluate/replan sequence without
+devices, so the planner is judged on the truth alone (no decoding, no pose refinement)."""
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -12,13 +15,16 @@ import trimesh
 
 from cell.config import DEFAULT_CELL, MaterialConfig, load_cell_config, load_recipe
 from cell.errors import ConfigError
-from cell.planning.feedback import run_loop
-from cell.planning.planner import plan_initial, plan_recipe
+from cell.geometry import Pose
+from cell.planning.feedback import FeedbackPlanner, evaluate, select_new
+from cell.planning.measured import MeasuredView
+from cell.planning.planner import Plan, plan_initial, plan_recipe
 from cell.planning.settings import PlanSettings
+from cell.planning.viewpoints import Viewpoint
 from fakes.sim.render import SceneRenderer
 from fakes.sim.scene import Scene
-from fakes.sim.truth_model import measure_from_truth
 from fakes.sim_cell import build_sim_cell
+from tests.truth_model import measure_from_truth
 
 ROOT = Path(__file__).resolve().parent.parent
 CFG = load_cell_config(DEFAULT_CELL)
@@ -44,6 +50,49 @@ def truth_measure(mesh, material):
     cfg = small_camera_cfg()
     r = SceneRenderer(cfg.sensor, cfg.sim, Scene.from_meshes(mesh, cfg.sim, material))
     return lambda T: measure_from_truth(r.ground_truth(T), T, cfg, material)
+
+
+@dataclass
+class LoopResult:
+    """Every viewpoint measured (in order), their measurements and the coverage per iteration."""
+
+    viewpoints: list[Viewpoint]
+    views: list[MeasuredView]
+    coverage: list[float]
+
+
+def run_loop(plan: Plan, measure: Callable[[Pose], MeasuredView]) -> LoopResult:
+    """Measure the plan's viewpoints, then evaluate and replan (the controller's evaluating and replanning
+    steps) until Q is under the set point, the view budget or the iteration limit is spent, or nothing new
+    can be proposed. Each evaluation is logged in the plan's log."""
+    fb = FeedbackPlanner(plan)
+    st = fb.st
+    done: list[Viewpoint] = []
+    views: list[MeasuredView] = []
+    pending = list(plan.viewpoints)[: st.view_budget]
+    coverage: list[float] = []
+    ia = np.zeros((0, 3))
+    for k in range(st.max_iterations + 1):
+        new = [measure(v.T_W_C) for v in pending]
+        done += pending
+        views += new
+        ev = evaluate(fb, views, len(views) - len(new), ia)
+        ia = ev.ia
+        coverage.append(ev.coverage)
+        plan.log.append(
+            {
+                "event": "evaluate",
+                "views": len(done),
+                "coverage": ev.coverage,
+                "glare_regions": sum(r.reason == "glare" for mv in new for r in mv.defects),
+            }
+        )
+        if ev.qualified or len(done) >= st.view_budget or k == st.max_iterations:
+            break
+        pending = select_new(fb, fb.propose(k, new, ev.covered, ev.ia), [d.T_W_C for d in done])
+        if not pending:
+            break
+    return LoopResult(done, views, coverage)
 
 
 @pytest.fixture(scope="module")

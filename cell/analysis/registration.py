@@ -1,6 +1,6 @@
-"""Registration of measured clouds into the part frame {P} (dissertation 4.1-4.3).
+"""Registration of measured clouds into the part frame {P} (dissertation 4.1-4.3), beyond the kinematic chain
+(eqs 4.1-4.4), which the inspection composes where it decodes a view.
 
-- :func:`kinematic_chain`: sensor points into the part frame from robot pose, hand-eye, placement (4.1-4.4).
 - :func:`horn_quaternion`: closed-form least-squares rigid transform of point pairs with a unit quaternion
   (Horn 1987; the quaternion model of eqs 4.5-4.7 solved in closed form instead of the iterative 4.9-4.11).
 - :func:`datum_align`: 3-2-1 / RPS alignment from measured datum points and their nominal positions.
@@ -22,12 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.errors import ConfigError
-from cell.geometry import Pose, invert, make_pose, transform_points
-
-
-def kinematic_chain(T_W_B: Pose, T_B_T: Pose, T_T_C: Pose, T_W_P: Pose) -> Pose:
-    """``T_P_C``: sensor frame {C} into the part frame {P} from the cell's calibrated chain (eq 4.2)."""
-    return invert(T_W_P) @ T_W_B @ T_B_T @ T_T_C
+from cell.geometry import Pose, make_pose, transform_points
 
 
 def horn_quaternion(src_mm: ArrayLike, dst_mm: ArrayLike, weights: ArrayLike | None = None) -> Pose:

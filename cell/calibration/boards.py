@@ -1,4 +1,5 @@
-"""Calibration boards as point sets, and the board pose in the camera from detected corners (cv2.solvePnP)."""
+"""The board pose in the camera from detected corners (cv2.solvePnP); the boards' corner grids are
+:class:`cell.calibration.capture_folder.ChessboardTarget` and OpenCV's ChArUco board."""
 
 from __future__ import annotations
 
@@ -8,12 +9,6 @@ from numpy.typing import NDArray
 
 from cell.errors import CalibrationError
 from cell.geometry import Pose, make_pose
-
-
-def grid_points(nx: int, ny: int, pitch_mm: float) -> NDArray[np.float64]:
-    """(nx*ny, 3) points of a planar grid in the board frame (z = 0), row by row, mm."""
-    x, y = np.meshgrid(np.arange(nx) * pitch_mm, np.arange(ny) * pitch_mm)
-    return np.column_stack([x.ravel(), y.ravel(), np.zeros(nx * ny)])
 
 
 def board_pose_from_corners(object_mm: NDArray, image_px: NDArray, K: NDArray, dist: NDArray) -> Pose:

@@ -146,7 +146,8 @@ class ChessboardTarget:
         x, y = np.meshgrid(np.arange(inner[0]) * square_mm, np.arange(inner[1]) * square_mm)
         self._pts = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)]).astype(np.float32)
 
-    def getChessboardCorners(self) -> NDArray[np.float32]:  # noqa: N802 - the cv2.aruco.CharucoBoard name
+    def getChessboardCorners(self) -> NDArray[np.float32]:
+        """The corners in the board frame; named as cv2.aruco.CharucoBoard names it."""
         return self._pts
 
 

@@ -65,7 +65,7 @@ def predict_copies(
     pixels: NDArray[np.float64],
     rays,
     cad,
-    T_W_S: NDArray[np.float64],  # noqa: ANN001
+    T_W_S: NDArray[np.float64],
     thickness_mm: float,
     refractive_index: float,
 ) -> CopyPrediction:

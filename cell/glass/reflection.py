@@ -102,7 +102,7 @@ def golden_minimize(
     length_tol: float,
     value_tol: float = 0.0,
     max_iter: int = 80,
-):  # noqa: ANN001
+):
     """Vectorised golden-section minimisation of ``f(t, idx)`` on [a, b] for every active entry; an entry
     stops when its interval is shorter than ``length_tol`` or its best value is below ``value_tol``.
     Returns the best t and the number of evaluations of f per entry."""

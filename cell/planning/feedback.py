@@ -1,7 +1,8 @@
-"""The closed loop (sections 3.2-3.3): measure, evaluate (shadow map IS, reflection map IR, accuracy map IA,
-cost Q of eq 3.22), add viewpoints V_k with g_kS (holes and shadows: cluster, box, place) and g_kR (glare:
-rotate the sensor by beta > theta/2 about the spot, eqs 3.24-3.26), until Q is under the set point or the view
-budget is spent. Every decision is appended to the plan's log with its reason.
+"""The steps of the closed loop (sections 3.2-3.3): evaluate (shadow map IS, reflection map IR, accuracy map
+IA, cost Q of eq 3.22) and add viewpoints V_k with g_kS (holes and shadows: cluster, box, place) and g_kR
+(glare: rotate the sensor by beta > theta/2 about the spot, eqs 3.24-3.26). The controller runs the loop
+(measure, evaluate, replan until Q is under the set point or the view budget is spent) through the inspection
+job. Every decision is appended to the plan's log with its reason.
 """
 
 from __future__ import annotations
@@ -24,17 +25,6 @@ from cell.planning.viewpoints import Viewpoint
 
 Array = NDArray[np.float64]
 SAME_POSE_MM, SAME_POSE_RAD = 10.0, np.deg2rad(3.0)
-
-
-@dataclass
-class LoopResult:
-    """Every viewpoint measured (in order), their measurements, the coverage and Q per iteration."""
-
-    viewpoints: list[Viewpoint]
-    views: list[MeasuredView]
-    coverage: list[float]
-    cost: list[float]
-    covered: NDArray[np.bool_]
 
 
 def cost_q(hole_area_mm2: float, distance_area_mm2: float, w: float) -> float:
@@ -326,52 +316,3 @@ def select_new(fb: FeedbackPlanner, proposed: list[Viewpoint], done: list[Pose])
             break
         pending.append(vp)
     return pending
-
-
-def run_loop(plan: Plan, measure: Callable[[Pose], MeasuredView]) -> LoopResult:
-    """Measure the plan's viewpoints, then iterate g_k until Q < set point or the view budget is spent."""
-    fb = FeedbackPlanner(plan)
-    st, log = fb.st, plan.log
-    done: list[Viewpoint] = []
-    views: list[MeasuredView] = []
-    pending = list(plan.viewpoints)[: st.view_budget]
-    coverage: list[float] = []
-    costs: list[float] = []
-    ia = np.zeros((0, 3))
-    ev: Evaluation | None = None
-    for k in range(st.max_iterations + 1):
-        new = [measure(v.T_W_C) for v in pending]
-        done += pending
-        views += new
-        ev = evaluate(fb, views, len(views) - len(new), ia)
-        ia = ev.ia
-        coverage.append(ev.coverage)
-        costs.append(ev.q)
-        log.append(
-            {
-                "event": "evaluate",
-                "iteration": k,
-                "views": len(done),
-                **ev.to_json(),
-                "glare_regions": sum(r.reason == "glare" for mv in new for r in mv.defects),
-                "shadow_regions": sum(r.reason == "shadow" for mv in new for r in mv.defects),
-                "reason": "Q at or under the set point: stop" if ev.qualified else "Q above the set point",
-            }
-        )
-        if ev.qualified:
-            break
-        if len(done) >= st.view_budget or k == st.max_iterations:
-            log.append(
-                {
-                    "event": "stop",
-                    "reason": "view budget or iteration limit reached with Q above the set point",
-                    "Q": round(ev.q, 1),
-                }
-            )
-            break
-        pending = select_new(fb, fb.propose(k, new, ev.covered, ev.ia), [d.T_W_C for d in done])
-        if not pending:
-            log.append({"event": "stop", "reason": "no new viewpoint can improve Q", "Q": round(ev.q, 1)})
-            break
-    covered = ev.covered if ev is not None else np.zeros(len(plan.surface.points), dtype=bool)
-    return LoopResult(done, views, coverage, costs, covered)

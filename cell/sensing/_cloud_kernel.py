@@ -14,7 +14,7 @@ _INCONSISTENT = 8
 
 
 @nb.njit(cache=True, parallel=True)
-def pinhole_cloud(u, reasons_in, xn, yn, f, c, Rk, R2, tk, t2):  # noqa: ANN001, ANN201
+def pinhole_cloud(u, reasons_in, xn, yn, f, c, Rk, R2, tk, t2):
     """Points (H, W, 3) float32 in {C} (mm) and reasons: pixel ray X = z (x_n, y_n, 1) meets the projector
     plane of coordinate ``u`` (normal Rk - a R2 in {C}, a = (u - c) / f, through the projector centre with
     ``tk`` = Rk.t, ``t2`` = R2.t). Pixels with no valid intersection (z not finite or <= 0) become

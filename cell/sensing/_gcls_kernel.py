@@ -19,7 +19,7 @@ _DARK, _SATURATED, _LOW_CONTRAST, _INCONSISTENT, _NO_CODE = 1, 2, 4, 8, 16
 
 
 @nb.njit(cache=True, parallel=True)
-def reference_masks(white, black, top, dark_thr, min_contrast):  # noqa: ANN001, ANN201
+def reference_masks(white, black, top, dark_thr, min_contrast):
     """Modulation white - black (DN), contrast (W-B)/(W+B) (float32) and DARK/SATURATED/LOW_CONTRAST bits."""
     H, W = white.shape
     mod = np.empty((H, W), np.float32)
@@ -46,7 +46,7 @@ def reference_masks(white, black, top, dark_thr, min_contrast):  # noqa: ANN001,
 
 
 @nb.njit(cache=True, inline="always")
-def _min_nan(a, b):  # noqa: ANN001, ANN202
+def _min_nan(a, b):
     """np.minimum semantics: NaN if either is NaN."""
     if a != a or b != b:
         return np.float32(np.nan)
@@ -63,11 +63,11 @@ def gcls_axis(
     n_codes,
     shift_px,
     offset_px,
-    edge_frac,  # noqa: ANN001
+    edge_frac,
     u,
     reasons,
     sharp,
-):  # noqa: ANN001, ANN201
+):
     """Decode one coded axis; rows of the (N, R, C) ``stack`` run along the coded axis.
 
     ``gray_idx`` / ``shift_idx`` (k, 2) frame indices of each pattern and its inverse; ``base`` and ``mod``

@@ -16,7 +16,7 @@ direction to the camera. Derivation and parameters: docs/simulator.md.
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -92,7 +92,11 @@ def blur_layers(sigma: NDArray[np.float32]) -> BlurLayers:
     return BlurLayers(tuple(sigmas), tuple(weights))
 
 
-def _apply_layers(image: NDArray[np.float32], layers: BlurLayers, sample=None) -> NDArray[np.float32]:  # noqa: ANN001
+def _apply_layers(
+    image: NDArray[np.float32],
+    layers: BlurLayers,
+    sample: Callable[[NDArray[np.float32]], NDArray[np.float32]] | None = None,
+) -> NDArray[np.float32]:
     """Sum over levels of weight * sample(blur(image, sigma)); ``sample`` maps a blurred image to the output
     grid (identity by default)."""
     out = None
@@ -202,7 +206,8 @@ class SceneRenderer:
         falloff = (proj.focus_distance_mm / r) ** 2
         gain = proj.irradiance_e_per_ms * falloff * (alb * np.maximum(cos_i, 0) + spec * cos_a**shin)
 
-        def full(values, fill, dtype):  # noqa: ANN001, ANN202 - scatter per-hit values to the image
+        def full(values: NDArray, fill: float, dtype: type) -> NDArray:
+            """Per-hit ``values`` scattered to the (H, W) image, ``fill`` where no ray hit."""
             out = np.full(H * W, fill, dtype=dtype)
             out[idx] = values
             return out.reshape(H, W)

@@ -4,9 +4,9 @@ Given the ground truth of one camera pose (hit points, normals, part and lit mas
 ``fakes.sim.render.SceneRenderer.ground_truth`` returns them) and the radiometry of the cell, a pixel is
 measured when it sees the part, is lit by the projector, lies within the focus range, and its white-pattern
 signal is neither saturated (glare: ambient + Lambert + Phong specular reach the full well, eq 3.23) nor too
-weak (low contrast). Shadowed pixels (inside the projector frustum, not lit) form the shadow masks. Used
-by tests and benchmarks where the real scan pipeline would be too slow; it reads ground truth, so it lives
-beside the simulator, never under cell/.
+weak (low contrast). Shadowed pixels (inside the projector frustum, not lit) form the shadow masks. The
+planner's tests measure with it where the real scan pipeline would be too slow; it is their oracle, so it
+lives with the tests, not in the product (cell/) nor in the simulator the product drives (fakes/).
 """
 
 from __future__ import annotations
