@@ -11,8 +11,9 @@ Two models behind one interface (:class:`Triangulator`):
   h = L'S/(d + L') with per-pixel d and S (eq 2.8), Z = S0 - h (S0 the reference plane's depth) and X, Y
   from the perspective model (eqs 2.2-2.3, written in the OpenCV optical frame: X = Z * x_n, Y = Z * y_n with
   undistorted normalised coordinates, which is eq 2.3's -(S-h)/F * u with the image axes un-mirrored). d, S
-  come from stepping a plane (eq 2.7, :func:`fit_d_S`); :func:`reference_model_from_geometry` runs that same
-  procedure on analytic planes until the calibration issue measures them.
+  come from stepping a plane (eq 2.7, :func:`fit_d_S`): :mod:`cell.calibration.sensor` measures them on the
+  cell; :func:`reference_model_from_geometry` runs the same procedure on analytic planes of the configured
+  geometry (the simulated scan without a sensor calibration).
 """
 
 from __future__ import annotations
