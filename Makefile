@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test venv bench lint clean parts
+.PHONY: demo test venv bench lint typecheck clean parts
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -34,9 +34,15 @@ bench: $(STAMP)
 lint: $(STAMP)
 	$(PY) -m ruff check cell drivers fakes tests bench recipes
 	$(PY) -m ruff format --check cell drivers fakes tests bench recipes
+	$(MAKE) --no-print-directory typecheck
+
+# mypy, configured in pyproject.toml ([tool.mypy]); fakes/conformance.py and drivers/conformance.py make it
+# check every device implementation against its Protocol in cell/contracts.py
+typecheck: $(STAMP)
+	$(PY) -m mypy cell drivers fakes
 
 parts: $(STAMP)
 	$(PY) recipes/parts/make_parts.py
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache
+	rm -rf $(VENV) runs .pytest_cache .mypy_cache

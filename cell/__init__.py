@@ -1,6 +1,7 @@
 """The robotic 3D surface inspection cell (import cell)."""
 
 import sys
+from types import FrameType
 
 __version__ = "0.1.0"
 
@@ -19,7 +20,7 @@ class _DeferCascadio:
     def find_spec(name: str, path: object = None, target: object = None) -> None:
         if name != "cascadio":
             return None
-        frame = sys._getframe(1)
+        frame: FrameType | None = sys._getframe(1)
         while frame is not None and frame.f_globals.get("__name__", "").startswith("importlib"):
             frame = frame.f_back
         if frame is not None and frame.f_globals.get("__name__") == "trimesh.exchange.cascade":

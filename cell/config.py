@@ -385,6 +385,13 @@ class DatumPoint(Strict):
 
 
 AlignmentMethod = Literal["kinematic", "datums", "datum_icp", "features", "weighted", "best_fit"]
+AlignmentEstimate = Literal[
+    "kinematic", "datums", "datum_icp", "features"
+]  # what the weighted method combines
+
+
+def _default_alignment_weights() -> dict[AlignmentEstimate, float]:
+    return {"kinematic": 1.0, "features": 2.0, "datums": 4.0, "datum_icp": 4.0}
 
 
 class AlignmentConfig(Strict):
@@ -399,12 +406,10 @@ class AlignmentConfig(Strict):
 
     method: AlignmentMethod = "kinematic"
     datums: list[DatumPoint] = Field(default_factory=list)
-    weights: dict[Literal["kinematic", "datums", "datum_icp", "features"], Annotated[float, Field(ge=0)]] = (
-        Field(
-            default_factory=lambda: {"kinematic": 1.0, "features": 2.0, "datums": 4.0, "datum_icp": 4.0},
-            description="weights of the estimates in the weighted combination (Table I of the "
-            "dissertation: datums most, then features, then the kinematic chain)",
-        )
+    weights: dict[AlignmentEstimate, Annotated[float, Field(ge=0)]] = Field(
+        default_factory=_default_alignment_weights,
+        description="weights of the estimates in the weighted combination (Table I of the "
+        "dissertation: datums most, then features, then the kinematic chain)",
     )
     fixture_uncertainty_mm: Annotated[float, Field(ge=0, le=50)] | None = Field(
         None, description="kinematic: the stated uncertainty of the fixture's placement, for the report"

@@ -6,6 +6,8 @@ SciPy's Rotation does the rotation algebra; these helpers only fix the cell's co
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
@@ -25,12 +27,12 @@ def make_pose(rotation: ArrayLike | None = None, translation_mm: ArrayLike | Non
 
 def pose_from_xyz_rpy(xyz_mm: ArrayLike, rpy_rad: ArrayLike) -> Pose:
     """Pose from a translation (mm) and fixed-axis roll, pitch, yaw (rad): R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    return make_pose(Rotation.from_euler("xyz", rpy_rad).as_matrix(), xyz_mm)
+    return make_pose(Rotation.from_euler("xyz", np.asarray(rpy_rad, dtype=np.float64)).as_matrix(), xyz_mm)
 
 
 def pose_from_xyz_rotvec(xyz_mm: ArrayLike, rotvec_rad: ArrayLike) -> Pose:
     """Pose from a translation (mm) and a rotation vector (axis * angle, rad), as UR controllers use."""
-    return make_pose(Rotation.from_rotvec(rotvec_rad).as_matrix(), xyz_mm)
+    return make_pose(Rotation.from_rotvec(np.asarray(rotvec_rad, dtype=np.float64)).as_matrix(), xyz_mm)
 
 
 def pose_to_xyz_rotvec(T: Pose) -> NDArray[np.float64]:
@@ -47,7 +49,7 @@ def invert(T: Pose) -> Pose:
     return out
 
 
-def transform_points(T: Pose, points: ArrayLike) -> NDArray[np.float64]:
+def transform_points(T: NDArray[np.floating[Any]], points: ArrayLike) -> NDArray[np.float64]:
     """Apply T to an (..., 3) array of points."""
     p = np.asarray(points, dtype=np.float64)
     # einsum, not p @ R.T: numpy's matmul on (N, 3) x (3, 3) is several times slower here

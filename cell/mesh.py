@@ -103,7 +103,8 @@ def _require_step_support(where: str) -> None:
     from trimesh.exchange.load import mesh_loaders
 
     cascade.cascadio = cascadio
-    mesh_loaders.update({"stp": cascade.load_step, "step": cascade.load_step})
+    # trimesh types its loader table narrower than the loaders it registers itself (load_step takes file_type)
+    mesh_loaders.update({"stp": cascade.load_step, "step": cascade.load_step})  # type: ignore[dict-item]
 
 
 def _check_manifold(mesh: trimesh.Trimesh, where: str) -> None:

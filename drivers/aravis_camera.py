@@ -294,12 +294,12 @@ class AravisCamera:
             return raw / self.options.gain_raw_per_db
         if "Gain" in self.options.ignore_missing:
             return gain_db
-        raw = (
+        hint = (
             " (it has GainRaw: set options.gain_raw_per_db from the datasheet)"
             if self._has("GainRaw")
             else ""
         )
-        raise DeviceFault(self.name, f"GenApi node Gain is absent on {self._model}{raw}")
+        raise DeviceFault(self.name, f"GenApi node Gain is absent on {self._model}{hint}")
 
     def _configure_trigger(self, mode: TriggerMode) -> None:
         configure_trigger(

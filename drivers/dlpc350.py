@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Sequence
-from typing import Annotated, Literal, Protocol
+from typing import TYPE_CHECKING, Annotated, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,6 +47,9 @@ from cell.contracts import (
 )
 from cell.errors import ConfigError, DeviceFault, DeviceProtocolError, DeviceTimeout
 from drivers.hdmi_display import HdmiDisplay, HdmiDisplayOptions, open_at_projector_resolution
+
+if TYPE_CHECKING:
+    from drivers.serial_projector import PatternDisplay
 
 VID, PID = 0x0451, 0x6401  # Texas Instruments, DLPC350 (LightCrafter 4500)
 REPORT = 64
@@ -166,7 +169,7 @@ class Dlpc350Projector:
         config: ProjectorConfig,
         *,
         transport: HidTransport | None = None,
-        display: object | None = None,
+        display: PatternDisplay | None = None,
         clock: Clock | None = None,
     ) -> None:
         self.name = config.name

@@ -17,6 +17,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -238,7 +239,7 @@ class GenICamCamera:
         except Exception:  # GenTL raises NotAvailableException for fields a producer does not support
             return None
 
-    def _matches(self, info: Any, key: dict[str, str | None]) -> bool:
+    def _matches(self, info: Any, key: Mapping[str, str | None]) -> bool:
         ((field, value),) = key.items()
         return self._info(info, field) == value
 

@@ -170,7 +170,7 @@ class GenICamGlassRig:
                 self._display.show(
                     marker_image(
                         self.config.screen,
-                        tuple(self._display.size),
+                        self._display.size,
                         self.options.screen_pixel_pitch_mm,
                         dot=self.options.dot_grey,
                         background=self.options.background_grey,
@@ -225,7 +225,7 @@ class GenICamGlassRig:
                     f"no frame within {timeout_ms:g} ms of the rig's {self.options.trigger} trigger "
                     f"({k} of {len(self._cameras)} cameras delivered): {exc}",
                 ) from exc
-            meta = {"camera": cam.name, "trigger": self.options.trigger}
+            meta: dict[str, Any] = {"camera": cam.name, "trigger": self.options.trigger}
             if offsets:
                 meta |= {"trigger_offset_ms": offsets[cam.name], "trigger_skew_ms": self.last_trigger_skew_ms}
             frames.append(dataclasses.replace(frame, metadata={**frame.metadata, **meta}))

@@ -166,7 +166,7 @@ class RecordingProxy:
             "calls": calls,
         }
         (out / "fixture.yaml").write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
-        np.savez_compressed(out / "arrays.npz", **enc.arrays)
+        np.savez_compressed(out / "arrays.npz", **enc.arrays)  # type: ignore[arg-type]  # mypy maps **arrays onto allow_pickle
         return out
 
 

@@ -90,7 +90,7 @@ class URRobot:
         self._config = config
         self._connect_timeout_s = connect_timeout_s
         self._stale_timeout_s = stale_timeout_s
-        self._envelope = Envelope(tuple(config.envelope_min_mm), tuple(config.envelope_max_mm))
+        self._envelope = Envelope(config.envelope_min_mm, config.envelope_max_mm)
         options = dict(config.options)
         self._watchdog_hz = float(options.get("watchdog_hz", 10.0))
         self._power_on_at_connect = bool(options.get("power_on_at_connect", False))

@@ -87,6 +87,7 @@ class SimGlassRig:
         """The marker screen at its current position (see :meth:`move_screen`)."""
         s = self.cfg.screen
         pose = s.T_W_S if self._screen_position == 0 else s.second_T_W_S
+        assert pose is not None  # move_screen refuses position 1 without a second_T_W_S
         return MarkerScreen(pose.matrix(), s.dots_mm(), s.dot_diameter_mm)
 
     def move_screen(self, position: int) -> MarkerScreen:

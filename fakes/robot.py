@@ -137,7 +137,7 @@ class _CollisionModel:
             what = "flange" if m == 0 else f"tool body point {m - 1}"
             hits.append((k, f"{what} touches the table at world z = {pts[k, m, 2]:.2f} mm"))
         if self.mesh is not None:
-            hit = self._mesh_contact(T_W_T, pts)
+            hit = self._mesh_contact(self.mesh, T_W_T, pts)
             if hit is not None:
                 hits.append(hit)
         return min(hits) if hits else None
@@ -162,14 +162,14 @@ class _CollisionModel:
         where = "the table" if pts[k, m, 2] < arm.radius_mm[m] else "the obstacle mesh"
         return k, f"robot {arm.link[m]} touches {where} near world {np.round(pts[k, m], 1).tolist()} mm"
 
-    def _mesh_contact(self, T_W_T: Array, pts: Array) -> tuple[int, str] | None:
-        lo, hi = self.mesh.bounds[0] - self.clearance, self.mesh.bounds[1] + self.clearance
+    def _mesh_contact(self, mesh: trimesh.Trimesh, T_W_T: Array, pts: Array) -> tuple[int, str] | None:
+        lo, hi = mesh.bounds[0] - self.clearance, mesh.bounds[1] + self.clearance
         n, m = pts.shape[:2]
         near = np.all((pts >= lo) & (pts <= hi), axis=-1)  # cheap box pre-filter before exact distances
         first: tuple[int, str] | None = None
         if near.any():
             idx = np.argwhere(near)
-            sd = trimesh.proximity.signed_distance(self.mesh, pts[near])  # > 0 inside the mesh
+            sd = trimesh.proximity.signed_distance(mesh, pts[near])  # > 0 inside the mesh
             bad = sd > -self.clearance
             if bad.any():
                 k, j = idx[np.argmax(bad)]
@@ -186,10 +186,10 @@ class _CollisionModel:
             for k in np.flatnonzero(overlap):
                 if first is not None and k >= first[0]:
                     break
-                v_T = (self.mesh.vertices - T_W_T[k, :3, 3]) @ T_W_T[k, :3, :3]
+                v_T = (mesh.vertices - T_W_T[k, :3, 3]) @ T_W_T[k, :3, :3]
                 inside = np.all(v_T @ self.hull_eq[:, :3].T + self.hull_eq[:, 3] <= 0.0, axis=1)
                 if inside.any():
-                    v = self.mesh.vertices[np.argmax(inside)]
+                    v = mesh.vertices[np.argmax(inside)]
                     first = (
                         int(k),
                         f"tool body hits the obstacle mesh near world {np.round(v, 1).tolist()} mm",
@@ -218,7 +218,7 @@ class SimRobot:
         self.clock = clock or SimClock()
         self.kin = kinematics
         self.T_W_B = config.T_W_B.matrix()
-        self._envelope = Envelope(tuple(config.envelope_min_mm), tuple(config.envelope_max_mm))
+        self._envelope = Envelope(config.envelope_min_mm, config.envelope_max_mm)
         body = None if tool_body_T is None else np.asarray(tool_body_T, dtype=np.float64).reshape(-1, 3)
         self._collision = _CollisionModel(obstacles_W, body, clearance_mm)
         self._step_mm, self._step_rad = path_step_mm, path_step_rad
@@ -530,7 +530,8 @@ class SimRobot:
         """Start a checked path now: find where a contact or an injected fault would cut it; the arm then
         follows it on the sim clock (:meth:`_update`)."""
         duration = float(times[-1])
-        end, outcome, error = len(path) - 1, "ok", None
+        end, outcome = len(path) - 1, "ok"
+        error: CellError | None = None
         hits = [
             self._collision.first_contact(self.T_W_B @ self.kin.fk(path)),
             self._collision.arm_contact(self.kin, path, self.T_W_B),

@@ -404,7 +404,8 @@ class ControllerServer:
         m = _REGISTER.match(name)
         if m and m.group(1) == "output":
             idx = int(m.group(3))
-            return {"int": self.out_int, "double": self.out_double}.get(m.group(2), [False] * 128)[idx]
+            registers: dict[str, list[Any]] = {"int": self.out_int, "double": self.out_double}
+            return registers.get(m.group(2), [False] * 128)[idx]
         if name in ("actual_q", "target_q"):
             return self.q
         if name in ("actual_TCP_pose", "target_TCP_pose"):

@@ -23,7 +23,7 @@ residuals show.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import trimesh
@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.features import feature_align
 from cell.analysis.registration import combine_registrations, icp_point_to_plane
-from cell.config import AlignmentConfig, DatumPoint
+from cell.config import AlignmentConfig, AlignmentEstimate, DatumPoint
 from cell.errors import ConfigError
 from cell.geometry import Pose, make_pose, transform_points
 
@@ -142,7 +142,8 @@ def _own_surface(mesh: trimesh.Trimesh, datum: Datum, margin_mm: float = 5.0) ->
     is within ~25 deg of the datum's."""
     near = np.linalg.norm(mesh.triangles_center - datum.point, axis=1) <= datum.radius_mm + margin_mm
     facing = mesh.face_normals @ datum.normal > SAME_SURFACE_COS
-    return NominalMesh.from_trimesh(mesh.submesh([np.flatnonzero(near & facing)], append=True))
+    own = mesh.submesh([np.flatnonzero(near & facing)], append=True)
+    return NominalMesh.from_trimesh(cast(trimesh.Trimesh, own))  # append=True: one mesh, not a list
 
 
 def _constraint_rows(points: NDArray, normals: NDArray) -> NDArray:
@@ -335,7 +336,7 @@ class Aligner:
     def weighted(self, points: NDArray) -> Alignment:
         """Eqs 4.21-4.22: the recipe-weighted combination of kinematic, datums, datum ICP and features."""
         w = self.config.weights
-        found: dict[str, Alignment] = {"kinematic": Alignment("kinematic", np.eye(4))}
+        found: dict[AlignmentEstimate, Alignment] = {"kinematic": Alignment("kinematic", np.eye(4))}
         warnings = []
         if len(self.datums) >= 6:
             found["datums"] = self.datums_fit(points)

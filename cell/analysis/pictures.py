@@ -59,7 +59,7 @@ def render_view(
     flat = img.reshape(-1, 3)
     flat[pix[front]] = rgb[front]
     # close the one-pixel gaps between sparse points: an empty pixel takes a filled neighbour's colour
-    filled = np.zeros(size_px * size_px, bool)
+    filled: NDArray[np.bool_] = np.zeros(size_px * size_px, bool)
     filled[pix[front]] = True
     filled = filled.reshape(size_px, size_px)
     for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):

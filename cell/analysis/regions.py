@@ -53,12 +53,19 @@ class Region:
     box_mm: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     tolerance: Tolerance | None = None
 
-    def contains(self, points_mm: NDArray, source_face: NDArray) -> NDArray[np.bool_]:
-        """Membership of points (N, 3, mm) with their closest nominal face (index in the mesh as given)."""
+    def contains(self, points_mm: NDArray, source_face: NDArray | None) -> NDArray[np.bool_]:
+        """Membership of points (N, 3, mm) with their closest nominal face (index in the mesh as given; a
+        face-set region needs it)."""
         if self.faces is not None:
+            if source_face is None:
+                raise ConfigError(
+                    f"region '{self.name}' is a face set but the error map carries no closest faces"
+                )
             return np.isin(source_face, self.faces)
+        if self.box_mm is None:
+            raise ConfigError(f"region '{self.name}' has neither faces nor a box")
         lo, hi = np.asarray(self.box_mm[0]), np.asarray(self.box_mm[1])
-        return ((points_mm >= lo) & (points_mm <= hi)).all(1)
+        return np.all((points_mm >= lo) & (points_mm <= hi), axis=1)
 
 
 @dataclass(frozen=True)
@@ -175,11 +182,11 @@ def coverage(
     Give a required ``density_per_mm2`` (radius then defaults to the one holding 8 points at that density)
     and/or a ``radius_mm`` (alone: one point within the radius covers).
     """
-    if density_per_mm2 is None and radius_mm is None:
-        raise ConfigError("coverage needs a required density (points/mm^2) or a radius (mm)")
     if density_per_mm2 is not None and not density_per_mm2 > 0:
         raise ConfigError(f"coverage density must be > 0 points/mm^2, got {density_per_mm2}")
     if radius_mm is None:
+        if density_per_mm2 is None:
+            raise ConfigError("coverage needs a required density (points/mm^2) or a radius (mm)")
         radius_mm = math.sqrt(8.0 / (math.pi * density_per_mm2))
     if not radius_mm > 0:
         raise ConfigError(f"coverage radius must be > 0 mm, got {radius_mm}")

@@ -182,14 +182,15 @@ def refine_views(
         used = np.zeros(n_views)  # pairs (incidence-weighted) that hold each view, as source or target
         for i in range(n_views):
             for j in range(n_views):
-                if i == j or trees[j] is None or not len(moved[i]):
+                tree = trees[j]
+                if i == j or tree is None or not len(moved[i]):
                     continue
                 if not _boxes_overlap(boxes[i], boxes[j], radius):
                     continue
                 src = _candidates(moved[i], normals[i].ok, boxes[j], radius, rng)
-                d, k = trees[j].query(moved[i][src], distance_upper_bound=radius)
+                d, nearest = tree.query(moved[i][src], distance_upper_bound=radius)
                 hit = np.isfinite(d)
-                src, k = src[hit], k[hit]
+                src, k = src[hit], np.asarray(nearest)[hit]
                 if len(src) == 0:
                     continue
                 nj = moved_n[j][k]

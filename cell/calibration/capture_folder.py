@@ -75,6 +75,7 @@ class CodeSpec(Strict):
         w, h = projector.width_px, projector.height_px
         if self.kind == "graycode":
             return graycode_patterns(w, h, self.direction)
+        assert self.stripe_px is not None  # _stripe_needed
         if self.kind == "gcls":
             return gcls_patterns(w, h, self.stripe_px, self.n_shifts, self.direction, self.n_gray)
         return gcps_patterns(w, h, self.stripe_px, self.n_phase, self.direction, self.n_gray)
@@ -231,15 +232,20 @@ class CaptureFolder:
             decode(s, self.patterns, self.manifest.camera.bit_depth), pose.roi_px, self.camera_size
         )
 
-    def board(self) -> Board:
-        """The manifest's board as the object the calibration functions take."""
+    def _board_spec(self) -> BoardSpec:
         b = self.manifest.board
         if b is None:
             raise ConfigError(
                 f"no board: add a 'board:' section to {MANIFEST}", path=str(self.root / MANIFEST)
             )
+        return b
+
+    def board(self) -> Board:
+        """The manifest's board as the object the calibration functions take."""
+        b = self._board_spec()
         if b.kind == "chessboard":
             return ChessboardTarget((b.squares[0] - 1, b.squares[1] - 1), b.square_mm)
+        assert b.marker_mm is not None  # BoardSpec._charuco_fields
         return cv2.aruco.CharucoBoard(
             b.squares,
             b.square_mm,
@@ -250,7 +256,7 @@ class CaptureFolder:
     def find_board(self, pose: CapturePose, board: Board) -> CharucoView:
         """Board corners in the pose's board image (only that file is read), in full-sensor pixels;
         CalibrationError naming the pose and file when the board is not found."""
-        f = pose.files[self.patterns.index(self.manifest.board.image)]
+        f = pose.files[self.patterns.index(self._board_spec().image)]
         img = self._read(pose, f)
         view = (
             _find_chessboard(img, board)
@@ -258,7 +264,7 @@ class CaptureFolder:
             else detect_charuco(img, board)
         )
         if view is None:
-            b = self.manifest.board
+            b = self._board_spec()
             raise CalibrationError(
                 f"pose '{pose.name}': the {b.kind} board ({b.squares[0]}x{b.squares[1]} squares) was not "
                 f"found in {f}; check the board in {MANIFEST}, or remove the pose"

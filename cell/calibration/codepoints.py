@@ -22,7 +22,7 @@ def _seeds(u: NDArray, v: NDArray, codes: NDArray, shape_p: tuple[int, int]) -> 
     table = np.zeros(shape_p, np.int64)  # pixel index + 1, 0 = none
     table[iv[inside], iu[inside]] = np.flatnonzero(ok)[inside] + 1
     for _ in range(3):  # projector pixels no camera pixel rounds to: borrow a neighbour's pixel
-        grown = ndimage.grey_dilation(table, size=3)
+        grown = ndimage.grey_dilation(table, size=(3, 3))
         table = np.where(table == 0, grown, table)
     cu = np.clip(np.rint(codes[:, 0]).astype(np.int64), 0, shape_p[1] - 1)
     cv = np.clip(np.rint(codes[:, 1]).astype(np.int64), 0, shape_p[0] - 1)

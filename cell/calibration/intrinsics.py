@@ -10,16 +10,24 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from cell.errors import CalibrationError
 from cell.geometry import Pose, make_pose
 
 MIN_VIEWS = 4
 MIN_CORNERS = 8
+
+
+class CornerBoard(Protocol):
+    """What the calibrations read of a board: its inner corners in the board frame {Bd} (N, 3), mm, by id.
+    A cv2.aruco.CharucoBoard, or a plain chessboard (cell.calibration.capture_folder.ChessboardTarget)."""
+
+    def getChessboardCorners(self) -> ArrayLike: ...  # the cv2.aruco.CharucoBoard method name
 
 
 @dataclass
@@ -29,7 +37,7 @@ class CharucoView:
     corners_px: NDArray[np.float64]
     ids: NDArray[np.int32]
 
-    def object_points(self, board: cv2.aruco.CharucoBoard) -> NDArray[np.float64]:
+    def object_points(self, board: CornerBoard) -> NDArray[np.float64]:
         """The same corners in the board frame {Bd} (N, 3), mm."""
         return np.asarray(board.getChessboardCorners(), np.float64)[self.ids]
 
@@ -61,7 +69,7 @@ def detect_charuco(
 
 
 def calibrate_intrinsics(
-    views: Sequence[CharucoView], board: cv2.aruco.CharucoBoard, size: tuple[int, int], fix_k3: bool = True
+    views: Sequence[CharucoView], board: CornerBoard, size: tuple[int, int], fix_k3: bool = True
 ) -> Intrinsics:
     """K and distortion of a camera of ``size`` (width, height) px from >= 4 detected board views."""
     good = [v for v in views if v is not None and len(v.ids) >= MIN_CORNERS]
@@ -78,7 +86,9 @@ def calibrate_intrinsics(
     per_view = np.array(
         [_view_rms(o, i, r, t, K, dist) for o, i, r, t in zip(obj, img, rvecs, tvecs, strict=True)]
     )
-    return Intrinsics(K, dist.ravel()[:5].astype(np.float64), size, float(rms), per_view, poses)
+    return Intrinsics(
+        np.asarray(K, np.float64), dist.ravel()[:5].astype(np.float64), size, float(rms), per_view, poses
+    )
 
 
 def _view_rms(obj: NDArray, img: NDArray, rvec: NDArray, tvec: NDArray, K: NDArray, dist: NDArray) -> float:

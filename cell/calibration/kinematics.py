@@ -216,7 +216,8 @@ def fit_kinematics(
     n_px = sum(r.size for r in per_view)
     chi2_dof = float(np.sum((np.concatenate([r.ravel() for r in per_view]) / corner_noise_px) ** 2))
     chi2_dof /= max(n_px - len(full.x), 1)
-    covariance = np.linalg.pinv(full.jac.T @ full.jac) * max(1.0, chi2_dof)
+    J = np.asarray(full.jac)  # method="lm": a dense Jacobian
+    covariance = np.linalg.pinv(J.T @ J) * max(1.0, chi2_dof)
     return KinematicCalibration(
         errors,
         T_T_C,

@@ -76,6 +76,8 @@ def projector_from_folder(
     if K_cam is None:
         camera = calibrate_intrinsics(views, board, folder.camera_size)
         K_cam, dist_cam = camera.K, camera.dist
+    elif dist_cam is None:
+        raise ConfigError("projector calibration: camera intrinsics K_cam given without their distortion")
     res = calibrate_projector(
         views, proj_px, valid, board, K_cam, dist_cam, folder.camera_size, folder.projector_size
     )
@@ -105,11 +107,12 @@ def sensor_from_folder(
     cal = SensorCalibrator(
         camera, projector, reference_depth_mm, n_points, K, dist, eval_height_mm=eval_height_mm
     )
-    for pose in sorted(folder.poses, key=lambda p: p.height_mm):
+    steps = [(p.height_mm, p) for p in folder.poses if p.height_mm is not None]  # all of them (checked)
+    for height_mm, pose in sorted(steps, key=lambda s: s[0]):
         try:
-            cal.add_step(pose.height_mm, folder.decode(pose))
+            cal.add_step(height_mm, folder.decode(pose))
         except CalibrationError as exc:
-            raise CalibrationError(f"pose '{pose.name}' (height {pose.height_mm} mm): {exc}") from exc
+            raise CalibrationError(f"pose '{pose.name}' (height {height_mm} mm): {exc}") from exc
     return cal.finish()
 
 

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.calibration.intrinsics import MIN_CORNERS, MIN_VIEWS, CharucoView
+from cell.calibration.intrinsics import MIN_CORNERS, MIN_VIEWS, CharucoView, CornerBoard
 from cell.errors import CalibrationError
 from cell.geometry import Pose, invert, make_pose
 
@@ -78,7 +78,7 @@ def calibrate_projector(
     views: Sequence[CharucoView],
     projector_px: Sequence[NDArray],
     valid: Sequence[NDArray],
-    board: cv2.aruco.CharucoBoard,
+    board: CornerBoard,
     K_cam: NDArray,
     dist_cam: NDArray,
     camera_size: tuple[int, int],

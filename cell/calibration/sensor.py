@@ -127,14 +127,16 @@ class SensorCalibrator:
                 f"step {len(self.heights)}: height {height_mm} mm is not above the previous "
                 f"{self.heights[-1]} mm; steps must increase toward the sensor"
             )
-        pos, grad = locate_codes(u, v, self.codes, (self.projector.width_px, self.projector.height_px))
+        codes = self.codes
+        assert codes is not None  # set by the reference step
+        pos, grad = locate_codes(u, v, codes, (self.projector.width_px, self.projector.height_px))
         if self.grad is None:
             self.grad = grad
         found = int(np.isfinite(pos[:, 0]).sum())
-        if found < 0.2 * len(self.codes):
+        if found < 0.2 * len(codes):
             raise CalibrationError(
                 f"step {len(self.heights)} at {height_mm} mm: only {found} of "
-                f"{len(self.codes)} encoded points found; is the board in view?"
+                f"{len(codes)} encoded points found; is the board in view?"
             )
         self.heights.append(float(height_mm))
         self.positions.append(pos)
@@ -161,9 +163,10 @@ class SensorCalibrator:
                 f"sensor calibration: the reference plane and {n - 1} steps; at least {MIN_STEPS - 1} steps "
                 "are needed (30 recommended)"
             )
+        assert self.codes is not None and self.grad is not None and self.u_ref is not None  # the first step
         h = np.asarray(self.heights)
         side = int(round(np.sqrt(len(self.codes))))
-        sel = np.zeros((side, side), bool)
+        sel: NDArray[np.bool_] = np.zeros((side, side), bool)
         sel[::stride, ::stride] = True
         sel = sel.ravel()
         m = np.stack([self._plane_mm(p[sel]) for p in self.positions])  # (n, N, 2)

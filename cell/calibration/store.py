@@ -66,7 +66,7 @@ def save_calibration(
         **meta,
     }
     buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
+    np.savez_compressed(buf, **arrays)  # type: ignore[arg-type]  # mypy maps **arrays onto allow_pickle
     write_atomic(npath, buf.getvalue())
     write_atomic(ypath, yaml.safe_dump(full, sort_keys=False).encode())
     return ypath

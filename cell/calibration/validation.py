@@ -143,7 +143,11 @@ def _robust_plane(points: NDArray) -> Callable[[NDArray], NDArray]:
     A = np.column_stack([x - x0, y - y0, np.ones_like(x)])
     start = np.linalg.lstsq(A, z, rcond=None)[0]
     scale = max(1.4826 * float(np.median(np.abs(z - A @ start))), 1e-6)
-    coef = least_squares(lambda c: A @ c - z, start, loss="soft_l1", f_scale=scale).x
+
+    def residuals(c: NDArray[np.float64]) -> NDArray[np.float64]:
+        return A @ c - z
+
+    coef = least_squares(residuals, start, loss="soft_l1", f_scale=scale).x
     return lambda q: coef[0] * (q[:, 0] - x0) + coef[1] * (q[:, 1] - y0) + coef[2]
 
 
@@ -191,7 +195,11 @@ def fit_sphere(points: NDArray) -> dict[str, Any]:
     A = np.column_stack([2 * p, np.ones(len(p))])
     sol = np.linalg.lstsq(A, (p * p).sum(1), rcond=None)[0]
     c0, r0 = sol[:3], np.sqrt(sol[3] + sol[:3] @ sol[:3])
-    fit = least_squares(lambda x: np.linalg.norm(p - x[:3], axis=1) - x[3], np.r_[c0, r0])
+
+    def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.linalg.norm(p - x[:3], axis=1) - x[3]
+
+    fit = least_squares(residuals, np.r_[c0, r0])
     res = fit.fun
     return {
         "centre_mm": fit.x[:3].tolist(),

@@ -134,7 +134,7 @@ def bottom_copies(
     dist, j = cKDTree(pixels).query(pixels[idx] + pred.pixel_offset[idx], distance_upper_bound=1e9)
     paired = dist <= pair_tol * np.linalg.norm(pred.pixel_offset[idx], axis=1)
     claim = np.full(n, -1)
-    claim[idx[paired]] = j[paired]
+    claim[idx[paired]] = np.asarray(j)[paired]
     # chains: a copy's own predicted copy can land on the next dot's top copy (2 offsets ~ 1 pitch), so
     # labels alternate along each chain from its unclaimed first member (a top copy)
     known = np.ones(n, dtype=bool)

@@ -82,7 +82,7 @@ class ViewVectorCalibration:
         uv, _ = cv2.projectPoints(
             np.asarray(points_W, np.float64).reshape(-1, 1, 3), rvec, T_C_W[:3, 3], self.K, self.dist
         )
-        return uv.reshape(-1, 2)
+        return np.asarray(uv, np.float64).reshape(-1, 2)
 
     # ------------------------------------------------------------------------------------------- storage
     def save(self, directory: str | Path) -> Path:
@@ -153,7 +153,7 @@ class LocalQuadratic:
         self.xy = np.asarray(xy, np.float64)
         self.k = min(k, len(self.pixels))
         self.tree = cKDTree(self.pixels)
-        spacing = float(np.median(self.tree.query(self.pixels, k=2)[0][:, 1]))
+        spacing = float(np.median(np.asarray(self.tree.query(self.pixels, k=2)[0])[:, 1]))
         self.max_dist = max_gap * spacing
 
     def __call__(self, uv: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -168,7 +168,7 @@ class LocalQuadratic:
         AtA += 1e-9 * np.eye(6)
         coef = np.linalg.solve(AtA, Atb)  # (n, 6, 2); the constant term is the value at the query
         out = coef[:, 0, :]
-        out[dist[:, 0] > self.max_dist] = np.nan
+        out[np.asarray(dist)[:, 0] > self.max_dist] = np.nan
         return out
 
 
@@ -197,8 +197,9 @@ def board_correspondences(
     pred, _ = cv2.projectPoints(pts.reshape(-1, 1, 3), rvec, T_C_W[:3, 3], cam.K(), cam.distortion.as_array())
     pred = pred.reshape(-1, 2)
     tree = cKDTree(pred)
-    spacing = tree.query(pred, k=2)[0][:, 1]
-    dist, idx = tree.query(det.centroids_px)
+    spacing = np.asarray(tree.query(pred, k=2)[0])[:, 1]
+    dist, nearest = tree.query(det.centroids_px)
+    idx = np.asarray(nearest)
     ok = dist < gate_fraction * spacing[idx]
     idx_ok, pix_ok = idx[ok], det.centroids_px[ok]
     unique, counts = np.unique(idx_ok, return_counts=True)
@@ -242,11 +243,11 @@ def calibrate_view_vectors(
         cam.name,
         cam.serial,
         (cam.width_px, cam.height_px),
-        tuple(board.heights_mm),
+        board.heights_mm,
         pixels,
         board_xy,
-        K,
-        dist.ravel(),
-        np.linalg.inv(T_C_W),
+        np.asarray(K, np.float64),
+        np.asarray(dist, np.float64).ravel(),
+        np.linalg.inv(T_C_W).astype(np.float64),
         {"model_rms_px": float(rms), "dots": [len(p) for p in pixels]},
     )

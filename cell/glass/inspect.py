@@ -70,7 +70,7 @@ def find_markers(
     """Detect, ray and identify one camera's marker dots."""
     det = detect_dots(image, dark_fraction=search.dark_fraction, full_profile_px=search.centroid_profile_px)
     if search.pane_thickness_mm is not None and len(det):
-        pred = predict_copies(
+        copies = predict_copies(
             det.centroids_px,
             calib.rays_at,
             cad,
@@ -78,8 +78,8 @@ def find_markers(
             search.pane_thickness_mm,
             search.pane_refractive_index,
         )
-        keep = blob_area_ok(det.area_px, pred, screen.dot_diameter_mm)
-        keep &= ~bottom_copies(det.centroids_px, pred, screen.dots_mm)
+        keep = blob_area_ok(det.area_px, copies, screen.dot_diameter_mm)
+        keep &= ~bottom_copies(det.centroids_px, copies, screen.dots_mm)
         det = DotDetections(det.centroids_px[keep], det.area_px[keep], det.depth[keep])
     o, d = calib.rays_at(det.centroids_px)
     hit = cad.cast(np.nan_to_num(o), np.nan_to_num(d, nan=1.0 / np.sqrt(3)))
@@ -146,7 +146,7 @@ def measure(
             )
             fit = ProjectionFit(*(np.full(len(res.t), np.nan) for _ in range(3)))
         others = [fb for j, fb in enumerate(fb_cams) if j != c]
-        if forced:
+        if max_cameras is not None:  # forced
             others = others[: max(max_cameras - 1, 0)]
         fb = feedback(law, res, others, screen.T_W_S, search.max_surface_error_mm, tol, search.length_tol_mm)
         keep = res.ok
@@ -165,8 +165,8 @@ def measure(
         out["lever"].append(fit.lever[keep])
         out["sin_angle"].append(fit.sin_angle[keep])
     cat = {k: np.concatenate(v) for k, v in out.items()}
-    fits = [cat.pop(k) for k in ("miss_mm", "lever", "sin_angle")]
-    c = check_consistency(
+    miss_mm, lever, sin_angle = (cat.pop(k) for k in ("miss_mm", "lever", "sin_angle"))
+    cons = check_consistency(
         cat["residual"],
         cat["curvature"],
         cat["n_cameras"],
@@ -174,10 +174,12 @@ def measure(
         search.outlier_alpha,
         search.max_depth_sigma_mm,
     )
-    accepted, p_value, depth_sigma = c.accepted.copy(), c.p_value.copy(), c.depth_sigma_mm.copy()
-    single = (cat["n_cameras"] == 1) & np.isfinite(fits[0])
+    accepted, p_value, depth_sigma = cons.accepted.copy(), cons.p_value.copy(), cons.depth_sigma_mm.copy()
+    single = (cat["n_cameras"] == 1) & np.isfinite(miss_mm)
     if single.any():  # multi-projection points no other camera confirms: their own geometry judges them
-        proj = check_projection(*fits, cat["cos_incidence"], search.outlier_alpha, search.max_depth_sigma_mm)
+        proj = check_projection(
+            miss_mm, lever, sin_angle, cat["cos_incidence"], search.outlier_alpha, search.max_depth_sigma_mm
+        )
         accepted[single], p_value[single] = proj.accepted[single], proj.p_value[single]
         depth_sigma[single] = proj.depth_sigma_mm[single]
     return GlassMeasurement(
@@ -185,7 +187,7 @@ def measure(
         accepted=accepted,
         p_value=p_value,
         depth_sigma_mm=depth_sigma,
-        normal_sigma_rad=c.sigma_rad,
+        normal_sigma_rad=cons.sigma_rad,
         single_projection=single,
     )
 

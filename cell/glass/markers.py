@@ -36,7 +36,7 @@ def local_background(image: NDArray, window_px: int) -> NDArray[np.float32]:
     window) followed by a box blur of the same size to smooth the noise it picks up."""
     k = cv2.getStructuringElement(cv2.MORPH_RECT, (window_px, window_px))
     bright = cv2.dilate(image.astype(np.float32), k)
-    return cv2.blur(bright, (window_px, window_px))
+    return np.asarray(cv2.blur(bright, (window_px, window_px)), np.float32)
 
 
 def detect_dots(
@@ -64,12 +64,13 @@ def detect_dots(
     bg = local_background(img, window_px)
     thr = dark_fraction * bg
     mask = ((img < thr) & (bg > min_background)).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    n, labels_cv, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    labels = np.asarray(labels_cv, np.int32)  # CV_32S already: no copy
     if full_profile_px > 0:  # grey dilation of the label image grows every (well separated) dot
         k = np.ones((2 * full_profile_px + 1,) * 2, np.uint8)
         grown = cv2.dilate(labels.astype(np.float32), k).astype(np.int64)
         rows, cols = np.nonzero(grown)
-        lab = grown[rows, cols]
+        lab: NDArray[np.signedinteger] = grown[rows, cols]
         w = np.clip(bg - img, 0, None)[rows, cols].astype(np.float64)
     else:
         rows, cols = np.nonzero(labels)
@@ -103,10 +104,10 @@ def identify(
     finite = np.all(np.isfinite(predicted_mm), axis=1)
     if not np.any(finite) or len(dots_mm) == 0:
         return ids
-    dist, idx = cKDTree(dots_mm).query(predicted_mm[finite], distance_upper_bound=gate_mm)
-    found = np.isfinite(dist)
+    d_all, i_all = cKDTree(dots_mm).query(predicted_mm[finite], distance_upper_bound=gate_mm)
+    found = np.isfinite(d_all)
     cand = np.flatnonzero(finite)[found]
-    idx, dist = idx[found], dist[found]
+    idx, dist = np.asarray(i_all)[found], np.asarray(d_all)[found]
     order = np.argsort(dist)  # closest claims first; later (farther) claims of the same dot are dropped
     _, first = np.unique(idx[order], return_index=True)
     win = order[first]

@@ -157,7 +157,9 @@ class URKinematics:
         return np.concatenate([np.swapaxes(Jv, -1, -2), np.swapaxes(z, -1, -2)], axis=-2)
 
     # ------------------------------------------------------------------------------------------ inverse
-    def ik_all(self, T_B_T: ArrayLike, q6_default: float = 0.0) -> tuple[Array, Array, Array]:
+    def ik_all(
+        self, T_B_T: ArrayLike, q6_default: float = 0.0
+    ) -> tuple[Array, NDArray[np.bool_], NDArray[np.bool_]]:
         """All 8 analytic branches for each of (N, 4, 4) poses (a single 4x4 works too).
 
         Returns ``(q, valid, singular)``: q (N, 8, 6) rad wrapped to (-pi, pi], NaN where the branch does not
@@ -177,7 +179,7 @@ class URKinematics:
             return q[0], valid[0], sing8[0]
         return q, valid, sing8
 
-    def _branches(self, T06: Array, q6_default: float) -> tuple[Array, Array, Array]:
+    def _branches(self, T06: Array, q6_default: float) -> tuple[Array, NDArray[np.bool_], Array]:
         """Closed form for (n, 4, 4) poses: q (n, 8, 6), singular (n, 8), shoulder-wrist mm (n, 8)."""
         n = T06.shape[0]
         d1, _, _, d4, d5, d6 = self.dh.d
@@ -250,7 +252,7 @@ class URKinematics:
         err = np.concatenate([dp, dw], -1)
         return np.einsum("nij,nj->ni", np.linalg.pinv(J, rcond=1e-10), err)
 
-    def shift_into_limits(self, q: Array, q_ref: Array | None) -> tuple[Array, Array]:
+    def shift_into_limits(self, q: Array, q_ref: Array | None) -> tuple[Array, NDArray[np.bool_]]:
         """Shift each wrapped angle by a multiple of 2 pi to lie within the limits, closest to ``q_ref``.
 
         Returns (shifted q, ok) where ok is False for solutions with a joint no shift brings inside.

@@ -135,7 +135,7 @@ def plan_initial(mesh_W: trimesh.Trimesh, cfg: CellConfig, settings: PlanSetting
         masks = np.vstack([masks, predicted_masks(sensor, surface, [v.T_W_C for v in added])])
     views, masks = prune(views, masks, surface.area, st.min_patch_area_mm2, log)
     views, masks = order_views(views, masks, cfg)
-    cov = coverage_fraction(surface, masks.any(axis=0))
+    cov = coverage_fraction(surface, np.any(masks, axis=0))
     dt = time.perf_counter() - t0
     log.append(
         {

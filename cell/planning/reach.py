@@ -46,7 +46,7 @@ class ReachChecker:
         self.T_W_B = cfg.robot.T_W_B.matrix()
         self.T_B_W = invert(self.T_W_B)
         self.T_C_T = invert(cfg.sensor.T_T_C.matrix())
-        self.envelope = Envelope(tuple(cfg.robot.envelope_min_mm), tuple(cfg.robot.envelope_max_mm))
+        self.envelope = Envelope(cfg.robot.envelope_min_mm, cfg.robot.envelope_max_mm)
         self.body_T = sensor_body_points_T(cfg)
         self.tree = cKDTree(part_points_W)
         self.clearance = clearance_mm
@@ -67,8 +67,8 @@ class ReachChecker:
         if low < self.clearance:
             return False, f"sensor body {low:.1f} mm above the table, needs {self.clearance:.0f} mm"
         d, _ = self.tree.query(body_W)
-        if d.min() < self.clearance:
-            return False, f"sensor body {d.min():.1f} mm from the part, needs {self.clearance:.0f} mm"
+        if np.min(d) < self.clearance:
+            return False, f"sensor body {np.min(d):.1f} mm from the part, needs {self.clearance:.0f} mm"
         return self.kin.reachable(T_B_T)
 
     def path_clear(self, T_B_T: NDArray[np.float64]) -> tuple[bool, str]:
@@ -89,10 +89,10 @@ class ReachChecker:
                 f"sensor body {low:.1f} mm above the table on the way, needs {self.clearance:.0f} mm",
             )
         d, _ = self.tree.query(body_W.reshape(-1, 3))
-        if d.min() < self.clearance:
+        if np.min(d) < self.clearance:
             return (
                 False,
-                f"sensor body {d.min():.1f} mm from the part on the way, needs {self.clearance:.0f} mm",
+                f"sensor body {np.min(d):.1f} mm from the part on the way, needs {self.clearance:.0f} mm",
             )
         return True, "clear"
 
@@ -109,7 +109,7 @@ class ReachChecker:
                 f"robot {arm.link[m]} {pts_W[n, m, 2] - arm.radius_mm[m]:.1f} mm above the table on the way, "
                 f"needs {self.clearance:.0f} mm"
             )
-        d = self.tree.query(pts_W.reshape(-1, 3))[0].reshape(low.shape)
+        d = np.asarray(self.tree.query(pts_W.reshape(-1, 3))[0]).reshape(low.shape)
         gap = d - need
         if gap.min() < 0:
             n, m = np.unravel_index(int(np.argmin(gap)), gap.shape)

@@ -13,6 +13,7 @@ is ignored here; ``fov_margin`` keeps the planned patch away from the image bord
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -108,7 +109,7 @@ class SensorModel:
         from scipy.spatial.transform import Rotation
 
         R = Rotation.from_rotvec(T_W_C[:3, 1] * (0.5 * self.triangulation_angle)).as_matrix()
-        best = None
+        best: tuple[float, Pose] | None = None
         for sign in (1.0, -1.0):
             Rs = R if sign > 0 else R.T
             T = np.eye(4)
@@ -119,7 +120,8 @@ class SensorModel:
             to_p = self.projector_pose(T)[:3, 3] - target_W
             err = abs(np.arccos(n @ to_c / np.linalg.norm(to_c)) - np.arccos(n @ to_p / np.linalg.norm(to_p)))
             if best is None or err < best[0]:
-                best = (err, T)
+                best = (float(err), T)
+        assert best is not None  # the loop ran
         return best[1]
 
     def projector_pose(self, T_W_C: Pose) -> Pose:
@@ -128,6 +130,26 @@ class SensorModel:
     def robot_target(self, T_W_C: Pose) -> Pose:
         """Flange target ``T_B_T = inv(T_W_B) @ T_W_C @ inv(T_T_C)``."""
         return invert(self.T_W_B) @ T_W_C @ invert(self.T_T_C)
+
+    @overload
+    def measurable(
+        self,
+        T_W_C: Pose,
+        points: Array,
+        normals: Array,
+        occluder: Occluder | None,
+        with_reason: Literal[False] = False,
+    ) -> NDArray[np.bool_]: ...
+
+    @overload
+    def measurable(
+        self,
+        T_W_C: Pose,
+        points: Array,
+        normals: Array,
+        occluder: Occluder | None,
+        with_reason: Literal[True],
+    ) -> tuple[NDArray[np.bool_], NDArray[np.int8]]: ...
 
     def measurable(
         self, T_W_C: Pose, points: Array, normals: Array, occluder: Occluder | None, with_reason: bool = False

@@ -150,7 +150,11 @@ def _decode_gcls_axis(
         sharp,
     )
     if code.axis == "rows":
-        u, reasons, sharp = (np.ascontiguousarray(a.T) for a in (u, reasons, sharp))
+        u, reasons, sharp = (
+            np.ascontiguousarray(u.T),
+            np.ascontiguousarray(reasons.T),
+            np.ascontiguousarray(sharp.T),
+        )
     return AxisDecode(code.axis, u, reasons, sharp, int(n_edges))
 
 
@@ -217,6 +221,10 @@ def decode(
                 np.ascontiguousarray(mod.T),
                 params,
             )
-            u, reasons, sharp = (np.ascontiguousarray(a.T) for a in (ad.u, ad.reasons, ad.sharpness))
-            axes[code.axis] = AxisDecode("rows", u, reasons, sharp)
+            axes[code.axis] = AxisDecode(
+                "rows",
+                np.ascontiguousarray(ad.u.T),
+                np.ascontiguousarray(ad.reasons.T),
+                np.ascontiguousarray(ad.sharpness.T),
+            )
     return Decoded(axes, contrast, mod)

@@ -151,7 +151,7 @@ def _assemble(codec: Codec, width: int, height: int, codes: list[AxisCode]) -> P
 def _axes(direction: Direction) -> list[Axis]:
     if direction not in ("columns", "rows", "both"):
         raise ConfigError(f"direction '{direction}': use columns, rows or both")
-    return ["columns", "rows"] if direction == "both" else [direction]  # type: ignore[list-item]
+    return ["columns", "rows"] if direction == "both" else [direction]
 
 
 def gcls_patterns(

@@ -38,7 +38,9 @@ def ball_bar(a: BallBarArtefact) -> trimesh.Trimesh:
     bar = trimesh.creation.cylinder(radius=a.bar_diameter_mm / 2, height=bar_len, sections=48)
     bar.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (0, 1, 0)))
     bar.apply_translation(((d1 - d2) / 8, 0, 0))
-    return trimesh.util.concatenate([s1, s2, bar])
+    joined = trimesh.util.concatenate([s1, s2, bar])
+    assert isinstance(joined, trimesh.Trimesh)  # meshes concatenate to a mesh
+    return joined
 
 
 def plane(a: PlaneArtefact) -> trimesh.Trimesh:

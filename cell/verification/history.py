@@ -97,7 +97,7 @@ def drift_warnings(
     if not entries:
         return out
     for k in FIGURES:
-        series = [e.figures_mm[k] for e in entries[-window:] if e.figures_mm[k] is not None]
+        series = [f for e in entries[-window:] if (f := e.figures_mm[k]) is not None]
         if not series:
             continue
         now, mpe = abs(series[-1]), mpe_mm[k]

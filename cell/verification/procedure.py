@@ -21,6 +21,7 @@ from cell.geometry import invert, look_at, transform_points
 from cell.verification.certificate import BallBarArtefact, Certificate, PlaneArtefact
 from cell.verification.figures import (
     OUTLIER_FRACTION,
+    SphereFit,
     fit_plane,
     fit_sphere,
     flatness,
@@ -112,7 +113,7 @@ def evaluate_ball_bar(
     res = PositionResult("", "ball_bar", n_points=0)
     L = bar.centre_distance_mm
     centres = transform_points(T_C_A, np.array([[-L / 2, 0, 0], [L / 2, 0, 0]]))
-    fits = []
+    fits: list[SphereFit] = []
     # twice: first around the expected centres with a wide gate, then around the first fit with a narrow one
     for gate, clearance in ((COARSE_GATE_MM, COARSE_GATE_MM / 2), (FINE_GATE_MM, BAR_CLEARANCE_MM)):
         axis = (centres[1] - centres[0]) / np.linalg.norm(centres[1] - centres[0])

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import cv2
 import numpy as np
@@ -66,7 +67,7 @@ class SteppedReferenceBoard:
     def renderer(self, height_mm: float, part_W: trimesh.Trimesh | None = None) -> SceneRenderer:
         """Renderer of the board at step height ``height_mm`` (optionally with ``part_W`` standing on it)."""
         board = reference_board_mesh(BOARD_BASE_Z_MM + height_mm)
-        mesh = board if part_W is None else trimesh.util.concatenate([board, part_W])
+        mesh = board if part_W is None else cast(trimesh.Trimesh, trimesh.util.concatenate([board, part_W]))
         return SceneRenderer(self.sensor, self.sim, Scene.from_meshes(mesh, self.sim, self.material))
 
     def capture(
@@ -165,14 +166,19 @@ def render_textured_board_stack(
             )
         lin = lut[pat]
         if p_sigma > 0.3:
-            lin = cv2.GaussianBlur(lin, (0, 0), p_sigma, borderType=cv2.BORDER_REPLICATE)
-        lit = cv2.remap(
-            lin,
-            uv[..., 0],
-            uv[..., 1],
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=float(proj.black_level),
+            lin = np.asarray(
+                cv2.GaussianBlur(lin, (0, 0), p_sigma, borderType=cv2.BORDER_REPLICATE), np.float32
+            )
+        lit = np.asarray(
+            cv2.remap(
+                lin,
+                uv[..., 0],
+                uv[..., 1],
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=float(proj.black_level),
+            ),
+            np.float32,
         )
         out.append(view.image(lit, rng, exposure_ms))
     return np.stack(out)
@@ -312,14 +318,19 @@ class TexturedBoardRenderer:
         )
         lin = lut[np.asarray(pattern)]
         if p_sigma > 0.3:
-            lin = cv2.GaussianBlur(lin, (0, 0), p_sigma, borderType=cv2.BORDER_REPLICATE)
-        lit = cv2.remap(
-            lin,
-            uv[..., 0],
-            uv[..., 1],
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=float(proj.black_level),
+            lin = np.asarray(
+                cv2.GaussianBlur(lin, (0, 0), p_sigma, borderType=cv2.BORDER_REPLICATE), np.float32
+            )
+        lit = np.asarray(
+            cv2.remap(
+                lin,
+                uv[..., 0],
+                uv[..., 1],
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=float(proj.black_level),
+            ),
+            np.float32,
         )
         rate = view.albedo * (self.sim.ambient_e_per_ms + view.proj_rate * lit)
         signal = (rate * np.float32(exposure_ms)).astype(np.float32)

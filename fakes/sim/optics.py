@@ -41,9 +41,9 @@ def _pixel_rays(
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pts = np.stack([u, v], axis=-1).reshape(-1, 1, 2)
     if any(dist):
-        xy = cv2.undistortPoints(pts, K, np.asarray(dist), None, None, None, _UNDISTORT_CRITERIA).reshape(
-            -1, 2
-        )
+        xy = np.asarray(
+            cv2.undistortPoints(pts, K, np.asarray(dist), None, None, None, _UNDISTORT_CRITERIA), np.float64
+        ).reshape(-1, 2)
     else:
         xy = (pts.reshape(-1, 2) - (cx, cy)) / (fx, fy)
     rays = np.column_stack([xy, np.ones(len(xy))])

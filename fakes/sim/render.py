@@ -99,13 +99,20 @@ def _apply_layers(
 ) -> NDArray[np.float32]:
     """Sum over levels of weight * sample(blur(image, sigma)); ``sample`` maps a blurred image to the output
     grid (identity by default)."""
-    out = None
+    out: NDArray[np.float32] | None = None
     for sigma, w in zip(layers.sigmas, layers.weights, strict=True):
-        src = image if sigma == 0 else cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+        src = (
+            image
+            if sigma == 0
+            else np.asarray(
+                cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE), np.float32
+            )
+        )
         img = sample(src) if sample is not None else src
         if w is not None:
             img = img * w
-        out = img if out is None else cv2.add(out, img)
+        out = img if out is None else np.asarray(cv2.add(out, img), np.float32)
+    assert out is not None  # every blur has at least one level
     return out
 
 
@@ -115,7 +122,7 @@ def standard_normal_image(shape: tuple[int, ...], rng: np.random.Generator) -> N
     every call, so the images depend only on the caller's seed."""
     cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
     out = np.empty(shape, dtype=np.float32)
-    cv2.randn(out, 0.0, 1.0)
+    cv2.randn(out, 0.0, 1.0)  # type: ignore[call-overload]  # OpenCV's stubs lack its scalar mean and stddev
     return out
 
 
@@ -289,8 +296,11 @@ class SceneRenderer:
         lin = self._lut[pattern]
 
         def sample(src: NDArray[np.float32]) -> NDArray[np.float32]:
-            return cv2.remap(
-                src, v.map_x, v.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+            return np.asarray(
+                cv2.remap(
+                    src, v.map_x, v.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+                ),
+                np.float32,
             )
 
         p = _apply_layers(lin, v.projector_blur, sample)
@@ -314,8 +324,9 @@ class SceneRenderer:
         e = signal_e
         if rng is not None and self.sim.noise:
             noise = standard_normal_image(e.shape, rng)
-            std = cv2.sqrt(cv2.add(e, float(cam.read_noise_e) ** 2))
-            e = cv2.add(e, cv2.multiply(noise, std))
+            # OpenCV's stubs lack its array-and-scalar overload of add
+            std = cv2.sqrt(cv2.add(e, float(cam.read_noise_e) ** 2))  # type: ignore[call-overload]
+            e = np.asarray(cv2.add(e, cv2.multiply(noise, std)), np.float32)
         dn_per_e = 10 ** (gain_db / 20) * top / cam.full_well_e
         dn = np.clip(e, 0.0, cam.full_well_e) * np.float32(dn_per_e) + np.float32(cam.dark_offset_dn)
         np.clip(dn, 0.0, top, out=dn)
