@@ -6,6 +6,7 @@ procedures as the online routines (:mod:`cell.calibration.intrinsics`, :mod:`cel
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,7 @@ from cell.calibration.store import config_lines, load_calibration, load_metadata
 from cell.config import CameraConfig, CellConfig, ProjectorConfig, load_cell_config
 from cell.errors import CalibrationError, ConfigError
 from cell.runs import RunFolder, write_json_atomic
-from cell.sensing.sim_scan import masks_image, write_ply
+from cell.sensing.scan import masks_image, write_ply
 from cell.sensing.triangulate import SensorCloud, Triangulator
 
 
@@ -281,7 +282,8 @@ def calibrate_from_folder(
 
 def write_folder_scan(cfg: CellConfig, source: Path, out: Path) -> dict[str, Any]:
     """Body of ``cell scan --from SOURCE``: every pose measured with the cell's active calibration; writes
-    ``<pose>.ply`` (camera frame, mm) and ``<pose>_masks.png`` into ``out``; returns the scan.json content."""
+    ``<pose>.ply`` (camera frame, mm), ``<pose>_masks.png`` and ``scan.json`` into ``out``; returns the
+    scan.json content."""
     folder = load_capture_folder(source)
     sensor = active_sensor_config(cfg)
     clouds = scan_folder(folder, active_triangulator(cfg), sensor.camera, sensor.projector)
@@ -291,4 +293,10 @@ def write_folder_scan(cfg: CellConfig, source: Path, out: Path) -> dict[str, Any
         write_ply(out / f"{name}.ply", cloud.points_C[cloud.valid])
         cv2.imwrite(str(out / f"{name}_masks.png"), masks_image(cloud))
         poses[name] = {"points": int(cloud.valid.sum()), "frame": "camera {C}, mm"}
-    return {"source": str(Path(source).resolve()), "geometry_source": calibration_source(cfg), "poses": poses}
+    summary = {
+        "source": str(Path(source).resolve()),
+        "geometry_source": calibration_source(cfg),
+        "poses": poses,
+    }
+    (out / "scan.json").write_text(json.dumps(summary, indent=2))
+    return summary
