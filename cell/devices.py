@@ -8,15 +8,25 @@ missing or broken hardware library only matters when its driver is configured.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import trimesh
 
-from cell.config import CellConfig, MaterialConfig
-from cell.contracts import BoardStage, Camera, Projector, Robot
+from cell.config import CameraConfig, CellConfig, MaterialConfig
+from cell.contracts import (
+    BoardStage,
+    Camera,
+    CameraSettings,
+    PixelFormat,
+    Projector,
+    ProjectorSource,
+    Robot,
+    TriggerMode,
+)
 from cell.errors import ConfigError
 
 # (device kind, driver name) -> "module:Class". Sim devices are not listed: they share one simulated world
@@ -142,6 +152,109 @@ def build_devices(
         stage = OperatorBoardStage()
         names["stage"] = stage.name
     return DeviceBundle(robot=robot, camera=camera, projector=projector, names=names, stage=stage)
+
+
+@dataclass
+class DeviceCheck:
+    """One device of :func:`check_devices`: its name, kind, driver, and a line of status (connected) or the
+    error that stopped it."""
+
+    name: str
+    kind: str
+    driver: str
+    status: str = ""
+    error: Exception | None = None
+
+
+def describe(device: Any) -> str:
+    """One line of status for a connected device, read through its contract."""
+    if isinstance(device, Robot):
+        state = device.state()
+        x, y, z = device.tool_pose()[:3, 3]
+        stops = [
+            n
+            for n, on in (("protective stop", state.protective_stop), ("E-stop", state.emergency_stop))
+            if on
+        ]
+        return f"mode {state.mode.value}; flange at ({x:.1f}, {y:.1f}, {z:.1f}) mm" + (
+            f"; {', '.join(stops)}" if stops else ""
+        )
+    if isinstance(device, Projector):
+        s = device.status()
+        w, h = device.resolution
+        errors = f"; errors: {', '.join(s.errors)}" if s.errors else ""
+        return (
+            f"{w}x{h}; power {'on' if s.powered else 'off'}; source {s.source.value}; "
+            f"lamp {s.lamp_hours:.0f} h; {s.temperature_c:.0f} C{errors}"
+        )
+    if isinstance(device, Camera):
+        w, h = device.resolution
+        return f"{device.model}, serial {device.serial}, {w}x{h}"
+    return type(device).__name__
+
+
+def check_devices(cfg: CellConfig) -> list[DeviceCheck]:
+    """Connect each device of ``cfg``, describe it, close them all: a failing device is reported, not
+    raised, so that one check shows every device."""
+    bundle = build_devices(cfg)
+    drivers = {
+        "robot": cfg.robot.driver,
+        "camera": cfg.sensor.camera.driver,
+        "projector": cfg.sensor.projector.driver,
+    }
+    checks = []
+    for kind, device in bundle.items():
+        check = DeviceCheck(bundle.names[kind], kind, drivers[kind])
+        try:
+            device.connect()
+            check.status = describe(device)
+        except Exception as exc:  # any failure is reported per device
+            check.error = exc
+        checks.append(check)
+    for _, device in bundle.items():
+        try:
+            device.close()
+        except Exception:  # closing a device that failed to connect must not hide the report
+            pass
+    return checks
+
+
+@contextmanager
+def ready_to_capture(devices: DeviceBundle, camera: CameraConfig) -> Iterator[CameraSettings]:
+    """Every device connected, the projector on at its HDMI input and the camera set to ``camera``'s exposure,
+    gain and bit depth with a software trigger, for a command that captures outside the controller (a
+    scan, a latency measurement). Yields the settings the camera took; closes every device on the way out."""
+    try:
+        for _, device in devices.items():
+            device.connect()
+        devices.projector.set_power(True)
+        devices.projector.set_source(ProjectorSource.HDMI)
+        yield devices.camera.configure(
+            CameraSettings(
+                camera.exposure_ms,
+                camera.gain_db,
+                PixelFormat(f"Mono{camera.bit_depth}"),
+                TriggerMode.SOFTWARE,
+            )
+        )
+    finally:
+        for _, device in reversed(devices.items()):
+            device.close()
+
+
+def record_devices(devices: DeviceBundle) -> DeviceBundle:
+    """The same cell with every device call recorded (drivers.recording), for :func:`save_recording`."""
+    from drivers.recording import record_bundle
+
+    return record_bundle(devices)
+
+
+def save_recording(devices: DeviceBundle, out: Path, cell_config: dict[str, Any]) -> Path:
+    """Write the calls :func:`record_devices` recorded as replay fixtures under ``out``, with a ``cell.yaml``
+    (``cell_config`` with every driver set to ``replay``) that runs them again; returns the folder."""
+    from drivers.recording import save_bundle
+
+    return save_bundle(devices, out, cell_config)
 
 
 # artefact stages for verification (cell.verification.stage.ArtefactStage): a simulated cell's stage puts the

@@ -30,11 +30,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from cell.errors import ConfigError
 
 INDEX_NAME = "index.sqlite"
+RUNS_ROOT = Path(__file__).resolve().parents[1] / "runs"  # the default runs root: runs/ in the repository
 LOCK_NAME = "run.lock"
 
 
@@ -60,6 +59,8 @@ def _alive(pid: int, start: str | None) -> bool:
 
 
 def _json_default(value: Any) -> Any:
+    import numpy as np  # here, not at the top: a command that only names the runs root stays light
+
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, (np.floating, np.integer, np.bool_)):

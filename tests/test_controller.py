@@ -16,12 +16,12 @@ import pytest
 import trimesh
 import yaml
 
-from cell.commands.plan import load_part_W
 from cell.config import load_recipe
 from cell.controller import Controller, ControllerSettings
 from cell.devices import DeviceBundle, build_devices
 from cell.errors import ConfigError
 from cell.inspection import LambertianInspection, inspection_controller
+from cell.mesh import load_part_W
 from cell.runs import RunFolder
 from tests.box_part import small_cell, write_box_recipe
 from tests.same_result import assert_same_result

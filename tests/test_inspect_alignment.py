@@ -17,9 +17,9 @@ import pytest
 import trimesh
 import yaml
 
-from cell.commands.inspect import _load_run_inputs
 from cell.geometry import transform_points
 from cell.inspection import LambertianInspection
+from cell.inspection_run import load_run_inputs
 from cell.mesh import load_mesh
 from cell.runs import RunFolder
 from fakes.sim.world import build_world, place_about
@@ -108,7 +108,7 @@ def test_good_pillar_off_its_fixture_fails_everywhere_with_kinematic_alignment(
     kin_run = tmp_path / "kinematic"
     shutil.copytree(good_run, kin_run)
     run = RunFolder.open(kin_run)
-    recipe, cfg, _ = _load_run_inputs(run)
+    recipe, cfg, _ = load_run_inputs(run)
     recipe.alignment = recipe.alignment.model_copy(update={"method": "kinematic"})
     nominal_W = load_mesh(recipe.part.cad)
     job = LambertianInspection(recipe, cfg, nominal_W)

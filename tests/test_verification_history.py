@@ -89,9 +89,9 @@ def test_a_failed_check_blocks_inspections_until_one_passes(tmp_path) -> None:  
 
     import yaml
 
-    from cell.commands.inspect import _start_run
     from cell.config import load_cell_config
     from cell.errors import ConfigError
+    from cell.inspection_run import start_run
 
     repo = Path(__file__).resolve().parent.parent
     cell = repo / "recipes" / "cells" / "sim_binned.yaml"
@@ -111,17 +111,17 @@ def test_a_failed_check_blocks_inspections_until_one_passes(tmp_path) -> None:  
     with pytest.raises(
         ConfigError, match=r"failed its last verification \(check.*SD 31.0 um.*cell verify check"
     ):
-        _start_run(recipe, cell, tmp_path / "run-1", None)
+        start_run(recipe, cell, tmp_path / "run-1", None)
     assert not (tmp_path / "run-1").exists()  # refused before anything was written
 
     data = yaml.safe_load(cell.read_text())
     data.setdefault("verification", {})["block_inspections"] = False
     unblocked = tmp_path / "unblocked.yaml"
     unblocked.write_text(yaml.safe_dump(data))
-    assert _start_run(recipe, unblocked, tmp_path / "run-2", None).path.is_dir()
+    assert start_run(recipe, unblocked, tmp_path / "run-2", None).path.is_dir()
 
     passed = AcceptanceResult(
         name, "nominal", {}, MPE, [], figures_mm=dict(failed.figures_mm), verdict="pass"
     )
     history.add(tmp_path / "check-2", "check", passed, time="2026-11-02T07:00:00+00:00")
-    assert _start_run(recipe, cell, tmp_path / "run-3", None).path.is_dir()
+    assert start_run(recipe, cell, tmp_path / "run-3", None).path.is_dir()

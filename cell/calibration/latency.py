@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from cell.config import ProjectorConfig
+from cell.config import CellConfig, ProjectorConfig
 from cell.contracts import Camera, Projector, TimedProjector
 from cell.errors import CalibrationError, ConfigError, DeviceFault
 
@@ -108,6 +108,30 @@ def measure_latency(
         float(np.mean(estimates)),
         float(np.ptp(estimates)) if len(estimates) else 0.0,
     )
+
+
+def calibrate_latency(
+    cfg: CellConfig, out: Path, *, max_frames: float = 8.0, steps_per_frame: int = 4, force: bool = False
+) -> tuple[Path, dict[str, Any]]:
+    """``cell calibrate latency``: measure the display latency on ``cfg``'s devices (the robot is not moved)
+    and save it as ``out/latency.yaml`` (an existing one is replaced only with ``force``); returns (the file,
+    its metadata)."""
+    from cell.calibration.store import save_calibration
+    from cell.devices import build_devices, ready_to_capture
+
+    devices = build_devices(cfg)
+    with ready_to_capture(devices, cfg.sensor.camera) as settings:
+        m = measure_latency(
+            devices.camera,
+            devices.projector,
+            exposure_ms=settings.exposure_ms,
+            max_frames=max_frames,
+            steps_per_frame=steps_per_frame,
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    meta = latency_meta(m, cfg.sensor.projector)
+    arrays = {"delays_s": m.delays_s, "white_share": m.white_share}
+    return save_calibration(out / "latency", KIND, arrays, meta, force=force), meta
 
 
 def latency_meta(m: LatencyMeasurement, projector: ProjectorConfig) -> dict[str, Any]:

@@ -6,6 +6,7 @@ procedures as the online routines (:mod:`cell.calibration.intrinsics`, :mod:`cel
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -14,14 +15,15 @@ import cv2
 from numpy.typing import NDArray
 
 from cell.calibration.active import active_sensor_config, active_triangulator, calibration_source
-from cell.calibration.capture_folder import CaptureFolder, load_capture_folder
+from cell.calibration.capture_folder import MANIFEST, CaptureFolder, load_capture_folder
 from cell.calibration.intrinsics import CharucoView, Intrinsics, calibrate_intrinsics
 from cell.calibration.projector import ProjectorCalibration, calibrate_projector, corners_in_projector
 from cell.calibration.sensor import SensorCalibration, SensorCalibrator, save_sensor_calibration
-from cell.calibration.store import load_calibration, load_metadata, save_calibration
+from cell.calibration.store import config_lines, load_calibration, load_metadata, save_calibration
 from cell.config import CameraConfig, CellConfig, ProjectorConfig, load_cell_config
 from cell.errors import CalibrationError, ConfigError
-from cell.sensing.sim_scan import masks_image, write_ply
+from cell.runs import RunFolder, write_json_atomic
+from cell.sensing.scan import masks_image, write_ply
 from cell.sensing.triangulate import SensorCloud, Triangulator
 
 
@@ -259,9 +261,32 @@ def run_offline(
     raise ConfigError(f"no offline routine '{routine}'; use intrinsics, projector or sensor")
 
 
+def calibrate_from_folder(
+    routine: str, source: Path, out: Path, cell: Path, **options: Any
+) -> dict[str, Any]:
+    """``cell calibrate intrinsics|projector|sensor --from SOURCE``: :func:`run_offline` in the run folder
+    ``out`` (made, or reopened to calibrate again), with the cell config and the capture folder's manifest
+    copied into its inputs. Writes and returns ``calibration.json``: kind, file, source, the figures
+    (``summary``) and the lines for the cell config."""
+    folder = load_capture_folder(source)  # checked before the run folder is made
+    if (out / "journal.jsonl").exists():
+        run = RunFolder.open(out)
+    else:
+        run = RunFolder.create(out.parent, "calibration", name=out.name)
+    run.copy_input(cell, "cell.yaml")
+    run.copy_input(source / MANIFEST, MANIFEST)
+    kind, path, figs = run_offline(routine, folder, run.path, cell, **options)
+    report = {"kind": kind, "file": str(path), "source": str(source), "summary": figs}
+    report["cell_config_lines"] = config_lines(kind, path)
+    write_json_atomic(run.path / "calibration.json", report)
+    run.log("done", report="calibration.json")
+    return report
+
+
 def write_folder_scan(cfg: CellConfig, source: Path, out: Path) -> dict[str, Any]:
     """Body of ``cell scan --from SOURCE``: every pose measured with the cell's active calibration; writes
-    ``<pose>.ply`` (camera frame, mm) and ``<pose>_masks.png`` into ``out``; returns the scan.json content."""
+    ``<pose>.ply`` (camera frame, mm), ``<pose>_masks.png`` and ``scan.json`` into ``out``; returns the
+    scan.json content."""
     folder = load_capture_folder(source)
     sensor = active_sensor_config(cfg)
     clouds = scan_folder(folder, active_triangulator(cfg), sensor.camera, sensor.projector)
@@ -271,4 +296,10 @@ def write_folder_scan(cfg: CellConfig, source: Path, out: Path) -> dict[str, Any
         write_ply(out / f"{name}.ply", cloud.points_C[cloud.valid])
         cv2.imwrite(str(out / f"{name}_masks.png"), masks_image(cloud))
         poses[name] = {"points": int(cloud.valid.sum()), "frame": "camera {C}, mm"}
-    return {"source": str(Path(source).resolve()), "geometry_source": calibration_source(cfg), "poses": poses}
+    summary = {
+        "source": str(Path(source).resolve()),
+        "geometry_source": calibration_source(cfg),
+        "poses": poses,
+    }
+    (out / "scan.json").write_text(json.dumps(summary, indent=2))
+    return summary

@@ -748,6 +748,42 @@ def run_routine(
     return json.loads((run.path / job.result_file).read_text())
 
 
+def handeye_job(
+    cfg: CellConfig, method: str = "icp", *, views: int = 12, force: bool = False, seed: int = 1
+) -> CalibrationJob:
+    """The hand-eye routine by ``method``: ICP of gauge scans against its CAD (``icp``) or AX = XB from
+    ``views`` board poses (``tsai``, ``park``, ``daniilidis``)."""
+    if method == "icp":
+        return HandEyeIcpJob(cfg, force=force, seed=seed)
+    if method in ("tsai", "park", "daniilidis"):
+        return HandEyeBoardJob(cfg, views=views, method=method, force=force, seed=seed)
+    raise ConfigError(
+        f"unknown hand-eye method '{method}': use icp, tsai, park or daniilidis", field="method"
+    )
+
+
+def run_validation(
+    cell: Path,
+    out: Path,
+    calibration: Path | None = None,
+    gauge: Path | None = None,
+    *,
+    seed: int = 2,
+    **options: Any,
+) -> dict[str, Any]:
+    """:class:`ValidateJob` of ``cell`` (``options``: its heights and sphere radius) run into ``out``, with
+    the sensor ``calibration`` instead of the cell's active one when given, and the slot gauge's certificate
+    ``gauge`` (default :data:`GAUGE_CERTIFICATE`) copied into the run; returns validation.json."""
+    cfg = load_cell_config(cell)
+    if calibration is not None:
+        if not calibration.is_file():
+            raise ConfigError("sensor calibration file not found; check the path", path=str(calibration))
+        cfg.calibration.sensor = calibration.resolve()
+    gauge = gauge or GAUGE_CERTIFICATE
+    job = ValidateJob(cfg, seed=seed, gauge_certificate=gauge, **options)
+    return run_routine(job, out, cell, seed=seed, inputs={"gauge.certificate.yaml": gauge})
+
+
 ALL_STEPS = ("intrinsics", "projector", "kinematics", "validate")
 FIELD = {
     "intrinsics": "intrinsics",

@@ -22,6 +22,23 @@ from cell.errors import CalibrationError, ConfigError
 from cell.runs import write_atomic
 
 FORMAT_VERSION = 1
+# calibration kind -> the field of the cell config's ``calibration:`` section that takes such a file
+CONFIG_FIELDS = {
+    "camera_intrinsics": "intrinsics",
+    "projector": "projector",
+    "projector_gamma": "gamma",
+    "sensor_per_pixel": "sensor",
+    "hand_eye": "hand_eye",
+    "display_latency": "latency",
+}
+
+
+def config_lines(kind: str, path: str | Path) -> str | None:
+    """The cell config lines that put calibration file ``path`` of ``kind`` to use, or None for a kind no
+    single field takes (validation, kinematics with their hand-eye): routines print them, never edit the
+    config themselves."""
+    field = CONFIG_FIELDS.get(kind)
+    return None if field is None else f"calibration:\n  {field}: {Path(path).resolve()}"
 
 
 def _nested(d: dict[str, Any], key: str) -> float | None:

@@ -1,8 +1,12 @@
-"""``cell calibrate sensor|intrinsics|projector|gamma|handeye|validate|all``: argument parsing for the
-technician's routines (cell.calibration.routines), which run under the controller on the configured cell's
-devices and board stage. Each writes a run folder ``--out`` (journal, checkpoint, views, ``calibration.json``
-or ``validation.json``) and prints the lines to put into the cell config; it never edits the config itself.
-Running a command again on an unfinished ``--out`` resumes it."""
+"""``cell calibrate ...``: argument parsing for the technician's routines (cell.calibration.routines), which
+run under the controller on the configured cell's devices and board stage, or, with ``--from``, on a capture
+folder (cell.calibration.offline). Each writes a run folder ``--out`` (journal, checkpoint, views,
+``calibration.json`` or ``validation.json``) and prints the lines to put into the cell config; it never edits
+the config itself. Running a command again on an unfinished ``--out`` resumes it.
+
+This module holds the group, the sensor routines (sensor, intrinsics, projector, gamma) and what the other
+modules of the group share; cell/commands/calibrate_cell.py adds handeye, kinematics, validate and all,
+cell/commands/latency.py adds latency."""
 
 from __future__ import annotations
 
@@ -27,52 +31,32 @@ FromOpt = typer.Option(
     "--from",
     help="capture folder of images taken elsewhere (docs/capture-folders.md); no device is used",
 )
-FIELDS = {
-    "camera_intrinsics": "intrinsics",
-    "projector": "projector",
-    "projector_gamma": "gamma",
-    "sensor_per_pixel": "sensor",
-    "hand_eye": "hand_eye",
-}
 
 
-def _run(job: Any, out: Path, cell: Path, seed: int, inputs: dict[str, Path] | None = None) -> None:
-    from cell.calibration.routines import run_routine
+def print_result(result: dict[str, Any]) -> None:
+    """A routine's figures, and the cell config lines that use its calibration file (if a field takes it)."""
+    from cell.calibration.store import config_lines
 
-    result = run_routine(job, out, cell, seed=seed, inputs=inputs)
     typer.echo(json.dumps(result.get("summary", result), indent=2, default=str))
-    field = FIELDS.get(result.get("kind", ""))
-    if field:
+    lines = config_lines(result.get("kind", ""), result.get("file", ""))
+    if lines:
         typer.echo(
             "\nTo use it, put this into the cell config (paths may be made relative to the cell file):\n"
-            f"calibration:\n  {field}: {Path(result['file']).resolve()}"
+            + lines
         )
 
 
-def _offline(routine: str, source: Path, out: Path, cell: Path, **kw: Any) -> None:
-    """``--from SOURCE``: the routine on a capture folder (cell.calibration.offline), no device involved."""
-    from cell.calibration.capture_folder import MANIFEST, load_capture_folder
-    from cell.calibration.offline import run_offline
-    from cell.runs import RunFolder, write_json_atomic
+def run(job: Any, out: Path, cell: Path, seed: int) -> None:
+    """Run the routine ``job`` into ``out`` (cell.calibration.routines.run_routine) and print its result."""
+    from cell.calibration.routines import run_routine
 
-    folder = load_capture_folder(source)  # checked before the run folder is made
-    if (out / "journal.jsonl").exists():
-        run = RunFolder.open(out)
-    else:
-        run = RunFolder.create(out.parent, "calibration", name=out.name)
-    run.copy_input(cell, "cell.yaml")
-    run.copy_input(source / MANIFEST, MANIFEST)
-    kind, path, figs = run_offline(routine, folder, run.path, cell, **kw)
-    report = {"kind": kind, "file": str(path), "source": str(source), "summary": figs}
-    field = FIELDS.get(kind, kind)
-    report["cell_config_lines"] = f"calibration:\n  {field}: {Path(path).resolve()}"
-    write_json_atomic(run.path / "calibration.json", report)
-    run.log("done", report="calibration.json")
-    typer.echo(json.dumps(figs, indent=2, default=str))
-    typer.echo(
-        "\nTo use it, put this into the cell config (paths may be made relative to the cell file):\n"
-        + report["cell_config_lines"]
-    )
+    print_result(run_routine(job, out, cell, seed=seed))
+
+
+def _offline(routine: str, source: Path, out: Path, cell: Path, **options: Any) -> None:
+    from cell.calibration.offline import calibrate_from_folder
+
+    print_result(calibrate_from_folder(routine, source, out, cell, **options))
 
 
 @calibrate_app.command("sensor")
@@ -92,10 +76,8 @@ def sensor_cmd(
         return _offline("sensor", source, out, cell, force=force, points=points)
     from cell.calibration.routines import SensorJob
 
-    job = SensorJob(
-        load_cell_config(cell), steps=steps, step_mm=step_mm, points=points, force=force, seed=seed
-    )
-    _run(job, out, cell, seed)
+    cfg = load_cell_config(cell)
+    run(SensorJob(cfg, steps=steps, step_mm=step_mm, points=points, force=force, seed=seed), out, cell, seed)
 
 
 @calibrate_app.command("intrinsics")
@@ -112,7 +94,7 @@ def intrinsics_cmd(
         return _offline("intrinsics", source, out, cell, force=force)
     from cell.calibration.routines import IntrinsicsJob
 
-    _run(IntrinsicsJob(load_cell_config(cell), views=views, force=force, seed=seed), out, cell, seed)
+    run(IntrinsicsJob(load_cell_config(cell), views=views, force=force, seed=seed), out, cell, seed)
 
 
 @calibrate_app.command("projector")
@@ -133,7 +115,7 @@ def projector_cmd(
     from cell.calibration.routines import ProjectorJob
 
     job = ProjectorJob(load_cell_config(cell), views=views, intrinsics=intrinsics, force=force, seed=seed)
-    _run(job, out, cell, seed)
+    run(job, out, cell, seed)
 
 
 @calibrate_app.command("gamma")
@@ -147,111 +129,13 @@ def gamma_cmd(
     """Projector response: uniform grey levels on the white board; writes the linearising LUT."""
     from cell.calibration.routines import GammaJob
 
-    _run(GammaJob(load_cell_config(cell), levels=levels, force=force, seed=seed), out, cell, seed)
-
-
-@calibrate_app.command("handeye")
-def handeye_cmd(
-    cell: Path = CellOpt,
-    out: Path = OutOpt,
-    method: str = typer.Option(
-        "icp", help="icp (gauge scans, dissertation 4.1.3) or tsai|park|daniilidis (board poses)"
-    ),
-    views: int = typer.Option(12, min=3, help="robot poses for the board methods"),
-    force: bool = ForceOpt,
-    seed: int = 1,
-) -> None:
-    """Hand-eye T_T_C: ICP of gauge scans against its CAD from the mounting drawing, or AX = XB from board
-    poses."""
-    from cell.calibration.routines import HandEyeBoardJob, HandEyeIcpJob
-    from cell.errors import ConfigError
-
-    cfg = load_cell_config(cell)
-    if method == "icp":
-        job: Any = HandEyeIcpJob(cfg, force=force, seed=seed)
-    elif method in ("tsai", "park", "daniilidis"):
-        job = HandEyeBoardJob(cfg, views=views, method=method, force=force, seed=seed)
-    else:
-        raise ConfigError(
-            f"unknown hand-eye method '{method}': use icp, tsai, park or daniilidis", field="method"
-        )
-    _run(job, out, cell, seed)
-
-
-@calibrate_app.command("kinematics")
-def kinematics_cmd(
-    cell: Path = CellOpt,
-    out: Path = OutOpt,
-    views: int = typer.Option(24, min=8, help="robot poses looking at the still board"),
-    force: bool = ForceOpt,
-    seed: int = 1,
-) -> None:
-    """The robot's link-length and joint-zero errors with the hand-eye, from board views (writes
-    OUT/kinematics.yaml and the hand-eye found with it, OUT/handeye.yaml; set both in the cell config)."""
-    from cell.calibration.routines import KinematicsJob
-
-    _run(KinematicsJob(load_cell_config(cell), views=views, force=force, seed=seed), out, cell, seed)
-
-
-@calibrate_app.command("validate")
-def validate_cmd(
-    calibration: Path | None = typer.Argument(None, help="a sensor calibration (.yaml) to validate instead"),
-    cell: Path = CellOpt,
-    out: Path = OutOpt,
-    height_mm: float = typer.Option(12.5, help="the flat board's height above the reference plane (mm)"),
-    sphere_radius_mm: float = typer.Option(12.5, min=1.0, help="radius of the sphere of the sphere test"),
-    gauge: Path = typer.Option(
-        None,
-        "--gauge",
-        help="the slot gauge's certificate (YAML; default recipes/parts/gauge.certificate.yaml)",
-    ),
-    gauge_height_mm: float = typer.Option(15.0, help="the gauge's top above the reference plane (mm)"),
-    seed: int = typer.Option(2, help="simulated cells: the camera noise seed"),
-) -> None:
-    """The flat board at --height-mm above the reference plane, a sphere of known radius and the slot gauge
-    on the stage, measured with the cell's active calibration (or CALIBRATION): plane height error and
-    residual, the flat test (Table 5.1), sphere radius error and residual, slot depths against the gauge's
-    certificate (Fig 5.4)."""
-    from cell.calibration.routines import ValidateJob
-    from cell.errors import ConfigError
-
-    cfg = load_cell_config(cell)
-    if calibration is not None:
-        if not calibration.is_file():
-            raise ConfigError("sensor calibration file not found; check the path", path=str(calibration))
-        cfg.calibration.sensor = calibration.resolve()
-    from cell.calibration.procedures import GAUGE_CERTIFICATE
-
-    gauge = gauge or GAUGE_CERTIFICATE
-    job = ValidateJob(
-        cfg,
-        height_mm=height_mm,
-        sphere_radius_mm=sphere_radius_mm,
-        gauge_height_mm=gauge_height_mm,
-        seed=seed,
-        gauge_certificate=gauge,
-    )
-    _run(job, out, cell, seed, inputs={"gauge.certificate.yaml": gauge})
-
-
-@calibrate_app.command("all")
-def all_cmd(
-    cell: Path = CellOpt,
-    out: Path = OutOpt,
-    sensor: bool = typer.Option(False, "--sensor", help="also the per-pixel sensor model (31 board steps)"),
-    seed: int = 1,
-) -> None:
-    """Intrinsics, projector, robot kinematics with the hand-eye (board poses), optionally the per-pixel
-    sensor, then validation; writes OUT/cell.yaml that uses them."""
-    from cell.calibration.routines import calibrate_all
-
-    cell_out, summary = calibrate_all(cell, out, sensor=sensor, seed=seed, say=typer.echo)
-    typer.echo(json.dumps({k: v.get("summary", v) for k, v in summary.items()}, indent=2, default=str))
-    typer.echo(f"\nCalibrated cell config: {cell_out} (use it with --cell)")
+    run(GammaJob(load_cell_config(cell), levels=levels, force=force, seed=seed), out, cell, seed)
 
 
 def register(app: typer.Typer) -> None:
+    from cell.commands import calibrate_cell
     from cell.commands.latency import latency_cmd
 
+    calibrate_cell.add_to(calibrate_app)
     calibrate_app.command("latency")(latency_cmd)
     app.add_typer(calibrate_app, name="calibrate")

@@ -4,19 +4,8 @@ the cycle-time limit of its tour (motion + capture) with its breakdown."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import typer
-
-
-def __getattr__(name: str) -> Any:
-    """``load_part_W`` moved to :mod:`cell.mesh`; cell/commands/inspect.py and tests/test_controller.py still
-    import it from here (their owners switch at merge). Lazy, so that ``cell plan --help`` stays light."""
-    if name == "load_part_W":
-        from cell.mesh import load_part_W
-
-        return load_part_W
-    raise AttributeError(name)
 
 
 def plan_cmd(

@@ -2,18 +2,20 @@
 
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from cell.errors import ConfigError
 
-MODELS = ("pinhole", "reference")
+if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
 
 
-def _parse_pose(text: str):  # noqa: ANN202 - returns a 4x4 pose or None for auto
+def _parse_pose(text: str) -> NDArray[np.float64] | None:
+    """``--pose``: a camera pose T_W_C from x,y,z,rx,ry,rz, or None for 'auto'."""
     from cell.geometry import pose_from_xyz_rotvec
 
     if text == "auto":
@@ -49,27 +51,17 @@ def scan_cmd(
     ),
 ) -> None:
     """Scan MESH from one pose; write cloud.ply (world mm), masks.png and scan.json to OUT."""
-    from cell.config import DEFAULT_CELL, load_cell_config
-    from cell.sensing.sim_scan import run_sim_scan
+    from cell.config import DEFAULT_CELL
 
     if source is not None:  # images captured elsewhere, measured with the cell's active calibration
         from cell.calibration.offline import write_folder_scan
+        from cell.config import load_cell_config
 
         summary = write_folder_scan(load_cell_config(cell or DEFAULT_CELL), source, Path(out))
-        (Path(out) / "scan.json").write_text(json.dumps(summary, indent=2))
         return typer.echo(f"{len(summary['poses'])} poses -> {out}")
+    from cell.sensing.scan import scan_in_cell
 
-    if codec not in ("gcls", "gcps"):
-        raise ConfigError(f"--codec: unknown codec '{codec}'; use gcls or gcps", field="--codec")
-    if model not in MODELS:
-        raise ConfigError(f"--model: unknown model '{model}'; use {' or '.join(MODELS)}", field="--model")
-    cfg_path = cell or DEFAULT_CELL
-    cfg = load_cell_config(cfg_path)
-    t0 = time.perf_counter()
-    summary = run_sim_scan(cfg, part, _parse_pose(pose), codec, model, Path(out), seed=seed)
-    summary["cell_config"] = str(cfg_path)
-    summary["timings_s"]["total"] = time.perf_counter() - t0
-    (Path(out) / "scan.json").write_text(json.dumps(summary, indent=2))
+    summary = scan_in_cell(cell or DEFAULT_CELL, part, _parse_pose(pose), codec, model, Path(out), seed=seed)
     c = summary["counts"]
     counts = ", ".join(f"{k} {v}" for k, v in c.items() if k != "valid")
     typer.echo(f"{c['valid']} points -> {Path(out) / 'cloud.ply'} ({counts})")

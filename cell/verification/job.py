@@ -11,6 +11,7 @@ its views, so SD contains the robot's and the hand-eye's errors.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -233,3 +234,80 @@ class VerificationJob(CalibrationJob):
         write_json(run.path / self.result_file, result, self.certificate, note)
         write_html(run.path / "report.html", result, self.certificate, note)
         return {"kind": self.kind, "verdict": result.verdict}
+
+
+# ---------------------------------------------------------------------------------------------- running it
+def load_cell_and_certificate(
+    cell: Path | None, certificate: Path | None
+) -> tuple[Path, CellConfig, Path, Certificate]:
+    """(cell config path, cell config, certificate path, certificate): ``cell`` defaults to the simulated
+    cell, ``certificate`` to the cell's ``verification.certificate`` (relative to the cell file), else the
+    repository's."""
+    from cell.config import DEFAULT_CELL, load_cell_config
+    from cell.verification.certificate import DEFAULT_CERTIFICATE, load_certificate
+
+    cfg_path = cell or DEFAULT_CELL
+    cfg = load_cell_config(cfg_path)
+    cert_path = certificate or cfg.verification.certificate or DEFAULT_CERTIFICATE
+    if certificate is None and cfg.verification.certificate is not None and not Path(cert_path).is_absolute():
+        cert_path = Path(cfg_path).resolve().parent / cert_path
+    return cfg_path, cfg, Path(cert_path), load_certificate(cert_path)
+
+
+def run_verification(
+    job: VerificationJob,
+    out: Path,
+    cfg_path: Path,
+    cert_path: Path,
+    on_progress: Callable[[Any], None] | None = None,
+) -> AcceptanceResult:
+    """Run ``job`` into the run folder ``out`` under the controller (an unfinished one is resumed), the
+    certificate copied into its inputs; the result."""
+    from cell.calibration.routines import run_routine
+
+    doc = run_routine(
+        job, Path(out), cfg_path, on_progress=on_progress, inputs={"certificate.yaml": Path(cert_path)}
+    )
+    return AcceptanceResult.from_dict(doc)
+
+
+def acceptance_test(
+    cell: Path | None,
+    certificate: Path | None,
+    out: Path,
+    part: int = 2,
+    on_progress: Callable[[Any], None] | None = None,
+) -> AcceptanceResult:
+    """``cell verify acceptance``: the Part 2 or Part 3 acceptance test of ``cell`` into ``out``."""
+    cfg_path, cfg, cert_path, cert = load_cell_and_certificate(cell, certificate)
+    return run_verification(VerificationJob(cfg, cert, part=part), out, cfg_path, cert_path, on_progress)
+
+
+def interim_check(
+    cell: Path | None,
+    certificate: Path | None,
+    runs: Path,
+    on_progress: Callable[[Any], None] | None = None,
+) -> tuple[AcceptanceResult, Path, list[str]]:
+    """``cell verify check``: one ball-bar and one plane position into a new folder under ``runs``, added to
+    the verification history there; returns (the result, its folder, the drift warnings of this cell's
+    checks). A paused check is not resumed: RoutinePaused says to start a new one."""
+    from cell.errors import RoutinePaused
+    from cell.verification.history import VerificationHistory, drift_warnings
+    from cell.verification.procedure import check_positions
+
+    cfg_path, cfg, cert_path, cert = load_cell_and_certificate(cell, certificate)
+    note = "Interim check (one ball-bar and one plane position)."
+    job = VerificationJob(cfg, cert, positions=check_positions(cfg, cert), note=note, interim=True)
+    folder = Path(runs) / RunFolder.new_name("verify-check")
+    try:
+        result = run_verification(job, folder, cfg_path, cert_path, on_progress)
+    except RoutinePaused as exc:  # a check is short: start a new one rather than resume an old one
+        raise RoutinePaused(
+            f"interim check paused ({exc}); run `cell verify check` again for a new check"
+        ) from exc
+    history = VerificationHistory(runs)
+    history.add(folder, "check", result)
+    checks = [e for e in history.entries(cfg.name) if e.kind == "check"]
+    warnings = drift_warnings(checks, result.mpe_mm, warn_fraction=cfg.verification.warn_fraction)
+    return result, folder, list(warnings)

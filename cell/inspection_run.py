@@ -1,0 +1,318 @@
+"""The life of an inspection run folder: start it (every input checked, then copied into the folder), execute
+or resume it under the folder's lock with the settings it started with, rebuild its report; and the demo.
+``cell inspect``, ``cell resume``, ``cell report`` and ``cell demo`` are these calls.
+
+A run reads only the copies in its ``inputs/`` folder once it has started, so a resume finishes it even if the
+original recipe, CAD or cell config changed or moved meanwhile. The inspection itself (plan, views, judging)
+is the job of :mod:`cell.inspection`, run by :mod:`cell.controller`; both load on demand.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from cell.config import CellConfig, PartConfig, Recipe, load_cell_config, load_recipe, read_yaml, validate
+from cell.errors import ConfigError
+from cell.runs import RUNS_ROOT, RunFolder, RunIndex, write_atomic, write_json_atomic
+
+REPO = Path(__file__).resolve().parents[1]
+DEMO_RECIPE = REPO / "recipes" / "pillar.yaml"
+DEMO_CELL = REPO / "recipes" / "cells" / "sim.yaml"  # the honest world: it differs from the config
+IDEAL_CELL = REPO / "recipes" / "cells" / "sim_ideal.yaml"  # the world equals the config: a noise floor
+
+Say = Callable[[str], None]
+
+
+@dataclass
+class RunOutcome:
+    """How an execution ended: the run folder, the controller's last state (``done``, ``paused``, ...) and
+    message, and the run's summary (verdict, points, coverage, deviation) from its checkpoint."""
+
+    run: RunFolder
+    state: str
+    message: str
+    summary: dict[str, Any]
+
+
+def start_run(
+    recipe_path: Path,
+    cell_path: Path,
+    out: Path | None = None,
+    sim_actual: Path | None = None,
+    *,
+    seed: int | None = None,
+    pipelining: bool = True,
+) -> RunFolder:
+    """Validate every input, then create the run folder ``out`` (default ``runs/<part>-<time>``) and copy the
+    inputs into it (nothing before that). The run's settings (seed, pipelining) are recorded so that a
+    resume continues it as it started."""
+    from cell.calibration import active_sensor_config, active_triangulator
+    from cell.mesh import load_part_W
+
+    cfg = load_cell_config(cell_path)
+    recipe = load_recipe(recipe_path)
+    part_W = load_part_W(recipe, recipe_path, cfg)  # refuses a part that is invalid or does not fit the cell
+    if recipe.alignment.datums:  # refuses datums off the part or not fixing it
+        from cell.analysis.alignment import check_datums
+        from cell.geometry import invert
+
+        check_datums(
+            recipe.alignment.datums,
+            part_W.apply_transform(invert(recipe.part.T_W_P.matrix())),
+            str(recipe_path),
+        )
+    active_sensor_config(cfg)  # refuses calibration files of the wrong kind or for another camera
+    active_triangulator(cfg)
+    actual = sim_actual or recipe.part.actual
+    if sim_actual is not None:
+        from cell.mesh import load_mesh
+
+        load_mesh(sim_actual, what="simulated actual part")
+    part = recipe.name or recipe.part.cad.stem
+    final = out if out else RUNS_ROOT / f"{part}-{time.strftime('%Y%m%dT%H%M%S')}"
+    from cell.verification.history import inspection_block
+
+    blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections)
+    if blocked:
+        raise ConfigError(blocked, path=str(cell_path))
+    holder = RunFolder(final).lock_holder() if final.is_dir() else None
+    if holder is not None and RunFolder(final).holder_is_live(holder):
+        raise ConfigError(
+            f"run folder in use by PID {holder.get('pid')} on host {holder.get('host')} "
+            f"({holder.get('command')}); choose another --out",
+            path=str(final),
+        )
+    if final.exists() and any(final.iterdir()):
+        raise ConfigError(
+            "run folder exists and is not empty; choose another --out or `cell resume` it", path=str(final)
+        )
+    # the folder appears under its name only once every input is copied: a run killed before that never
+    # started, and leaves nothing that a resume could mistake for a run
+    run = RunFolder.create(final.parent, part, name=f".{final.name}.partial-{os.getpid()}")
+    run.acquire_lock("cell inspect")  # held from the start: the folder appears under its name locked
+    manifest: dict[str, Any] = {
+        "recipe": run.copy_input(recipe_path, "recipe.yaml").name,
+        "cell_as_given": run.copy_input(cell_path, "cell.original.yaml").name,
+        "cell": _copy_cell_with_calibration(run, cell_path, cfg),
+        "settings": {"seed": seed, "pipelining": pipelining},
+        "cad": run.copy_input(recipe.part.cad, "nominal" + recipe.part.cad.suffix).name,
+        "actual": run.copy_input(actual, "actual" + Path(actual).suffix).name if actual else None,
+        "sources": {
+            "recipe": str(recipe_path),
+            "cell": str(cell_path),
+            "cad": str(recipe.part.cad),
+            "actual": str(actual) if actual else None,
+        },
+    }
+    write_json_atomic(run.path / "inputs" / "manifest.json", manifest)
+    run.log("run_created", part=part, **manifest["sources"])
+    if final.exists():
+        final.rmdir()  # empty (checked above)
+    os.replace(run.path, final)
+    return RunFolder.open(final)
+
+
+def _copy_cell_with_calibration(run: RunFolder, cell_path: Path, cfg: CellConfig) -> str:
+    """Copy the cell config with its calibration files into inputs/, the copy pointing at the copies: a
+    calibration redone or moved after the run started cannot change how the run is finished."""
+    data = read_yaml(cell_path)
+    target = run.path / "inputs" / "calibration"
+    for field, source in cfg.calibration.model_dump().items():
+        if source is None:
+            continue
+        source = Path(source)
+        dest = target / field / source.name
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        if source.is_dir():
+            shutil.copytree(source, dest)
+        else:
+            shutil.copy2(source, dest)
+            arrays = source.with_suffix(".npz")  # a calibration's YAML names its arrays file beside it
+            if arrays.is_file():
+                shutil.copy2(arrays, dest.with_suffix(".npz"))
+        data.setdefault("calibration", {})[field] = str(dest.relative_to(run.path / "inputs"))
+    write_atomic(run.path / "inputs" / "cell.yaml", yaml.safe_dump(data, sort_keys=False).encode())
+    return "cell.yaml"
+
+
+def open_inspection_run(run_dir: Path) -> RunFolder:
+    """An inspection's run folder; a calibration or verification folder is resumed by its own command."""
+    run = RunFolder.open(run_dir)
+    if run.kind != "inspection":
+        raise ConfigError(
+            "not an inspection run (no inputs/manifest.json); a calibration or verification run resumes by "
+            "running its `cell calibrate ...` or `cell verify ...` command again with this folder as --out",
+            path=str(run_dir),
+        )
+    return run
+
+
+def run_settings(run: RunFolder) -> dict[str, Any]:
+    """The settings a run was started with (seed, pipelining)."""
+    manifest = json.loads((run.path / "inputs" / "manifest.json").read_text())
+    return manifest.get("settings", {"seed": None, "pipelining": True})
+
+
+def load_run_inputs(run: RunFolder) -> tuple[Recipe, CellConfig, Path | None]:
+    """The recipe, the cell config and the simulated actual part (or None) as copied into the run, with the
+    part paths pointing at the copies."""
+    inputs = run.path / "inputs"
+    manifest = json.loads((inputs / "manifest.json").read_text())
+    recipe_file = inputs / manifest["recipe"]
+    data = read_yaml(recipe_file)
+    data.setdefault("part", {})
+    data["part"] = {**data["part"], "cad": str(inputs / manifest["cad"]), "actual": None}
+    recipe = validate(Recipe, data, recipe_file)
+    recipe.part = PartConfig.model_validate({**recipe.part.model_dump(), "cad": inputs / manifest["cad"]})
+    cfg = load_cell_config(inputs / manifest["cell"])
+    actual = inputs / manifest["actual"] if manifest.get("actual") else None
+    return recipe, cfg, actual
+
+
+def execute_run(
+    run: RunFolder,
+    *,
+    resume: bool,
+    record: Path | None = None,
+    on_progress: Callable[[Any], None] | None = None,
+    say: Say = print,
+) -> RunOutcome:
+    """Run (or resume) a run folder with the settings it was started with; with ``record``, every device
+    call is recorded there as replay fixtures (also when the run pauses or fails). Holds the folder's lock
+    throughout: a second process on the same folder is refused with this one's PID and host.
+    ``on_progress(controller)`` is called at every state change and view."""
+    run.acquire_lock("cell resume" if resume else "cell inspect")
+    try:
+        return _execute_locked(run, resume, record, on_progress, say)
+    finally:
+        run.release_lock()
+
+
+def _execute_locked(
+    run: RunFolder, resume: bool, record: Path | None, on_progress: Callable[[Any], None] | None, say: Say
+) -> RunOutcome:
+    from cell.controller import ControllerSettings
+    from cell.devices import build_devices, record_devices, save_recording
+    from cell.inspection import LambertianInspection, inspection_controller
+    from cell.mesh import load_mesh
+
+    started = run_settings(run)
+    recipe, cfg, actual_path = load_run_inputs(run)
+    settings = ControllerSettings(  # the recipe's view budget and feedback iterations (initial views + k)
+        pipelining=bool(started.get("pipelining", True)),
+        view_budget=recipe.plan.view_budget,
+        max_iterations=recipe.plan.max_iterations + 1,
+    )
+    T_W_P = recipe.part.T_W_P.matrix()
+    nominal_W = load_mesh(recipe.part.cad).apply_transform(T_W_P)
+    actual_W = load_mesh(actual_path).apply_transform(T_W_P) if actual_path else nominal_W
+    devices = build_devices(
+        cfg, part_W=actual_W, part_material=recipe.part.material, seed=started.get("seed")
+    )
+    if record is not None:
+        devices = record_devices(devices)
+    job = LambertianInspection(recipe, cfg, nominal_W)
+    ctl = inspection_controller(devices, job, run, settings, on_progress=on_progress)
+    index = RunIndex(run.path.parent)
+    index.upsert(run.path, job.part_name, "running")
+    try:
+        state = ctl.execute(resume=resume)
+    finally:
+        if record is not None:
+            saved = save_recording(devices, record, cfg.model_dump(mode="json"))
+            say(f"device traffic recorded: replay with --cell {saved / 'cell.yaml'}")
+    summary = (run.load_checkpoint() or {}).get("summary", {})
+    dev = summary.get("deviation") or {}
+    index.upsert(
+        run.path,
+        job.part_name,
+        state,
+        verdict=summary.get("verdict"),
+        n_points=summary.get("n_points"),
+        coverage=summary.get("coverage"),
+        dev_min=dev.get("min_mm"),
+        dev_max=dev.get("max_mm"),
+    )
+    return RunOutcome(run, state, ctl.message, summary)
+
+
+def inspect(
+    recipe: Path,
+    cell: Path,
+    out: Path | None = None,
+    sim_actual: Path | None = None,
+    *,
+    seed: int | None = None,
+    pipelining: bool = True,
+    record: Path | None = None,
+    on_progress: Callable[[Any], None] | None = None,
+    say: Say = print,
+) -> RunOutcome:
+    """Start a run of ``recipe`` on ``cell`` (see :func:`start_run`) and execute it."""
+    if record is not None and record.exists() and any(record.iterdir()):
+        raise ConfigError("recording folder exists and is not empty; choose another", path=str(record))
+    run = start_run(recipe, cell, out, sim_actual, seed=seed, pipelining=pipelining)
+    return execute_run(run, resume=False, record=record, on_progress=on_progress, say=say)
+
+
+def resume(
+    run_dir: Path, *, on_progress: Callable[[Any], None] | None = None, say: Say = print
+) -> RunOutcome:
+    """Finish an interrupted or paused inspection run from its last checkpoint; a finished one is refused."""
+    run = open_inspection_run(run_dir)
+    if (run.load_checkpoint() or {}).get("phase") == "done":
+        raise ConfigError("this run is already done; `cell report` rebuilds its report", path=str(run_dir))
+    return execute_run(run, resume=True, on_progress=on_progress, say=say)
+
+
+def rebuild_report(run_dir: Path) -> RunOutcome:
+    """Rebuild the report of a run that reached reporting from its stored views (journalled)."""
+    from cell.inspection import LambertianInspection
+    from cell.mesh import load_mesh
+
+    run = open_inspection_run(run_dir)
+    checkpoint = run.load_checkpoint() or {}
+    if checkpoint.get("phase") not in ("reporting", "done"):
+        raise ConfigError("the run has not reached reporting; `cell resume` it first", path=str(run_dir))
+    recipe, cfg, _ = load_run_inputs(run)
+    nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
+    summary = LambertianInspection(recipe, cfg, nominal_W).report(run, checkpoint.get("registration", {}))
+    run.log("report_rebuilt", **summary)
+    return RunOutcome(run, "done", "", summary)
+
+
+def demo(
+    runs: Path,
+    cell: Path = DEMO_CELL,
+    *,
+    calibrate: bool = True,
+    on_progress: Callable[[Any], None] | None = None,
+    say: Say = print,
+) -> RunOutcome:
+    """A simulated inspection of the demo pillar (with its dented actual) into a new folder under ``runs``;
+    with ``calibrate``, on the calibration of ``cell`` in ``runs/calibration-<cell>``, made first unless a
+    valid one is there (:func:`cell.calibration.routines.ensure_calibration`)."""
+    recipe = load_recipe(DEMO_RECIPE)
+    part = recipe.name or recipe.part.cad.stem
+    if calibrate:
+        from cell.calibration.routines import ensure_calibration
+
+        cell = ensure_calibration(cell, runs / f"calibration-{cell.stem}", say=say)
+    out = runs / f"demo-{part}-{time.strftime('%Y%m%d-%H%M%S')}"
+    say(
+        f"simulated inspection of {DEMO_RECIPE.relative_to(REPO)} (actual part: "
+        f"{recipe.part.actual.name if recipe.part.actual else 'nominal'}) with {cell} -> {out}"
+    )
+    if cell.resolve() == IDEAL_CELL.resolve():
+        say("ideal simulated world: the world equals the model, so the deviations are a noise floor")
+    run = start_run(DEMO_RECIPE, cell, out, None)
+    return execute_run(run, resume=False, on_progress=on_progress, say=say)
