@@ -28,9 +28,13 @@ DOMAIN = (
     "cell.verification",
 )
 
-# what the controller runs (cell.controller.Job), or runs its routines under it
+# what the controller runs (cell.controller.Job) or runs its routines under it, and the run-level modules
+# that build devices for one command (inspection_run, scan_run, calibration.latency)
 JOBS = (
     "cell.inspection",
+    "cell.inspection_run",
+    "cell.scan_run",
+    "cell.calibration.latency",
     "cell.calibration.procedures",
     "cell.calibration.routines",
     "cell.verification.job",
@@ -92,15 +96,6 @@ RULES = [
 
 # (importing module, imported module) -> why it is allowed for now
 KNOWN_OFFENDERS = {
-    (
-        "cell.commands.inspect",
-        "drivers.recording",
-    ): "`cell inspect --record` wraps the bundle itself; recording belongs behind cell.devices (issue 14: "
-    "one device registry)",
-    ("cell.sensing.sim_scan", "cell.devices"): "the body of `cell scan` (device bring-up, robot move), not "
-    "sensing; folds into the scan command's library call (issue 14, deliverable 1)",
-    ("cell.sensing.sim_scan", "cell.calibration"): "as above: the believed flange and hand-eye of the scan",
-    ("cell.sensing.sim_scan", "cell.planning.kinematics"): "as above: the robot's inverse kinematics",
     ("cell.config", "cell.devices"): "load_cell_config has the simulator check a sim cell's world: section "
     "through cell.devices.check_world (late import); it belongs where cell.devices builds the sim cell",
 }

@@ -59,7 +59,7 @@ def scan_cmd(
 
         summary = write_folder_scan(load_cell_config(cell or DEFAULT_CELL), source, Path(out))
         return typer.echo(f"{len(summary['poses'])} poses -> {out}")
-    from cell.sensing.scan import scan_in_cell
+    from cell.scan_run import scan_in_cell
 
     summary = scan_in_cell(cell or DEFAULT_CELL, part, _parse_pose(pose), codec, model, Path(out), seed=seed)
     c = summary["counts"]

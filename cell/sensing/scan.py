@@ -1,5 +1,6 @@
 """One structured-light view through the device contracts: show each pattern, trigger, grab, then check,
-decode and triangulate. The controller and ``cell scan`` (:func:`scan_in_cell`) both call :func:`scan_view`.
+decode and triangulate. The controller and ``cell scan`` (:func:`cell.scan_run.scan_in_cell`) both call
+:func:`scan_view`.
 
 Synchronisation (docs/hardware.md, "Synchronisation"): a projector shows a frame some time after it was
 presented at its input (its latency), so
@@ -17,29 +18,23 @@ view fails with a retryable error that names the projector.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
 from cell.contracts import Camera, Frame, Projector, SequenceProjector, TimedProjector, TriggerMode
 from cell.errors import ConfigError, DeviceProtocolError, DeviceTimeout
-from cell.geometry import invert, look_at, pose_to_xyz_rotvec, transform_points
-from cell.planning.kinematics import UR5E
 from cell.sensing.decode import Decoded, DecodeParams, Reason, decode
-from cell.sensing.patterns import PatternSet, gcls_patterns, gcps_patterns
+from cell.sensing.patterns import PatternSet
 from cell.sensing.stack import check_stack
 from cell.sensing.triangulate import (
-    PinholeTriangulator,
     SensorCloud,
     Triangulator,
-    reference_model_from_geometry,
 )
 
 MIN_CONTRAST = 0.1  # of the camera's range: pixels darker in white - black are not checked
@@ -304,9 +299,7 @@ def scan_view(
     return ViewScan(cloud, decoded, timings, log)
 
 
-# ---------------------------------------------------------------------------------------------- cell scan
-CODECS = ("gcls", "gcps")
-MODELS = ("pinhole", "reference")
+# ------------------------------------------------------------------------ a view's files (cell scan, --from)
 # masks.png colours (BGR) per reason, painted in this order so the last listed wins where several apply.
 MASK_COLOURS: tuple[tuple[Reason, tuple[int, int, int]], ...] = (
     (Reason.NO_CODE, (60, 60, 60)),
@@ -315,13 +308,6 @@ MASK_COLOURS: tuple[tuple[Reason, tuple[int, int, int]], ...] = (
     (Reason.INCONSISTENT, (255, 0, 255)),  # magenta
     (Reason.SATURATED, (0, 0, 255)),  # red: glare
 )
-
-
-def auto_pose(part_W: trimesh.Trimesh | None, standoff_mm: float) -> NDArray[np.float64]:
-    """T_W_C looking straight down at the part's bounding-box centre (or the world origin) from the
-    stand-off."""
-    centre = part_W.bounds.mean(axis=0) if part_W is not None else np.zeros(3)
-    return look_at(centre + (0.0, 0.0, standoff_mm), centre, up=(0.0, 1.0, 0.0))
 
 
 def masks_image(cloud: SensorCloud) -> NDArray[np.uint8]:
@@ -337,84 +323,3 @@ def masks_image(cloud: SensorCloud) -> NDArray[np.uint8]:
 def write_ply(path: Path, points: NDArray) -> None:
     """Binary PLY of (N, 3) points (mm), through trimesh's exporter."""
     trimesh.PointCloud(np.asarray(points, dtype=np.float64)).export(str(path), file_type="ply")
-
-
-def scan_in_cell(
-    cell: Path,
-    part_path: Path | None,
-    T_W_C: NDArray[np.float64] | None,
-    codec: str,
-    model: str,
-    out: Path,
-    seed: int | None = None,
-) -> dict[str, Any]:
-    """``cell scan``: scan ``part_path`` (world mm; None: the empty table) in the simulated cell of config
-    ``cell`` from camera pose ``T_W_C`` (None: :func:`auto_pose`) with ``codec`` (gcls or gcps) and the
-    ``model`` triangulation (pinhole or reference). It triangulates with the cell config's sensor geometry,
-    the simulator's own, not with a calibration: a check of the sensing chain, not a measurement. Writes
-    cloud.ply (world mm, placed by where the cell believes the camera is), masks.png and scan.json (timings,
-    counts per reason, poses) to ``out``; returns the scan.json content."""
-    from cell.calibration import active_hand_eye, believed_flange
-    from cell.config import load_cell_config
-    from cell.devices import build_devices, ready_to_capture
-    from cell.mesh import load_mesh
-
-    if codec not in CODECS:
-        raise ConfigError(f"--codec: unknown codec '{codec}'; use gcls or gcps", field="--codec")
-    if model not in MODELS:
-        raise ConfigError(f"--model: unknown model '{model}'; use {' or '.join(MODELS)}", field="--model")
-    cfg = load_cell_config(cell)
-    t0 = time.perf_counter()
-    if cfg.sensor.camera.driver != "sim":
-        raise ConfigError(
-            "cell scan triangulates with the simulator's known geometry until sensor "
-            "calibration exists; use a cell whose drivers are all 'sim'",
-            field="sensor.camera.driver",
-        )
-    part_W = load_mesh(part_path) if part_path is not None else None
-    if T_W_C is None:
-        T_W_C = auto_pose(part_W, cfg.sensor.standoff_mm)
-    dev = build_devices(cfg, part_W=part_W, seed=seed)
-    cam_cfg, proj_cfg = cfg.sensor.camera, cfg.sensor.projector
-    with ready_to_capture(dev, cam_cfg):
-        T_B_T = invert(cfg.robot.T_W_B.matrix()) @ T_W_C @ invert(cfg.sensor.T_T_C.matrix())
-        # A joint move: a straight line from home may pass the base axis; IK picks the branch nearest to now.
-        q = UR5E.ik_nearest(T_B_T, dev.robot.joints())
-        dev.robot.move_joint(q, cfg.robot.max_joint_speed_rad_s, cfg.robot.max_joint_accel_rad_s2)
-        # where the cell believes the camera is: the flange pose (calibrated kinematics when the cell has
-        # them) through the active hand-eye (what a real cell knows; the simulator's true camera pose is not
-        # the pipeline's to read)
-        T_W_C_reported = cfg.robot.T_W_B.matrix() @ believed_flange(cfg, dev.robot) @ active_hand_eye(cfg)
-        make = gcls_patterns if codec == "gcls" else gcps_patterns
-        extra = {"n_shifts": 12} if codec == "gcls" else {"n_phase": 24}  # same number of images (38 at XGA)
-        patterns = make(
-            proj_cfg.width_px, proj_cfg.height_px, 12, **extra, n_gray=6 if proj_cfg.width_px >= 768 else None
-        )
-        tri = (
-            PinholeTriangulator.from_sensor(cfg.sensor)
-            if model == "pinhole"
-            else reference_model_from_geometry(cfg.sensor)
-        )
-        view = scan_view(dev.camera, dev.projector, patterns, tri, bit_depth=cam_cfg.bit_depth)
-    out.mkdir(parents=True, exist_ok=True)
-    write_ply(out / "cloud.ply", transform_points(T_W_C_reported, view.cloud.points_C[view.cloud.valid]))
-    cv2.imwrite(str(out / "masks.png"), masks_image(view.cloud))
-    summary = {
-        "codec": codec,
-        "n_images": len(patterns),
-        "pattern_names": list(patterns.names),
-        "triangulation": model,
-        "geometry_source": "simulator: the cell config's sensor geometry (no sensor calibration yet)",
-        "part": str(part_path) if part_path else None,
-        "pose": {
-            "T_W_C": T_W_C_reported.tolist(),
-            "T_B_T": T_B_T.tolist(),
-            "camera_xyz_rotvec": pose_to_xyz_rotvec(T_W_C_reported).tolist(),
-        },
-        "counts": view.reason_counts(),
-        "mask_colours_bgr": {r.name.lower(): c for r, c in MASK_COLOURS},
-        "timings_s": {**view.timings_s, "total": time.perf_counter() - t0},
-        "cell_config": str(cell),
-    }
-    (out / "scan.json").write_text(json.dumps(summary, indent=2))
-    return summary
