@@ -28,10 +28,11 @@ from numpy.typing import NDArray
 
 from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.errormap import NominalMesh, signed_distance
+from cell.analysis.judge import judge
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
 from cell.analysis.merge import cut_unregistered, merge_views
-from cell.analysis.regions import Coverage, point_bands, region_from_config
-from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
+from cell.analysis.regions import Coverage, Tolerance, region_from_config
+from cell.analysis.report import write_report
 from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
 from cell.calibration import (
     active_gamma_lut,
@@ -454,23 +455,14 @@ class LambertianInspection:
     def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
         pts_P = np.load(run.results_dir / "points_P.npy")
         nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
-        nominal = NominalMesh.from_trimesh(nominal_P)
-        em = signed_distance(nominal, pts_P)
         tol = self.recipe.tolerance
-        band = Tolerance(tol.lower, tol.upper)
-        regions = [region_from_config(spec) for spec in self.recipe.regions]
-        faces = nominal.source_face[em.face]
-        bands = point_bands(regions, pts_P, faces, band)
-        isolated = isolated_out_of_tolerance(pts_P, em.deviation_mm, bands, self.settings.min_defect_points)
-        kept = ~isolated
-        pts_P, deviation, faces = pts_P[kept], em.deviation_mm[kept], faces[kept]
         checkpoint = run.load_checkpoint() or {}
         views = checkpoint.get("views", [])
-        excluded: dict[str, int] = dict(nominal.excluded)
-        excluded["isolated_out_of_tolerance_points"] = int(isolated.sum())
-        excluded["unregistered_view_measured_elsewhere_points"] = int(
-            registration.get("refinement", {}).get("unregistered_points_dropped", 0)
-        )
+        excluded = {
+            "unregistered_view_measured_elsewhere_points": int(
+                registration.get("refinement", {}).get("unregistered_points_dropped", 0)
+            )
+        }
         for i in run.completed_views():
             for reason, n in (
                 json.loads((run.view_dir(i) / "view.json").read_text()).get("excluded", {}).items()
@@ -489,17 +481,17 @@ class LambertianInspection:
                 f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
                 f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
             )
-        inp = ReportInput(
-            points_mm=pts_P,
-            deviation_mm=deviation,
-            tolerance=band,
+        inp = judge(
+            NominalMesh.from_trimesh(nominal_P),
+            pts_P,
+            Tolerance(tol.lower, tol.upper),
             n_points_input=int(registration.get("n_points_views", len(pts_P))),
+            regions=[region_from_config(spec) for spec in self.recipe.regions],
+            min_defect_points=self.settings.min_defect_points,
             excluded=excluded,
-            source_face=faces,
-            regions=regions,
             coverage=self.inspectable_coverage(run, views, T_align),
             min_coverage=self.recipe.min_coverage,
-            warnings=[w for w in (nominal.sign_warning(),) if w] + list(alignment.get("warnings", [])),
+            warnings=alignment.get("warnings", []),
             incomplete_reasons=reasons,
             alignment=alignment,
             calibration=calibration,
