@@ -58,6 +58,7 @@ from cell.planning.measured import DefectRegion, MeasuredView, measured_view_fro
 from cell.planning.motion import MotionPlanner
 from cell.planning.planner import Plan, plan_initial
 from cell.planning.viewpoints import Viewpoint
+from cell.raycast import RayCaster
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
 from cell.sensing.patterns import PatternSet, measuring_patterns
@@ -117,11 +118,7 @@ class LambertianInspection:
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._planes: dict[int, LocalPlanes] = {}  # each view's local planes, kept between evaluations
         self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
-        self._nominal_rays = (
-            trimesh.ray.ray_triangle.RayMeshIntersector(nominal_W)
-            if not trimesh.ray.has_embree
-            else trimesh.ray.ray_pyembree.RayMeshIntersector(nominal_W)
-        )
+        self._nominal_rays = RayCaster(nominal_W.vertices, nominal_W.faces, what="nominal mesh")
 
     # ------------------------------------------------------------------ planning
     @property
@@ -254,13 +251,7 @@ class LambertianInspection:
             xn, yn = normalized_coords(cam.K(), cam.distortion.as_array(), cam.width_px, cam.height_px)
             rays_C = np.stack([xn[holes], yn[holes], np.ones(int(holes.sum()))], axis=-1)
             dirs = transform_vectors(T_W_C, rays_C / np.linalg.norm(rays_C, axis=1, keepdims=True))
-            origins = np.broadcast_to(T_W_C[:3, 3], dirs.shape)
-            locations, ray_index, _ = self._nominal_rays.intersects_location(
-                origins, dirs, multiple_hits=False
-            )
-            hole_points = np.full((int(holes.sum()), 3), np.nan)
-            hole_points[ray_index] = locations
-            nominal[holes] = hole_points
+            nominal[holes] = self._nominal_rays.first_hit_points(T_W_C[:3, 3], dirs)[1]
         empty = np.zeros(reasons.shape, dtype=bool)
         return measured_view_from_masks(T_W_C, np.zeros(reasons.shape + (3,)), empty, masks, nominal).defects
 
