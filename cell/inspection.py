@@ -30,7 +30,7 @@ from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.judge import judge
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
-from cell.analysis.merge import cut_unregistered, merge_views
+from cell.analysis.merge import cut_unregistered, merge_views, voxel_subsample_index
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import write_report
 from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
@@ -502,20 +502,6 @@ class LambertianInspection:
             "coverage": doc.get("coverage"),
             "deviation": doc.get("deviation"),
         }
-
-
-def voxel_subsample_index(points: NDArray[np.float64], voxel_mm: float) -> NDArray[np.int64]:
-    """Indices of one point (the first) per occupied voxel of edge ``voxel_mm``."""
-    if len(points) == 0:
-        return np.zeros(0, dtype=np.int64)
-    cells = np.floor(points / voxel_mm).astype(np.int64)
-    cells -= cells.min(axis=0)
-    span = cells.max(axis=0) + 1
-    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[
-        :, 2
-    ]  # one int64 per voxel: a fast 1-D unique
-    _, first = np.unique(key, return_index=True)
-    return np.sort(first)
 
 
 def _measured(view_dir: Path) -> NDArray[np.bool_] | slice:
