@@ -28,10 +28,11 @@ from numpy.typing import NDArray
 
 from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.errormap import NominalMesh, signed_distance
+from cell.analysis.judge import judge
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
-from cell.analysis.merge import cut_unregistered, merge_views
-from cell.analysis.regions import Coverage, point_bands, region_from_config
-from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
+from cell.analysis.merge import cut_unregistered, merge_views, voxel_subsample_index
+from cell.analysis.regions import Coverage, Tolerance, region_from_config
+from cell.analysis.report import write_report
 from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
 from cell.calibration import (
     active_gamma_lut,
@@ -57,6 +58,7 @@ from cell.planning.measured import DefectRegion, MeasuredView, measured_view_fro
 from cell.planning.motion import MotionPlanner
 from cell.planning.planner import Plan, plan_initial
 from cell.planning.viewpoints import Viewpoint
+from cell.raycast import RayCaster
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
 from cell.sensing.patterns import PatternSet, measuring_patterns
@@ -116,11 +118,7 @@ class LambertianInspection:
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._planes: dict[int, LocalPlanes] = {}  # each view's local planes, kept between evaluations
         self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
-        self._nominal_rays = (
-            trimesh.ray.ray_triangle.RayMeshIntersector(nominal_W)
-            if not trimesh.ray.has_embree
-            else trimesh.ray.ray_pyembree.RayMeshIntersector(nominal_W)
-        )
+        self._nominal_rays = RayCaster(nominal_W.vertices, nominal_W.faces, what="nominal mesh")
 
     # ------------------------------------------------------------------ planning
     @property
@@ -253,13 +251,7 @@ class LambertianInspection:
             xn, yn = normalized_coords(cam.K(), cam.distortion.as_array(), cam.width_px, cam.height_px)
             rays_C = np.stack([xn[holes], yn[holes], np.ones(int(holes.sum()))], axis=-1)
             dirs = transform_vectors(T_W_C, rays_C / np.linalg.norm(rays_C, axis=1, keepdims=True))
-            origins = np.broadcast_to(T_W_C[:3, 3], dirs.shape)
-            locations, ray_index, _ = self._nominal_rays.intersects_location(
-                origins, dirs, multiple_hits=False
-            )
-            hole_points = np.full((int(holes.sum()), 3), np.nan)
-            hole_points[ray_index] = locations
-            nominal[holes] = hole_points
+            nominal[holes] = self._nominal_rays.first_hit_points(T_W_C[:3, 3], dirs)[1]
         empty = np.zeros(reasons.shape, dtype=bool)
         return measured_view_from_masks(T_W_C, np.zeros(reasons.shape + (3,)), empty, masks, nominal).defects
 
@@ -454,23 +446,14 @@ class LambertianInspection:
     def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
         pts_P = np.load(run.results_dir / "points_P.npy")
         nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
-        nominal = NominalMesh.from_trimesh(nominal_P)
-        em = signed_distance(nominal, pts_P)
         tol = self.recipe.tolerance
-        band = Tolerance(tol.lower, tol.upper)
-        regions = [region_from_config(spec) for spec in self.recipe.regions]
-        faces = nominal.source_face[em.face]
-        bands = point_bands(regions, pts_P, faces, band)
-        isolated = isolated_out_of_tolerance(pts_P, em.deviation_mm, bands, self.settings.min_defect_points)
-        kept = ~isolated
-        pts_P, deviation, faces = pts_P[kept], em.deviation_mm[kept], faces[kept]
         checkpoint = run.load_checkpoint() or {}
         views = checkpoint.get("views", [])
-        excluded: dict[str, int] = dict(nominal.excluded)
-        excluded["isolated_out_of_tolerance_points"] = int(isolated.sum())
-        excluded["unregistered_view_measured_elsewhere_points"] = int(
-            registration.get("refinement", {}).get("unregistered_points_dropped", 0)
-        )
+        excluded = {
+            "unregistered_view_measured_elsewhere_points": int(
+                registration.get("refinement", {}).get("unregistered_points_dropped", 0)
+            )
+        }
         for i in run.completed_views():
             for reason, n in (
                 json.loads((run.view_dir(i) / "view.json").read_text()).get("excluded", {}).items()
@@ -489,17 +472,17 @@ class LambertianInspection:
                 f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
                 f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
             )
-        inp = ReportInput(
-            points_mm=pts_P,
-            deviation_mm=deviation,
-            tolerance=band,
+        inp = judge(
+            NominalMesh.from_trimesh(nominal_P),
+            pts_P,
+            Tolerance(tol.lower, tol.upper),
             n_points_input=int(registration.get("n_points_views", len(pts_P))),
+            regions=[region_from_config(spec) for spec in self.recipe.regions],
+            min_defect_points=self.settings.min_defect_points,
             excluded=excluded,
-            source_face=faces,
-            regions=regions,
             coverage=self.inspectable_coverage(run, views, T_align),
             min_coverage=self.recipe.min_coverage,
-            warnings=[w for w in (nominal.sign_warning(),) if w] + list(alignment.get("warnings", [])),
+            warnings=alignment.get("warnings", []),
             incomplete_reasons=reasons,
             alignment=alignment,
             calibration=calibration,
@@ -519,20 +502,6 @@ class LambertianInspection:
             "coverage": doc.get("coverage"),
             "deviation": doc.get("deviation"),
         }
-
-
-def voxel_subsample_index(points: NDArray[np.float64], voxel_mm: float) -> NDArray[np.int64]:
-    """Indices of one point (the first) per occupied voxel of edge ``voxel_mm``."""
-    if len(points) == 0:
-        return np.zeros(0, dtype=np.int64)
-    cells = np.floor(points / voxel_mm).astype(np.int64)
-    cells -= cells.min(axis=0)
-    span = cells.max(axis=0) + 1
-    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[
-        :, 2
-    ]  # one int64 per voxel: a fast 1-D unique
-    _, first = np.unique(key, return_index=True)
-    return np.sort(first)
 
 
 def _measured(view_dir: Path) -> NDArray[np.bool_] | slice:

@@ -4,6 +4,8 @@ Embree (through embreex, the binding trimesh uses) is the fastest ray caster ava
 float32, whose intersection error grows with the distance from the origin. The cell needs micrometres, so
 Embree is used only to find *which* triangle a ray hits (in coordinates centred on the mesh, where float32 has
 the most resolution) and the distance is recomputed exactly as the intersection with that triangle's plane.
+It is the cell's one ray caster: the simulator's scene, the glass surface, the planner's occlusion tests and
+the inspection's rays onto the nominal all use it.
 """
 
 from __future__ import annotations
@@ -58,6 +60,17 @@ class RayCaster:
             "ij,ij->i", dirs[hit], n
         )
         return np.where(hit, tri, -1), distance, origins, dirs
+
+    def first_hit_points(
+        self, origins: NDArray[np.float64], dirs: NDArray[np.float64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """For rays as in :meth:`first_hits`: the triangle hit (-1 on a miss) and the hit point (mm, float64;
+        NaN on a miss)."""
+        tri, distance, origins, dirs = self.first_hits(origins, dirs)
+        hit = tri >= 0
+        points = np.full(dirs.shape, np.nan)
+        points[hit] = origins[hit] + distance[hit, None] * dirs[hit]
+        return tri, points
 
     def occluded(
         self, origins: NDArray[np.float64], dirs: NDArray[np.float64], max_distance: NDArray[np.float64]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.analysis.merge import cut_unregistered, measured_elsewhere, merge_views
+from cell.analysis.merge import cut_unregistered, measured_elsewhere, merge_views, voxel_subsample_index
 from cell.errors import ConfigError
 
 
@@ -100,3 +100,17 @@ def test_two_unregistered_views_over_one_spot_give_it_once() -> None:
     cut = cut_unregistered(points, weights, [1, 2], radius_mm=2.0)
     assert len(points[0]) == 4000 and len(points[1]) == 4000  # nothing registered there: the first stays
     assert len(points[2]) == len(weights[2]) == 0 and cut == 4000  # the second repeats the first
+
+
+def test_voxel_subsample_keeps_the_first_point_of_each_voxel_of_the_merge_grid() -> None:
+    """The one voxel key: the subsample takes one point from each voxel the merge averages."""
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-5, 5, (4000, 3))
+    idx = voxel_subsample_index(pts, 1.0)
+    cells = np.floor(pts).astype(int)  # the 1 mm voxels, counted independently
+    first = {}
+    for i, c in enumerate(map(tuple, cells)):
+        first.setdefault(c, i)
+    assert idx.tolist() == sorted(first.values())
+    assert len(merge_views([pts], voxel_mm=1.0).points_mm) == len(idx)
+    assert len(voxel_subsample_index(np.zeros((0, 3)), 1.0)) == 0

@@ -84,16 +84,18 @@ def run_compare(
     elsewhere may have been filtered already). ``csv``: also write deviations.csv (off by default: at 5M
     points the text file takes longer to write than the whole comparison; cloud.ply holds the same numbers).
     """
-    from cell.analysis.errormap import NominalMesh, signed_distance
+    from cell.analysis.errormap import ErrorMap, NominalMesh
+    from cell.analysis.judge import judge
     from cell.analysis.regions import (
+        Coverage,
+        Tolerance,
         check_region_faces,
         coverage,
         load_regions,
-        point_bands,
         region_from_config,
     )
     from cell.analysis.registration import datum_align, icp_point_to_plane
-    from cell.analysis.report import ReportInput, Tolerance, isolated_out_of_tolerance, write_report
+    from cell.analysis.report import write_report
     from cell.geometry import transform_points
 
     lo, hi = parse_tolerance(tolerance)
@@ -138,38 +140,32 @@ def run_compare(
         T = icp_point_to_plane(nominal, pts).T
     if align != "none":  # the identity would only copy millions of points
         pts = transform_points(T, pts)
-    em = signed_distance(nominal, pts)
-    excluded = dict(nominal.excluded)
-    excluded["non_finite_points"] = int((~finite).sum())
-    deviation, faces = em.deviation_mm, nominal.source_face[em.face]
-    if min_defect_points > 1:
-        bands = point_bands(user_regions, pts, faces, Tolerance(lo, hi))
-        kept = ~isolated_out_of_tolerance(pts, deviation, bands, min_defect_points)
-        excluded["isolated_out_of_tolerance_points"] = int((~kept).sum())
-        pts, deviation, faces = pts[kept], deviation[kept], faces[kept]
+    warning = "best-fit alignment hides global deviations" if align == "bestfit" else None
     meta = {
         "nominal": str(nominal_path),
         "cloud": str(cloud_path),
         "align": align,
-        "warning": "best-fit alignment hides global deviations" if align == "bestfit" else None,
+        "warning": warning,
         "T_P_cloud": T.round(9).tolist(),
-        "seconds": round(time.perf_counter() - t0, 3),
         "nominal_watertight": nominal.watertight,
     }
-    cov = None
-    if density_per_mm2 is not None or radius_mm is not None:
-        cov = coverage(nominal, em.closest_mm, density_per_mm2, radius_mm)
-    inp = ReportInput(
+
+    def measured_coverage(em: ErrorMap) -> Coverage:
+        """Coverage of the nominal by the points' closest nominal points."""
+        return coverage(nominal, em.closest_mm, density_per_mm2, radius_mm)
+
+    inp = judge(
+        nominal,
         pts,
-        deviation,
         Tolerance(lo, hi),
-        len(raw),
-        excluded,
-        metadata=meta,
-        source_face=faces,
+        n_points_input=len(raw),
         regions=user_regions,
-        coverage=cov,
+        min_defect_points=min_defect_points,
+        excluded={"non_finite_points": int((~finite).sum())},
+        coverage=measured_coverage if density_per_mm2 is not None or radius_mm is not None else None,
         min_coverage=min_coverage,
-        warnings=[w for w in (meta["warning"], nominal.sign_warning()) if w],
+        warnings=[warning] if warning else [],
+        metadata=meta,
     )
+    meta["seconds"] = round(time.perf_counter() - t0, 3)  # the comparison, error map included
     return write_report(out, inp, pictures=pictures, csv=csv)

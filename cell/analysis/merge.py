@@ -40,6 +40,27 @@ class MergedCloud:
         return 1.0 / np.sqrt(self.weight)
 
 
+def voxel_keys(points: NDArray[np.float64], voxel_mm: float) -> NDArray[np.int64]:
+    """One int64 per point naming its voxel of edge ``voxel_mm`` (mm): equal keys, same voxel. Voxels are
+    fixed to the frame's origin (clouds keyed in any order share one grid); keys run row-major over the
+    occupied box, so one 1-D ``np.unique`` groups the points by voxel."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    cell = np.floor(points / voxel_mm).astype(np.int64)
+    cell -= cell.min(0)
+    dims = cell.max(0) + 1
+    if float(np.prod(dims.astype(np.float64))) >= 2.0**62:
+        raise ConfigError(f"{dims} voxels of {voxel_mm} mm overflow the voxel key; use larger voxels")
+    return (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+
+
+def voxel_subsample_index(points: NDArray[np.float64], voxel_mm: float) -> NDArray[np.int64]:
+    """Indices (ascending) of one point, the first, per occupied voxel of edge ``voxel_mm`` (mm): an even
+    thinning that keeps measured points as they are (no averaging, unlike :func:`merge_views`)."""
+    _, first = np.unique(voxel_keys(points, voxel_mm), return_index=True)
+    return np.sort(first)
+
+
 def merge_views(
     views: Sequence[ArrayLike],
     weights: Sequence[ArrayLike] | None = None,
@@ -68,17 +89,7 @@ def merge_views(
         raise ConfigError("merge_views: no finite points with a positive weight in any view")
     source = np.full(len(p), -1, np.int64)
     p, w, view = p[ok], w[ok], view[ok]
-    # Voxels are fixed to the frame's origin (views merged in any order share one grid). One int64 key per
-    # voxel (row-major over the occupied box); np.unique groups the points by voxel.
-    cell = np.floor(p / voxel_mm).astype(np.int64)
-    cell -= cell.min(0)
-    dims = cell.max(0) + 1
-    if float(np.prod(dims.astype(np.float64))) >= 2.0**62:
-        raise ConfigError(
-            f"merge_views: {dims} voxels of {voxel_mm} mm overflow the voxel key; use larger voxels"
-        )
-    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
-    _, inv = np.unique(key, return_inverse=True)
+    _, inv = np.unique(voxel_keys(p, voxel_mm), return_inverse=True)
     m = int(inv.max()) + 1
     wsum = np.bincount(inv, weights=w, minlength=m)
     mean = (

@@ -20,8 +20,9 @@ import trimesh
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from cell.analysis.errormap import NominalMesh, signed_distance
-from cell.analysis.report import ReportInput, Tolerance, write_report
+from cell.analysis.errormap import NominalMesh
+from cell.analysis.judge import judge
+from cell.analysis.report import Tolerance, write_report
 from cell.contracts import GlassRig, MarkerScreen
 from cell.errors import CalibrationError, ConfigError
 from cell.geometry import invert, transform_points
@@ -147,14 +148,12 @@ def _report(
     acc = m.accepted
     pts_P = transform_points(T_P_W, m.points[acc])
     normals_P = m.normals[acc] @ T_P_W[:3, :3].T
-    dev = signed_distance(nominal, pts_P).deviation_mm
     unconfirmed = (m.n_cameras < 2) & ~m.single_projection  # depth rests on the CAD normal
     inconsistent = ~unconfirmed & ~acc & (m.p_value <= recipe.search.outlier_alpha)
     excluded = {
         "unconfirmed_single_camera": int(unconfirmed.sum()),
         "inconsistent_normals": int(inconsistent.sum()),
         "depth_uncertain": int((~acc & ~unconfirmed & ~inconsistent).sum()),
-        **nominal.excluded,
     }
     metadata = {
         "part": recipe.name or recipe.part.cad.stem,
@@ -169,19 +168,17 @@ def _report(
         **meta,
     }
     r = run.results_dir
-    tol = Tolerance(recipe.tolerance.lower, recipe.tolerance.upper)
-    inp = ReportInput(
-        points_mm=pts_P,
-        deviation_mm=dev,
-        tolerance=tol,
-        n_points_input=int(len(m.points)),
+    inp = judge(
+        nominal,
+        pts_P,
+        Tolerance(recipe.tolerance.lower, recipe.tolerance.upper),
+        n_points_input=len(m.points),
         excluded=excluded,
-        metadata=metadata,
         link_radius_mm=glass_link_radius_mm(m.points[acc], m.camera[acc]) or None,
-        warnings=[w for w in (nominal.sign_warning(),) if w],
+        metadata=metadata,
     )
     doc = write_report(r, inp)
-    write_normals_ply(r / "normals.ply", pts_P, normals_P, dev)
+    write_normals_ply(r / "normals.ply", pts_P, normals_P, inp.deviation_mm)
     np.savez_compressed(
         r / "glass_points.npz",
         points_W=m.points,

@@ -1,0 +1,77 @@
+"""The one judging pipeline of every report (inspection, ``cell compare``, glass).
+
+Measured points in the part frame {P} (mm) -> signed deviations from the nominal
+(:mod:`cell.analysis.errormap`, + outside the material) -> each point's tolerance band (user regions,
+:func:`point_bands`) -> isolated out-of-tolerance points set aside -> the :class:`ReportInput` whose
+verdict, regions and coverage :func:`cell.analysis.report.write_report` judges and writes. Every job judges
+the same way; only what it measured and the context it reports differ.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
+from cell.analysis.regions import Coverage, Region, Tolerance, point_bands
+from cell.analysis.report import ReportInput, isolated_out_of_tolerance
+
+
+def judge(
+    nominal: NominalMesh,
+    points_mm: NDArray[np.float64],
+    tolerance: Tolerance,
+    *,
+    n_points_input: int | None = None,
+    regions: Sequence[Region] = (),
+    min_defect_points: int = 1,
+    excluded: Mapping[str, int] | None = None,
+    coverage: Coverage | Callable[[ErrorMap], Coverage] | None = None,
+    min_coverage: float | None = None,
+    link_radius_mm: float | None = None,
+    warnings: Sequence[str] = (),
+    incomplete_reasons: Sequence[str] = (),
+    alignment: dict[str, Any] | None = None,
+    calibration: dict[str, Any] | None = None,
+    metadata: dict[str, Any] | None = None,
+) -> ReportInput:
+    """The report input of ``points_mm`` (N, 3, part frame, finite) against ``nominal`` (same frame).
+
+    Out-of-tolerance clusters of fewer than ``min_defect_points`` points are isolated outliers (mixed pixels,
+    noise spikes): left out and counted under ``excluded`` as ``isolated_out_of_tolerance_points`` (1, the
+    default, keeps every point and adds no count). ``excluded``: what the caller left out before (counts by
+    reason), reported after the nominal's own exclusions. ``coverage``: the coverage, or how to compute it
+    from the error map of every given point (e.g. from their closest nominal points). ``n_points_input``:
+    the points measured (default: those given). ``warnings`` follow the nominal's sign warning; the other
+    arguments go to :class:`ReportInput` as they are.
+    """
+    em = signed_distance(nominal, points_mm)
+    faces = nominal.source_face[em.face] if nominal.source_face is not None else em.face
+    points, deviation = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3), em.deviation_mm
+    counts: dict[str, int] = {**nominal.excluded, **(excluded or {})}
+    if min_defect_points > 1:
+        bands = point_bands(regions, points, faces, tolerance)
+        isolated = isolated_out_of_tolerance(points, deviation, bands, min_defect_points)
+        counts["isolated_out_of_tolerance_points"] = int(isolated.sum())
+        kept = ~isolated
+        points, deviation, faces = points[kept], deviation[kept], faces[kept]
+    return ReportInput(
+        points_mm=points,
+        deviation_mm=deviation,
+        tolerance=tolerance,
+        n_points_input=len(points_mm) if n_points_input is None else int(n_points_input),
+        excluded=counts,
+        metadata=metadata if metadata is not None else {},
+        source_face=faces,
+        regions=list(regions),
+        coverage=coverage(em) if callable(coverage) else coverage,
+        min_coverage=min_coverage,
+        link_radius_mm=link_radius_mm,
+        warnings=[w for w in (nominal.sign_warning(),) if w] + list(warnings),
+        incomplete_reasons=list(incomplete_reasons),
+        alignment=alignment,
+        calibration=calibration,
+    )
