@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from cell.errors import ConfigError
 from cell.geometry import invert, look_at, pose_to_xyz_rotvec, transform_points
 from cell.planning.kinematics import UR5E
-from cell.sensing.patterns import gcls_patterns, gcps_patterns
+from cell.sensing.patterns import gcps_baseline_patterns, measuring_patterns
 from cell.sensing.scan import MASK_COLOURS, masks_image, scan_view, write_ply
 from cell.sensing.triangulate import PinholeTriangulator, reference_model_from_geometry
 
@@ -82,11 +82,7 @@ def scan_in_cell(
         # them) through the active hand-eye (what a real cell knows; the simulator's true camera pose is not
         # the pipeline's to read)
         T_W_C_reported = cfg.robot.T_W_B.matrix() @ believed_flange(cfg, dev.robot) @ active_hand_eye(cfg)
-        make = gcls_patterns if codec == "gcls" else gcps_patterns
-        extra = {"n_shifts": 12} if codec == "gcls" else {"n_phase": 24}  # same number of images (38 at XGA)
-        patterns = make(
-            proj_cfg.width_px, proj_cfg.height_px, 12, **extra, n_gray=6 if proj_cfg.width_px >= 768 else None
-        )
+        patterns = measuring_patterns(proj_cfg) if codec == "gcls" else gcps_baseline_patterns(proj_cfg)
         tri = (
             PinholeTriangulator.from_sensor(cfg.sensor)
             if model == "pinhole"
@@ -109,7 +105,7 @@ def scan_in_cell(
             "camera_xyz_rotvec": pose_to_xyz_rotvec(T_W_C_reported).tolist(),
         },
         "counts": view.reason_counts(),
-        "mask_colours_bgr": {r.name.lower(): c for r, c in MASK_COLOURS},
+        "mask_colours_bgr": {str(r.name).lower(): c for r, c in MASK_COLOURS},
         "timings_s": {**view.timings_s, "total": time.perf_counter() - t0},
         "cell_config": str(cell),
     }

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -141,7 +142,7 @@ def run_compare(
     if align != "none":  # the identity would only copy millions of points
         pts = transform_points(T, pts)
     warning = "best-fit alignment hides global deviations" if align == "bestfit" else None
-    meta = {
+    meta: dict[str, Any] = {
         "nominal": str(nominal_path),
         "cloud": str(cloud_path),
         "align": align,

@@ -99,7 +99,9 @@ def merge_views(
     count = np.bincount(inv, minlength=m)
     n_views = np.bincount(np.unique(inv * len(pts) + view) // len(pts), minlength=m)
     source[ok] = inv
-    return MergedCloud(points_mm=mean, weight=wsum, count=count, n_views=n_views, source=source)
+    return MergedCloud(
+        points_mm=mean, weight=np.asarray(wsum, dtype=np.float64), count=count, n_views=n_views, source=source
+    )
 
 
 def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm: float) -> NDArray[np.bool_]:

@@ -132,7 +132,7 @@ def out_of_tolerance_regions(
         return []
     pts = points_mm[bad]
     sizes = np.bincount(lab)
-    regions = []
+    regions: list[dict[str, Any]] = []
     for r in np.argsort(-sizes)[:max_regions]:
         idx = np.flatnonzero(lab == r)
         dev = deviation_mm[bad[idx]]

@@ -276,7 +276,7 @@ def calibrate_from_folder(
     run.copy_input(cell, "cell.yaml")
     run.copy_input(source / MANIFEST, MANIFEST)
     kind, path, figs = run_offline(routine, folder, run.path, cell, **options)
-    report = {"kind": kind, "file": str(path), "source": str(source), "summary": figs}
+    report: dict[str, Any] = {"kind": kind, "file": str(path), "source": str(source), "summary": figs}
     report["cell_config_lines"] = config_lines(kind, path)
     write_json_atomic(run.path / "calibration.json", report)
     run.log("done", report="calibration.json")

@@ -97,7 +97,7 @@ def history_cmd(
     typer.echo(f"{'time':<26}{'kind':<12}{'cell':<24}" + "".join(f"{k:>9}" for k in FIGURES) + "  verdict")
     for e in VerificationHistory(runs).entries(cell):
         values = "".join(
-            f"{'-':>9}" if e.figures_mm[k] is None else f"{e.figures_mm[k] * 1000:>9.1f}" for k in FIGURES
+            f"{'-':>9}" if (x := e.figures_mm[k]) is None else f"{x * 1000:>9.1f}" for k in FIGURES
         )
         typer.echo(f"{e.time:<26}{e.kind:<12}{e.cell:<24}{values}  {e.verdict}")
 

@@ -210,7 +210,7 @@ def glass_link_radius_mm(
     the spacing of the merged cloud, is set by the near-coincident points of different cameras and splits
     one defect into many regions."""
     gaps = [
-        cKDTree(points[camera == c]).query(points[camera == c], k=2)[0][:, 1]
+        np.asarray(cKDTree(points[camera == c]).query(points[camera == c], k=2)[0])[:, 1]
         for c in np.unique(camera)
         if np.sum(camera == c) > 1
     ]

@@ -215,6 +215,13 @@ def sensor_calibration_patterns(projector: ProjectorConfig) -> PatternSet:
     return gcls_patterns(w, h, 12, 6, "both", n_gray=_gray_bits(projector))
 
 
+def gcps_baseline_patterns(projector: ProjectorConfig) -> PatternSet:
+    """The GCPS baseline ``cell scan --codec gcps`` compares the measuring code with: the same Gray stripes
+    and 24 phase steps, as many images as :func:`measuring_patterns` (38 at XGA)."""
+    w, h = projector.width_px, projector.height_px
+    return gcps_patterns(w, h, 12, 24, "columns", n_gray=_gray_bits(projector))
+
+
 def dissertation_gcls(
     spacing: Literal["full", "0.4mm"] = "full", direction: Direction = "columns"
 ) -> PatternSet:

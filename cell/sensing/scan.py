@@ -57,7 +57,7 @@ class ViewScan:
     def reason_counts(self) -> dict[str, int]:
         """Pixels per reason (a pixel can count under several) and valid points."""
         r = self.cloud.reasons
-        out = {reason.name.lower(): int(np.count_nonzero(r & np.uint8(reason))) for reason in Reason}
+        out = {str(reason.name).lower(): int(np.count_nonzero(r & np.uint8(reason))) for reason in Reason}
         out["valid"] = int(np.count_nonzero(r == 0))
         return out
 
@@ -224,8 +224,9 @@ def capture_stack(
         for _ in range(2):  # a second loss in a row: let the pair check count it as missing
             again = sequencer.run_sequence(camera, n, timeout_ms)
             for k in indices:
-                if images[k] is None or again[k] is not None:
-                    images[k] = None if again[k] is None else again[k].pixels
+                frame = again[k]
+                if images[k] is None or frame is not None:
+                    images[k] = None if frame is None else frame.pixels
             if all(again[k] is not None for k in indices):
                 return
 

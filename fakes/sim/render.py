@@ -215,7 +215,7 @@ class SceneRenderer:
 
         def full(values: NDArray, fill: float, dtype: type) -> NDArray:
             """Per-hit ``values`` scattered to the (H, W) image, ``fill`` where no ray hit."""
-            out = np.full(H * W, fill, dtype=dtype)
+            out: NDArray = np.full(H * W, fill, dtype=dtype)
             out[idx] = values
             return out.reshape(H, W)
 
