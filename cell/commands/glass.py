@@ -29,45 +29,10 @@ def glass_cmd(
     """Measure a glass pane: view vectors, marker search, multi-camera feedback, error map and report."""
     from rich.console import Console
 
-    from cell.devices import build_glass_rig
-    from cell.errors import ConfigError
-    from cell.glass.config import load_glass_recipe, load_glass_rig
-    from cell.glass.job import run_glass_inspection
-    from cell.mesh import load_mesh
-    from cell.runs import RunFolder
+    from cell.glass.job import inspect_glass
 
-    rec = load_glass_recipe(recipe)
-    if method is not None:
-        if method not in ("golden_section", "multi_projection"):
-            raise ConfigError(f"--method {method!r}: use golden_section or multi_projection", field="method")
-        rec.search.method = method  # type: ignore[assignment]
-    rig_path = cell or rec.rig
-    cfg = load_glass_rig(rig_path)
-    if rec.search.method == "multi_projection" and cfg.screen.second_T_W_S is None:
-        raise ConfigError(
-            "the multi-projection method needs the screen's second known position: add "
-            "screen.second_T_W_S to the rig config",
-            path=str(rig_path),
-            field="screen",
-        )
-    T_W_P = rec.part.T_W_P.matrix()
-    nominal_W = load_mesh(rec.part.cad, what="nominal pane").apply_transform(T_W_P)
-    actual_path = sim_actual or rec.part.actual or rec.part.cad
-    actual_W = load_mesh(actual_path, what="simulated actual pane").apply_transform(T_W_P)
-    part = rec.name or rec.part.cad.stem
-    run = RunFolder.create(out.parent, part, name=out.name)
-    inputs = (
-        (recipe, "recipe.yaml"),
-        (rig_path, "rig.yaml"),
-        (rec.part.cad, "nominal" + rec.part.cad.suffix),
-        (actual_path, "actual" + Path(actual_path).suffix),
-    )
-    for src, name in inputs:
-        run.copy_input(Path(src), name)
-    run.log("run_created", part=part, recipe=str(recipe), rig=str(rig_path), actual=str(actual_path))
-    rig, place_board, move_screen = build_glass_rig(cfg, actual_W, _operator_places_board)
-    summary = run_glass_inspection(
-        run, rec, cfg, rig, place_board, nominal_W, frames, board_frames, move_screen
+    run, summary = inspect_glass(
+        recipe, out, cell, sim_actual, frames, board_frames, method, _operator_places_board
     )
     dev = summary["deviation"]
     console = Console()

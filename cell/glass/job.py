@@ -75,6 +75,57 @@ def load_calibrations(directory: Path, cfg: GlassRigConfig) -> list[ViewVectorCa
     return cals
 
 
+def inspect_glass(
+    recipe_path: Path,
+    out: Path,
+    rig_path: Path | None,
+    sim_actual: Path | None,
+    frames: int,
+    board_frames: int,
+    method: str | None,
+    place_board: BoardPlacer,
+) -> tuple[RunFolder, dict[str, Any]]:
+    """``cell glass``: load the recipe (``method`` overrides its search method) and the rig config
+    (``rig_path``, default the recipe's), create the run folder ``out`` with copies of every input, build the
+    rig (the simulated one renders ``sim_actual``, default the recipe's ``part.actual``, else the nominal)
+    and run :func:`run_glass_inspection`. Returns the run folder and the summary."""
+    from cell.devices import build_glass_rig
+    from cell.glass.config import load_glass_recipe, load_glass_rig
+    from cell.mesh import load_mesh
+
+    rec = load_glass_recipe(recipe_path)
+    if method is not None:
+        if method not in ("golden_section", "multi_projection"):
+            raise ConfigError(f"--method {method!r}: use golden_section or multi_projection", field="method")
+        rec.search.method = method  # type: ignore[assignment]
+    rig_path = rig_path or rec.rig
+    cfg = load_glass_rig(rig_path)
+    if rec.search.method == "multi_projection" and cfg.screen.second_T_W_S is None:
+        raise ConfigError(
+            "the multi-projection method needs the screen's second known position: add "
+            "screen.second_T_W_S to the rig config",
+            path=str(rig_path),
+            field="screen",
+        )
+    T_W_P = rec.part.T_W_P.matrix()
+    nominal_W = load_mesh(rec.part.cad, what="nominal pane").apply_transform(T_W_P)
+    actual_path = sim_actual or rec.part.actual or rec.part.cad
+    actual_W = load_mesh(actual_path, what="simulated actual pane").apply_transform(T_W_P)
+    part = rec.name or rec.part.cad.stem
+    run = RunFolder.create(out.parent, part, name=out.name)
+    inputs = (
+        (recipe_path, "recipe.yaml"),
+        (rig_path, "rig.yaml"),
+        (rec.part.cad, "nominal" + rec.part.cad.suffix),
+        (actual_path, "actual" + Path(actual_path).suffix),
+    )
+    for src, name in inputs:
+        run.copy_input(Path(src), name)
+    run.log("run_created", part=part, recipe=str(recipe_path), rig=str(rig_path), actual=str(actual_path))
+    rig, place, move_screen = build_glass_rig(cfg, actual_W, place_board)
+    return run, run_glass_inspection(run, rec, cfg, rig, place, nominal_W, frames, board_frames, move_screen)
+
+
 def run_glass_inspection(
     run: RunFolder,
     recipe: GlassRecipe,
