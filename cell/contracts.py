@@ -76,6 +76,36 @@ class Projector(Protocol):
         """Show the next image of the loaded sequence and return its index (0-based)."""
         ...
 
+    def switch_on(self) -> None:
+        """Make the projector ready to show patterns (power, video input) and blank it."""
+        ...
+
+    def ready(self) -> bool:
+        """Whether it can show patterns now (:attr:`ProjectorStatus.ready`)."""
+        ...
+
+    def blank(self) -> None:
+        """Light nothing: between stacks, and whenever the run stops."""
+        ...
+
+
+class ProjectorHooks:
+    """:meth:`Projector.switch_on`, :meth:`~Projector.ready` and :meth:`~Projector.blank` over the
+    Protocol's primitives, written once: the projector classes inherit them (one whose start-up differs
+    overrides them)."""
+
+    def switch_on(self: Projector) -> None:
+        self.set_power(True)
+        self.set_source(ProjectorSource.HDMI)
+        self.blank()
+
+    def ready(self: Projector) -> bool:
+        return self.status().ready
+
+    def blank(self: Projector) -> None:
+        w, h = self.resolution
+        self.show(np.zeros((h, w), np.uint8))
+
 
 class Clock(Protocol):
     """Time in seconds as a device sees it: ``time.monotonic`` on a real cell, the simulated clock in

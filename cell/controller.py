@@ -8,9 +8,13 @@ guard, ``queued=True``, exceptions routed to :meth:`Controller._on_exception`)::
     any active state -> paused (operator), faulted (unrecoverable), aborted
     idle -> resuming -> connecting -> homing -> the phase the checkpoint records
 
+Motion is only commanded while the robot is in a normal mode and the projector is ready: every trigger after
+which the robot may move is guarded into ``paused`` (:func:`_transitions`).
+
 The controller never imports a driver: it receives a :class:`cell.devices.DeviceBundle` and a job (what to
-plan, capture, decode, evaluate, register and report: :class:`Job`). After each completed view the view folder
-exists whole (see :mod:`cell.runs`); the checkpoint records the plan and the phase, so a killed run resumes.
+plan, capture, decode, evaluate, register and report: :class:`Job`); the projector's start-up and blanking
+are its own hooks. After each completed view the view folder exists whole (see :mod:`cell.runs`); the
+checkpoint (:class:`cell.run_data.Checkpoint`) records the plan and the phase, so a killed run resumes.
 Decoding of view k runs in a worker thread while the robot moves to view k+1 (pipelining).
 """
 
@@ -28,10 +32,11 @@ from typing import Any, Protocol
 import numpy as np
 from transitions.extensions import HierarchicalGraphMachine
 
-from cell.contracts import ProjectorSource
+from cell.config import RobotConfig
 from cell.devices import DeviceBundle
 from cell.errors import CellError, DeviceError, DeviceFault, MotionStopped, PlanningError
 from cell.planning.motion import Move
+from cell.run_data import Checkpoint, Evaluation, Phase, View
 from cell.runs import RunFolder
 
 ACTIVE = [
@@ -120,34 +125,32 @@ def _transitions() -> list[dict[str, Any]]:
 class Job(Protocol):
     """What a job does at each step; the controller sequences it and owns motion, retries and checkpoints.
 
-    Views are JSON-serialisable dicts with at least ``T_B_T`` (4x4 nested lists, mm): the robot target.
+    The controller moves the robot to each view's ``T_B_T``; the rest of a :class:`View` is the job's.
     """
 
     part_name: str
 
-    def plan(self) -> list[dict[str, Any]]:
+    def plan(self) -> list[View]:
         """The initial viewpoints V0."""
         ...
 
-    def capture(self, devices: DeviceBundle, view: dict[str, Any], index: int) -> Any:
+    def capture(self, devices: DeviceBundle, view: View, index: int) -> Any:
         """Project and grab at a view (the robot is already there); returns what :meth:`decode` needs."""
         ...
 
-    def decode(self, view: dict[str, Any], captured: Any, out_dir: Path) -> dict[str, Any]:
+    def decode(self, view: View, captured: Any, out_dir: Path) -> dict[str, Any]:
         """Decode and triangulate one view, writing its files into ``out_dir``; returns a JSON summary."""
         ...
 
-    def evaluate(self, run: RunFolder, views: list[dict[str, Any]], iteration: int) -> dict[str, Any]:
-        """Judge the measured views: ``{"qualified": bool, "Q": float, ...}``."""
+    def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:
+        """Judge the measured views: qualified or not, and the cost Q."""
         ...
 
-    def replan(
-        self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]
-    ) -> list[dict[str, Any]]:
-        """New viewpoints V_k from the defect maps (may be empty)."""
+    def replan(self, run: RunFolder, views: list[View], evaluation: Evaluation) -> list[View]:
+        """New viewpoints V_k from the defect maps (may be empty); ``evaluation`` is :meth:`evaluate`'s."""
         ...
 
-    def register(self, run: RunFolder, views: list[dict[str, Any]]) -> dict[str, Any]:
+    def register(self, run: RunFolder, views: list[View]) -> dict[str, Any]:
         """Bring all views into the part frame, merge and filter; ``{"n_points": int, ...}``."""
         ...
 
@@ -169,6 +172,26 @@ class ControllerSettings:
     grab_timeout_ms: float = 2000.0
 
 
+@dataclass(frozen=True)
+class RobotLimits:
+    """The robot's speed and acceleration maxima; moves are sent at a fraction of them."""
+
+    tcp_speed_mm_s: float = 250.0
+    tcp_accel_mm_s2: float = 1200.0
+    joint_speed_rad_s: float = 1.0
+    joint_accel_rad_s2: float = 3.0
+
+    @classmethod
+    def of(cls, robot: RobotConfig) -> RobotLimits:
+        """The limits the robot config declares."""
+        return cls(
+            robot.max_tcp_speed_mm_s,
+            robot.max_tcp_accel_mm_s2,
+            robot.max_joint_speed_rad_s,
+            robot.max_joint_accel_rad_s2,
+        )
+
+
 @dataclass
 class _Progress:
     started: float = field(default_factory=time.monotonic)
@@ -185,7 +208,7 @@ class Controller:
         run: RunFolder,
         settings: ControllerSettings | None = None,
         *,
-        robot_limits: tuple[float, float, float, float] = (250.0, 1200.0, 1.0, 3.0),
+        robot_limits: RobotLimits | None = None,
         home_joints_rad: np.ndarray | None = None,
         motion: Any | None = None,
         on_progress: Callable[[Controller], None] | None = None,
@@ -194,17 +217,13 @@ class Controller:
         self.job = job
         self.run = run
         self.settings = settings or ControllerSettings()
-        self.robot_limits = robot_limits  # tcp mm/s, tcp mm/s^2, joint rad/s, joint rad/s^2
+        self.robot_limits = robot_limits or RobotLimits()
         self.home_joints_rad = home_joints_rad
         self.motion = (
             motion  # cell.planning.motion.MotionPlanner: collision-checked paths; None: straight lines
         )
         self.on_progress = on_progress
-        self.checkpoint: dict[str, Any] = run.load_checkpoint() or {
-            "phase": "new",
-            "views": [],
-            "iteration": 0,
-        }
+        self.checkpoint = Checkpoint.from_json(run.load_checkpoint())
         self.message = ""
         self.pause_requested_at: float | None = None  # time.monotonic() of the last pause request
         self.progress = _Progress()
@@ -232,7 +251,7 @@ class Controller:
         return self.devices.robot.state().normal
 
     def projector_ready(self) -> bool:
-        return self.devices.projector.status().ready
+        return self.devices.projector.ready()
 
     def unsafe(self) -> bool:
         """True when motion must not be commanded: the robot is not normal or the projector is not ready."""
@@ -246,19 +265,19 @@ class Controller:
         )
 
     def needs_plan(self) -> bool:
-        return not self.checkpoint["views"]
+        return not self.checkpoint.views
 
     def views_pending(self) -> bool:
         return self._next_view() is not None
 
     def phase_is_scanning(self) -> bool:
-        return self.checkpoint["phase"] in ("scanning", "evaluating", "replanning")
+        return self.checkpoint.phase in (Phase.SCANNING, Phase.EVALUATING, Phase.REPLANNING)
 
     def phase_is_registering(self) -> bool:
-        return self.checkpoint["phase"] == "registering"
+        return self.checkpoint.phase is Phase.REGISTERING
 
     def phase_is_reporting(self) -> bool:
-        return self.checkpoint["phase"] == "reporting"
+        return self.checkpoint.phase is Phase.REPORTING
 
     # ------------------------------------------------------------------ bookkeeping
     def _journal_state(self) -> None:
@@ -266,23 +285,22 @@ class Controller:
         if self.on_progress:
             self.on_progress(self)
 
-    def _save(self, **updates: Any) -> None:
-        self.checkpoint.update(updates)
-        self.run.save_checkpoint(self.checkpoint)
+    def _save(self) -> None:
+        self.run.save_checkpoint(self.checkpoint.to_json())
 
     def _done_views(self) -> set[int]:
-        return set(self.run.completed_views()) | set(self._pending) | set(self.checkpoint.get("skipped", []))
+        return set(self.run.completed_views()) | set(self._pending) | set(self.checkpoint.skipped)
 
     def _next_view(self) -> int | None:
         done = self._done_views()
-        for i in range(len(self.checkpoint["views"])):
+        for i in range(len(self.checkpoint.views)):
             if i not in done:
                 return i
         return None
 
     @property
     def views_total(self) -> int:
-        return len(self.checkpoint["views"])
+        return len(self.checkpoint.views)
 
     @property
     def views_done(self) -> int:
@@ -384,19 +402,15 @@ class Controller:
 
     def _make_safe(self) -> None:
         """Stop the robot and blank the projector; never raises (this runs on every exit path)."""
-        for action in (self.devices.robot.stop, self._blank_projector):
+        for action in (self.devices.robot.stop, self.devices.projector.blank):
             try:
                 action()
             except Exception as exc:  # a device that is gone cannot be made safer; record and go on
                 self.run.log("safe_stop_failed", error=repr(exc))
 
-    def _blank_projector(self) -> None:
-        w, h = self.devices.projector.resolution
-        self.devices.projector.show(np.zeros((h, w), np.uint8))
-
     # ------------------------------------------------------------------ state handlers
     def _do_resuming(self) -> None:
-        self.run.log("resume", checkpoint=self.checkpoint.get("phase"), views_done=self.views_done)
+        self.run.log("resume", checkpoint=self.checkpoint.phase.value, views_done=self.views_done)
         self.resumed()
 
     def _do_connecting(self) -> None:
@@ -404,9 +418,7 @@ class Controller:
             device.connect()
             self.run.log("device", device=self.devices.names.get(kind, kind), command="connect")
         projector = self.devices.projector
-        projector.set_power(True)
-        projector.set_source(ProjectorSource.HDMI)
-        self._blank_projector()
+        projector.switch_on()
         if not self.robot_normal():
             state = self.devices.robot.state()
             raise DeviceFault(
@@ -446,14 +458,15 @@ class Controller:
                 "no reachable viewpoint measures any of the part; check the part placement "
                 "(part.T_W_P) and the robot envelope"
             )
-        self.run.log("plan", n_views=len(views), views=views)
-        self._save(phase="scanning", views=views, iteration=0)
+        self.run.log("plan", n_views=len(views), views=[v.to_json() for v in views])
+        self.checkpoint.phase, self.checkpoint.views, self.checkpoint.iteration = Phase.SCANNING, views, 0
+        self._save()
         self.planned()
 
     def _do_scanning_moving(self) -> None:
         index = self._next_view()
         assert index is not None  # guarded by views_pending
-        target = np.asarray(self.checkpoint["views"][index]["T_B_T"], dtype=np.float64)
+        target = self.checkpoint.views[index].T_B_T
         robot = self.devices.robot
         if self.motion is None:
             moves = [Move("linear", target)]
@@ -464,7 +477,8 @@ class Controller:
                 )
             except PlanningError as exc:  # this view cannot be reached safely: skip it, say why
                 self.run.log("decision", view=index, reason=f"view skipped: {exc}")
-                self._save(skipped=sorted(set(self.checkpoint.get("skipped", [])) | {index}))
+                self.checkpoint.skipped = sorted(set(self.checkpoint.skipped) | {index})
+                self._save()
                 if not self.views_pending():
                     self.no_more_views()
                 return
@@ -477,7 +491,7 @@ class Controller:
     def _execute_moves(self, moves: list[Move], view: int | None) -> None:
         """Send the moves at the settings' fraction of the configured speeds (times each move's own scale)."""
         robot = self.devices.robot
-        v, a, qd, qdd = self.robot_limits
+        limits = self.robot_limits
         for move in moves:
             if self._pause_requested.is_set():  # a pause that came between two moves: send no more
                 raise MotionStopped(self.devices.names.get("robot", "robot"), "pause requested before a move")
@@ -491,13 +505,13 @@ class Controller:
                 speed_scale=move.speed_scale,
             )
             if move.kind == "linear":
-                robot.move_linear(move.target, v * k, a * k)
+                robot.move_linear(move.target, limits.tcp_speed_mm_s * k, limits.tcp_accel_mm_s2 * k)
             else:
-                robot.move_joint(move.target, qd * k, qdd * k)
+                robot.move_joint(move.target, limits.joint_speed_rad_s * k, limits.joint_accel_rad_s2 * k)
 
     def _do_scanning_capturing(self) -> None:
         index = self.current_view
-        view = self.checkpoint["views"][index]
+        view = self.checkpoint.views[index]
         self.run.log("capture", view=index)
         captured = self.job.capture(self.devices, view, index)
         assert self._executor is not None
@@ -510,7 +524,7 @@ class Controller:
         self.progress.view_times.append(time.monotonic())
         self.captured()
 
-    def _decode_view(self, index: int, view: dict[str, Any], captured: Any) -> dict[str, Any]:
+    def _decode_view(self, index: int, view: View, captured: Any) -> dict[str, Any]:
         with self.run.writing_view(index) as tmp:
             summary = self.job.decode(view, captured, tmp)
         return summary
@@ -537,50 +551,59 @@ class Controller:
 
     def _do_scanning_decoding(self) -> None:
         self._collect(block=True)
-        self._save(phase="evaluating")
+        self.checkpoint.phase = Phase.EVALUATING
+        self._save()
         self.decoded()
 
     def _do_evaluating(self) -> None:
-        iteration = int(self.checkpoint.get("iteration", 0))
-        evaluation = self.job.evaluate(self.run, self.checkpoint["views"], iteration)
-        self.run.log("evaluation", **{"iteration": iteration, **evaluation})
-        spent = len(self.checkpoint["views"]) >= self.settings.view_budget
-        last = iteration + 1 >= self.settings.max_iterations
-        if evaluation.get("qualified") or spent or last:
-            if not evaluation.get("qualified"):
+        cp = self.checkpoint
+        evaluation = self.job.evaluate(self.run, cp.views, cp.iteration)
+        self.run.log("evaluation", **evaluation.to_json())
+        spent = len(cp.views) >= self.settings.view_budget
+        last = cp.iteration + 1 >= self.settings.max_iterations
+        cp.evaluation = evaluation
+        if evaluation.qualified or spent or last:
+            if not evaluation.qualified:
                 self.run.log(
                     "decision",
                     reason="view budget or iteration limit reached before the set point",
-                    Q=evaluation.get("Q"),
+                    Q=evaluation.q,
                 )
-            self._save(phase="registering", evaluation=evaluation)
+            cp.phase = Phase.REGISTERING
+            self._save()
             self.qualified()
         else:
-            self._save(phase="replanning", evaluation=evaluation)
+            cp.phase = Phase.REPLANNING
+            self._save()
             self.needs_views()
 
     def _do_replanning(self) -> None:
-        room = self.settings.view_budget - len(self.checkpoint["views"])
-        new_views = self.job.replan(self.run, self.checkpoint["views"], self.checkpoint["evaluation"])[:room]
-        self.run.log("replan", n_new=len(new_views), views=new_views)
-        views = self.checkpoint["views"] + new_views
-        iteration = int(self.checkpoint.get("iteration", 0)) + 1
-        self._save(phase="scanning" if new_views else "registering", views=views, iteration=iteration)
+        cp = self.checkpoint
+        assert cp.evaluation is not None  # saved with the replanning phase
+        room = self.settings.view_budget - len(cp.views)
+        new_views = self.job.replan(self.run, cp.views, cp.evaluation)[:room]
+        self.run.log("replan", n_new=len(new_views), views=[v.to_json() for v in new_views])
+        cp.views = cp.views + new_views
+        cp.iteration += 1
+        cp.phase = Phase.SCANNING if new_views else Phase.REGISTERING
+        self._save()
         self.replanned()
 
     def _do_registering(self) -> None:
-        self._registration = self.job.register(self.run, self.checkpoint["views"])
+        self._registration = self.job.register(self.run, self.checkpoint.views)
         self.run.log("registration", **self._registration)
         if not self._registration.get("n_points", 0):
             raise CellError("registration produced no points: nothing to report")
-        self._save(phase="reporting", registration=self._registration)
+        self.checkpoint.phase, self.checkpoint.registration = Phase.REPORTING, self._registration
+        self._save()
         self.registered()
 
     def _do_reporting(self) -> None:
-        registration = self._registration or self.checkpoint.get("registration", {})
+        registration = self._registration or self.checkpoint.registration or {}
         summary = self.job.report(self.run, registration)
         self.run.log("report", **summary)
-        self._save(phase="done", summary=summary)
+        self.checkpoint.phase, self.checkpoint.summary = Phase.DONE, summary
+        self._save()
         self.reported()
 
 

@@ -63,6 +63,13 @@ class DeviceBundle:
         ]
         return kinds + ([("stage", self.stage)] if self.stage is not None else [])
 
+    def begin_view(self, key: int) -> None:
+        """Called by a job before it captures a view, ``key`` naming the view the same way on a resumed run. A
+        simulated cell restarts its noise from it (a view's images then depend on the view alone); real
+        devices need nothing."""
+        if self.sim is not None:
+            self.sim.reseed(key)
+
 
 def _import_driver(kind: str, driver: str, where: str) -> type:
     target = REAL_DRIVERS.get((kind, driver))

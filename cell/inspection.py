@@ -47,11 +47,12 @@ from cell.calibration.gamma import apply_lut
 from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
 from cell.contracts import CameraSettings, PixelFormat, TriggerMode
-from cell.controller import Controller, ControllerSettings
+from cell.controller import Controller, ControllerSettings, RobotLimits
 from cell.devices import DeviceBundle
 from cell.errors import DeviceFault
 from cell.geometry import invert, transform_points, transform_vectors
 from cell.planning.coverage import coverage_fraction, covered_by_points
+from cell.planning.feedback import Evaluation as FeedbackEvaluation
 from cell.planning.feedback import FeedbackPlanner, evaluate, select_new
 from cell.planning.kinematics import UR5E
 from cell.planning.measured import DefectRegion, MeasuredView, measured_view_from_masks
@@ -59,6 +60,7 @@ from cell.planning.motion import MotionPlanner
 from cell.planning.planner import Plan, plan_initial
 from cell.planning.viewpoints import Viewpoint
 from cell.raycast import RayCaster
+from cell.run_data import Evaluation, View
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
 from cell.sensing.patterns import PatternSet, measuring_patterns
@@ -84,6 +86,26 @@ class InspectionSettings:
     lift_mm: float = 80.0  # retract height between views
     min_defect_points: int = 10  # out-of-tolerance clusters smaller than this are isolated outliers
     pictures: bool = True
+
+
+@dataclass
+class Captured:
+    """One view's pattern stack and where the robot was when it was grabbed (capture -> decode)."""
+
+    images: list[NDArray[Any]]
+    T_B_T: NDArray[np.float64]  # the flange pose the cell believes (cell.calibration.believed_flange)
+    joints: NDArray[np.float64]
+    camera: str
+
+
+@dataclass
+class FeedbackRound:
+    """The feedback loop's evaluation with what it was computed from, kept for the replan that follows."""
+
+    planner: FeedbackPlanner
+    evaluation: FeedbackEvaluation
+    measured: dict[int, MeasuredView]  # by view index
+    alignment: str  # how the measured views were aligned for it
 
 
 class LambertianInspection:
@@ -129,14 +151,8 @@ class LambertianInspection:
         return self._plan
 
     @staticmethod
-    def _view_dict(vp: Viewpoint, iteration: int) -> dict[str, Any]:
-        return {
-            "T_W_C": vp.T_W_C.tolist(),
-            "T_B_T": vp.T_B_T.tolist(),
-            "patch": vp.patch,
-            "source": vp.source,
-            "iteration": iteration,
-        }
+    def _view(vp: Viewpoint, iteration: int) -> View:
+        return View(vp.T_B_T, vp.T_W_C, vp.patch, vp.source, iteration)
 
     def motion_planner(self, speed_fraction: float) -> MotionPlanner:
         """Collision-checked paths between views against this part and the table (cell.planning.motion)."""
@@ -150,8 +166,8 @@ class LambertianInspection:
             joint_speed_limit_rad_s=robot.max_joint_speed_rad_s,  # lines near a singularity slow down to it
         )
 
-    def plan(self) -> list[dict[str, Any]]:
-        return [self._view_dict(v, 0) for v in self.plan_model.viewpoints]
+    def plan(self) -> list[View]:
+        return [self._view(v, 0) for v in self.plan_model.viewpoints]
 
     # ------------------------------------------------------------------ one view
     def prepare(self, devices: DeviceBundle) -> None:
@@ -168,9 +184,8 @@ class LambertianInspection:
             )
         )
 
-    def capture(self, devices: DeviceBundle, view: dict[str, Any], index: int) -> dict[str, Any]:
-        if devices.sim is not None:
-            devices.sim.reseed(index)
+    def capture(self, devices: DeviceBundle, view: View, index: int) -> Captured:
+        devices.begin_view(index)
         self.prepare(devices)
         T_B_T = believed_flange(self.cfg, devices.robot)
         joints = np.asarray(devices.robot.joints(), dtype=np.float64)
@@ -179,20 +194,20 @@ class LambertianInspection:
         if not status.ready:  # a lamp that failed mid-stack leaves dark frames: measure again after the fix
             why = ", ".join(status.errors) or str(status)
             raise DeviceFault(devices.projector.name, f"not ready after the pattern stack: {why}")
-        return {"images": images, "T_B_T": T_B_T, "joints": joints, "camera": devices.camera.name}
+        return Captured(images, T_B_T, joints, devices.camera.name)
 
-    def decode(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode(self, view: View, captured: Captured, out_dir: Path) -> dict[str, Any]:
         cam = self.cfg.sensor.camera
         stack = check_stack(
-            captured["images"],
+            captured.images,
             self.patterns,
             (cam.width_px, cam.height_px),
             cam.bit_depth,
-            source=f"camera '{captured['camera']}'",
+            source=f"camera '{captured.camera}'",
         )
         decoded = decode(stack, self.patterns, cam.bit_depth)
         cloud = self.triangulator.triangulate(decoded)
-        T_W_C = self.T_W_B @ captured["T_B_T"] @ self.T_T_C
+        T_W_C = self.T_W_B @ captured.T_B_T @ self.T_T_C
         valid = cloud.valid
         kept = link_cluster(
             cloud.points_C, link_mm=self.settings.link_mm, min_cluster_px=self.settings.min_cluster_px
@@ -227,8 +242,8 @@ class LambertianInspection:
         _save_regions(out_dir / "defects.npz", regions)
         summary = {
             "T_W_C": T_W_C.tolist(),
-            "T_B_T": captured["T_B_T"].tolist(),
-            "joints_rad": captured["joints"].tolist(),
+            "T_B_T": captured.T_B_T.tolist(),
+            "joints_rad": captured.joints.tolist(),
             "points": int(len(points_W)),
             "decoded": int(valid.sum()),
             "link_filtered": int((valid & ~kept.keep).sum()),
@@ -325,43 +340,48 @@ class LambertianInspection:
             return None, f"kinematic until the alignment can be made: {exc}"
         return self.T_W_P @ found.T @ T_P_W, self.recipe.alignment.method
 
-    def _evaluate(self, run: RunFolder) -> tuple[Any, dict[int, MeasuredView], str]:
+    def _feedback_round(self, run: RunFolder) -> FeedbackRound:
         T_W_align, how = self._evaluation_alignment(run)
         measured = self._measured(run, T_W_align)
         fb = FeedbackPlanner(self.plan_model)
         ev = evaluate(fb, list(measured.values()), first_new=1, ia_before=np.zeros((0, 3)))
-        return ev, measured, how
+        return FeedbackRound(fb, ev, measured, how)
 
-    def evaluate(self, run: RunFolder, views: list[dict[str, Any]], iteration: int) -> dict[str, Any]:
-        ev, measured, how = self._evaluate(run)
+    def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:
+        """Coverage, the accuracy map and Q of the views measured so far (the feedback round is kept in the
+        result for :meth:`replan`)."""
+        loop = self._feedback_round(run)
+        ev, measured = loop.evaluation, loop.measured
         _, found = self.refinement(run)
-        return {
-            **ev.to_json(),
-            "iteration": iteration,
+        figures = ev.to_json()
+        del figures["qualified"], figures["Q"]
+        figures |= {
             "views": len(views),
-            "alignment": how,
+            "alignment": loop.alignment,
             "refinement": {
                 "rms_before_mm": round(found.rms_before_mm, 4),
                 "rms_after_mm": round(found.rms_after_mm, 4),
                 "unregistered_views": [list(measured)[k] for k in found.unregistered if k < len(measured)],
             },
         }
+        return Evaluation(ev.qualified, round(ev.q, 1), iteration, figures, state=loop)
 
-    def replan(
-        self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]
-    ) -> list[dict[str, Any]]:
-        fb = FeedbackPlanner(self.plan_model)
-        ev, measured, _ = self._evaluate(run)
-        k = int(evaluation.get("iteration", 0))
-        latest = [m for i, m in measured.items() if int(views[i].get("iteration", 0)) == k]
+    def replan(self, run: RunFolder, views: list[View], evaluation: Evaluation) -> list[View]:
+        """The feedback viewpoints g_k from the evaluation's round (computed again after a resume)."""
+        loop = evaluation.state
+        if not isinstance(loop, FeedbackRound):
+            loop = self._feedback_round(run)
+        fb, ev = loop.planner, loop.evaluation
+        k = evaluation.iteration
+        latest = [m for i, m in loop.measured.items() if (views[i].iteration or 0) == k]
         start = len(fb.log)
         proposed = fb.propose(k, latest, ev.covered, ev.ia)
-        new = select_new(fb, proposed, [np.asarray(v["T_W_C"]) for v in views])
+        new = select_new(fb, proposed, [v.T_W_C for v in views if v.T_W_C is not None])
         for entry in fb.log[start:]:
             run.log(
                 "decision", **{"kind": entry.get("event"), **{k: v for k, v in entry.items() if k != "event"}}
             )
-        return [self._view_dict(v, k + 1) for v in new]
+        return [self._view(v, k + 1) for v in new]
 
     # ------------------------------------------------------------------ results
     @property
@@ -372,7 +392,7 @@ class LambertianInspection:
             self._aligner = Aligner(self.recipe.alignment, nominal_P)
         return self._aligner
 
-    def register(self, run: RunFolder, views: list[dict[str, Any]]) -> dict[str, Any]:
+    def register(self, run: RunFolder, views: list[View]) -> dict[str, Any]:
         """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
         already being in {W} through robot pose and hand-eye), refined against each other, merged on a voxel
         grid weighted by quality (a view the refinement could not register gives only the surface no
@@ -539,19 +559,13 @@ def inspection_controller(
     on_progress: Any = None,
 ) -> Controller:
     """The controller for ``job`` on its cell: the robot config's limits and home, checked motion."""
-    r = job.cfg.robot
     return Controller(
         devices,
         job,
         run,
         settings,
-        robot_limits=(
-            r.max_tcp_speed_mm_s,
-            r.max_tcp_accel_mm_s2,
-            r.max_joint_speed_rad_s,
-            r.max_joint_accel_rad_s2,
-        ),
-        home_joints_rad=np.deg2rad(r.home_joints_deg),
+        robot_limits=RobotLimits.of(job.cfg.robot),
+        home_joints_rad=np.deg2rad(job.cfg.robot.home_joints_deg),
         motion=job.motion_planner(settings.speed_fraction),
         on_progress=on_progress,
     )

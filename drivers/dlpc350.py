@@ -37,6 +37,7 @@ from cell.contracts import (
     Camera,
     Clock,
     Frame,
+    ProjectorHooks,
     ProjectorSource,
     ProjectorStatus,
     SystemClock,
@@ -161,7 +162,7 @@ class Dlpc350Options(Strict):
     display: HdmiDisplayOptions | None = Field(None, description="video: the HDMI pattern window")
 
 
-class Dlpc350Projector:
+class Dlpc350Projector(ProjectorHooks):
     """Projector contract plus :meth:`run_sequence` on a DLPC350 (pattern-sequence mode)."""
 
     def __init__(

@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from cell import contracts, errors
-from cell.contracts import Camera, GlassRig, Projector, Robot
+from cell.contracts import Camera, GlassRig, Projector, ProjectorHooks, Robot
 from cell.devices import DeviceBundle
 
 FIXTURE_FORMAT = 1
@@ -94,8 +94,10 @@ def decode(v: Any, arrays: Any) -> Any:
     return v
 
 
-class RecordingProxy:
-    """``RecordingProxy(real_device)`` acts as it, recording each call; :meth:`save` writes the fixture."""
+class RecordingProxy(ProjectorHooks):
+    """``RecordingProxy(real_device)`` acts as it, recording each call; :meth:`save` writes the fixture. A
+    projector's hooks (:class:`cell.contracts.ProjectorHooks`) run on the proxy, so the fixture holds the
+    primitive calls they make, which is what the replay projector answers."""
 
     def __init__(self, device: Any) -> None:
         self._device = device

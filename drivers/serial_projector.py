@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from cell.config import ProjectorConfig, Strict, validate
-from cell.contracts import Clock, ProjectorSource, ProjectorStatus, SystemClock
+from cell.contracts import Clock, ProjectorHooks, ProjectorSource, ProjectorStatus, SystemClock
 from cell.errors import DeviceError, DeviceFault, DeviceProtocolError, DeviceTimeout
 from drivers.hdmi_display import HdmiDisplay, HdmiDisplayOptions, open_at_projector_resolution
 from drivers.projector_profile import ProjectorProfile, load_profile
@@ -66,7 +66,7 @@ class SerialProjectorOptions(Strict):
     )
 
 
-class SerialProjector:
+class SerialProjector(ProjectorHooks):
     """Projector over a serial control line plus an optional HDMI pattern display (Projector contract)."""
 
     def __init__(

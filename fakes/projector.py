@@ -20,6 +20,7 @@ from cell.config import ProjectorConfig
 from cell.contracts import (
     Camera,
     Frame,
+    ProjectorHooks,
     ProjectorSource,
     ProjectorStatus,
     TriggerMode,
@@ -52,7 +53,7 @@ class ProjectorFaults:
     )
 
 
-class SimProjector:
+class SimProjector(ProjectorHooks):
     """A projector on the scene simulator. ``current_image`` is the frame on its HDMI input (read back pixel
     exact); :meth:`emitted_image` is what actually lights the scene (black when off, on the internal source or
     with a lamp fault). Listeners registered with :meth:`add_frame_listener` get the projector's frame sync

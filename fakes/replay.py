@@ -19,6 +19,7 @@ from cell.contracts import (
     Envelope,
     Frame,
     MarkerScreen,
+    ProjectorHooks,
     ProjectorSource,
     ProjectorStatus,
     RobotState,
@@ -131,7 +132,7 @@ class ReplayCamera(ReplayDevice):
         return self._replay("grab", timeout_ms)
 
 
-class ReplayProjector(ReplayDevice):
+class ReplayProjector(ProjectorHooks, ReplayDevice):
     kind = "projector"
 
     @property

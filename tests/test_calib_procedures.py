@@ -85,9 +85,9 @@ def test_a_pose_where_the_board_is_not_found_is_one_clear_error(tmp_path):
 
         def plan(self):
             views = super().plan()[:1]
-            T = np.asarray(views[0]["T_W_Bd"])
+            T = np.asarray(views[0].data["T_W_Bd"])
             T[0, 3] += 250.0
-            views[0]["T_W_Bd"] = T.tolist()
+            views[0].data["T_W_Bd"] = T.tolist()
             return views
 
     cfg = load_cell_config(DEFAULT_CELL)

@@ -64,7 +64,7 @@ def reference(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> di
         "result": result_of(run_dir),
         "states": states,
         "log": devices.robot.command_log,
-        "views": len(ctl.checkpoint["views"]),
+        "views": len(ctl.checkpoint.views),
         "run_dir": run_dir,
     }
 

@@ -62,7 +62,7 @@ def reference(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> di
     run_dir = tmp_path_factory.mktemp("ref") / "run"
     ctl, devices = make_controller(recipe_path, run_dir)
     assert ctl.execute() == "done", ctl.message
-    views = len(ctl.checkpoint["views"])
+    views = len(ctl.checkpoint.views)
     return {"result": result_of(run_dir), "views": views, "presents": devices.projector.present_count}
 
 
@@ -88,7 +88,7 @@ def test_timing_faults_end_in_done_with_every_view_and_the_same_result(
 
     camera.trigger = trigger_with_fault
     assert ctl.execute() == "done", ctl.message
-    assert len(ctl.checkpoint["views"]) == reference["views"]
+    assert len(ctl.checkpoint.views) == reference["views"]
     journal = ctl.run.journal()
     if fault == "lost_frame":  # software trigger: the grab times out, the view is taken again
         assert [e for e in journal if e["event"] == "error" and e["retryable"]]

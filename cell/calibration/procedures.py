@@ -34,6 +34,7 @@ from cell.contracts import BoardKind, CalibrationBoard, CameraSettings, PixelFor
 from cell.devices import DeviceBundle
 from cell.errors import DeviceFault
 from cell.geometry import Pose, invert, look_at
+from cell.run_data import Evaluation, View
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.patterns import PatternSet, gcps_patterns
 from cell.sensing.scan import capture_stack
@@ -152,18 +153,18 @@ class CalibrationJob:
         self.result: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ capture
-    def patterns(self, view: dict[str, Any]) -> PatternSet:
+    def patterns(self, view: View) -> PatternSet:
         """The projector frames of a view (the first frame of every set is full white)."""
         proj = self.cfg.sensor.projector
         return _white(gcps_patterns(proj.width_px, proj.height_px, 16, 4, "columns"))
 
-    def capture(self, devices: DeviceBundle, view: dict[str, Any], index: int) -> dict[str, Any]:
-        if "board" in view:
+    def capture(self, devices: DeviceBundle, view: View, index: int) -> dict[str, Any]:
+        if "board" in view.data:
             if devices.stage is None:
                 raise DeviceFault(
                     "stage", "this cell has no board stage; the routine needs one to place targets"
                 )
-            devices.stage.place(_board(view), np.asarray(view["T_W_Bd"], dtype=np.float64))
+            devices.stage.place(_board(view), np.asarray(view.data["T_W_Bd"], dtype=np.float64))
         cam = self.cfg.sensor.camera
         devices.camera.configure(
             CameraSettings(
@@ -184,37 +185,35 @@ class CalibrationJob:
             "joints": devices.robot.joints(),
         }
 
-    def decode(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         summary = self.decode_view(view, captured, out_dir)
         summary["T_B_T"] = np.asarray(captured["T_B_T"]).tolist()
         summary["joints"] = np.asarray(captured["joints"]).tolist()
         write_json_atomic(out_dir / "view.json", summary)
         return summary
 
-    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         raise NotImplementedError
 
     # ------------------------------------------------------------------ no feedback loop
-    def evaluate(self, run: RunFolder, views: list[dict[str, Any]], iteration: int) -> dict[str, Any]:
-        return {"qualified": True, "Q": 1.0, "views": len(run.completed_views())}
+    def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:
+        return Evaluation(True, 1.0, iteration, {"views": len(run.completed_views())})
 
-    def replan(
-        self, run: RunFolder, views: list[dict[str, Any]], evaluation: dict[str, Any]
-    ) -> list[dict[str, Any]]:
+    def replan(self, run: RunFolder, views: list[View], evaluation: Evaluation) -> list[View]:
         return []
 
     # ------------------------------------------------------------------ results
     def view_summaries(self, run: RunFolder) -> list[tuple[int, dict[str, Any]]]:
         return [(i, json.loads((run.view_dir(i) / "view.json").read_text())) for i in run.completed_views()]
 
-    def register(self, run: RunFolder, views: list[dict[str, Any]]) -> dict[str, Any]:
+    def register(self, run: RunFolder, views: list[View]) -> dict[str, Any]:
         """Fit the calibration from the view folders and save it (never over a better one without force)."""
         figures, path = self.fit(run, views)
         self.result = {"kind": self.kind, "file": str(path), "summary": figures}
         write_json_atomic(run.results_dir / "fit.json", self.result)
         return {"n_points": int(figures.get("points", figures.get("corners", 1))), "file": str(path)}
 
-    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
+    def fit(self, run: RunFolder, views: list[View]) -> tuple[dict[str, Any], Path]:
         raise NotImplementedError
 
     def fitted(self, run: RunFolder) -> dict[str, Any]:
@@ -233,22 +232,22 @@ def _white(ps: PatternSet) -> PatternSet:
     return replace(ps, names=ps.names[:2], frames=ps.frames[:2])
 
 
-def _board(view: dict[str, Any]) -> CalibrationBoard:
-    return {b.name: b for b in (CHARUCO, FLAT, GAUGE)}.get(view["board"]) or _mesh_board(view)
+def _board(view: View) -> CalibrationBoard:
+    return {b.name: b for b in (CHARUCO, FLAT, GAUGE)}.get(view.data["board"]) or _mesh_board(view)
 
 
-def _mesh_board(view: dict[str, Any]) -> CalibrationBoard:
+def _mesh_board(view: View) -> CalibrationBoard:
     """A target the view names by its mesh (the validation sphere, a gauge from its certificate)."""
-    return CalibrationBoard(view["board"], BoardKind.MESH, mesh_path=view["mesh_path"])
+    return CalibrationBoard(view.data["board"], BoardKind.MESH, mesh_path=view.data["mesh_path"])
 
 
 def _view(
     T_B_T: Pose, board: CalibrationBoard | None = None, T_W_Bd: Pose | None = None, **extra: Any
-) -> dict[str, Any]:
-    v: dict[str, Any] = {"T_B_T": np.asarray(T_B_T).tolist(), **extra}
+) -> View:
+    v = View(np.asarray(T_B_T, dtype=np.float64), data=dict(extra))
     if board is not None:
-        v["board"] = board.name
-        v["T_W_Bd"] = np.asarray(T_W_Bd).tolist()
+        v.data["board"] = board.name
+        v.data["T_W_Bd"] = np.asarray(T_W_Bd).tolist()
     return v
 
 

@@ -40,29 +40,30 @@ from cell.calibration.projector import calibrate_projector, corners_in_projector
 from cell.calibration.store import load_calibration, save_calibration
 from cell.calibration.validation import fit_plane, flat_test, load_gauge_certificate, slot_test, sphere_test
 from cell.config import CellConfig, load_cell_config
-from cell.controller import Controller, ControllerSettings
+from cell.controller import Controller, ControllerSettings, RobotLimits
 from cell.devices import build_devices
 from cell.errors import CalibrationError, ConfigError, RoutinePaused
 from cell.geometry import Pose, invert, make_pose, transform_points
 from cell.planning.kinematics import UR5E
+from cell.run_data import View
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import decode
 from cell.sensing.patterns import PatternSet, gcps_patterns, measuring_patterns, sensor_calibration_patterns
 from cell.sensing.triangulate import ReferencePlaneTriangulator
 
 
-def _board_not_found(view: dict[str, Any], index: int | str) -> CalibrationError:
+def _board_not_found(view: View, index: int | str) -> CalibrationError:
     return CalibrationError(
-        f"view {index}: the board '{view['board']}' was not found in the camera image (requested at "
-        f"{_pose_text(view['T_W_Bd'])}, robot flange at {_pose_text(view['T_B_T'])}); check that the board "
+        f"view {index}: the board '{view.data['board']}' was not found in the camera image (requested at "
+        f"{_pose_text(view.data['T_W_Bd'])}, robot flange at {_pose_text(view.T_B_T)}); check that the board "
         "is in view, lit and in focus"
     )
 
 
-def _detect(view: dict[str, Any], image: Any) -> CharucoView:
+def _detect(view: View, image: Any) -> CharucoView:
     found = detect_charuco(image, charuco(CHARUCO))
     if found is None:
-        raise _board_not_found(view, view.get("index", "?"))
+        raise _board_not_found(view, view.data.get("index", "?"))
     return found
 
 
@@ -87,14 +88,14 @@ class IntrinsicsJob(CalibrationJob):
         super().__init__(cfg, **kw)
         self.n_views = views
 
-    def plan(self) -> list[dict[str, Any]]:
+    def plan(self) -> list[View]:
         T_W_C = camera_over(self.cfg, self.station.point(self.station.board_top_mm))
         T_B_T = flange_for_camera(self.cfg, T_W_C)
         rng = np.random.default_rng(self.seed)
         poses = charuco_poses(CHARUCO, self.cfg.sensor.standoff_mm, self.n_views, rng)
         return [_view(T_B_T, CHARUCO, T_W_C @ T, index=i) for i, T in enumerate(poses)]
 
-    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         found = _detect(view, captured["images"][0])
         _save_view(out_dir, corners_px=found.corners_px, ids=found.ids)
         return {"corners": int(len(found.ids))}
@@ -105,7 +106,7 @@ class IntrinsicsJob(CalibrationJob):
             for d in map(lambda i: _load_view(run, i), run.completed_views())
         ]
 
-    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
+    def fit(self, run: RunFolder, views: list[View]) -> tuple[dict[str, Any], Path]:
         cam = self.cfg.sensor.camera
         res = calibrate_intrinsics(self._charuco_views(run), charuco(CHARUCO), (cam.width_px, cam.height_px))
         figs = {
@@ -143,11 +144,11 @@ class ProjectorJob(IntrinsicsJob):
         super().__init__(cfg, views=views, **kw)
         self.intrinsics = intrinsics
 
-    def patterns(self, view: dict[str, Any]) -> PatternSet:
+    def patterns(self, view: View) -> PatternSet:
         proj = self.cfg.sensor.projector
         return gcps_patterns(proj.width_px, proj.height_px, 16, 4, "both")
 
-    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         images = captured["images"]
         found = _detect(view, images[0])
         ps = self.patterns(view)
@@ -156,7 +157,7 @@ class ProjectorJob(IntrinsicsJob):
         _save_view(out_dir, corners_px=found.corners_px, ids=found.ids, proj_px=pp, ok=ok)
         return {"corners": int(len(found.ids)), "decoded_corners": int(ok.sum())}
 
-    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
+    def fit(self, run: RunFolder, views: list[View]) -> tuple[dict[str, Any], Path]:
         cam, proj = self.cfg.sensor.camera, self.cfg.sensor.projector
         active = active_sensor_config(self.cfg).camera
         K, dist = active.K(), active.distortion.as_array()
@@ -202,7 +203,7 @@ class ProjectorJob(IntrinsicsJob):
 class _FlatBoardJob(CalibrationJob):
     """Routines on the flat white board under a camera looking straight down at it."""
 
-    def board_view(self, height_mm: float, **extra: Any) -> dict[str, Any]:
+    def board_view(self, height_mm: float, **extra: Any) -> View:
         top = self.station.point(self.station.board_top_mm)
         T_B_T = flange_for_camera(self.cfg, camera_over(self.cfg, top))
         return _view(
@@ -219,10 +220,10 @@ class GammaJob(_FlatBoardJob):
         super().__init__(cfg, **kw)
         self.levels = grey_levels(levels)
 
-    def plan(self) -> list[dict[str, Any]]:
+    def plan(self) -> list[View]:
         return [self.board_view(0.0, index=0)]
 
-    def patterns(self, view: dict[str, Any]) -> PatternSet:
+    def patterns(self, view: View) -> PatternSet:
         p = self.cfg.sensor.projector
         frames = np.stack([np.full((p.height_px, p.width_px), g, np.uint8) for g in self.levels])
         ps = gcps_patterns(p.width_px, p.height_px, 16, 4, "columns")
@@ -230,12 +231,12 @@ class GammaJob(_FlatBoardJob):
         names = ["black", *(f"grey_{g}" for g in self.levels[1:-1]), "white"]
         return replace(ps, names=tuple(names), frames=frames)
 
-    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         response = measure_response(captured["images"], self.levels)
         _save_view(out_dir, response=response)
         return {"levels": len(self.levels)}
 
-    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
+    def fit(self, run: RunFolder, views: list[View]) -> tuple[dict[str, Any], Path]:
         response = _load_view(run, run.completed_views()[0])["response"]
         figs = {**gamma_figures(self.levels, response), "points": len(self.levels)}
         path = save_calibration(
@@ -261,19 +262,19 @@ class SensorJob(_FlatBoardJob):
         super().__init__(cfg, **kw)
         self.steps, self.step_mm, self.points = steps, step_mm, points
 
-    def plan(self) -> list[dict[str, Any]]:
+    def plan(self) -> list[View]:
         return [self.board_view(k * self.step_mm, index=k) for k in range(self.steps + 1)]
 
-    def patterns(self, view: dict[str, Any]) -> PatternSet:
+    def patterns(self, view: View) -> PatternSet:
         return sensor_calibration_patterns(self.cfg.sensor.projector)
 
-    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         dec = decode(captured["images"], self.patterns(view), self.cfg.sensor.camera.bit_depth)
         u, v = dec.axes["columns"].u, dec.axes["rows"].u
         _save_view(out_dir, u=u.astype(np.float32), v=v.astype(np.float32))
         return {"decoded": int((np.isfinite(u) & np.isfinite(v)).sum())}
 
-    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
+    def fit(self, run: RunFolder, views: list[View]) -> tuple[dict[str, Any], Path]:
         from types import SimpleNamespace
 
         from cell.calibration.sensor import SensorCalibrator, save_sensor_calibration
@@ -294,8 +295,8 @@ class SensorJob(_FlatBoardJob):
                 "rows": SimpleNamespace(u=d["v"].astype(np.float64)),
             }
             decoded = SimpleNamespace(axes=axes)  # the u, v maps are all add_step reads
-            found = cal.add_step(float(views[i]["height_mm"]), decoded)  # type: ignore[arg-type]
-            run.log("step", index=i, height_mm=views[i]["height_mm"], encoded_points=found)
+            found = cal.add_step(float(views[i].data["height_mm"]), decoded)  # type: ignore[arg-type]
+            run.log("step", index=i, height_mm=views[i].data["height_mm"], encoded_points=found)
         res = cal.finish()
         path = save_sensor_calibration(
             res,
@@ -340,7 +341,7 @@ class HandEyeBoardJob(CalibrationJob):
         )
         return top, camera_over(self.cfg, top) @ T_C_Bd
 
-    def plan(self) -> list[dict[str, Any]]:
+    def plan(self) -> list[View]:
         top, T_W_Bd = self.still_board()
         out = []
         for k in range(self.n_views):
@@ -349,7 +350,7 @@ class HandEyeBoardJob(CalibrationJob):
             out.append(_view(flange_for_camera(self.cfg, T_W_C), CHARUCO, T_W_Bd, index=k))
         return out
 
-    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         found = _detect(view, captured["images"][0])
         cam = active_sensor_config(self.cfg).camera
         T_C_Bd = board_pose_from_corners(
@@ -358,7 +359,7 @@ class HandEyeBoardJob(CalibrationJob):
         _save_view(out_dir, T_C_Bd=T_C_Bd, corners_px=found.corners_px, ids=found.ids)
         return {"corners": int(len(found.ids))}
 
-    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
+    def fit(self, run: RunFolder, views: list[View]) -> tuple[dict[str, Any], Path]:
         done = self.view_summaries(run)
         T_B_T = [np.asarray(s["T_B_T"]) for _, s in done]
         T_C_Bd = [_load_view(run, i)["T_C_Bd"] for i, _ in done]
@@ -400,7 +401,7 @@ class KinematicsJob(HandEyeBoardJob):
     def __init__(self, cfg: CellConfig, views: int = 24, **kw: Any) -> None:
         super().__init__(cfg, views=views, **kw)
 
-    def plan(self) -> list[dict[str, Any]]:
+    def plan(self) -> list[View]:
         top, T_W_Bd = self.still_board()
         out = []
         for k in range(self.n_views):
@@ -410,7 +411,7 @@ class KinematicsJob(HandEyeBoardJob):
             out.append(_view(flange_for_camera(self.cfg, T_W_C), CHARUCO, T_W_Bd, index=k))
         return out
 
-    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         found = _detect(view, captured["images"][0])
         cam = active_sensor_config(self.cfg).camera
         obj = found.object_points(charuco(CHARUCO))
@@ -418,7 +419,7 @@ class KinematicsJob(HandEyeBoardJob):
         _save_view(out_dir, T_C_Bd=T_C_Bd, corners_px=found.corners_px, ids=found.ids, object_mm=obj)
         return {"corners": int(len(found.ids))}
 
-    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
+    def fit(self, run: RunFolder, views: list[View]) -> tuple[dict[str, Any], Path]:
         done = self.view_summaries(run)
         observed = []
         for i, summary in done:
@@ -493,7 +494,7 @@ class HandEyeIcpJob(CalibrationJob):
     def T_W_P(self) -> Pose:
         return make_pose(np.eye(3), self.station.point(0.0))
 
-    def plan(self) -> list[dict[str, Any]]:
+    def plan(self) -> list[View]:
         centre = self.station.point(15.0)
         out = []
         for k, az in enumerate((45.0, 135.0, 225.0, 315.0)):
@@ -501,17 +502,17 @@ class HandEyeIcpJob(CalibrationJob):
             out.append(_view(flange_for_camera(self.cfg, T_W_C), GAUGE, self.T_W_P, index=k))
         return out
 
-    def patterns(self, view: dict[str, Any]) -> PatternSet:
+    def patterns(self, view: View) -> PatternSet:
         return measuring_patterns(self.cfg.sensor.projector)
 
-    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         dec = decode(captured["images"], self.patterns(view), self.cfg.sensor.camera.bit_depth)
         cloud = active_triangulator(self.cfg).triangulate(dec)
         pts = cloud.points_C[cloud.valid][:: self.every]
         _save_view(out_dir, points_C=pts)
         return {"points": int(len(pts))}
 
-    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
+    def fit(self, run: RunFolder, views: list[View]) -> tuple[dict[str, Any], Path]:
         from cell.analysis.errormap import NominalMesh
         from cell.mesh import load_mesh
 
@@ -576,12 +577,12 @@ class ValidateJob(_FlatBoardJob):
         self.gauge_height_mm = gauge_height_mm
         self.gauge = load_gauge_certificate(gauge_certificate)
 
-    def plan(self) -> list[dict[str, Any]]:
+    def plan(self) -> list[View]:
         flat = self.board_view(self.height_mm, index=0, test="plane")
         centre = self.station.point(self.station.board_top_mm + self.radius_mm)
         T_B_T = flange_for_camera(self.cfg, camera_over(self.cfg, centre - (0.0, 0.0, self.radius_mm)))
         sphere = _view(T_B_T, None, None, index=1, test="sphere", centre_W=centre.tolist())
-        sphere.update(
+        sphere.data.update(
             board=f"sphere {self.radius_mm:g} mm",
             T_W_Bd=make_pose(np.eye(3), centre).tolist(),
             mesh_path=str(self._sphere_stl()),
@@ -589,8 +590,8 @@ class ValidateJob(_FlatBoardJob):
         # the gauge stands on the stage, its top gauge_height_mm above the reference plane; the camera looks
         # down at it from where it looks at the flat board (both in the same part of the volume)
         bottom = self.station.point(self.station.board_top_mm + self.gauge_height_mm - self.gauge.top_z_mm)
-        gauge = _view(np.asarray(flat["T_B_T"]), None, None, index=2, test="slots")
-        gauge.update(
+        gauge = _view(flat.T_B_T, None, None, index=2, test="slots")
+        gauge.data.update(
             board=self.gauge.name,
             T_W_Bd=make_pose(np.eye(3), bottom).tolist(),
             mesh_path=str(self.gauge.mesh),
@@ -604,27 +605,27 @@ class ValidateJob(_FlatBoardJob):
             trimesh.creation.icosphere(subdivisions=5, radius=self.radius_mm).export(path)
         return path
 
-    def patterns(self, view: dict[str, Any]) -> PatternSet:
+    def patterns(self, view: View) -> PatternSet:
         return measuring_patterns(self.cfg.sensor.projector)
 
-    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         dec = decode(captured["images"], self.patterns(view), self.cfg.sensor.camera.bit_depth)
         model = active_triangulator(self.cfg)
         cloud = model.triangulate(dec)
         T_W_C = self.cfg.robot.T_W_B.matrix() @ np.asarray(captured["T_B_T"]) @ active_hand_eye(self.cfg)
         pts = transform_points(T_W_C, cloud.points_C[cloud.valid])
-        if view["test"] == "slots":
+        if view.data["test"] == "slots":
             # into the gauge's frame where the stage was asked to put it; its top face only (most of the view,
             # 15 mm above the stage around it; an uncalibrated hand-eye moves it by millimetres)
-            pts = transform_points(invert(np.asarray(view["T_W_Bd"])), pts)
+            pts = transform_points(invert(np.asarray(view.data["T_W_Bd"])), pts)
             pts = pts[np.abs(pts[:, 2] - np.percentile(pts[:, 2], 90)) < 2.0]
-        _save_view(out_dir, points_W=pts[:: 4 if view["test"] == "plane" else 1])
+        _save_view(out_dir, points_W=pts[:: 4 if view.data["test"] == "plane" else 1])
         summary: dict[str, Any] = {"points": int(len(pts))}
-        if view["test"] == "plane" and isinstance(model, ReferencePlaneTriangulator):
+        if view.data["test"] == "plane" and isinstance(model, ReferencePlaneTriangulator):
             # Table 5.1's flat test: heights above the per-pixel model's reference plane (sensor frame only),
             # which holds only if the camera looks at the board from where it saw the reference plane
             summary["flat"] = {
-                **flat_test(cloud, model.res_mm, float(view["height_mm"])),
+                **flat_test(cloud, model.res_mm, float(view.data["height_mm"])),
                 **self._reference_pose_change(np.asarray(captured["T_B_T"])),
             }
         return summary
@@ -637,25 +638,25 @@ class ValidateJob(_FlatBoardJob):
         dt, dr = _change(T_B_T, np.asarray(meta["reference_T_B_T"]))
         return {"reference_pose_change_mm": dt, "reference_pose_change_deg": dr}
 
-    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
+    def fit(self, run: RunFolder, views: list[View]) -> tuple[dict[str, Any], Path]:
         out: dict[str, Any] = {"points": 0}
         for i, summary in self.view_summaries(run):
             v, pts = views[i], _load_view(run, i)["points_W"]
             out["points"] += len(pts)
             if "flat" in summary:
                 out["flat"] = summary["flat"]
-            if v["test"] == "plane":
-                z = np.asarray(v["T_W_Bd"])[2, 3]
+            if v.data["test"] == "plane":
+                z = np.asarray(v.data["T_W_Bd"])[2, 3]
                 on = pts[np.abs(pts[:, 2] - z) < 5.0]
                 plane = fit_plane(on)
                 out["plane"] = {**plane, "height_error_mm": float(np.median(on[:, 2]) - z)}
-            elif v["test"] == "slots":
+            elif v.data["test"] == "slots":
                 out["slots"] = {
                     "gauge": {"name": self.gauge.name, "serial": self.gauge.serial},
                     "slots": slot_test(pts, self.gauge.slots),
                 }
             else:
-                centre = np.asarray(v["centre_W"])
+                centre = np.asarray(v.data["centre_W"])
                 ball = pts[pts[:, 2] > centre[2] - 0.75 * self.radius_mm]
                 out["sphere"] = sphere_test(ball, self.radius_mm, centre, band_mm=3.0)
         path = run.path / "validation.json"
@@ -718,19 +719,13 @@ def run_routine(
     cfg = job.cfg
     run, resume = _calibration_folder(out, cell, inputs, job.kind, job.rerun_finished)
     devices = build_devices(cfg, seed=seed, with_stage=True)
-    r = cfg.robot
     controller = Controller(
         devices,
         job,
         run,
         ControllerSettings(view_budget=10_000, max_iterations=1),
-        robot_limits=(
-            r.max_tcp_speed_mm_s,
-            r.max_tcp_accel_mm_s2,
-            r.max_joint_speed_rad_s,
-            r.max_joint_accel_rad_s2,
-        ),
-        home_joints_rad=np.deg2rad(r.home_joints_deg),
+        robot_limits=RobotLimits.of(cfg.robot),
+        home_joints_rad=np.deg2rad(cfg.robot.home_joints_deg),
         motion=JointMotion(UR5E),
         on_progress=on_progress,
     )

@@ -24,6 +24,7 @@ from cell.config import CellConfig
 from cell.devices import DeviceBundle, build_artefact_stage
 from cell.errors import ConfigError
 from cell.geometry import invert, look_at, make_pose, transform_points
+from cell.run_data import View
 from cell.runs import RunFolder
 from cell.sensing.decode import decode
 from cell.sensing.patterns import PatternSet, measuring_patterns
@@ -79,7 +80,7 @@ class VerificationJob(CalibrationJob):
         self._placed: tuple[Any, ...] | None = None  # what the stage holds now (artefact, label, pose)
 
     # ------------------------------------------------------------------ the views
-    def plan(self) -> list[dict[str, Any]]:
+    def plan(self) -> list[View]:
         standoff = self.cfg.sensor.standoff_mm
         if self.part == 3:
             bar = self.certificate.ball_bar_long
@@ -99,34 +100,34 @@ class VerificationJob(CalibrationJob):
             for k, p in enumerate(self.positions)
         ]
 
-    def _artefact_view(self, T_W_C: Any, artefact: str, T_W_A: Any, label: str, index: int) -> dict[str, Any]:
+    def _artefact_view(self, T_W_C: Any, artefact: str, T_W_A: Any, label: str, index: int) -> View:
         view = _view(flange_for_camera(self.cfg, T_W_C), index=index)
-        view.update(artefact=artefact, T_W_A=np.asarray(T_W_A).tolist(), label=label, part=self.part)
+        view.data.update(artefact=artefact, T_W_A=np.asarray(T_W_A).tolist(), label=label, part=self.part)
         return view
 
-    def patterns(self, view: dict[str, Any]) -> PatternSet:
+    def patterns(self, view: View) -> PatternSet:
         return measuring_patterns(self.cfg.sensor.projector)
 
-    def capture(self, devices: DeviceBundle, view: dict[str, Any], index: int) -> dict[str, Any]:
+    def capture(self, devices: DeviceBundle, view: View, index: int) -> dict[str, Any]:
         """Place the view's artefact (the technician's hand on a real cell) when it differs from the one
         placed for the previous view (the views of one Part 3 position share one placement: placing the bar
         again between them would measure two placements), then grab the stack."""
-        if view.get("part", self.part) != self.part:
+        held = view.data.get("part", self.part)
+        if held != self.part:
             raise ConfigError(
-                f"this run folder holds a Part {view['part']} test; run it again with --part {view['part']}",
-                field="--part",
+                f"this run folder holds a Part {held} test; run it again with --part {held}", field="--part"
             )
         if self._stage is None:
             self._stage = build_artefact_stage(devices, self.certificate)
-        placement = (view["artefact"], view["label"], tuple(np.ravel(view["T_W_A"])))
+        artefact, label, T_W_A = view.data["artefact"], view.data["label"], view.data["T_W_A"]
+        placement = (artefact, label, tuple(np.ravel(T_W_A)))
         if placement != self._placed:  # a resumed run places its first view's artefact again
-            self._stage.place(view["artefact"], np.asarray(view["T_W_A"], dtype=np.float64), view["label"])
+            self._stage.place(artefact, np.asarray(T_W_A, dtype=np.float64), label)
             self._placed = placement
-        if devices.sim is not None:  # one noise draw per view, the same on a resumed run
-            devices.sim.reseed(1000 + index)
+        devices.begin_view(1000 + index)  # keys apart from the inspection's
         return {**super().capture(devices, view, index), "simulated": devices.sim is not None}
 
-    def decode_view(self, view: dict[str, Any], captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         """The points the sensor delivers in an inspection too (valid, off the rims, lit within
         ``sensor.max_projector_incidence_deg``), in {C}, and where the cell believes the camera was."""
         cam = self.cfg.sensor.camera
@@ -147,16 +148,16 @@ class VerificationJob(CalibrationJob):
         }
 
     # ------------------------------------------------------------------ the figures
-    def fit(self, run: RunFolder, views: list[dict[str, Any]]) -> tuple[dict[str, Any], Path]:
-        if views and views[0].get("part", self.part) != self.part:
+    def fit(self, run: RunFolder, views: list[View]) -> tuple[dict[str, Any], Path]:
+        if views and views[0].data.get("part", self.part) != self.part:
             raise ConfigError(
-                f"this run folder holds a Part {views[0]['part']} test; run it again with "
-                f"--part {views[0]['part']}",
+                f"this run folder holds a Part {views[0].data['part']} test; run it again with "
+                f"--part {views[0].data['part']}",
                 field="--part",
             )
         planned: dict[str, list[int]] = {}
         for i, v in enumerate(views):
-            planned.setdefault(v["label"], []).append(i)
+            planned.setdefault(v.data["label"], []).append(i)
         done = set(run.completed_views())
         summaries = self.view_summaries(run)
         result = self._empty_result(bool(summaries) and all(s.get("simulated") for _, s in summaries))
@@ -166,11 +167,11 @@ class VerificationJob(CalibrationJob):
             if missing:  # a view the robot could not reach (skipped and logged): the position is not measured
                 result.positions.append(
                     PositionResult(
-                        label, v0["artefact"], error=f"view(s) {missing} not measured (see journal)"
+                        label, v0.data["artefact"], error=f"view(s) {missing} not measured (see journal)"
                     )
                 )
                 continue
-            T_W_A = np.asarray(v0["T_W_A"])
+            T_W_A = np.asarray(v0.data["T_W_A"])
             data = [np.load(run.view_dir(i) / "data.npz") for i in indices]
             try:
                 if self.part == 3:
@@ -181,13 +182,13 @@ class VerificationJob(CalibrationJob):
                 else:
                     (d,) = data
                     T_C_A = invert(d["T_W_C"]) @ T_W_A
-                    if v0["artefact"] == "plane":
+                    if v0.data["artefact"] == "plane":
                         r = evaluate_plane(d["points_C"], T_C_A, self.certificate.plane)
                     else:
                         r = evaluate_ball_bar(d["points_C"], T_C_A, self.certificate.ball_bar)
             except FitError as exc:
-                r = PositionResult(label, v0["artefact"], error=f"too few points on the artefact: {exc}")
-            r.label, r.artefact = label, v0["artefact"]
+                r = PositionResult(label, v0.data["artefact"], error=f"too few points on the artefact: {exc}")
+            r.label, r.artefact = label, v0.data["artefact"]
             result.positions.append(r)
         result.summarise()
         return result.to_dict(), run.path / self.result_file

@@ -63,6 +63,20 @@ class ProjectorContract:
         finally:
             projector.close()
 
+    def test_switch_on_makes_it_ready_and_blank(self, projector: Projector) -> None:
+        projector.connect()
+        try:
+            projector.switch_on()
+            assert projector.ready()
+            (img,) = _images(projector, 1)
+            projector.show(img)
+            projector.blank()
+            assert not _readback_or_skip(projector).any()
+            projector.set_power(False)
+            assert not projector.ready()
+        finally:
+            projector.close()
+
     def test_show_is_pixel_exact(self, projector: Projector) -> None:
         projector.connect()
         try:
