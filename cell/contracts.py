@@ -135,8 +135,11 @@ class TimedProjector(Protocol):
     measured or assumed latency). The scan waits from ``last_present_s`` for the latency before a software
     trigger; without this capability (replay) it cannot wait and triggers at once."""
 
-    clock: Clock
-    timing: Any
+    @property
+    def clock(self) -> Clock: ...
+
+    @property
+    def timing(self) -> Any: ...
 
     @property
     def last_present_s(self) -> float: ...

@@ -27,7 +27,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from transitions.extensions import HierarchicalGraphMachine
@@ -201,6 +201,30 @@ class _Progress:
 class Controller:
     """Runs one job on one device bundle into one run folder."""
 
+    # The state machine (transitions) sets ``state`` and adds one method per trigger of the transition table
+    # at run time; declared here for the type checker only (a real attribute would shadow the trigger).
+    state: str
+    if TYPE_CHECKING:
+
+        def start(self) -> bool: ...
+        def resume(self) -> bool: ...
+        def resumed(self) -> bool: ...
+        def connected(self) -> bool: ...
+        def homed(self) -> bool: ...
+        def planned(self) -> bool: ...
+        def arrived(self) -> bool: ...
+        def captured(self) -> bool: ...
+        def no_more_views(self) -> bool: ...
+        def decoded(self) -> bool: ...
+        def needs_views(self) -> bool: ...
+        def qualified(self) -> bool: ...
+        def replanned(self) -> bool: ...
+        def registered(self) -> bool: ...
+        def reported(self) -> bool: ...
+        def pause(self) -> bool: ...
+        def fault(self) -> bool: ...
+        def abort(self) -> bool: ...
+
     def __init__(
         self,
         devices: DeviceBundle,
@@ -368,6 +392,7 @@ class Controller:
         if retryable and self._attempts < self.settings.max_retries:
             self._attempts += 1
             time.sleep(self.settings.retry_delay_s)
+            assert isinstance(exc, DeviceError)  # only device errors are retryable
             self._reconnect(exc.device)
             return  # same state, same handler: retry
         self._attempts = 0
@@ -511,6 +536,7 @@ class Controller:
 
     def _do_scanning_capturing(self) -> None:
         index = self.current_view
+        assert index is not None  # set by the move to this view
         view = self.checkpoint.views[index]
         self.run.log("capture", view=index)
         captured = self.job.capture(self.devices, view, index)
@@ -613,7 +639,7 @@ def mermaid_diagram() -> str:
     class _Model:
         pass
 
-    model = _Model()
+    model: Any = _Model()  # the machine adds get_graph at run time
     HierarchicalGraphMachine(
         model=model,
         states=STATES,

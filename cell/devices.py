@@ -21,6 +21,7 @@ from cell.contracts import (
     BoardStage,
     Camera,
     CameraSettings,
+    MarkerScreen,
     PixelFormat,
     Projector,
     ProjectorSource,
@@ -138,7 +139,7 @@ def build_devices(
         from fakes.sim_cell import build_sim_cell
 
         sim = build_sim_cell(cfg, part_W, part_material=part_material, seed=seed)
-        stage = None
+        stage: BoardStage | None = None
         if with_stage:
             from fakes.stage import SimBoardStage
 
@@ -156,8 +157,8 @@ def build_devices(
     if with_stage:
         from cell.calibration.operator_stage import OperatorBoardStage
 
-        stage = OperatorBoardStage()
-        names["stage"] = stage.name
+        operator = OperatorBoardStage()
+        names["stage"], stage = operator.name, operator
     return DeviceBundle(robot=robot, camera=camera, projector=projector, names=names, stage=stage)
 
 
@@ -283,7 +284,7 @@ def build_artefact_stage(devices: DeviceBundle, certificate: Any) -> Any:
 
 def build_glass_rig(
     cfg: Any, actual_W: trimesh.Trimesh, operator_places_board: Callable[[float | None], None]
-) -> tuple[Any, Callable[[float | None], None], Callable[..., None] | None]:
+) -> tuple[Any, Callable[[float | None], None], Callable[[int], MarkerScreen] | None]:
     """The glass rig of ``cfg`` (cell.glass.config.GlassRigConfig), how its dot-grid board gets placed and how
     its screen moves (None: it cannot). A simulated rig renders ``actual_W`` (world, mm) and places its board
     and screen itself; a real or replayed rig asks the operator to place the board."""

@@ -45,7 +45,7 @@ def _sim_projector(x: SimProjector) -> Projector:
 def _sim_projector_timed(x: SimProjector) -> TimedProjector:
     # TimedProjector declares clock as a settable Clock, so a SimClock attribute does not match (invariance);
     # the scan only reads it: the contract should declare clock (and timing) read-only properties
-    return x  # type: ignore[return-value]  # until cell.contracts.TimedProjector's clock is read-only
+    return x
 
 
 def _sim_projector_sequence(x: SimProjector) -> SequenceProjector:

@@ -152,6 +152,10 @@ class CalibrationJob:
         self.station = station or Station()
         self.result: dict[str, Any] = {}
 
+    def plan(self) -> list[View]:
+        """The routine's views (each subclass builds its own)."""
+        raise NotImplementedError
+
     # ------------------------------------------------------------------ capture
     def patterns(self, view: View) -> PatternSet:
         """The projector frames of a view (the first frame of every set is full white)."""

@@ -632,7 +632,9 @@ class ValidateJob(_FlatBoardJob):
 
     def _reference_pose_change(self, T_B_T: Pose) -> dict[str, Any]:
         """How far the flange stands from the pose the sensor calibration saw its reference plane from."""
-        meta, _ = load_calibration(self.cfg.calibration.sensor, "sensor_per_pixel")
+        sensor = self.cfg.calibration.sensor
+        assert sensor is not None  # the validation measures with a sensor file (checked when it starts)
+        meta, _ = load_calibration(sensor, "sensor_per_pixel")
         if meta.get("reference_T_B_T") is None:
             return {"reference_pose_change": "unknown (the sensor file does not record it)"}
         dt, dr = _change(T_B_T, np.asarray(meta["reference_T_B_T"]))

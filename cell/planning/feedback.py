@@ -63,33 +63,33 @@ def accuracy_map(
     out = []
     trees = [cKDTree(v.points_W) if len(v.points_W) else None for v in views[:-1]]
     for j in range(max(1, first_new), len(views)):
-        pj = views[j].points_W
+        vj = views[j]
+        pj = vj.points_W
         if len(pj) == 0:
             continue
         for i in range(j):
-            pi = views[i].points_W
-            if trees[i] is None or not _boxes_overlap(pi, pj, link_mm):
+            vi, tree = views[i], trees[i]
+            pi = vi.points_W
+            if tree is None or not _boxes_overlap(pi, pj, link_mm):
                 continue
-            d, k = trees[i].query(pj, distance_upper_bound=link_mm)
+            d, k = (np.asarray(a) for a in tree.query(pj, distance_upper_bound=link_mm))
             near = np.isfinite(d)
             if max_incidence_deg < 90.0 and near.any():
                 n_nom = normals_at(pj[near])
-                seen = (incidence_cos(pj[near], n_nom, views[j].T_W_C[:3, 3]) >= min_cos) & (
-                    incidence_cos(pi[k[near]], n_nom, views[i].T_W_C[:3, 3]) >= min_cos
+                seen = (incidence_cos(pj[near], n_nom, vj.T_W_C[:3, 3]) >= min_cos) & (
+                    incidence_cos(pi[k[near]], n_nom, vi.T_W_C[:3, 3]) >= min_cos
                 )
                 near[np.flatnonzero(near)[~seen]] = False
             if not near.any():
                 continue
-            dj, di = views[j].deviation_mm, views[i].deviation_mm
+            dj, di = vj.deviation_mm, vi.deviation_mm
             if dj is not None and di is not None:
                 # deviations from the nominal: robust on bends and sheet edges, where normals are not
                 gap = np.abs(dj[near] - di[k[near]])
                 same = np.ones(len(gap), dtype=bool)
             else:
-                nj = views[j].normals_W[near] if views[j].normals_W is not None else normals_at(pj[near])
-                ni = (
-                    views[i].normals_W[k[near]] if views[i].normals_W is not None else normals_at(pi[k[near]])
-                )
+                nj = vj.normals_W[near] if vj.normals_W is not None else normals_at(pj[near])
+                ni = vi.normals_W[k[near]] if vi.normals_W is not None else normals_at(pi[k[near]])
                 same = np.einsum("ij,ij->i", nj, ni) > np.cos(np.deg2rad(10.0))
                 gap = np.abs(np.einsum("ij,ij->i", pj[near] - pi[k[near]], nj))
             out.append(_consistent(pj[near][same], gap[same] > tol_mm))

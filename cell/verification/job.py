@@ -85,7 +85,7 @@ class VerificationJob(CalibrationJob):
         if self.part == 3:
             bar = self.certificate.ball_bar_long
             assert bar is not None  # checked in __init__
-            out: list[dict[str, Any]] = []
+            out: list[View] = []
             for label, deg in self.directions.items():
                 T_W_A = bar_pose(deg)
                 for target in view_targets(T_W_A, bar.centre_distance_mm):
