@@ -17,7 +17,15 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 CELL = ROOT / "cell"
 
-FOUNDATION = ("cell.errors", "cell.geometry", "cell.schema", "cell.contracts", "cell.runs", "cell.raycast")
+FOUNDATION = (
+    "cell.errors",
+    "cell.geometry",
+    "cell.schema",
+    "cell.contracts",
+    "cell.runs",
+    "cell.raycast",
+    "cell.run_data",
+)
 # the domain packages, lowest first: each imports only packages before it
 DOMAIN = (
     "cell.sensing",
