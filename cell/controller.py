@@ -439,11 +439,8 @@ class Controller:
         self.resumed()
 
     def _do_connecting(self) -> None:
-        for kind, device in self.devices.items():
-            device.connect()
-            self.run.log("device", device=self.devices.names.get(kind, kind), command="connect")
+        self.devices.bring_up(lambda name: self.run.log("device", device=name, command="connect"))
         projector = self.devices.projector
-        projector.switch_on()
         if not self.robot_normal():
             state = self.devices.robot.state()
             raise DeviceFault(

@@ -24,7 +24,6 @@ from cell.contracts import (
     MarkerScreen,
     PixelFormat,
     Projector,
-    ProjectorSource,
     Robot,
     TriggerMode,
 )
@@ -63,6 +62,16 @@ class DeviceBundle:
             ("camera", self.camera),
         ]
         return kinds + ([("stage", self.stage)] if self.stage is not None else [])
+
+    def bring_up(self, on_connect: Callable[[str], None] | None = None) -> None:
+        """Connect every device in order (``on_connect`` hears each one's name) and switch the projector on
+        at its HDMI input, blank: the one start-up of the controller and of the commands that capture
+        outside it."""
+        for kind, device in self.items():
+            device.connect()
+            if on_connect is not None:
+                on_connect(self.names.get(kind, kind))
+        self.projector.switch_on()
 
     def begin_view(self, key: int) -> None:
         """Called by a job before it captures a view, ``key`` naming the view the same way on a resumed run. A
@@ -233,10 +242,7 @@ def ready_to_capture(devices: DeviceBundle, camera: CameraConfig) -> Iterator[Ca
     gain and bit depth with a software trigger, for a command that captures outside the controller (a
     scan, a latency measurement). Yields the settings the camera took; closes every device on the way out."""
     try:
-        for _, device in devices.items():
-            device.connect()
-        devices.projector.set_power(True)
-        devices.projector.set_source(ProjectorSource.HDMI)
+        devices.bring_up()
         yield devices.camera.configure(
             CameraSettings(
                 camera.exposure_ms,
