@@ -19,7 +19,7 @@ Frames: {W} world, {B} robot base, {T} flange, {C} camera, {P} projector, {Bd} t
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +36,7 @@ from cell.errors import DeviceFault
 from cell.geometry import Pose, invert, look_at
 from cell.run_data import Evaluation, View
 from cell.runs import RunFolder, write_json_atomic
-from cell.sensing.patterns import PatternSet, gcps_patterns
+from cell.sensing.patterns import PatternSet, uniform_patterns
 from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
 
@@ -159,8 +159,7 @@ class CalibrationJob:
     # ------------------------------------------------------------------ capture
     def patterns(self, view: View) -> PatternSet:
         """The projector frames of a view (the first frame of every set is full white)."""
-        proj = self.cfg.sensor.projector
-        return _white(gcps_patterns(proj.width_px, proj.height_px, 16, 4, "columns"))
+        return uniform_patterns(self.cfg.sensor.projector, (255, 0))
 
     def capture(self, devices: DeviceBundle, view: View, index: int) -> dict[str, Any]:
         if "board" in view.data:
@@ -229,11 +228,6 @@ class CalibrationJob:
         result = self.fitted(run)
         write_json_atomic(run.path / self.result_file, result)
         return {"kind": self.kind, "file": result.get("file")}
-
-
-def _white(ps: PatternSet) -> PatternSet:
-    """Only the first two frames of ``ps``: full white, then black."""
-    return replace(ps, names=ps.names[:2], frames=ps.frames[:2])
 
 
 def _board(view: View) -> CalibrationBoard:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +47,13 @@ from cell.planning.kinematics import UR5E
 from cell.run_data import View
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import decode
-from cell.sensing.patterns import PatternSet, gcps_patterns, measuring_patterns, sensor_calibration_patterns
+from cell.sensing.patterns import (
+    PatternSet,
+    measuring_patterns,
+    projector_calibration_patterns,
+    sensor_calibration_patterns,
+    uniform_patterns,
+)
 from cell.sensing.triangulate import ReferencePlaneTriangulator
 
 
@@ -145,8 +150,7 @@ class ProjectorJob(IntrinsicsJob):
         self.intrinsics = intrinsics
 
     def patterns(self, view: View) -> PatternSet:
-        proj = self.cfg.sensor.projector
-        return gcps_patterns(proj.width_px, proj.height_px, 16, 4, "both")
+        return projector_calibration_patterns(self.cfg.sensor.projector)
 
     def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         images = captured["images"]
@@ -224,12 +228,7 @@ class GammaJob(_FlatBoardJob):
         return [self.board_view(0.0, index=0)]
 
     def patterns(self, view: View) -> PatternSet:
-        p = self.cfg.sensor.projector
-        frames = np.stack([np.full((p.height_px, p.width_px), g, np.uint8) for g in self.levels])
-        ps = gcps_patterns(p.width_px, p.height_px, 16, 4, "columns")
-        # named so that the stack check finds its black (level 0) and white (level 255) frames
-        names = ["black", *(f"grey_{g}" for g in self.levels[1:-1]), "white"]
-        return replace(ps, names=tuple(names), frames=frames)
+        return uniform_patterns(self.cfg.sensor.projector, [int(g) for g in self.levels])
 
     def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         response = measure_response(captured["images"], self.levels)

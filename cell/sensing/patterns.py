@@ -15,7 +15,8 @@ one-stripe Gray error at a boundary is still unwrapped correctly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -213,6 +214,22 @@ def sensor_calibration_patterns(projector: ProjectorConfig) -> PatternSet:
     and 6 shifts of 2 px, so that the code points of both axes cross."""
     w, h = projector.width_px, projector.height_px
     return gcls_patterns(w, h, 12, 6, "both", n_gray=_gray_bits(projector))
+
+
+def projector_calibration_patterns(projector: ProjectorConfig) -> PatternSet:
+    """The projector-intrinsics routine's code (the projector as an inverse camera): GCPS with 16 px stripes
+    and 4 phase steps on both axes, so every board corner gets both projector coordinates."""
+    return gcps_patterns(projector.width_px, projector.height_px, 16, 4, "both")
+
+
+def uniform_patterns(projector: ProjectorConfig, levels: Sequence[int]) -> PatternSet:
+    """Uniform grey frames at ``levels`` (0..255), named black (0), white (255) and grey_<level>, so that the
+    stack check finds its black and white frames: the board routines' lighting (white, black) and the
+    projector response's levels. They code nothing; the set keeps the GCPS set's codes only for its type."""
+    w, h = projector.width_px, projector.height_px
+    frames = np.stack([np.full((h, w), g, np.uint8) for g in levels])
+    names = tuple({0: "black", 255: "white"}.get(int(g), f"grey_{int(g)}") for g in levels)
+    return replace(gcps_patterns(w, h, 16, 4, "columns"), names=names, frames=frames)
 
 
 def gcps_baseline_patterns(projector: ProjectorConfig) -> PatternSet:

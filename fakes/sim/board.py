@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from cell.config import MaterialConfig, SensorConfig, SimConfig
 from cell.geometry import invert, look_at, transform_points
-from fakes.sim.optics import blur_sigma_px, pixel_rays, project_points
+from fakes.sim.optics import blur_sigma_px, pixel_rays, project_points, projector_lut, projector_response
 from fakes.sim.render import SceneRenderer
 from fakes.sim.scene import Scene
 
@@ -129,9 +129,7 @@ def render_textured_board(
     grey (0..1) lighting it, besides the ambient light."""
     view = _BoardView(renderer, T_C_Bd, texture, px_per_mm)
     proj = renderer.proj
-    return view.image(
-        proj.black_level + (1 - proj.black_level) * float(white_level) ** proj.gamma, rng, exposure_ms
-    )
+    return view.image(float(projector_response(proj, float(white_level))), rng, exposure_ms)
 
 
 def render_textured_board_stack(
@@ -154,9 +152,7 @@ def render_textured_board_stack(
     uv[~view.hit | ~np.isfinite(uv[..., 0])] = -1e6
     p_depth = float(np.median(transform_points(invert(renderer.T_C_P), view.P_C[view.hit])[:, 2]))
     p_sigma = float(blur_sigma_px(proj, np.array([p_depth]))[0])
-    lut = (proj.black_level + (1 - proj.black_level) * (np.arange(256) / 255.0) ** proj.gamma).astype(
-        np.float32
-    )
+    lut = projector_lut(proj)
     out = []
     for pattern in patterns:
         pat = np.asarray(pattern)
@@ -313,9 +309,7 @@ class TexturedBoardRenderer:
         curve and defocus) and of the scene around it; the simulated camera sums these over its exposure."""
         view, uv, p_sigma = self._geometry(T_W_C)
         proj = self.proj
-        lut = (proj.black_level + (1 - proj.black_level) * (np.arange(256) / 255.0) ** proj.gamma).astype(
-            np.float32
-        )
+        lut = projector_lut(proj)
         lin = lut[np.asarray(pattern)]
         if p_sigma > 0.3:
             lin = np.asarray(

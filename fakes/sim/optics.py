@@ -7,12 +7,13 @@ pixel centres. Lengths in mm.
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.config import CameraConfig, PinholeConfig
+from cell.config import CameraConfig, PinholeConfig, ProjectorConfig
 
 # cv2.undistortPoints iterates a fixed-point scheme; 20 iterations bring the reprojection of each pixel centre
 # of the prototype lens (k1=-0.08, k2=0.12) back to the pixel within 1e-12 px (5 leave ~1e-9 px).
@@ -98,3 +99,15 @@ def blur_sigma_px(cfg: PinholeConfig, depth_mm: NDArray[np.floating]) -> NDArray
     z = np.maximum(np.asarray(depth_mm, dtype=np.float64), f * 1.001)
     c_mm = f * f / cfg.f_number * np.abs(z - s) / (z * (s - f))
     return (c_mm / (cfg.pixel_pitch_um * 1e-3) / 4.0).astype(np.float32)
+
+
+def projector_response(proj: ProjectorConfig, level: Any) -> Any:
+    """Relative radiance (0..1) of the projector at grey ``level`` (0..1, scalar or array): the black level it
+    leaks plus the rest along its gamma curve. The one response the simulated projector, the scene renderer
+    and the board renderer share."""
+    return proj.black_level + (1 - proj.black_level) * np.asarray(level, dtype=np.float64) ** proj.gamma
+
+
+def projector_lut(proj: ProjectorConfig) -> NDArray[np.float32]:
+    """:func:`projector_response` of the 256 grey levels of an 8-bit image."""
+    return projector_response(proj, np.arange(256) / 255.0).astype(np.float32)

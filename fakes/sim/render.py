@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from cell.config import SensorConfig, SimConfig
 from cell.geometry import invert, transform_points, transform_vectors
-from fakes.sim.optics import blur_sigma_px, pixel_rays, project_points
+from fakes.sim.optics import blur_sigma_px, pixel_rays, project_points, projector_lut
 from fakes.sim.scene import Scene
 from fakes.sim.world import value_noise
 
@@ -150,9 +150,7 @@ class SceneRenderer:
         self.proj = sensor.projector
         self.T_C_P = sensor.projector.T_C_P.matrix()
         p = self.proj
-        self._lut = (p.black_level + (1 - p.black_level) * (np.arange(256) / 255.0) ** p.gamma).astype(
-            np.float32
-        )
+        self._lut = projector_lut(p)
         self._cache: OrderedDict[bytes, ViewGeometry] = OrderedDict()
         self._cache_size = cache_size
 
