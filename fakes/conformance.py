@@ -43,8 +43,6 @@ def _sim_projector(x: SimProjector) -> Projector:
 
 
 def _sim_projector_timed(x: SimProjector) -> TimedProjector:
-    # TimedProjector declares clock as a settable Clock, so a SimClock attribute does not match (invariance);
-    # the scan only reads it: the contract should declare clock (and timing) read-only properties
     return x
 
 

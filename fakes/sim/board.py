@@ -20,7 +20,7 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
-from cell.config import MaterialConfig, SensorConfig, SimConfig
+from cell.config import MaterialConfig, ProjectorConfig, SensorConfig, SimConfig
 from cell.geometry import invert, look_at, transform_points
 from fakes.sim.optics import blur_sigma_px, pixel_rays, project_points, projector_lut, projector_response
 from fakes.sim.render import SceneRenderer
@@ -152,7 +152,6 @@ def render_textured_board_stack(
     uv[~view.hit | ~np.isfinite(uv[..., 0])] = -1e6
     p_depth = float(np.median(transform_points(invert(renderer.T_C_P), view.P_C[view.hit])[:, 2]))
     p_sigma = float(blur_sigma_px(proj, np.array([p_depth]))[0])
-    lut = projector_lut(proj)
     out = []
     for pattern in patterns:
         pat = np.asarray(pattern)
@@ -160,24 +159,30 @@ def render_textured_board_stack(
             raise ValueError(
                 f"pattern must be uint8 {(proj.height_px, proj.width_px)}, got {pat.dtype} {pat.shape}"
             )
-        lin = lut[pat]
-        if p_sigma > 0.3:
-            lin = np.asarray(
-                cv2.GaussianBlur(lin, (0, 0), p_sigma, borderType=cv2.BORDER_REPLICATE), np.float32
-            )
-        lit = np.asarray(
-            cv2.remap(
-                lin,
-                uv[..., 0],
-                uv[..., 1],
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=float(proj.black_level),
-            ),
-            np.float32,
-        )
-        out.append(view.image(lit, rng, exposure_ms))
+        out.append(view.image(_projected(proj, pat, uv, p_sigma), rng, exposure_ms))
     return np.stack(out)
+
+
+def _projected(
+    proj: ProjectorConfig, pattern: NDArray[np.uint8], uv: NDArray[np.float32], p_sigma: float
+) -> NDArray[np.float32]:
+    """Relative projector radiance (0..1) at each camera pixel: ``pattern`` through the projector's response,
+    blurred by its defocus (``p_sigma`` px) and sampled at the pixel's projector coordinates ``uv`` (black
+    level outside the projector image)."""
+    lin = projector_lut(proj)[pattern]
+    if p_sigma > 0.3:
+        lin = np.asarray(cv2.GaussianBlur(lin, (0, 0), p_sigma, borderType=cv2.BORDER_REPLICATE), np.float32)
+    return np.asarray(
+        cv2.remap(
+            lin,
+            uv[..., 0],
+            uv[..., 1],
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=float(proj.black_level),
+        ),
+        np.float32,
+    )
 
 
 class _BoardView:
@@ -308,24 +313,7 @@ class TexturedBoardRenderer:
         """Noise-free electrons per pixel (H, W) of the board lit by projector image ``pattern`` (its response
         curve and defocus) and of the scene around it; the simulated camera sums these over its exposure."""
         view, uv, p_sigma = self._geometry(T_W_C)
-        proj = self.proj
-        lut = projector_lut(proj)
-        lin = lut[np.asarray(pattern)]
-        if p_sigma > 0.3:
-            lin = np.asarray(
-                cv2.GaussianBlur(lin, (0, 0), p_sigma, borderType=cv2.BORDER_REPLICATE), np.float32
-            )
-        lit = np.asarray(
-            cv2.remap(
-                lin,
-                uv[..., 0],
-                uv[..., 1],
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=float(proj.black_level),
-            ),
-            np.float32,
-        )
+        lit = _projected(self.proj, np.asarray(pattern), uv, p_sigma)
         rate = view.albedo * (self.sim.ambient_e_per_ms + view.proj_rate * lit)
         signal = (rate * np.float32(exposure_ms)).astype(np.float32)
         sigma = float(blur_sigma_px(self.cam, np.array([view.depth]))[0])
