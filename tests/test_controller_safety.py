@@ -154,13 +154,14 @@ def _cell(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def realtime_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
-    """The box recipe, the small cell as a file, and the same cell whose simulated arm moves in wall-clock
-    time (robot.options.sim_realtime_factor = 1), so that a signal can arrive mid-move."""
+    """The box recipe, the small cell as a file, and the same cell whose simulated arm moves slower than
+    wall-clock time (robot.options.sim_realtime_factor = 0.25: a 1 s move lasts 4 s), so that a signal sent
+    when the journal shows a move arrives mid-move even when a loaded machine delays the test's poll."""
     folder = tmp_path_factory.mktemp("rt")
     recipe = write_box_recipe(folder)
     data = small_cell().model_dump(mode="json")
     (folder / "cell.yaml").write_text(yaml.safe_dump(data))
-    data["robot"]["options"] = {**data["robot"].get("options", {}), "sim_realtime_factor": 1.0}
+    data["robot"]["options"] = {**data["robot"].get("options", {}), "sim_realtime_factor": 0.25}
     (folder / "realtime.yaml").write_text(yaml.safe_dump(data))
     return recipe, folder / "cell.yaml", folder / "realtime.yaml"
 
@@ -218,6 +219,12 @@ def test_sigterm_mid_move_pauses_and_resume_gives_the_same_result(
     assert journal[-1]["event"] == "exit" and journal[-1]["state"] == "paused"
     assert not (run / "run.lock").exists()  # released on the way out
     views_before = set(RunFolder.open(run).completed_views())
+    # The pause is what this test is about: the resumed views need no wall-clock pacing (the factor only paces
+    # the simulated arm; the reference run had none), so the run's copy of the cell drops it.
+    cell_copy = run / "inputs" / "cell.yaml"
+    data = yaml.safe_load(cell_copy.read_text())
+    data["robot"]["options"]["sim_realtime_factor"] = 0.0
+    cell_copy.write_text(yaml.safe_dump(data, sort_keys=False))
     done = _cell("resume", str(run))
     assert done.returncode == 0, done.stdout + done.stderr
     assert views_before <= set(RunFolder.open(run).completed_views())
