@@ -14,16 +14,11 @@ import numpy as np
 import pytest
 
 from cell.calibration.handeye import pose_error
+from cell.calibration.handeye_routines import HandEyeBoardJob, HandEyeIcpJob, KinematicsJob
 from cell.calibration.operator_stage import OperatorBoardStage
 from cell.calibration.procedures import CHARUCO, FLAT, Station
-from cell.calibration.routines import (
-    HandEyeBoardJob,
-    HandEyeIcpJob,
-    IntrinsicsJob,
-    KinematicsJob,
-    ProjectorJob,
-    run_routine,
-)
+from cell.calibration.routines import run_routine
+from cell.calibration.sensor_routines import IntrinsicsJob, ProjectorJob
 from cell.config import DEFAULT_CELL, load_cell_config
 from cell.contracts import BoardStage
 from cell.devices import build_devices

@@ -45,6 +45,9 @@ JOBS = (
     "cell.calibration.latency",
     "cell.calibration.procedures",
     "cell.calibration.routines",
+    "cell.calibration.sensor_routines",
+    "cell.calibration.handeye_routines",
+    "cell.calibration.validation_routine",
     "cell.verification.job",
     "cell.glass.job",
 )

@@ -119,7 +119,7 @@ def test_a_paused_acceptance_test_resumes_where_it_stopped(tmp_path) -> None:
 def test_a_finished_test_is_a_record_and_folders_hold_one_kind_of_run(tmp_path, capsys) -> None:
     """A finished verification folder is not measured over (a new test needs a new --out); a calibration
     routine will not run into it; `cell resume` (inspections only) says how such a folder resumes."""
-    from cell.calibration.routines import IntrinsicsJob
+    from cell.calibration.sensor_routines import IntrinsicsJob
 
     cfg = load_cell_config(CELL)
     cert = load_certificate()

@@ -29,10 +29,11 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from cell.calibration.active import active_hand_eye, believed_flange
+from cell.calibration.intrinsics import CharucoView, detect_charuco
 from cell.config import CellConfig
 from cell.contracts import BoardKind, CalibrationBoard, CameraSettings, PixelFormat, TriggerMode
 from cell.devices import DeviceBundle
-from cell.errors import DeviceFault
+from cell.errors import CalibrationError, DeviceFault
 from cell.geometry import Pose, invert, look_at
 from cell.run_data import Evaluation, View
 from cell.runs import RunFolder, write_json_atomic
@@ -276,3 +277,33 @@ class JointMotion:
             up[2, 3] = self.lift_to_z_B_mm
             moves.append(Move("linear", up))
         return [*moves, Move("joint", q)], []
+
+
+# --------------------------------------------------------------------------------------------- view files
+def board_not_found(view: View, index: int | str) -> CalibrationError:
+    """The error of a view whose board the camera does not see, with where it was asked for."""
+    return CalibrationError(
+        f"view {index}: the board '{view.data['board']}' was not found in the camera image (requested at "
+        f"{_pose_text(view.data['T_W_Bd'])}, robot flange at {_pose_text(view.T_B_T)}); check that the board "
+        "is in view, lit and in focus"
+    )
+
+
+def detect_board(view: View, image: Any) -> CharucoView:
+    """The ChArUco board of ``view`` in ``image``, or :func:`board_not_found`."""
+    found = detect_charuco(image, charuco(CHARUCO))
+    if found is None:
+        raise board_not_found(view, view.data.get("index", "?"))
+    return found
+
+
+def save_view_arrays(out_dir: Path, **arrays: Any) -> None:
+    """A routine's per-view arrays, as ``data.npz`` in the view folder."""
+    with open(out_dir / "data.npz", "wb") as f:
+        np.savez(f, **arrays)
+
+
+def load_view_arrays(run: RunFolder, i: int) -> dict[str, Any]:
+    """The arrays :func:`save_view_arrays` wrote for view ``i``."""
+    with np.load(run.view_dir(i) / "data.npz") as d:
+        return {k: d[k] for k in d.files}

@@ -74,7 +74,7 @@ def sensor_cmd(
     (dissertation 5.1.1)."""
     if source is not None:
         return _offline("sensor", source, out, cell, force=force, points=points)
-    from cell.calibration.routines import SensorJob
+    from cell.calibration.sensor_routines import SensorJob
 
     cfg = load_cell_config(cell)
     run(SensorJob(cfg, steps=steps, step_mm=step_mm, points=points, force=force, seed=seed), out, cell, seed)
@@ -92,7 +92,7 @@ def intrinsics_cmd(
     """Camera K and distortion from VIEWS images of a ChArUco board the stage holds (OpenCV)."""
     if source is not None:
         return _offline("intrinsics", source, out, cell, force=force)
-    from cell.calibration.routines import IntrinsicsJob
+    from cell.calibration.sensor_routines import IntrinsicsJob
 
     run(IntrinsicsJob(load_cell_config(cell), views=views, force=force, seed=seed), out, cell, seed)
 
@@ -112,7 +112,7 @@ def projector_cmd(
     """Projector K and T_C_P (Moreno-Taubin local homographies at the ChArUco corners, stereoCalibrate)."""
     if source is not None:
         return _offline("projector", source, out, cell, intrinsics=intrinsics, force=force)
-    from cell.calibration.routines import ProjectorJob
+    from cell.calibration.sensor_routines import ProjectorJob
 
     job = ProjectorJob(load_cell_config(cell), views=views, intrinsics=intrinsics, force=force, seed=seed)
     run(job, out, cell, seed)
@@ -127,7 +127,7 @@ def gamma_cmd(
     seed: int = 1,
 ) -> None:
     """Projector response: uniform grey levels on the white board; writes the linearising LUT."""
-    from cell.calibration.routines import GammaJob
+    from cell.calibration.sensor_routines import GammaJob
 
     run(GammaJob(load_cell_config(cell), levels=levels, force=force, seed=seed), out, cell, seed)
 

@@ -39,7 +39,7 @@ def kinematics_cmd(
 ) -> None:
     """The robot's link-length and joint-zero errors with the hand-eye, from board views (writes
     OUT/kinematics.yaml and the hand-eye found with it, OUT/handeye.yaml; set both in the cell config)."""
-    from cell.calibration.routines import KinematicsJob
+    from cell.calibration.handeye_routines import KinematicsJob
     from cell.config import load_cell_config
 
     run(KinematicsJob(load_cell_config(cell), views=views, force=force, seed=seed), out, cell, seed)
