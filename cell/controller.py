@@ -1,7 +1,7 @@
 """The cell controller: a declared state machine that runs a job view by view, with checkpoints.
 
-States (``transitions`` HierarchicalMachine, ``auto_transitions=False`` so no generated ``to_X`` bypasses a
-guard, ``queued=True``, exceptions routed to :meth:`Controller._on_exception`)::
+States (``transitions`` HierarchicalGraphMachine, ``auto_transitions=False`` so no generated ``to_X``
+bypasses a guard, ``queued=True``, exceptions routed to :meth:`Controller._on_exception`)::
 
     idle -> connecting -> homing -> planning -> scanning(moving -> capturing ... -> decoding)
          -> evaluating -> replanning -> scanning ... -> registering -> reporting -> done
@@ -339,7 +339,7 @@ class Controller:
         self.pause_requested_at = time.monotonic()
         try:
             self.devices.robot.stop()
-        except Exception:  # noqa: BLE001 - a signal handler must not raise; _make_safe stops it again
+        except Exception:  # a signal handler must not raise; _make_safe stops it again
             pass
 
     # ------------------------------------------------------------------ the run loop

@@ -10,6 +10,8 @@ the inspection's rays onto the nominal all use it.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
@@ -38,7 +40,8 @@ class RayCaster:
             indices=self.faces.astype(np.int32),
         )
 
-    def _run(self, origins: NDArray[np.float64], dirs: NDArray[np.float64], **kw):  # noqa: ANN003
+    def _run(self, origins: NDArray[np.float64], dirs: NDArray[np.float64], **kw: Any) -> Any:
+        """Embree's query on rays relative to the mesh centre (float32 keeps its resolution there)."""
         o = (np.asarray(origins, dtype=np.float64) - self._origin).astype(np.float32)
         return self._embree.run(o, np.asarray(dirs, dtype=np.float32), **kw)
 
