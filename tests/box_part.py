@@ -21,11 +21,17 @@ def small_cell() -> CellConfig:
     return CellConfig.model_validate({**cfg.model_dump(), "sensor": sensor, "world": "ideal"})
 
 
-def write_box_recipe(folder: Path, at_mm: tuple[float, float, float] | None = None) -> Path:
-    """A 120 x 90 x 40 mm box on the table at the world origin and its recipe; returns the recipe path.
+# where the robot reaches every face of the box: the planner splits no unreachable face down to its smallest
+# patches, and a whole inspection takes about a fifth of the time it takes at the world origin (measured 8 s
+# against 37 s on the shared 2-core machine)
+IN_REACH_MM = (0.0, -60.0, 0.0)
 
-    ``at_mm`` places the part elsewhere (part.T_W_P); at (0, -60, 0) every face is in the robot's reach, so
-    the planner splits no unreachable face down to its smallest patches and plans in a fraction of the time.
+
+def write_box_recipe(folder: Path, at_mm: tuple[float, float, float] | None = IN_REACH_MM) -> Path:
+    """A 120 x 90 x 40 mm box on the table and its recipe; returns the recipe path.
+
+    ``at_mm`` places the part (part.T_W_P): by default at :data:`IN_REACH_MM`, where every face is in the
+    robot's reach; None leaves it at the world origin, where the robot cannot reach its +y face.
     """
     box = trimesh.creation.box(extents=(120.0, 90.0, 40.0))
     box.apply_translation((0.0, 0.0, 20.0))
@@ -34,7 +40,7 @@ def write_box_recipe(folder: Path, at_mm: tuple[float, float, float] | None = No
         "name": "box",
         "part": {"cad": "box.stl"},
         "tolerance": {"lower": -0.3, "upper": 0.3},
-        "min_coverage": 0.6,  # the robot stands on the -y side: the box's +y face is out of its reach
+        "min_coverage": 0.6,  # at the origin the box's +y face is out of the robot's reach
         "plan": {"resolution_mm": 1.5, "point_density_per_mm2": 0.2, "view_budget": 8, "max_iterations": 1},
     }
     if at_mm is not None:

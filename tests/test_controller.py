@@ -35,7 +35,7 @@ def recipe_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def make_controller(recipe_path: Path, run_dir: Path, **settings) -> tuple[Controller, DeviceBundle]:
     cfg = small_cell()
     recipe = load_recipe(recipe_path)
-    nominal = trimesh.load(recipe.part.cad)
+    nominal = trimesh.load(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())  # in {W}
     devices = build_devices(cfg, part_W=nominal, seed=5)
     job = LambertianInspection(recipe, cfg, nominal)
     job.settings.pictures = False
@@ -201,7 +201,7 @@ def test_recipe_regions_are_judged_with_their_own_bands(
     ]
     (recipe_path.parent / "box_regions.yaml").write_text(yaml.safe_dump(data))
     recipe = load_recipe(recipe_path.parent / "box_regions.yaml")
-    job = LambertianInspection(recipe, small_cell(), box)
+    job = LambertianInspection(recipe, small_cell(), box.copy().apply_transform(recipe.part.T_W_P.matrix()))
     job.settings.pictures = False
     run = RunFolder.open(run_dir)
     summary = job.report(run, run.load_checkpoint()["registration"])

@@ -1,7 +1,8 @@
 """`cell inspect` end to end through the CLI: the pillar's dent is found where it is; a killed run resumes.
 
 The binned simulated cell (recipes/cells/sim_binned.yaml: the prototype with its camera binned 2x2) keeps a
-full pillar inspection to about half a minute. The kill test uses a small box part for speed.
+full pillar inspection to about half a minute. The kill test uses a small box part for speed, and kills
+resumes too (chains of kills), so that 20 kills cost about four runs, not twenty.
 """
 
 from __future__ import annotations
@@ -82,49 +83,73 @@ def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return recipe, folder / "cell.yaml"
 
 
-@pytest.mark.timeout(900)  # 20 kills and resumes of a ~8 s run, on a shared 2-core machine
+def _journal_length(run: Path) -> int:
+    """Lines in the run's journal, or -1 while the run folder does not exist under its name."""
+    path = run / "journal.jsonl"
+    if not path.exists():
+        return -1
+    return len(path.read_bytes().splitlines())
+
+
+def _finished(run: Path) -> bool:
+    checkpoint = run / "checkpoint.json"
+    return (run / "results" / "report.json").exists() and (
+        checkpoint.exists() and json.loads(checkpoint.read_text()).get("phase") == "done"
+    )
+
+
+KILLS = 20
+KILLS_PER_CHAIN = 5
+
+
+@pytest.mark.timeout(900)  # 20 kills in 4 chains of kill, resume, kill... of a ~8 s run, on a shared machine
 def test_killed_runs_resume_to_the_same_result(box_inputs: tuple[Path, Path], tmp_path: Path) -> None:
+    """SIGKILL (no handler runs) at 20 points spread over the run, then `cell resume` ends with the result of
+    an uninterrupted run. The kills come in chains: each chain starts a `cell inspect`, kills it, resumes,
+    kills the resume, ... and finally lets a resume finish; so a resume that itself was killed (before or
+    after it took over the dead run's lock) is resumed again. Kill points are chosen on the run's own
+    progress (its journal, not a wall-clock guess), spread over the reference run's whole journal, and
+    include kills during start-up, before the run folder exists."""
     recipe, cell_file = box_inputs
-    t0 = time.monotonic()
     ref = cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(tmp_path / "ref"))
-    duration = time.monotonic() - t0
     assert ref.returncode == 0, ref.stdout + ref.stderr
     expected = report(tmp_path / "ref")
+    n_ref = _journal_length(tmp_path / "ref")
+    inspect = ["inspect", str(recipe), "--cell", str(cell_file), "--out"]
     rng = np.random.default_rng(7)
-    kills = 0
-    for k, instant in enumerate(rng.uniform(0.3, 0.9 * duration, size=30)):
-        if kills == 20:
-            break
-        run = tmp_path / f"k{k}"
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "cell",
-                "inspect",
-                str(recipe),
-                "--cell",
-                str(cell_file),
-                "--out",
-                str(run),
-            ],
-            cwd=REPO,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        time.sleep(instant)
-        if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGKILL)
-            kills += 1
-        proc.wait(timeout=60)
-        if not run.exists():  # killed before the run folder was complete: the run never started
-            done = cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(run))
-        elif (run / "results" / "report.json").exists() and json.loads(
-            (run / "checkpoint.json").read_text()
-        ).get("phase") == "done":
-            done = ref
-        else:
-            done = cell("resume", str(run))
-        assert done.returncode == 0, f"kill {k} at {instant:.2f} s: {done.stdout}{done.stderr}"
-        assert_same_result(report(run), expected, f"kill {k} at {instant:.2f} s")
-    assert kills == 20
+    kills, chain = 0, 0
+    while kills < KILLS:
+        assert chain < 2 * KILLS // KILLS_PER_CHAIN, f"only {kills} kills landed before their runs ended"
+        run = tmp_path / f"c{chain}"
+        # kill points: journal lengths spread over the reference run (0: during start-up, by time)
+        targets = np.sort(rng.integers(0, n_ref, size=KILLS_PER_CHAIN))
+        for j, target in enumerate(targets):
+            if kills == KILLS or _finished(run):
+                break
+            args = ["resume", str(run)] if run.exists() else [*inspect, str(run)]
+            context = f"chain {chain} kill {j} ({args[0]}, journal line {target})"
+            start = _journal_length(run)
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "cell", *args],
+                cwd=REPO,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+            if target == 0:
+                time.sleep(rng.uniform(0.3, 3.0))  # start-up: imports, inputs copied, the lock taken
+            else:  # once this process has journalled something and reached the target, a little later
+                while proc.poll() is None and _journal_length(run) < max(target, start + 1):
+                    time.sleep(0.005)
+                time.sleep(rng.uniform(0.0, 0.3))
+            if proc.poll() is None:
+                os.kill(proc.pid, signal.SIGKILL)
+                kills += 1
+            proc.wait(timeout=60)
+            assert proc.returncode in (0, -signal.SIGKILL), context
+        if not _finished(run):
+            args = ["resume", str(run)] if run.exists() else [*inspect, str(run)]
+            done = cell(*args)
+            assert done.returncode == 0, f"chain {chain}: {done.stdout}{done.stderr}"
+        assert_same_result(report(run), expected, f"chain {chain}")
+        chain += 1
+    assert kills == KILLS

@@ -60,7 +60,8 @@ def test_recorded_inspection_replays_to_the_same_report(tmp_path: Path) -> None:
 
     # the part placed 10 mm elsewhere: the plan asks the robot for moves it never recorded
     moved = yaml.safe_load(recipe.read_text())
-    moved["part"]["T_W_P"] = {"xyz_mm": [10.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 0.0]}
+    x, y, z = moved["part"]["T_W_P"]["xyz_mm"]
+    moved["part"]["T_W_P"] = {"xyz_mm": [x + 10.0, y, z], "rpy_deg": [0.0, 0.0, 0.0]}
     (tmp_path / "moved.yaml").write_text(yaml.safe_dump(moved))
     off = cell(
         "inspect", str(tmp_path / "moved.yaml"), "--cell", str(fx / "cell.yaml"), "--out", str(tmp_path / "c")

@@ -39,7 +39,7 @@ def make_controller(
     cfg = calibrated_cell()
     cfg.sensor.camera.trigger = trigger
     recipe = load_recipe(recipe_path)
-    nominal = trimesh.load(recipe.part.cad)
+    nominal = trimesh.load(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())  # in {W}
     devices = build_devices(cfg, part_W=nominal, seed=5)
     job = LambertianInspection(recipe, cfg, nominal)
     job.settings.pictures = False
