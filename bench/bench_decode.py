@@ -110,7 +110,7 @@ def bench(W: int, H: int, repeats: int = 5) -> dict[str, float]:
     return res
 
 
-def _timed(fn) -> float:  # noqa: ANN001
+def _timed(fn) -> float:
     t = time.perf_counter()
     fn()
     return time.perf_counter() - t
@@ -130,7 +130,7 @@ CAMERA_DEFOCUS = {"pixel_pitch_um": 40.0, "f_number": 1.4, "focus_distance_mm": 
 PROJECTOR_DEFOCUS = {"pixel_pitch_um": 50.0, "f_number": 1.0, "focus_distance_mm": 350.0}
 
 
-def _plate_scan(ps, cam: dict, proj: dict, sim: dict, noise: bool):  # noqa: ANN001, ANN202
+def _plate_scan(ps, cam: dict, proj: dict, sim: dict, noise: bool):
     import trimesh
 
     from cell.config import SimConfig
@@ -146,13 +146,13 @@ def _plate_scan(ps, cam: dict, proj: dict, sim: dict, noise: bool):  # noqa: ANN
     )
     rig.projector.connect()
     rig.projector.set_power(True)
-    rig.camera.connect()  # noqa: E702
+    rig.camera.connect()
     rig.camera.configure(CameraSettings(exposure_ms=10.0, pixel_format=PixelFormat.MONO8))
     v = scan_view(rig.camera, rig.projector, ps, PinholeTriangulator.from_sensor(rig.sensor), bit_depth=8)
     return rig, v
 
 
-def _blur_px(rig) -> tuple[float, float]:  # noqa: ANN001
+def _blur_px(rig) -> tuple[float, float]:
     """Median defocus sigma over the plate: camera px, projector px (the simulator's thin-lens formula)."""
     from cell.geometry import transform_points
     from fakes.sim.optics import blur_sigma_px

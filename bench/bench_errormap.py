@@ -99,7 +99,7 @@ def main(n: int = 1_000_000, repeats: int = 3) -> None:
         methods["libigl signed_distance (AABB, pseudonormal)"] = lambda: igl.signed_distance(
             p, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL
         )[0]
-    except Exception as exc:  # noqa: BLE001 - a missing peer is reported, not fatal
+    except Exception as exc:  # a missing peer is reported, not fatal
         print("libigl unavailable:", exc)
     try:
         import point_cloud_utils as pcu
@@ -107,7 +107,7 @@ def main(n: int = 1_000_000, repeats: int = 3) -> None:
         methods["point-cloud-utils closest_points_on_mesh (unsigned)"] = lambda: pcu.closest_points_on_mesh(
             p, V, F
         )[0]
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:
         print("point-cloud-utils unavailable:", exc)
     try:
         import open3d as o3d
@@ -128,7 +128,7 @@ def main(n: int = 1_000_000, repeats: int = 3) -> None:
 
         methods["open3d RaycastingScene compute_closest_points (float32, unsigned)"] = o3d_closest
         methods["open3d RaycastingScene compute_signed_distance (float32)"] = o3d_run
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:
         print("open3d unavailable:", exc)
     best = interleaved(methods, repeats)
     ref = best["ours query"][2]

@@ -31,7 +31,7 @@ from fakes.sim.glass_pane import sag_height, windshield_height
 GLASS = Path(__file__).resolve().parent.parent / "recipes" / "glass"
 
 
-def best_of(fn, repeats: int):  # noqa: ANN001, ANN201 - any callable, its result
+def best_of(fn, repeats: int):  # any callable, its result
     """Best wall and CPU time (s) of ``repeats`` calls, and the last result."""
     wall, cpu, out = np.inf, np.inf, None
     for _ in range(repeats):

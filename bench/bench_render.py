@@ -21,10 +21,10 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from cell.config import load_cell_config  # noqa: E402
-from cell.geometry import look_at  # noqa: E402
-from fakes.sim.render import SceneRenderer  # noqa: E402
-from fakes.sim.scene import Scene  # noqa: E402
+from cell.config import load_cell_config
+from cell.geometry import look_at
+from fakes.sim.render import SceneRenderer
+from fakes.sim.scene import Scene
 
 CELLS = Path(__file__).resolve().parent.parent / "recipes" / "cells"
 

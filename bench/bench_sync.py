@@ -34,7 +34,7 @@ from fakes.sim.scene import Scene
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def rig(trigger: TriggerMode, timing: dict | None = None, latency_frames: float = 2.0):  # noqa: ANN201
+def rig(trigger: TriggerMode, timing: dict | None = None, latency_frames: float = 2.0):
     cfg = load_cell_config(DEFAULT_CELL)
     proj = cfg.sensor.projector.model_copy(
         update={

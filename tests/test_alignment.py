@@ -45,7 +45,7 @@ def _error_mm(T: np.ndarray, E: np.ndarray, pts: np.ndarray) -> float:
     return float(np.linalg.norm(transform_points(T @ E, pts) - pts, axis=1).max())
 
 
-def test_datums_recover_the_placement_and_kinematic_does_not(pillar, misplaced) -> None:  # noqa: ANN001
+def test_datums_recover_the_placement_and_kinematic_does_not(pillar, misplaced) -> None:
     mesh, cfg = pillar
     pts, cloud, E = misplaced
     aligner = Aligner(cfg.model_copy(update={"method": "datums"}), mesh)
@@ -63,7 +63,7 @@ def test_datums_recover_the_placement_and_kinematic_does_not(pillar, misplaced) 
     assert max(abs(r["before_mm"]) for r in kinematic.residuals) > 0.5  # the datums show how far off it is
 
 
-def test_weighted_combination_and_best_fit(pillar, misplaced) -> None:  # noqa: ANN001
+def test_weighted_combination_and_best_fit(pillar, misplaced) -> None:
     mesh, cfg = pillar
     pts, cloud, E = misplaced
     only_datums = {"kinematic": 0.0, "features": 0.0, "datums": 1.0, "datum_icp": 1.0}
@@ -81,7 +81,7 @@ def test_weighted_combination_and_best_fit(pillar, misplaced) -> None:  # noqa: 
     assert _error_mm(best.T, E, pts) < 0.05 and BEST_FIT_WARNING in best.warnings
 
 
-def test_an_unmeasured_datum_or_a_huge_correction_is_an_alignment_error(pillar, misplaced) -> None:  # noqa: ANN001
+def test_an_unmeasured_datum_or_a_huge_correction_is_an_alignment_error(pillar, misplaced) -> None:
     mesh, cfg = pillar
     pts, cloud, E = misplaced
     a1 = np.asarray(cfg.datums[0].point_mm)
@@ -93,7 +93,7 @@ def test_an_unmeasured_datum_or_a_huge_correction_is_an_alignment_error(pillar, 
         Aligner(tight, mesh).align(cloud)
 
 
-def test_bad_datums_are_refused_with_the_field_named(pillar, tmp_path: Path) -> None:  # noqa: ANN001
+def test_bad_datums_are_refused_with_the_field_named(pillar, tmp_path: Path) -> None:
     mesh, cfg = pillar
     off = [d.model_copy() for d in cfg.datums]
     off[3] = off[3].model_copy(update={"point_mm": (-119.88, -54.29, 15.31)})  # 10 mm off the wall

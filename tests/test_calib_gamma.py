@@ -59,7 +59,7 @@ def test_bad_response_input():
         measure_response(np.zeros((3, 20, 20)), np.array([0, 128, 255]))
 
 
-def test_the_inspection_projects_through_the_active_gamma_lut(tmp_path) -> None:  # noqa: ANN001
+def test_the_inspection_projects_through_the_active_gamma_lut(tmp_path) -> None:
     """A cell whose `calibration.gamma` names a LUT gets every inspection pattern sent through it (what the
     projector then shows is linear in the coded intensity); a file that is not a 256-level LUT is refused
     with its name."""

@@ -33,7 +33,7 @@ def _true_arm(seed: int) -> KinematicErrors:
     )
 
 
-def _poses(cfg, n: int, centre_W: np.ndarray) -> list[np.ndarray]:  # noqa: ANN001
+def _poses(cfg, n: int, centre_W: np.ndarray) -> list[np.ndarray]:
     """Joint angles of ``n`` views of the board: tilted 10-35 deg all around it, rolled, two distances."""
     q_home = np.deg2rad(cfg.robot.home_joints_deg)
     out = []
@@ -46,7 +46,7 @@ def _poses(cfg, n: int, centre_W: np.ndarray) -> list[np.ndarray]:  # noqa: ANN0
 
 def _observe(
     q: np.ndarray, arm: KinematicErrors, T_T_C: np.ndarray, T_B_Bd: np.ndarray, rng
-) -> BoardObservation:  # noqa: ANN001
+) -> BoardObservation:
     T_C_Bd = invert(T_T_C) @ invert(arm.flange(q)) @ T_B_Bd
     px, _ = cv2.projectPoints(BOARD, cv2.Rodrigues(T_C_Bd[:3, :3])[0], T_C_Bd[:3, 3], K, DIST)
     return BoardObservation(q, px.reshape(-1, 2) + rng.normal(0, 0.1, (len(BOARD), 2)), BOARD)
@@ -112,7 +112,7 @@ def test_calibrated_arm_predicts_the_flange_where_the_nominal_arm_cannot(seed: i
     assert predicted["unseen"] > 3 * predicted["board"]  # it knows the poses it saw better
 
 
-def test_the_views_pose_prior_comes_from_the_kinematic_calibration(tmp_path) -> None:  # noqa: ANN001
+def test_the_views_pose_prior_comes_from_the_kinematic_calibration(tmp_path) -> None:
     """Without a kinematic calibration (or with one that holds no covariance) every view gets the robot
     config's sigma; with one, each view gets what the fit left at its joints, but no less than the config's
     calibrated_view_pose_sigma."""
@@ -138,7 +138,7 @@ def test_the_views_pose_prior_comes_from_the_kinematic_calibration(tmp_path) -> 
     )
     without = save_calibration(tmp_path / "k2", "robot_kinematics", zeros, meta)
 
-    def calibrated(path):  # noqa: ANN001, ANN202
+    def calibrated(path):
         return cfg.model_copy(update={"calibration": cfg.calibration.model_copy(update={"kinematics": path})})
 
     sigma, source = view_pose_prior(calibrated(with_cov), joints)

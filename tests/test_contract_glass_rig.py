@@ -48,13 +48,13 @@ def sim_config() -> GlassRigConfig:
 
 
 @pytest.fixture(scope="module")
-def nominal_pane():  # noqa: ANN201
+def nominal_pane():
     return load_mesh(GLASS / "panes" / "pane_nominal.stl")
 
 
 class TestSimGlassRig(GlassRigContract):
     @pytest.fixture
-    def glass_rig(self, nominal_pane) -> Iterator[SimGlassRig]:  # noqa: ANN001
+    def glass_rig(self, nominal_pane) -> Iterator[SimGlassRig]:
         rig = SimGlassRig(sim_config(), nominal_pane)
         yield rig
         rig.close()

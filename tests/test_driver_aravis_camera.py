@@ -368,7 +368,7 @@ class _StackCamera:
     def trigger(self) -> None:
         pass
 
-    def grab(self, timeout_ms: float):  # noqa: ANN201
+    def grab(self, timeout_ms: float):
         from cell.contracts import Frame
 
         return Frame(self.images[self.projector.shown], 0.0, self.projector.shown)
@@ -430,7 +430,7 @@ def test_a_scan_through_gvsp_at_2_percent_packet_loss_decodes_to_the_clean_cloud
     )
 
 
-def _camera_through_the_emulator(devices, aravis: AravisCamera, kill_at: int | None, emu: Emulator) -> None:  # noqa: ANN001
+def _camera_through_the_emulator(devices, aravis: AravisCamera, kill_at: int | None, emu: Emulator) -> None:
     """The simulated cell's camera, with every trigger and grab also sent through AravisCamera to the
     emulator (its frames are checked against the emulator's ramp, the simulator's are decoded): the run
     meets the real driver's errors. ``kill_at``: the trigger at which the emulator is killed."""
@@ -444,7 +444,7 @@ def _camera_through_the_emulator(devices, aravis: AravisCamera, kill_at: int | N
         aravis.trigger()
         sim_trigger()
 
-    def grab(timeout_ms: float):  # noqa: ANN202
+    def grab(timeout_ms: float):
         frame = aravis.grab(1000)
         assert np.array_equal(frame.pixels, ramp(frame.metadata["device_frame_id"]))
         return sim_grab(timeout_ms)

@@ -140,7 +140,7 @@ def test_the_peer_is_strict() -> None:
         peer.write(bytes(no_reply))
 
 
-def _sim(trigger: TriggerMode, with_dlpc: bool):  # noqa: ANN202
+def _sim(trigger: TriggerMode, with_dlpc: bool):
     plate = trimesh.creation.box(
         (400, 300, 4),
         transform=make_pose(trimesh.transformations.rotation_matrix(0.25, [0, 1, 0])[:3, :3], [0, 0, 20]),

@@ -37,7 +37,7 @@ BASE = windshield_height(TRUTH["radius_x_mm"], TRUTH["radius_y_mm"])
 SAG = sag_height(BASE, TRUTH["sag_depth_mm"], tuple(TRUTH["sag_centre_mm"]), TRUTH["sag_sigma_mm"])
 
 
-def _cell_glass(*args: str):  # noqa: ANN202
+def _cell_glass(*args: str):
     return CliRunner().invoke(app, ["glass", *args])
 
 
@@ -183,11 +183,11 @@ def test_sag_recovered_feedback_and_rejection(rig_data):
     assert abs(-np.median(dev[near]) - TRUTH["sag_depth_mm"]) < 0.1 * TRUTH["sag_depth_mm"]
 
 
-def _true_layer(cfg, mesh, cam, uv):  # noqa: ANN001, ANN202
+def _true_layer(cfg, mesh, cam, uv):
     """Per centroid: nearest screen dot of the true top reflection, distance to it, that of the bottom."""
     truth = GlassScene(cfg, mesh).trace(cam)
 
-    def at(m):  # noqa: ANN001, ANN202
+    def at(m):
         return np.column_stack([map_coordinates(m[..., i], [uv[:, 1], uv[:, 0]], order=1) for i in range(2)])
 
     tree = cKDTree(cfg.screen.dots_mm())

@@ -35,7 +35,7 @@ def offset_projector(beta: float) -> dict:
 
 
 @pytest.fixture(scope="module")
-def offset_scan():  # noqa: ANN201
+def offset_scan():
     tilt = make_pose(trimesh.transformations.rotation_matrix(0.2, [1, 0.3, 0])[:3, :3], [0, 0, 30.0])
     rig = small_rig(
         part_W=trimesh.creation.box((400, 300, 4), transform=tilt),
@@ -45,7 +45,7 @@ def offset_scan():  # noqa: ANN201
     )
     rig.projector.connect()
     rig.projector.set_power(True)
-    rig.camera.connect()  # noqa: E702
+    rig.camera.connect()
     rig.camera.configure(CameraSettings(exposure_ms=10.0, pixel_format=PixelFormat.MONO8))
     view = scan_view(
         rig.camera,
@@ -57,7 +57,7 @@ def offset_scan():  # noqa: ANN201
     return rig, view, reference_model_from_geometry(rig.sensor)
 
 
-def test_offset_angle_from_geometry_is_the_built_in_angle(offset_scan) -> None:  # noqa: ANN001
+def test_offset_angle_from_geometry_is_the_built_in_angle(offset_scan) -> None:
     _, _, ref = offset_scan
     assert abs(np.degrees(np.median(ref.alpha)) - 10.0) < 0.1  # centre columns run exactly along camera y
     assert np.ptp(np.degrees(ref.alpha)) < 3.0  # keystone of the tilted projector varies it a little
@@ -65,7 +65,7 @@ def test_offset_angle_from_geometry_is_the_built_in_angle(offset_scan) -> None: 
     np.testing.assert_allclose(ref.S, STANDOFF_MM, atol=1e-6)
 
 
-def test_alpha_correction_recovers_heights_and_its_absence_gives_eq_2_12_error(offset_scan) -> None:  # noqa: ANN001
+def test_alpha_correction_recovers_heights_and_its_absence_gives_eq_2_12_error(offset_scan) -> None:
     rig, view, ref = offset_scan
     Z_true = rig.renderer.ground_truth(rig.T_W_C).points_C[..., 2]
     corrected = ref.triangulate(view.decoded)

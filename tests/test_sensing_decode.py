@@ -19,7 +19,7 @@ GCLS = gcls_patterns(128, 96, 8, 8)  # 16 stripes of 8 px, 8 shifts of 1 px: 128
 GCPS = gcps_patterns(128, 96, 8, 8)  # same 26 images: 8 phase steps
 
 
-def _capture(rig, ps, bits: int = 8):  # noqa: ANN001, ANN202
+def _capture(rig, ps, bits: int = 8):
     rig.projector.connect()
     rig.projector.set_power(True)
     rig.camera.connect()
@@ -28,14 +28,14 @@ def _capture(rig, ps, bits: int = 8):  # noqa: ANN001, ANN202
 
 
 @pytest.fixture(scope="module")
-def plate_rig():  # noqa: ANN201
+def plate_rig():
     tilt = make_pose(trimesh.transformations.rotation_matrix(0.25, [0, 1, 0])[:3, :3], [0, 0, 20.0])
     plate = trimesh.creation.box((400, 300, 4), transform=tilt)
     return small_rig(part_W=plate, bit_depth=8, sim=SimConfig(seed=3))
 
 
 @pytest.mark.parametrize("ps", [GCLS, GCPS], ids=["gcls", "gcps"])
-def test_decoded_projector_coordinate_matches_ground_truth(plate_rig, ps) -> None:  # noqa: ANN001
+def test_decoded_projector_coordinate_matches_ground_truth(plate_rig, ps) -> None:
     stack = _capture(plate_rig, ps)
     ad = decode(stack, ps).primary()
     truth = plate_rig.renderer.ground_truth(plate_rig.T_W_C).projector_uv[..., 0]
@@ -47,7 +47,7 @@ def test_decoded_projector_coordinate_matches_ground_truth(plate_rig, ps) -> Non
     assert np.abs(err).max() < 0.6
 
 
-def test_both_directions_decode_rows_and_columns_against_ground_truth(plate_rig) -> None:  # noqa: ANN001
+def test_both_directions_decode_rows_and_columns_against_ground_truth(plate_rig) -> None:
     ps = gcls_patterns(128, 96, 8, 8, "both")  # row stripes are decoded along camera columns
     dec = decode(_capture(plate_rig, ps), ps)
     truth = plate_rig.renderer.ground_truth(plate_rig.T_W_C).projector_uv
@@ -83,7 +83,7 @@ def test_shadow_and_glare_never_produce_points() -> None:
     assert np.mean((ad.reasons[shadow] & Reason.DARK) > 0) > 0.95
 
 
-def test_bad_stacks_name_the_frame(plate_rig) -> None:  # noqa: ANN001
+def test_bad_stacks_name_the_frame(plate_rig) -> None:
     stack = _capture(plate_rig, GCLS)
     res = plate_rig.camera.resolution
     with pytest.raises(StackError, match="col_shift7_inv"):

@@ -56,21 +56,21 @@ def test_reference_model_from_geometry_recovers_the_prototype_baseline_and_stand
 
 
 @pytest.fixture(scope="module")
-def plate_scan():  # noqa: ANN201
+def plate_scan():
     tilt = make_pose(trimesh.transformations.rotation_matrix(0.2, [1, 0.3, 0])[:3, :3], [0, 0, 30.0])
     rig = small_rig(
         part_W=trimesh.creation.box((400, 300, 4), transform=tilt), bit_depth=8, sim=SimConfig(seed=11)
     )
     rig.projector.connect()
     rig.projector.set_power(True)
-    rig.camera.connect()  # noqa: E702
+    rig.camera.connect()
     rig.camera.configure(CameraSettings(exposure_ms=10.0, pixel_format=PixelFormat.MONO8))
     ps = gcls_patterns(128, 96, 8, 8)
     view = scan_view(rig.camera, rig.projector, ps, PinholeTriangulator.from_sensor(rig.sensor), bit_depth=8)
     return rig, view
 
 
-def test_pinhole_cloud_matches_simulator_hit_points(plate_scan) -> None:  # noqa: ANN001
+def test_pinhole_cloud_matches_simulator_hit_points(plate_scan) -> None:
     rig, view = plate_scan
     gt = rig.renderer.ground_truth(rig.T_W_C).points_C
     ok = view.cloud.valid
@@ -79,7 +79,7 @@ def test_pinhole_cloud_matches_simulator_hit_points(plate_scan) -> None:  # noqa
     assert np.sqrt(np.mean(err**2)) < 0.1  # mm; ~1 mm camera pixels, 2 mm projector pixels
 
 
-def test_reference_plane_model_agrees_with_pinhole(plate_scan) -> None:  # noqa: ANN001
+def test_reference_plane_model_agrees_with_pinhole(plate_scan) -> None:
     rig, view = plate_scan
     ref = reference_model_from_geometry(rig.sensor)
     assert isinstance(ref, ReferencePlaneTriangulator)
@@ -88,7 +88,7 @@ def test_reference_plane_model_agrees_with_pinhole(plate_scan) -> None:  # noqa:
     assert np.nanmax(np.abs(diff)) < 0.002  # mm: both exact models of one geometry; float32 rounding + table
 
 
-def test_depth_survives_the_d_S_ambiguity_of_a_noisy_eq_2_7_fit(plate_scan) -> None:  # noqa: ANN001
+def test_depth_survives_the_d_S_ambiguity_of_a_noisy_eq_2_7_fit(plate_scan) -> None:
     """Eq 2.7 with 10 um of L noise per step: d and S move together by tenths of a mm, h barely moves, and
     the depth (taken from the reference plane, not from the fitted S) stays within the decoding noise."""
     rig, view = plate_scan
@@ -105,7 +105,7 @@ def test_depth_survives_the_d_S_ambiguity_of_a_noisy_eq_2_7_fit(plate_scan) -> N
     assert np.sqrt(np.mean((noisy.points_C[..., 2][ok] - Z_true[ok]) ** 2)) < 0.03  # mm
 
 
-def _gauge_view(seed: int = 4):  # noqa: ANN202
+def _gauge_view(seed: int = 4):
     cfg = load_cell_config(DEFAULT_CELL)
     part = load_mesh(PARTS / "gauge.stl")
     renderer = SceneRenderer(cfg.sensor, cfg.sim, Scene.from_meshes(part, cfg.sim))
@@ -116,7 +116,7 @@ def _gauge_view(seed: int = 4):  # noqa: ANN202
     )
     projector.connect()
     projector.set_power(True)
-    camera.connect()  # noqa: E702
+    camera.connect()
     view = scan_view(
         camera, projector, dissertation_gcls(), PinholeTriangulator.from_sensor(cfg.sensor), bit_depth=8
     )

@@ -16,7 +16,7 @@ from fakes.sim_cell import build_sim_cell
 QUIET = SimConfig(noise=False)
 
 
-def _connected_rig(trigger: TriggerMode = TriggerMode.SOFTWARE):  # noqa: ANN202
+def _connected_rig(trigger: TriggerMode = TriggerMode.SOFTWARE):
     rig = small_rig(sim=QUIET)
     rig.projector.connect()
     rig.projector.set_power(True)
@@ -25,11 +25,11 @@ def _connected_rig(trigger: TriggerMode = TriggerMode.SOFTWARE):  # noqa: ANN202
     return rig
 
 
-def _level(rig, value: int) -> np.ndarray:  # noqa: ANN001
+def _level(rig, value: int) -> np.ndarray:
     return np.full((96, 128), value, np.uint8)
 
 
-def _show(rig, value: int) -> None:  # noqa: ANN001
+def _show(rig, value: int) -> None:
     """Show a level and wait (simulated time) until its light has reached the scene."""
     rig.projector.show(_level(rig, value))
     rig.projector.clock.sleep(rig.projector.latency_s)

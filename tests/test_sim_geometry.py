@@ -13,7 +13,7 @@ from fakes.sim.testing import small_rig
 POSE = look_at((40.0, -30.0, 420.0), (10.0, 20.0, 0.0), up=(0.0, 1.0, 0.0))  # oblique view of the table
 
 
-def _analytic_table_hits(sensor, T_W_C):  # noqa: ANN001, ANN202
+def _analytic_table_hits(sensor, T_W_C):
     """Pixel-centre rays of an undistorted pinhole intersected with z=0 of {W}, by hand."""
     cam = sensor.camera
     u, v = np.meshgrid(np.arange(cam.width_px, dtype=float), np.arange(cam.height_px, dtype=float))

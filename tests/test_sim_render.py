@@ -15,12 +15,12 @@ from fakes.sim.testing import small_rig, top_down_pose
 QUIET = SimConfig(noise=False, seed=1)
 
 
-def _white(rig) -> np.ndarray:  # noqa: ANN001
+def _white(rig) -> np.ndarray:
     p = rig.sensor.projector
     return np.full((p.height_px, p.width_px), 255, np.uint8)
 
 
-def _plane_homography(K_a, T_a_W, K_b, T_b_W):  # noqa: ANN001, ANN202
+def _plane_homography(K_a, T_a_W, K_b, T_b_W):
     """Homography from device a's pixels to device b's pixels induced by the plane z=0 of {W}."""
     H_a = K_a @ T_a_W[:3, [0, 1, 3]]
     H_b = K_b @ T_b_W[:3, [0, 1, 3]]

@@ -33,7 +33,7 @@ PLATE = trimesh.creation.box(
 
 def _rig(
     trigger: TriggerMode = TriggerMode.SOFTWARE, *, noise: bool = True, exposure_ms: float = 10.0, **proj
-):  # noqa: ANN003, ANN202
+):
     rig = small_rig(
         part_W=PLATE,
         bit_depth=8,
@@ -51,12 +51,12 @@ def _rig(
     return rig
 
 
-def _stack(rig) -> tuple[np.ndarray, CaptureLog]:  # noqa: ANN001
+def _stack(rig) -> tuple[np.ndarray, CaptureLog]:
     log = CaptureLog()
     return np.stack(capture_stack(rig.camera, rig.projector, GCLS, log=log)), log
 
 
-def _after(rig, value: int, delay_s: float) -> float:  # noqa: ANN001
+def _after(rig, value: int, delay_s: float) -> float:
     """Mean of the lit pixels of a frame triggered ``delay_s`` after ``value`` was presented (after black)."""
     h, w = 96, 128
     rig.projector.show(np.zeros((h, w), np.uint8))
@@ -183,7 +183,7 @@ def test_hardware_trigger_places_frames_by_id_and_recaptures_a_lost_one() -> Non
     np.testing.assert_array_equal(stack, reference)
 
 
-def test_latency_calibration_measures_the_simulated_latency(tmp_path) -> None:  # noqa: ANN001
+def test_latency_calibration_measures_the_simulated_latency(tmp_path) -> None:
     for frames in (2.0, 3.3):
         rig = _rig(options={"latency_frames": frames})
         m = measure_latency(rig.camera, rig.projector, exposure_ms=10.0)
@@ -202,7 +202,7 @@ def test_latency_calibration_measures_the_simulated_latency(tmp_path) -> None:  
         load_cell_config(tmp_path / "cell.yaml")
 
 
-def test_calibrate_latency_command_measures_the_default_cell(tmp_path) -> None:  # noqa: ANN001
+def test_calibrate_latency_command_measures_the_default_cell(tmp_path) -> None:
     from cell.cli import main
 
     out = tmp_path / "latency"

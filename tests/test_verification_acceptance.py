@@ -23,7 +23,7 @@ from cell.verification.report import write_html, write_json
 CELL = "recipes/cells/sim_binned.yaml"
 
 
-def _run(world, labels, out, monkeypatch):  # noqa: ANN001, ANN202
+def _run(world, labels, out, monkeypatch):
     """The Part 2 job on the binned cell at the positions named ``labels``; the result and the true
     placements (commanded, where the simulated stage really put the artefact)."""
     cfg = load_cell_config(CELL)
@@ -32,11 +32,11 @@ def _run(world, labels, out, monkeypatch):  # noqa: ANN001, ANN202
     placed = []
     build = job_module.build_artefact_stage
 
-    def spying_stage(devices, certificate):  # noqa: ANN001, ANN202 - records the true placement
+    def spying_stage(devices, certificate):  # records the true placement
         stage = build(devices, certificate)
         place = stage.place
 
-        def spy(artefact, T_W_A, label):  # noqa: ANN001, ANN202
+        def spy(artefact, T_W_A, label):
             place(artefact, T_W_A, label)
             placed.append((T_W_A, stage.placed_W.copy()))
 
@@ -84,7 +84,7 @@ def test_a_paused_acceptance_test_resumes_where_it_stopped(tmp_path) -> None:
     labels = {"ball bar, face diagonal 1", "ball bar, axis-parallel x", "plane, flat middle"}
     positions = [p for p in acceptance_positions(cfg, cert) if p.label in labels]
 
-    def pause_after_one(controller) -> None:  # noqa: ANN001
+    def pause_after_one(controller) -> None:
         if controller.views_done >= 1:
             controller.request_pause("test")
 

@@ -82,7 +82,7 @@ def test_check_command_stores_its_figures(tmp_path, capsys) -> None:
     assert "check" in capsys.readouterr().out.splitlines()[1]
 
 
-def test_a_failed_check_blocks_inspections_until_one_passes(tmp_path) -> None:  # noqa: ANN001
+def test_a_failed_check_blocks_inspections_until_one_passes(tmp_path) -> None:
     """`cell inspect` refuses to start a run of a cell whose newest verification in the runs root failed,
     naming the figures and how to clear it; a later passing check (or the config switch) lets it start."""
     from pathlib import Path
