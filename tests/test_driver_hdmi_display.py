@@ -185,6 +185,14 @@ CONTRACT_TRANSCRIPTS: dict[str, list[tuple[bytes, bytes]]] = {
     "test_show_is_pixel_exact": [PING, *ON],
     "test_show_refuses_wrong_shape_or_dtype": [PING],
     "test_sequence_steps_in_order": [PING, *ON],
+    "test_switch_on_makes_it_ready_and_blank": [
+        PING,
+        *ON,
+        *HDMI,
+        *_status(True, False),
+        OFF,
+        *_status(False, False),
+    ],
 }
 
 

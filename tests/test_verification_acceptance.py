@@ -13,6 +13,7 @@ from cell.calibration.routines import run_routine
 from cell.cli import main
 from cell.config import load_cell_config
 from cell.errors import ConfigError, RoutinePaused
+from cell.run_data import Checkpoint
 from cell.runs import RunFolder
 from cell.verification import job as job_module
 from cell.verification.certificate import load_certificate
@@ -95,9 +96,8 @@ def test_a_paused_acceptance_test_resumes_where_it_stopped(tmp_path) -> None:
     assert not (out / "verification.json").exists()
     # judged as it stands, the unmeasured position makes the verdict incomplete: a view the robot could not
     # reach (skipped and logged) must not vanish from the figures
-    partial, _ = VerificationJob(cfg, cert, positions=positions).fit(
-        RunFolder.open(out), RunFolder.open(out).load_checkpoint()["views"]
-    )
+    checkpoint = Checkpoint.from_json(RunFolder.open(out).load_checkpoint())
+    partial, _ = VerificationJob(cfg, cert, positions=positions).fit(RunFolder.open(out), checkpoint.views)
     assert partial["verdict"] == "incomplete"
     assert any(p["error"] and "not measured" in p["error"] for p in partial["positions"])
     job = VerificationJob(cfg, cert, positions=positions)
