@@ -40,6 +40,8 @@ REAL_DRIVERS: dict[tuple[str, str], str] = {
     ("robot", "replay"): "fakes.replay:ReplayRobot",
     ("camera", "replay"): "fakes.replay:ReplayCamera",
     ("projector", "replay"): "fakes.replay:ReplayProjector",
+    ("glass_rig", "genicam"): "drivers.glass_rig:GenICamGlassRig",
+    ("glass_rig", "replay"): "fakes.replay:ReplayGlassRig",
 }
 
 
@@ -62,6 +64,11 @@ class DeviceBundle:
             ("camera", self.camera),
         ]
         return kinds + ([("stage", self.stage)] if self.stage is not None else [])
+
+    @property
+    def simulated(self) -> bool:
+        """Whether these devices are the simulator's (a job may record it; it never reads the world)."""
+        return self.sim is not None
 
     def bring_up(self, on_connect: Callable[[str], None] | None = None) -> None:
         """Connect every device in order (``on_connect`` hears each one's name) and switch the projector on
@@ -299,10 +306,6 @@ def build_glass_rig(
 
         rig = SimGlassRig(cfg, actual_W)
         return rig, rig.place_board, rig.move_screen
-    if cfg.driver == "genicam":
-        from drivers.glass_rig import GenICamGlassRig
-
-        return GenICamGlassRig(cfg, cfg.options), operator_places_board, None
-    from fakes.replay import ReplayGlassRig
-
-    return ReplayGlassRig(cfg), operator_places_board, None
+    if cfg.driver == "genicam":  # the real rig takes its cameras' options beside the config
+        return _import_driver("glass_rig", "genicam", "driver")(cfg, cfg.options), operator_places_board, None
+    return _import_driver("glass_rig", cfg.driver, "driver")(cfg), operator_places_board, None

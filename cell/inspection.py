@@ -60,7 +60,7 @@ from cell.planning.motion import MotionPlanner
 from cell.planning.planner import Plan, plan_initial
 from cell.planning.viewpoints import Viewpoint
 from cell.raycast import RayCaster
-from cell.run_data import Evaluation, View
+from cell.run_data import Checkpoint, Evaluation, View
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
 from cell.sensing.patterns import PatternSet, measuring_patterns
@@ -190,8 +190,8 @@ class LambertianInspection:
         T_B_T = believed_flange(self.cfg, devices.robot)
         joints = np.asarray(devices.robot.joints(), dtype=np.float64)
         images = capture_stack(devices.camera, devices.projector, self.patterns)
-        status = devices.projector.status()
-        if not status.ready:  # a lamp that failed mid-stack leaves dark frames: measure again after the fix
+        if not devices.projector.ready():  # a lamp that failed mid-stack leaves dark frames: measure again
+            status = devices.projector.status()
             why = ", ".join(status.errors) or str(status)
             raise DeviceFault(devices.projector.name, f"not ready after the pattern stack: {why}")
         return Captured(images, T_B_T, joints, devices.camera.name)
@@ -439,9 +439,7 @@ class LambertianInspection:
             "alignment": alignment,
         }
 
-    def inspectable_coverage(
-        self, run: RunFolder, views: list[dict[str, Any]], T_P_cloud: NDArray[np.float64] | None = None
-    ) -> Coverage:
+    def inspectable_coverage(self, run: RunFolder, T_P_cloud: NDArray[np.float64] | None = None) -> Coverage:
         """Coverage of the inspectable nominal surface (what the planner can see: not the underside on the
         table) at the recipe's point density, from the measured views moved by the alignment ``T_P_cloud``."""
         plan, st = self.plan_model, self.recipe.plan
@@ -467,8 +465,8 @@ class LambertianInspection:
         pts_P = np.load(run.results_dir / "points_P.npy")
         nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
         tol = self.recipe.tolerance
-        checkpoint = run.load_checkpoint() or {}
-        views = checkpoint.get("views", [])
+        checkpoint = Checkpoint.from_json(run.load_checkpoint())
+        evaluation = checkpoint.evaluation.to_json() if checkpoint.evaluation is not None else {}
         excluded = {
             "unregistered_view_measured_elsewhere_points": int(
                 registration.get("refinement", {}).get("unregistered_points_dropped", 0)
@@ -485,7 +483,6 @@ class LambertianInspection:
         reasons = list(calibration["incomplete_reasons"])
         if "error" in alignment:
             reasons.append(f"alignment ({alignment['method']}) failed: {alignment['error']}")
-        evaluation = checkpoint.get("evaluation", {})
         if evaluation.get("v_mm2", 0.0) > evaluation.get("setpoint", float("inf")):
             reasons.append(
                 f"overlapping views disagree by more than {self.recipe.plan.accuracy_tol_mm} mm over "
@@ -500,7 +497,7 @@ class LambertianInspection:
             regions=[region_from_config(spec) for spec in self.recipe.regions],
             min_defect_points=self.settings.min_defect_points,
             excluded=excluded,
-            coverage=self.inspectable_coverage(run, views, T_align),
+            coverage=self.inspectable_coverage(run, T_align),
             min_coverage=self.recipe.min_coverage,
             warnings=alignment.get("warnings", []),
             incomplete_reasons=reasons,
@@ -509,9 +506,11 @@ class LambertianInspection:
             metadata={
                 "part": self.part_name,
                 "cad": Path(self.recipe.part.cad).name,
-                "views": [{k: v[k] for k in ("patch", "source", "iteration")} for v in views],
+                "views": [
+                    {"patch": v.patch, "source": v.source, "iteration": v.iteration} for v in checkpoint.views
+                ],
                 "registration": registration,
-                "evaluation": checkpoint.get("evaluation", {}),
+                "evaluation": evaluation,
                 "geometry_source": self.geometry_source,
             },
         )

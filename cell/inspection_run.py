@@ -22,6 +22,7 @@ import yaml
 
 from cell.config import CellConfig, PartConfig, Recipe, load_cell_config, load_recipe, read_yaml, validate
 from cell.errors import ConfigError
+from cell.run_data import Checkpoint, Phase
 from cell.runs import RUNS_ROOT, RunFolder, RunIndex, write_atomic, write_json_atomic
 
 REPO = Path(__file__).resolve().parents[1]
@@ -230,7 +231,7 @@ def _execute_locked(
         if record is not None:
             saved = save_recording(devices, record, cfg.model_dump(mode="json"))
             say(f"device traffic recorded: replay with --cell {saved / 'cell.yaml'}")
-    summary = (run.load_checkpoint() or {}).get("summary", {})
+    summary = Checkpoint.from_json(run.load_checkpoint()).summary or {}
     dev = summary.get("deviation") or {}
     index.upsert(
         run.path,
@@ -269,7 +270,7 @@ def resume(
 ) -> RunOutcome:
     """Finish an interrupted or paused inspection run from its last checkpoint; a finished one is refused."""
     run = open_inspection_run(run_dir)
-    if (run.load_checkpoint() or {}).get("phase") == "done":
+    if Checkpoint.from_json(run.load_checkpoint()).phase is Phase.DONE:
         raise ConfigError("this run is already done; `cell report` rebuilds its report", path=str(run_dir))
     return execute_run(run, resume=True, on_progress=on_progress, say=say)
 
@@ -280,12 +281,12 @@ def rebuild_report(run_dir: Path) -> RunOutcome:
     from cell.mesh import load_mesh
 
     run = open_inspection_run(run_dir)
-    checkpoint = run.load_checkpoint() or {}
-    if checkpoint.get("phase") not in ("reporting", "done"):
+    checkpoint = Checkpoint.from_json(run.load_checkpoint())
+    if checkpoint.phase not in (Phase.REPORTING, Phase.DONE):
         raise ConfigError("the run has not reached reporting; `cell resume` it first", path=str(run_dir))
     recipe, cfg, _ = load_run_inputs(run)
     nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
-    summary = LambertianInspection(recipe, cfg, nominal_W).report(run, checkpoint.get("registration", {}))
+    summary = LambertianInspection(recipe, cfg, nominal_W).report(run, checkpoint.registration or {})
     run.log("report_rebuilt", **summary)
     return RunOutcome(run, "done", "", summary)
 

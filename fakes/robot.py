@@ -15,7 +15,9 @@ every command with its target, speed, acceleration, start time, duration and out
 Motion is asynchronous on the sim clock, like a UR controller's async moveL/moveJ: :meth:`start_linear` /
 :meth:`start_joint` start a checked path at the clock's present time, and the arm's pose is a function of the
 clock from then on. :meth:`wait` advances the clock by one poll period (and sleeps as long in wall time when
-``robot.options.sim_realtime_factor`` is set, so that a signal can arrive mid-move); ``move_linear`` /
+``robot.options.sim_realtime_factor`` is set, or the environment's ``CELL_SIM_REALTIME_FACTOR``, which wins:
+a harness knob that paces the arm without changing the cell config, so that a signal can arrive mid-move);
+``move_linear`` /
 ``move_joint`` are start + wait. :meth:`stop` may be called from a signal handler or another thread while a
 move runs: the arm decelerates from the speed it has at that instant (at the configured maximum acceleration,
 like stopL/stopJ) and the move raises :class:`~cell.errors.MotionStopped`. A watchdog
@@ -27,6 +29,7 @@ polling, as it does when the process dies.
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -231,7 +234,10 @@ class SimRobot:
         self._error: CellError | None = None  # how the last move ended, raised by the next wait()
         self._stop_request: float | None = None  # sim time of a stop() during a move
         options = dict(config.options)
-        self._realtime = float(options.get("sim_realtime_factor", 0.0))  # 0: never sleep
+        # 0: never sleep; the environment wins so a test can pace one process of a run (not its record)
+        self._realtime = float(
+            os.environ.get("CELL_SIM_REALTIME_FACTOR", options.get("sim_realtime_factor", 0.0))
+        )
         hz = float(options.get("watchdog_hz", 10.0))
         self.watchdog_period_s: float | None = 1.0 / hz if hz > 0 else None
         self._last_kick = self.clock.now()

@@ -153,23 +153,20 @@ def _cell(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def realtime_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
-    """The box recipe, the small cell as a file, and the same cell whose simulated arm moves slower than
-    wall-clock time (robot.options.sim_realtime_factor = 0.25: a 1 s move lasts 4 s), so that a signal sent
-    when the journal shows a move arrives mid-move even when a loaded machine delays the test's poll."""
+def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """The box recipe and the small cell as a file. A test that needs a signal to arrive mid-move paces the
+    simulated arm of one process through CELL_SIM_REALTIME_FACTOR (fakes/robot.py), which leaves the cell
+    config, and so the run's record of its inputs, as it is."""
     folder = tmp_path_factory.mktemp("rt")
     recipe = write_box_recipe(folder)
-    data = small_cell().model_dump(mode="json")
-    (folder / "cell.yaml").write_text(yaml.safe_dump(data))
-    data["robot"]["options"] = {**data["robot"].get("options", {}), "sim_realtime_factor": 0.25}
-    (folder / "realtime.yaml").write_text(yaml.safe_dump(data))
-    return recipe, folder / "cell.yaml", folder / "realtime.yaml"
+    (folder / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
+    return recipe, folder / "cell.yaml"
 
 
 @pytest.fixture(scope="module")
-def cli_reference(realtime_inputs: tuple[Path, Path, Path], tmp_path_factory: pytest.TempPathFactory) -> dict:
+def cli_reference(box_inputs: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> dict:
     """The report of an uninterrupted `cell inspect` of the box (same inputs, seed and settings)."""
-    recipe, cell_file, _ = realtime_inputs
+    recipe, cell_file = box_inputs
     out = tmp_path_factory.mktemp("cliref") / "ref"
     ref = _cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(out))
     assert ref.returncode == 0, ref.stdout + ref.stderr
@@ -185,13 +182,16 @@ def _journal(run: Path) -> list[dict]:
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_sigterm_mid_move_pauses_and_resume_gives_the_same_result(
-    realtime_inputs: tuple[Path, Path, Path], cli_reference: dict, tmp_path: Path
+    box_inputs: tuple[Path, Path], cli_reference: dict, tmp_path: Path
 ) -> None:
-    recipe, _, realtime = realtime_inputs
+    recipe, cell_file = box_inputs
     run = tmp_path / "run"
+    # the arm moves at a quarter of wall-clock speed (a 1 s move lasts 4 s) in this process only: a signal
+    # sent when the journal shows a move arrives mid-move even when a loaded machine delays this poll
     proc = subprocess.Popen(
-        [sys.executable, "-m", "cell", "inspect", str(recipe), "--cell", str(realtime), "--out", str(run)],
+        [sys.executable, "-m", "cell", "inspect", str(recipe), "--cell", str(cell_file), "--out", str(run)],
         cwd=REPO,
+        env={**os.environ, "CELL_SIM_REALTIME_FACTOR": "0.25"},
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -219,12 +219,6 @@ def test_sigterm_mid_move_pauses_and_resume_gives_the_same_result(
     assert journal[-1]["event"] == "exit" and journal[-1]["state"] == "paused"
     assert not (run / "run.lock").exists()  # released on the way out
     views_before = set(RunFolder.open(run).completed_views())
-    # The pause is what this test is about: the resumed views need no wall-clock pacing (the factor only paces
-    # the simulated arm; the reference run had none), so the run's copy of the cell drops it.
-    cell_copy = run / "inputs" / "cell.yaml"
-    data = yaml.safe_load(cell_copy.read_text())
-    data["robot"]["options"]["sim_realtime_factor"] = 0.0
-    cell_copy.write_text(yaml.safe_dump(data, sort_keys=False))
     done = _cell("resume", str(run))
     assert done.returncode == 0, done.stdout + done.stderr
     assert views_before <= set(RunFolder.open(run).completed_views())
@@ -241,12 +235,12 @@ def _dead_pid() -> int:
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_stale_lock_is_taken_over_and_a_live_one_refused(
-    realtime_inputs: tuple[Path, Path, Path], cli_reference: dict, tmp_path: Path
+    box_inputs: tuple[Path, Path], cli_reference: dict, tmp_path: Path
 ) -> None:
     """A run paused by SIGTERM is left with the lock of a process that died (as after a SIGKILL or a power
     cut): `cell resume` takes it over and journals it. While a live process holds the lock, `cell resume`
     and `cell inspect --out` on the folder are refused naming its PID and host, and nothing is written."""
-    recipe, cell_file, _ = realtime_inputs
+    recipe, cell_file = box_inputs
     run = tmp_path / "run"
     proc = subprocess.Popen(
         [sys.executable, "-m", "cell", "inspect", str(recipe), "--cell", str(cell_file), "--out", str(run)],

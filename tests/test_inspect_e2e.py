@@ -105,11 +105,12 @@ KILLS_PER_CHAIN = 5
 @pytest.mark.timeout(900)  # 20 kills in 4 chains of kill, resume, kill... of a ~8 s run, on a shared machine
 def test_killed_runs_resume_to_the_same_result(box_inputs: tuple[Path, Path], tmp_path: Path) -> None:
     """SIGKILL (no handler runs) at 20 points spread over the run, then `cell resume` ends with the result of
-    an uninterrupted run. The kills come in chains: each chain starts a `cell inspect`, kills it, resumes,
-    kills the resume, ... and finally lets a resume finish; so a resume that itself was killed (before or
-    after it took over the dead run's lock) is resumed again. Kill points are chosen on the run's own
-    progress (its journal, not a wall-clock guess), spread over the reference run's whole journal, and
-    include kills during start-up, before the run folder exists."""
+    an uninterrupted run. The kills come in 4 chains of 5: each chain starts a `cell inspect`, kills it,
+    resumes, kills the resume, ... and finally lets a resume finish, whose report is compared with the
+    uninterrupted run's (once per chain). The first two processes of a chain are killed during start-up, by
+    time (imports, inputs copied, the lock taken or being taken: the run folder may not exist yet, or hold a
+    dead process's lock), the other three at journal lengths spread over the reference run's whole journal
+    (the run's own progress, not a wall-clock guess)."""
     recipe, cell_file = box_inputs
     ref = cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(tmp_path / "ref"))
     assert ref.returncode == 0, ref.stdout + ref.stderr
@@ -121,8 +122,8 @@ def test_killed_runs_resume_to_the_same_result(box_inputs: tuple[Path, Path], tm
     while kills < KILLS:
         assert chain < 2 * KILLS // KILLS_PER_CHAIN, f"only {kills} kills landed before their runs ended"
         run = tmp_path / f"c{chain}"
-        # kill points: journal lengths spread over the reference run (0: during start-up, by time)
-        targets = np.sort(rng.integers(0, n_ref, size=KILLS_PER_CHAIN))
+        # kill points: two start-up kills (0, by time), then journal lengths spread over the reference run
+        targets = [0, 0, *np.sort(rng.integers(1, n_ref, size=KILLS_PER_CHAIN - 2))]
         for j, target in enumerate(targets):
             if kills == KILLS or _finished(run):
                 break

@@ -62,9 +62,10 @@ class LoopResult:
 
 
 def run_loop(plan: Plan, measure: Callable[[Pose], MeasuredView]) -> LoopResult:
-    """Measure the plan's viewpoints, then evaluate and replan (the controller's evaluating and replanning
-    steps) until Q is under the set point, the view budget or the iteration limit is spent, or nothing new
-    can be proposed. Each evaluation is logged in the plan's log."""
+    """Measure the plan's viewpoints, then evaluate and replan with the functions the inspection's evaluating
+    and replanning steps call (evaluate, propose, select_new; unlike the job, one FeedbackPlanner carries its
+    accuracy map across rounds) until Q is under the set point, the view budget or the iteration limit is
+    spent, or nothing new can be proposed. Each evaluation is logged in the plan's log."""
     fb = FeedbackPlanner(plan)
     st = fb.st
     done: list[Viewpoint] = []

@@ -42,8 +42,8 @@ class MergedCloud:
 
 def voxel_keys(points: NDArray[np.float64], voxel_mm: float) -> NDArray[np.int64]:
     """One int64 per point naming its voxel of edge ``voxel_mm`` (mm): equal keys, same voxel. Voxels are
-    fixed to the frame's origin (clouds keyed in any order share one grid); keys run row-major over the
-    occupied box, so one 1-D ``np.unique`` groups the points by voxel."""
+    fixed to the frame's origin; keys run row-major over this call's occupied box (so keys of two calls are
+    not comparable: key all the points together), and one 1-D ``np.unique`` groups the points by voxel."""
     if len(points) == 0:
         return np.zeros(0, dtype=np.int64)
     cell = np.floor(points / voxel_mm).astype(np.int64)

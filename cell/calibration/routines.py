@@ -26,6 +26,7 @@ from cell.controller import Controller, ControllerSettings, RobotLimits
 from cell.devices import build_devices
 from cell.errors import CalibrationError, ConfigError, RoutinePaused
 from cell.planning.kinematics import UR5E
+from cell.run_data import Checkpoint, Phase
 from cell.runs import RunFolder, write_json_atomic
 
 
@@ -50,7 +51,7 @@ def _calibration_folder(
                 f"this folder holds a '{held}' run, not '{kind}'; choose another --out", path=str(out)
             )
         cp = run.load_checkpoint()
-        if cp is not None and cp.get("phase") != "done":
+        if cp is not None and Checkpoint.from_json(cp).phase is not Phase.DONE:
             return run, True
         if not rerun_finished:
             raise ConfigError(f"this {kind} run is already done; choose another --out", path=str(out))

@@ -1,6 +1,6 @@
 """One structured-light view through the device contracts: show each pattern, trigger, grab, then check,
-decode and triangulate. The controller and ``cell scan`` (:func:`cell.scan_run.scan_in_cell`) both call
-:func:`scan_view`.
+decode and triangulate. The jobs under the controller grab through :func:`capture_stack` (and decode
+later, while the robot moves); ``cell scan`` (:func:`cell.scan_run.scan_in_cell`) calls :func:`scan_view`.
 
 Synchronisation (docs/hardware.md, "Synchronisation"): a projector shows a frame some time after it was
 presented at its input (its latency), so

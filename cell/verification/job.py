@@ -125,7 +125,7 @@ class VerificationJob(CalibrationJob):
             self._stage.place(artefact, np.asarray(T_W_A, dtype=np.float64), label)
             self._placed = placement
         devices.begin_view(1000 + index)  # keys apart from the inspection's
-        return {**super().capture(devices, view, index), "simulated": devices.sim is not None}
+        return {**super().capture(devices, view, index), "simulated": devices.simulated}
 
     def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         """The points the sensor delivers in an inspection too (valid, off the rims, lit within

@@ -103,8 +103,9 @@ def blur_sigma_px(cfg: PinholeConfig, depth_mm: NDArray[np.floating]) -> NDArray
 
 def projector_response(proj: ProjectorConfig, level: Any) -> Any:
     """Relative radiance (0..1) of the projector at grey ``level`` (0..1, scalar or array): the black level it
-    leaks plus the rest along its gamma curve. The one response the simulated projector, the scene renderer
-    and the board renderer share."""
+    leaks plus the rest along its gamma curve: the scene and board renderers' response. (The simulated DLP
+    camera exposure, fakes/camera.py, splits a grey level into bit planes along the same gamma without the
+    black level, which every plane leaks alike.)"""
     return proj.black_level + (1 - proj.black_level) * np.asarray(level, dtype=np.float64) ** proj.gamma
 
 
