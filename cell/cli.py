@@ -103,7 +103,9 @@ def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``cell`` script: runs the typer app and turns CellError and usage errors into an
     exit code with one line of explanation."""
     try:
-        app(args=argv, prog_name="cell", standalone_mode=False)
+        code = app(args=argv, prog_name="cell", standalone_mode=False)
+        if isinstance(code, int) and code != 0:  # click returns a command's typer.Exit code, not raises it
+            sys.exit(code)
     except RoutinePaused as exc:
         print(f"paused: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)

@@ -19,6 +19,7 @@ from cell.calibration.operator_stage import OperatorBoardStage
 from cell.calibration.procedures import CHARUCO, FLAT, Station
 from cell.calibration.routines import run_routine
 from cell.calibration.sensor_routines import IntrinsicsJob, ProjectorJob
+from cell.calibration_state import calibration_state
 from cell.config import DEFAULT_CELL, load_cell_config
 from cell.contracts import BoardStage
 from cell.devices import build_devices
@@ -118,6 +119,12 @@ def test_intrinsics_projector_and_board_hand_eye_recover_the_world(tmp_path):
     assert dt < 0.25 and dr < 0.05  # from 1.5 mm / 0.4 deg (robot kinematic errors remain in the poses)
     journal = (tmp_path / "handeye" / "journal.jsonl").read_text()
     assert '"state": "done"' in journal and '"device": "board-stage"' in journal
+    # each file records the cell config it was made for, so a run with this config finds all three current
+    # (they once recorded none, and every run that required calibration was judged incomplete)
+    cfg.calibration.hand_eye = Path(r["file"])
+    state = calibration_state(cfg, required=True)
+    assert [f["made_for_this_config"] for f in state["files"]] == [True, True, True], state
+    assert state["incomplete_reasons"] == [], state
 
 
 @pytest.mark.slow

@@ -74,3 +74,13 @@ def test_usage_errors_are_one_line_with_exit_code_2(args: list[str], says: str) 
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and says in lines[0] and lines[0].startswith("error:"), proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_cell_devices_exits_1_when_a_device_fails() -> None:
+    """The lab cell's real devices are not attached here: every one fails to connect, and the exit code says
+    so (a wrapper script must not have to parse the table); the simulated cell's all connect."""
+    failed = run("-m", "cell", "devices", "--cell", "recipes/cells/lab.yaml")
+    assert failed.returncode == 1, failed.stdout + failed.stderr
+    assert "FAILED" in failed.stdout and "error:" in failed.stderr
+    ok = run("-m", "cell", "devices")
+    assert ok.returncode == 0, ok.stdout + ok.stderr

@@ -107,6 +107,7 @@ class HandEyeBoardJob(CalibrationJob):
             _handeye_meta(X, figs, {"rms_mm": spread}),
             "quality.rms_mm",
             self.force,
+            made_for=self.made_for,
         )
         return figs, path
 
@@ -175,6 +176,7 @@ class KinematicsJob(HandEyeBoardJob):
             {"T_T_C": fit.T_T_C},
             _handeye_meta(fit.T_T_C, {**figs, "method": "with the robot kinematics"}, {"rms_px": fit.rms_px}),
             force=True,  # it belongs to the kinematics below, which the quality check guards
+            made_for=self.made_for,
         )
         path = save_calibration(
             run.path / self.file_stem,
@@ -195,6 +197,7 @@ class KinematicsJob(HandEyeBoardJob):
             },
             "quality.rms_px",
             self.force,
+            made_for=self.made_for,
         )
         return figs, path
 
@@ -268,6 +271,7 @@ class HandEyeIcpJob(CalibrationJob):
             _handeye_meta(res.T_T_C, figs, {"rms_mm": res.rms_mm}),
             "quality.rms_mm",
             self.force,
+            made_for=self.made_for,
         )
         return figs, path
 

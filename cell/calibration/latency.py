@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from cell.config import CellConfig, ProjectorConfig
+from cell.config import CellConfig, ProjectorConfig, config_fingerprint
 from cell.contracts import Camera, Projector, TimedProjector
 from cell.errors import CalibrationError, ConfigError, DeviceFault
 
@@ -131,7 +131,8 @@ def calibrate_latency(
     out.mkdir(parents=True, exist_ok=True)
     meta = latency_meta(m, cfg.sensor.projector)
     arrays = {"delays_s": m.delays_s, "white_share": m.white_share}
-    return save_calibration(out / "latency", KIND, arrays, meta, force=force), meta
+    made_for = config_fingerprint(cfg)
+    return save_calibration(out / "latency", KIND, arrays, meta, force=force, made_for=made_for), meta
 
 
 def latency_meta(m: LatencyMeasurement, projector: ProjectorConfig) -> dict[str, Any]:

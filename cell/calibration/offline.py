@@ -20,7 +20,7 @@ from cell.calibration.intrinsics import CharucoView, Intrinsics, calibrate_intri
 from cell.calibration.projector import ProjectorCalibration, calibrate_projector, corners_in_projector
 from cell.calibration.sensor import SensorCalibration, SensorCalibrator, save_sensor_calibration
 from cell.calibration.store import config_lines, load_calibration, load_metadata, save_calibration
-from cell.config import CameraConfig, CellConfig, ProjectorConfig, load_cell_config
+from cell.config import CameraConfig, CellConfig, ProjectorConfig, config_fingerprint, load_cell_config
 from cell.errors import CalibrationError, ConfigError
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.scan import masks_image, write_ply
@@ -172,7 +172,9 @@ def _device(spec: Any) -> dict[str, Any]:
     return dev
 
 
-def save_offline_intrinsics(res: Intrinsics, folder: CaptureFolder, path: Path, force: bool = False) -> Path:
+def save_offline_intrinsics(
+    res: Intrinsics, folder: CaptureFolder, path: Path, force: bool = False, made_for: str | None = None
+) -> Path:
     """The camera_intrinsics file (kind and keys as ``cell calibrate intrinsics``) of a capture folder."""
     figs = {
         "views": len(res.view_rms_px),
@@ -188,12 +190,18 @@ def save_offline_intrinsics(res: Intrinsics, folder: CaptureFolder, path: Path, 
         "quality": {"rms_px": res.rms_px},
     }
     return save_calibration(
-        path, "camera_intrinsics", {"K": res.K, "dist": res.dist}, meta, "quality.rms_px", force
+        path,
+        "camera_intrinsics",
+        {"K": res.K, "dist": res.dist},
+        meta,
+        "quality.rms_px",
+        force,
+        made_for=made_for,
     )
 
 
 def save_offline_projector(
-    res: OfflineProjector, folder: CaptureFolder, path: Path, force: bool = False
+    res: OfflineProjector, folder: CaptureFolder, path: Path, force: bool = False, made_for: str | None = None
 ) -> Path:
     """The projector file (same kind and keys as ``cell calibrate projector``) of a capture folder."""
     p = res.projector
@@ -204,7 +212,7 @@ def save_offline_projector(
         "quality": {"rms_px": p.stereo_rms_px},
     }
     arrays = {"K": p.K, "dist": p.dist, "T_C_P": p.T_C_P}
-    return save_calibration(path, "projector", arrays, meta, "quality.rms_px", force)
+    return save_calibration(path, "projector", arrays, meta, "quality.rms_px", force, made_for=made_for)
 
 
 def run_offline(
@@ -223,9 +231,11 @@ def run_offline(
     the same board views).
     ``cell``: the cell config the sensor routine calibrates (its camera, projector, stand-off, lens);
     ``points``: its number of encoded points."""
+    cfg = load_cell_config(cell)
+    made_for = config_fingerprint(cfg)  # the cell the files are made for
     if routine == "intrinsics":
         res = intrinsics_from_folder(folder)
-        path = save_offline_intrinsics(res, folder, out_dir / "intrinsics", force)
+        path = save_offline_intrinsics(res, folder, out_dir / "intrinsics", force, made_for)
         return "camera_intrinsics", path, load_metadata(path)["figures"]
     if routine == "projector":
         K = dist = None
@@ -242,11 +252,10 @@ def run_offline(
         pres = projector_from_folder(folder, K, dist)
         return (
             "projector",
-            save_offline_projector(pres, folder, out_dir / "projector", force),
+            save_offline_projector(pres, folder, out_dir / "projector", force, made_for),
             projector_figures(pres),
         )
     if routine == "sensor":
-        cfg = load_cell_config(cell)
         cam = active_sensor_config(cfg).camera
         sres = sensor_from_folder(
             folder,
@@ -256,7 +265,9 @@ def run_offline(
             points,
             eval_height_mm=cfg.sensor.depth_of_field_mm / 2,
         )
-        path = save_sensor_calibration(sres, out_dir / "sensor", cam, cfg.sensor.projector, force=force)
+        path = save_sensor_calibration(
+            sres, out_dir / "sensor", cam, cfg.sensor.projector, force=force, made_for=made_for
+        )
         return "sensor_per_pixel", path, sres.figures
     raise ConfigError(f"no offline routine '{routine}'; use intrinsics, projector or sensor")
 

@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from cell.calibration.active import active_hand_eye, believed_flange
 from cell.calibration.intrinsics import CharucoView, detect_charuco
-from cell.config import CellConfig
+from cell.config import CellConfig, config_fingerprint
 from cell.contracts import BoardKind, CalibrationBoard, CameraSettings, PixelFormat, TriggerMode
 from cell.devices import DeviceBundle
 from cell.errors import CalibrationError, DeviceFault
@@ -152,6 +152,7 @@ class CalibrationJob:
         self.seed = seed
         self.station = station or Station()
         self.result: dict[str, Any] = {}
+        self.made_for = config_fingerprint(cfg)  # recorded in every file the routine writes
 
     def plan(self) -> list[View]:
         """The routine's views (each subclass builds its own)."""

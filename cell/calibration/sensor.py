@@ -275,6 +275,7 @@ def save_sensor_calibration(
     projector: ProjectorConfig,
     force: bool = False,
     reference_T_B_T: Pose | None = None,
+    made_for: str | None = None,
 ) -> Path:
     """Versioned file of the per-pixel model (see :mod:`cell.calibration.store`); worse-than-existing files
     (by :attr:`SensorCalibration.height_sigma_mm`, :func:`predicted_height_sigma`) are refused unless
@@ -310,7 +311,9 @@ def save_sensor_calibration(
             "height_sigma_at_mm": cal.figures.get("height_sigma_mm", {}).get("at_height_mm"),
         },
     }
-    out = save_calibration(path, "sensor_per_pixel", arrays, meta, "quality.height_sigma_mm", force)
+    out = save_calibration(
+        path, "sensor_per_pixel", arrays, meta, "quality.height_sigma_mm", force, made_for=made_for
+    )
     stem = Path(path).with_suffix("")
     for name, arr in (("d", m.d), ("S", m.S), ("alpha", m.alpha)):
         save_map_png(stem.parent / f"{stem.name}_{name}.png", arr)

@@ -91,6 +91,7 @@ class IntrinsicsJob(CalibrationJob):
             },
             "quality.rms_px",
             self.force,
+            made_for=self.made_for,
         )
         return figs, path
 
@@ -157,6 +158,7 @@ class ProjectorJob(IntrinsicsJob):
             },
             "quality.rms_px",
             self.force,
+            made_for=self.made_for,
         )
         return figs, path
 
@@ -202,6 +204,7 @@ class GammaJob(FlatBoardJob):
             {"lut": linearising_lut(self.levels, response)},
             {"projector": {"name": self.cfg.sensor.projector.name}, "figures": figs},
             force=self.force,
+            made_for=self.made_for,
         )
         return figs, path
 
@@ -262,6 +265,7 @@ class SensorJob(FlatBoardJob):
             cfg.sensor.projector,
             force=self.force,
             reference_T_B_T=np.asarray(dict(self.view_summaries(run))[0]["T_B_T"]),
+            made_for=self.made_for,
         )
         return {**res.figures, "points": int(len(res.points_px))}, path
 

@@ -57,8 +57,12 @@ def save_calibration(
     meta: dict[str, Any],
     quality_key: str | None = None,
     force: bool = False,
+    *,
+    made_for: str | None = None,
 ) -> Path:
-    """Write ``path``.yaml and ``path``.npz atomically; returns the YAML path.
+    """Write ``path``.yaml and ``path``.npz atomically; returns the YAML path. ``made_for`` is the
+    fingerprint of the cell config the file was made with (:func:`cell.config.config_fingerprint`), recorded
+    as ``cell_config_sha256`` so that a run can tell a current calibration from a stale one.
 
     If a calibration of the same kind exists at ``path`` and ``quality_key`` (a dotted key into ``meta``,
     lower is better) is given, the new one must not be worse unless ``force``."""
@@ -80,6 +84,7 @@ def save_calibration(
         "kind": kind,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "arrays": npath.name,
+        **({"cell_config_sha256": made_for} if made_for is not None else {}),
         **meta,
     }
     buf = io.BytesIO()

@@ -4,7 +4,6 @@ history``: argument parsing and printing around cell.verification.job and cell.v
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -83,7 +82,7 @@ def check_cmd(
         typer.echo(f"WARNING: {warning}")
     typer.echo(f"check: {result.verdict} -> {folder / 'report.html'}")
     if result.verdict == "fail":
-        sys.exit(1)  # typer.Exit would be swallowed by the non-standalone app (cell.cli.main)
+        raise typer.Exit(1)
 
 
 @verify_app.command("history")
