@@ -358,3 +358,16 @@ class RunIndex:
             else:
                 rows = db.execute("SELECT * FROM runs ORDER BY started").fetchall()
         return [dict(r) for r in rows]
+
+
+def require_empty_output(out: Path) -> Path:
+    """``out`` as a folder a command may write its results into: absent or empty. Results are never written
+    over earlier ones (a compare into a scan's folder would replace the scan's cloud.ply)."""
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ConfigError(
+            "--out holds files already; choose another folder (results are never written over)",
+            path=str(out),
+            field="--out",
+        )
+    return out

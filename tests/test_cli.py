@@ -84,3 +84,15 @@ def test_cell_devices_exits_1_when_a_device_fails() -> None:
     assert "FAILED" in failed.stdout and "error:" in failed.stderr
     ok = run("-m", "cell", "devices")
     assert ok.returncode == 0, ok.stdout + ok.stderr
+
+
+def test_results_are_never_written_over(tmp_path: Path) -> None:
+    """plan, scan and compare refuse an --out folder that holds files (as inspect and glass do): a compare
+    into a scan's folder used to replace the scan's cloud.ply without a word."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "cloud.ply").write_text("a scan's cloud")
+    for args in (["compare", "n.stl", "c.ply"], ["scan"], ["plan", "recipes/pillar.yaml"]):
+        r = run("-m", "cell", *args, "--out", str(out))
+        assert r.returncode == 2 and "--out holds files already" in r.stderr, (args, r.stderr)
+    assert (out / "cloud.ply").read_text() == "a scan's cloud"

@@ -33,7 +33,9 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report."""
         from cell.analysis.compare import run_compare
+        from cell.runs import require_empty_output
 
+        require_empty_output(out)
         doc = run_compare(
             nominal,
             cloud,

@@ -19,8 +19,10 @@ def plan_cmd(
     from cell.errors import PlanningError
     from cell.planning.cycle_time import cycle_time, inspection_frames
     from cell.planning.planner import plan_recipe, write_plan
+    from cell.runs import require_empty_output
 
     cell = cell or DEFAULT_CELL
+    require_empty_output(out)
     plan = plan_recipe(recipe, cell)
     if not plan.viewpoints:
         raise PlanningError(

@@ -35,7 +35,7 @@ def _parse_pose(text: str) -> NDArray[np.float64] | None:
 
 
 def scan_cmd(
-    out: Path = typer.Option(..., "--out", help="output folder (created)"),
+    out: Path = typer.Option(..., "--out", help="output folder (created; must not hold files)"),
     cell: Path = typer.Option(None, "--cell", help="cell config YAML (default: recipes/cells/sim.yaml)"),
     part: Path = typer.Option(
         None, "--part", help="part mesh in world coordinates, mm (default: empty table)"
@@ -52,7 +52,9 @@ def scan_cmd(
 ) -> None:
     """Scan MESH from one pose; write cloud.ply (world mm), masks.png and scan.json to OUT."""
     from cell.config import DEFAULT_CELL
+    from cell.runs import require_empty_output
 
+    require_empty_output(out)
     if source is not None:  # images captured elsewhere, measured with the cell's active calibration
         from cell.calibration.offline import write_folder_scan
         from cell.config import load_cell_config
