@@ -419,11 +419,7 @@ class Controller:
                 self.run.log("error", kind=type(exc).__name__, error=str(exc), during="reconnect")
 
     def _close_devices(self) -> None:
-        for kind, device in self.devices.items():
-            try:
-                device.close()
-            except Exception as exc:  # closing must not hide how the run ended
-                self.run.log("close_failed", device=self.devices.names.get(kind, kind), error=repr(exc))
+        self.devices.close_all(lambda name, exc: self.run.log("close_failed", device=name, error=repr(exc)))
 
     def _make_safe(self) -> None:
         """Stop the robot and blank the projector; never raises (this runs on every exit path)."""

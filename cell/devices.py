@@ -80,12 +80,31 @@ class DeviceBundle:
                 on_connect(self.names.get(kind, kind))
         self.projector.switch_on()
 
+    def close_all(self, on_error: Callable[[str, Exception], None] | None = None) -> None:
+        """Close every device in connection order; a device that fails to close is reported to ``on_error``
+        (its name and the error) and the others are closed still: closing must not hide how a run ended."""
+        for kind, device in self.items():
+            try:
+                device.close()
+            except Exception as exc:  # reported, never raised
+                if on_error is not None:
+                    on_error(self.names.get(kind, kind), exc)
+
     def begin_view(self, key: int) -> None:
         """Called by a job before it captures a view, ``key`` naming the view the same way on a resumed run. A
         simulated cell restarts its noise from it (a view's images then depend on the view alone); real
         devices need nothing."""
         if self.sim is not None:
             self.sim.reseed(key)
+
+
+def _drivers(cfg: CellConfig) -> dict[str, str]:
+    """The driver the cell config names for each device kind."""
+    return {
+        "robot": cfg.robot.driver,
+        "camera": cfg.sensor.camera.driver,
+        "projector": cfg.sensor.projector.driver,
+    }
 
 
 def _import_driver(kind: str, driver: str, where: str) -> type:
@@ -134,11 +153,7 @@ def build_devices(
     """Devices for ``cfg``. ``part_W`` (world coordinates, mm) is what a simulated cell renders; real
     cells ignore it. ``with_stage`` adds the board stage the calibration routines need: a simulated motorised
     stage on a simulated cell, else the operator, asked on the console to place each target and confirm."""
-    drivers = {
-        "robot": cfg.robot.driver,
-        "camera": cfg.sensor.camera.driver,
-        "projector": cfg.sensor.projector.driver,
-    }
+    drivers = _drivers(cfg)
     sim_kinds = [k for k, d in drivers.items() if d == "sim"]
     if sim_kinds and len(sim_kinds) != len(drivers):
         raise ConfigError(
@@ -221,11 +236,7 @@ def check_devices(cfg: CellConfig) -> list[DeviceCheck]:
     """Connect each device of ``cfg``, describe it, close them all: a failing device is reported, not
     raised, so that one check shows every device."""
     bundle = build_devices(cfg)
-    drivers = {
-        "robot": cfg.robot.driver,
-        "camera": cfg.sensor.camera.driver,
-        "projector": cfg.sensor.projector.driver,
-    }
+    drivers = _drivers(cfg)
     checks = []
     for kind, device in bundle.items():
         check = DeviceCheck(bundle.names[kind], kind, drivers[kind])
@@ -235,11 +246,7 @@ def check_devices(cfg: CellConfig) -> list[DeviceCheck]:
         except Exception as exc:  # any failure is reported per device
             check.error = exc
         checks.append(check)
-    for _, device in bundle.items():
-        try:
-            device.close()
-        except Exception:  # closing a device that failed to connect must not hide the report
-            pass
+    bundle.close_all()  # a device that failed to connect may fail to close too: the report says enough
     return checks
 
 
@@ -259,8 +266,10 @@ def ready_to_capture(devices: DeviceBundle, camera: CameraConfig) -> Iterator[Ca
             )
         )
     finally:
-        for _, device in reversed(devices.items()):
-            device.close()
+        failed: list[Exception] = []
+        devices.close_all(lambda _, exc: failed.append(exc))
+        if failed:  # every device is closed first; then the command hears what went wrong
+            raise failed[0]
 
 
 def record_devices(devices: DeviceBundle) -> DeviceBundle:
