@@ -22,12 +22,8 @@ class ConfigError(CellError):
     def __init__(self, message: str, *, path: str | None = None, field: str | None = None) -> None:
         self.path = path
         self.field = field
-        where = ""
-        if path:
-            where = f"{path}"
-            if field:
-                where += f": field '{field}'"
-            where += ": "
+        named = [part for part in (path, f"field '{field}'" if field else None) if part]
+        where = "".join(f"{part}: " for part in named)
         super().__init__(f"{where}{message}")
 
 

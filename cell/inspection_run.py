@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +21,7 @@ import yaml
 
 from cell.config import CellConfig, PartConfig, Recipe, load_cell_config, load_recipe, read_yaml, validate
 from cell.errors import ConfigError
-from cell.run_data import Checkpoint, Phase
+from cell.run_data import Checkpoint, Phase, RunIdentity
 from cell.runs import RUNS_ROOT, RunFolder, RunIndex, write_atomic, write_json_atomic
 
 REPO = Path(__file__).resolve().parents[1]
@@ -52,10 +51,12 @@ def start_run(
     *,
     seed: int | None = None,
     pipelining: bool = True,
+    identity: RunIdentity = RunIdentity(),
 ) -> RunFolder:
-    """Validate every input, then create the run folder ``out`` (default ``runs/<part>-<time>``) and copy the
-    inputs into it (nothing before that). The run's settings (seed, pipelining) are recorded so that a
-    resume continues it as it started."""
+    """Validate every input, then create the run folder ``out`` (default ``runs/<part>[-<serial>]-<time>``)
+    and copy the inputs into it (nothing before that). The run's settings (seed, pipelining) are recorded so
+    that a resume continues it as it started; its identity (serial, operator, order) for the report and the
+    results database."""
     from cell.calibration import active_sensor_config, active_triangulator
     from cell.mesh import load_part_W
 
@@ -79,7 +80,7 @@ def start_run(
 
         load_mesh(sim_actual, what="simulated actual part")
     part = recipe.name or recipe.part.cad.stem
-    final = out if out else RUNS_ROOT / f"{part}-{time.strftime('%Y%m%dT%H%M%S')}"
+    final = out if out else RUNS_ROOT / RunFolder.new_name(part, identity.serial or "")
     from cell.verification.history import inspection_block
 
     blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections)
@@ -105,6 +106,7 @@ def start_run(
         "cell_as_given": run.copy_input(cell_path, "cell.original.yaml").name,
         "cell": _copy_cell_with_calibration(run, cell_path, cfg),
         "settings": {"seed": seed, "pipelining": pipelining},
+        "identity": identity.to_json(),
         "cad": run.copy_input(recipe.part.cad, "nominal" + recipe.part.cad.suffix).name,
         "actual": run.copy_input(actual, "actual" + Path(actual).suffix).name if actual else None,
         "sources": {
@@ -115,7 +117,7 @@ def start_run(
         },
     }
     write_json_atomic(run.path / "inputs" / "manifest.json", manifest)
-    run.log("run_created", part=part, **manifest["sources"])
+    run.log("run_created", part=part, **manifest["sources"], **identity.to_json())
     if final.exists():
         final.rmdir()  # empty (checked above)
     os.replace(run.path, final)
@@ -155,6 +157,12 @@ def open_inspection_run(run_dir: Path) -> RunFolder:
             path=str(run_dir),
         )
     return run
+
+
+def run_identity(run: RunFolder) -> RunIdentity:
+    """The serial, operator and order a run was started with (none for runs older than the field)."""
+    manifest = json.loads((run.path / "inputs" / "manifest.json").read_text())
+    return RunIdentity.from_json(manifest.get("identity"))
 
 
 def run_settings(run: RunFolder) -> dict[str, Any]:
@@ -254,6 +262,7 @@ def inspect(
     *,
     seed: int | None = None,
     pipelining: bool = True,
+    identity: RunIdentity = RunIdentity(),
     record: Path | None = None,
     on_progress: Callable[[Any], None] | None = None,
     say: Say = print,
@@ -261,7 +270,7 @@ def inspect(
     """Start a run of ``recipe`` on ``cell`` (see :func:`start_run`) and execute it."""
     if record is not None and record.exists() and any(record.iterdir()):
         raise ConfigError("recording folder exists and is not empty; choose another", path=str(record))
-    run = start_run(recipe, cell, out, sim_actual, seed=seed, pipelining=pipelining)
+    run = start_run(recipe, cell, out, sim_actual, seed=seed, pipelining=pipelining, identity=identity)
     return execute_run(run, resume=False, record=record, on_progress=on_progress, say=say)
 
 
@@ -308,7 +317,7 @@ def demo(
         from cell.calibration.routines import ensure_calibration
 
         cell = ensure_calibration(cell, runs / f"calibration-{cell.stem}", say=say)
-    out = runs / f"demo-{part}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out = runs / RunFolder.new_name("demo", part)
     say(
         f"simulated inspection of {DEMO_RECIPE.relative_to(REPO)} (actual part: "
         f"{recipe.part.actual.name if recipe.part.actual else 'nominal'}) with {cell} -> {out}"

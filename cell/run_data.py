@@ -7,14 +7,55 @@ JSON (``to_json`` / ``from_json``): the controller journals and saves only these
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import re
+from dataclasses import asdict, dataclass, field
 from enum import StrEnum
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.errors import ConfigError
+
 _VIEW_KEYS = ("T_W_C", "T_B_T", "patch", "source", "iteration")
+# a part serial or an order number: what a barcode carries and a folder name can hold on every file system
+_CODE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+#-]{0,63}")
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+@dataclass(frozen=True)
+class RunIdentity:
+    """Who and what a run inspects: the part's serial, the operator, the production order. All optional (a
+    development run has none); recorded in the run's inputs, the report and the results database."""
+
+    serial: str | None = None
+    operator: str | None = None
+    order: str | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("serial", "order"):
+            value = getattr(self, name)
+            if value is not None and not _CODE.fullmatch(value):
+                raise ConfigError(
+                    f"{value!r} is not a valid {name}: 1-64 letters, digits and . _ + # -, starting with a "
+                    "letter or digit (a barcode reader may have added a prefix or a tab: scan it again)",
+                    field=f"--{name}",
+                )
+        if self.operator is not None and (
+            not self.operator.strip() or len(self.operator) > 64 or _CONTROL.search(self.operator)
+        ):
+            raise ConfigError(
+                f"{self.operator!r} is not a valid operator name: 1-64 printable characters",
+                field="--operator",
+            )
+
+    def to_json(self) -> dict[str, str | None]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any] | None) -> RunIdentity:
+        doc = doc or {}
+        return cls(doc.get("serial"), doc.get("operator"), doc.get("order"))
 
 
 class Phase(StrEnum):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import socket
 import sqlite3
@@ -98,6 +99,16 @@ def write_json_atomic(path: Path, obj: Any) -> None:
     write_atomic(path, json.dumps(obj, indent=2, default=_json_default).encode())
 
 
+_UNSAFE = re.compile(r"[^A-Za-z0-9._+-]+")
+
+
+def folder_safe(text: str) -> str:
+    """``text`` as one folder-name component: characters other than letters, digits and ``._+-`` become
+    ``_``, leading dots go (no hidden folders, no ``..``), at most 64 characters; never empty."""
+    safe = _UNSAFE.sub("_", text).lstrip(".")[:64]
+    return safe or "run"
+
+
 @dataclass
 class RunFolder:
     """One run's folder. Create with :meth:`create`, reopen with :meth:`open`."""
@@ -106,9 +117,11 @@ class RunFolder:
 
     # ------------------------------------------------------------------ creation
     @staticmethod
-    def new_name(part_name: str) -> str:
-        """``<part>-<UTC time>``: the name :meth:`create` gives a run folder."""
-        return f"{part_name}-{datetime.now(UTC).strftime('%Y%m%dT%H%M%S%fZ')}"
+    def new_name(*parts: str) -> str:
+        """``<part>[-<serial>...]-<UTC time>``: the name :meth:`create` gives a run folder. Each part is made
+        safe for a folder name first (:func:`folder_safe`): a recipe named ``../x`` names no other folder."""
+        stem = "-".join(folder_safe(p) for p in parts if p)
+        return f"{stem}-{datetime.now(UTC).strftime('%Y%m%dT%H%M%S%fZ')}"
 
     @classmethod
     def create(cls, root: Path, part_name: str, *, name: str | None = None) -> RunFolder:

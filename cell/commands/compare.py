@@ -31,8 +31,10 @@ def register(app: typer.Typer) -> None:
         ),
         csv: bool = typer.Option(False, "--csv", help="also write deviations.csv (x,y,z,deviation in mm)"),
     ) -> None:
-        """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report."""
+        """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report. Exits
+        0 on pass, 4 on fail, 5 when incomplete (docs/exit-codes.md)."""
         from cell.analysis.compare import run_compare
+        from cell.exit_codes import ExitCode, for_verdict
         from cell.runs import require_empty_output
 
         require_empty_output(out)
@@ -54,3 +56,6 @@ def register(app: typer.Typer) -> None:
             f"{doc['verdict']}: {doc['n_points']} points, {doc['n_out_of_tolerance']} out of tolerance "
             f"-> {out}"
         )
+        code = for_verdict(doc["verdict"])
+        if code is not ExitCode.PASS:
+            raise typer.Exit(int(code))

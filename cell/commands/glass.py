@@ -26,9 +26,11 @@ def glass_cmd(
         "or multi_projection (2.4; the rig must define screen.second_T_W_S)",
     ),
 ) -> None:
-    """Measure a glass pane: view vectors, marker search, multi-camera feedback, error map and report."""
+    """Measure a glass pane: view vectors, marker search, multi-camera feedback, error map and report. Exits
+    0 on pass, 4 on fail, 5 when incomplete (docs/exit-codes.md)."""
     from rich.console import Console
 
+    from cell.exit_codes import ExitCode, for_verdict
     from cell.glass.job import inspect_glass
 
     run, summary = inspect_glass(
@@ -37,11 +39,16 @@ def glass_cmd(
     dev = summary["deviation"]
     console = Console()
     console.print(
-        f"[bold]verdict: {str(summary['verdict']).upper()}[/]  ({summary['n_points']} of "
+        f"verdict: {str(summary['verdict']).upper()}  ({summary['n_points']} of "
         f"{summary['markers']} points accepted; deviation {dev.get('min_mm', float('nan')):.3f} .. "
-        f"{dev.get('max_mm', float('nan')):.3f} mm)"
+        f"{dev.get('max_mm', float('nan')):.3f} mm)",
+        style="bold",
+        markup=False,
     )
-    console.print(f"report: {run.results_dir / 'report.html'}")
+    console.print(f"report: {run.results_dir / 'report.html'}", markup=False)
+    code = for_verdict(summary["verdict"])
+    if code is not ExitCode.PASS:
+        raise typer.Exit(int(code))
 
 
 def _operator_places_board(height_mm: float | None) -> None:

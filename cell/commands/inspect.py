@@ -1,5 +1,6 @@
 """``cell inspect``, ``cell resume``, ``cell report`` and ``cell demo``: argument parsing and printing around
-the run lifecycle of :mod:`cell.inspection_run`. A paused run exits 3, a failed or aborted one 1."""
+the run lifecycle of :mod:`cell.inspection_run`. Each exits with the code of its outcome
+(:class:`cell.exit_codes.ExitCode`: pass 0, fault 1, bad input 2, paused 3, fail 4, incomplete 5)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import typer
 from rich.console import Console
 
 from cell.config import DEFAULT_CELL
+from cell.exit_codes import ExitCode, for_run
 from cell.inspection_run import DEMO_CELL
 from cell.runs import RUNS_ROOT
 
@@ -20,11 +22,10 @@ if TYPE_CHECKING:
     from cell.inspection_run import RunOutcome
 
 console = Console()
-EXIT_PAUSED = 3
 
 
 def _say(message: str) -> None:
-    console.print(message, highlight=False)
+    console.print(message, highlight=False, markup=False)
 
 
 def _progress(ctl: Controller) -> None:
@@ -42,20 +43,26 @@ def _progress(ctl: Controller) -> None:
 
 
 def _finish(outcome: RunOutcome) -> None:
-    """The verdict and the report's path of a finished run; else why it stopped, and its exit code."""
+    """The verdict and the report's path of a finished run, else why it stopped; exit with the outcome's
+    code. Messages are printed as text, never as markup: they quote file names and device replies."""
     run, state, summary = outcome.run, outcome.state, outcome.summary
+    code = for_run(state, summary.get("verdict"))
     if state == "done":
         console.print(
-            f"[bold]verdict: {str(summary.get('verdict')).upper()}[/]  "
-            f"({summary.get('n_points')} points, coverage {100 * (summary.get('coverage') or 0):.2f} %)"
+            f"verdict: {str(summary.get('verdict')).upper()}  "
+            f"({summary.get('n_points')} points, coverage {100 * (summary.get('coverage') or 0):.2f} %)",
+            style="bold",
+            markup=False,
         )
-        console.print(f"report: {run.results_dir / 'report.html'}")
-        return
-    if state == "paused":
-        console.print(f"[yellow]paused[/]: {outcome.message}\nfix the cause, then: cell resume {run.path}")
-        sys.exit(EXIT_PAUSED)
-    console.print(f"[red]{state}[/]: {outcome.message}\nrun folder: {run.path}")
-    sys.exit(1)
+        console.print(f"report: {run.results_dir / 'report.html'}", markup=False)
+    elif code is ExitCode.PAUSED:
+        console.print(f"paused: {outcome.message}", style="yellow", markup=False)
+        console.print(f"fix the cause, then: cell resume {run.path}", markup=False)
+    else:
+        console.print(f"{state}: {outcome.message}", style="red", markup=False)
+        console.print(f"run folder: {run.path}", markup=False)
+    if code is not ExitCode.PASS:
+        sys.exit(int(code))
 
 
 def register(app: typer.Typer) -> None:
@@ -68,6 +75,11 @@ def register(app: typer.Typer) -> None:
             None, "--sim-actual", help="simulation: mesh rendered as the made part"
         ),
         seed: int = typer.Option(None, "--seed", help="simulation noise seed (default: the cell's sim.seed)"),
+        serial: str = typer.Option(
+            None, "--serial", help="the part's serial number (a barcode reader types it)"
+        ),
+        operator: str = typer.Option(None, "--operator", help="who runs the inspection"),
+        order: str = typer.Option(None, "--order", help="production or work order number"),
         pipelining: bool = typer.Option(True, help="decode view k while moving to view k+1"),
         record: Path = typer.Option(
             None,
@@ -78,6 +90,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Run an inspection recipe end to end; Ctrl-C pauses safely (resume with `cell resume DIR`)."""
         from cell.inspection_run import inspect
+        from cell.run_data import RunIdentity
 
         outcome = inspect(
             recipe,
@@ -86,6 +99,7 @@ def register(app: typer.Typer) -> None:
             sim_actual,
             seed=seed,
             pipelining=pipelining,
+            identity=RunIdentity(serial, operator, order),
             record=record,
             on_progress=_progress,
             say=_say,
