@@ -22,7 +22,15 @@ import yaml
 from cell.config import CellConfig, PartConfig, Recipe, load_cell_config, load_recipe, read_yaml, validate
 from cell.errors import ConfigError
 from cell.run_data import Checkpoint, Phase, RunIdentity
-from cell.runs import RUNS_ROOT, RunFolder, RunIndex, write_atomic, write_json_atomic
+from cell.runs import (
+    RESUME_OR_ANOTHER,
+    RUNS_ROOT,
+    RunFolder,
+    RunIndex,
+    require_empty_output,
+    write_atomic,
+    write_json_atomic,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_RECIPE = REPO / "recipes" / "pillar.yaml"
@@ -93,10 +101,7 @@ def start_run(
             f"({holder.get('command')}); choose another --out",
             path=str(final),
         )
-    if final.exists() and any(final.iterdir()):
-        raise ConfigError(
-            "run folder exists and is not empty; choose another --out or `cell resume` it", path=str(final)
-        )
+    require_empty_output(final, then=RESUME_OR_ANOTHER)
     # the folder appears under its name only once every input is copied: a run killed before that never
     # started, and leaves nothing that a resume could mistake for a run
     run = RunFolder.create(final.parent, part, name=f".{final.name}.partial-{os.getpid()}")
@@ -268,8 +273,8 @@ def inspect(
     say: Say = print,
 ) -> RunOutcome:
     """Start a run of ``recipe`` on ``cell`` (see :func:`start_run`) and execute it."""
-    if record is not None and record.exists() and any(record.iterdir()):
-        raise ConfigError("recording folder exists and is not empty; choose another", path=str(record))
+    if record is not None:
+        require_empty_output(record, field="--record")
     run = start_run(recipe, cell, out, sim_actual, seed=seed, pipelining=pipelining, identity=identity)
     return execute_run(run, resume=False, record=record, on_progress=on_progress, say=say)
 

@@ -99,6 +99,7 @@ def write_json_atomic(path: Path, obj: Any) -> None:
     write_atomic(path, json.dumps(obj, indent=2, default=_json_default).encode())
 
 
+RESUME_OR_ANOTHER = "choose another --out, or `cell resume` the run that is there"
 _UNSAFE = re.compile(r"[^A-Za-z0-9._+-]+")
 
 
@@ -126,11 +127,7 @@ class RunFolder:
     @classmethod
     def create(cls, root: Path, part_name: str, *, name: str | None = None) -> RunFolder:
         """A new, empty run folder under ``root`` named :meth:`new_name` unless ``name`` is given."""
-        path = Path(root) / (name or cls.new_name(part_name))
-        if path.exists() and any(path.iterdir()):
-            raise ConfigError(
-                "run folder exists and is not empty; choose another --out or `cell resume` it", path=str(path)
-            )
+        path = require_empty_output(Path(root) / (name or cls.new_name(part_name)), then=RESUME_OR_ANOTHER)
         (path / "inputs").mkdir(parents=True, exist_ok=True)
         (path / "views").mkdir(exist_ok=True)
         (path / "results").mkdir(exist_ok=True)
@@ -373,14 +370,13 @@ class RunIndex:
         return [dict(r) for r in rows]
 
 
-def require_empty_output(out: Path) -> Path:
-    """``out`` as a folder a command may write its results into: absent or empty. Results are never written
-    over earlier ones (a compare into a scan's folder would replace the scan's cloud.ply)."""
+def require_empty_output(
+    out: Path, *, field: str = "--out", then: str = "choose another folder (results are never written over)"
+) -> Path:
+    """``out`` as a folder a command may write into: absent or empty, else a ConfigError naming ``field`` and
+    saying what to do (``then``). Results are never written over earlier ones (a compare into a scan's folder
+    would replace the scan's cloud.ply; an inspection into a run's folder would mix two runs)."""
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ConfigError(
-            "--out holds files already; choose another folder (results are never written over)",
-            path=str(out),
-            field="--out",
-        )
+        raise ConfigError(f"{field} holds files already; {then}", path=str(out), field=field)
     return out

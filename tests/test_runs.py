@@ -54,7 +54,7 @@ def test_checkpoint_round_trip_and_reopen(tmp_path: Path) -> None:
     assert again.load_checkpoint()["views"][0]["T_B_T"] == np.eye(4).tolist()
     with pytest.raises(ConfigError, match="not a run folder"):
         RunFolder.open(tmp_path / "elsewhere")
-    with pytest.raises(ConfigError, match="not empty"):
+    with pytest.raises(ConfigError, match="holds files already; choose another --out, or `cell resume`"):
         RunFolder.create(tmp_path, "part", name="r1")
 
 
