@@ -73,7 +73,7 @@ def register(app: typer.Typer) -> None:
                 csv.write_text(store.spc_csv(spc))
                 capability = csv.with_name(csv.stem + "-capability.csv")
                 capability.write_text(store.spc_csv(spc, "capability"))
-                typer.echo(f"trend -> {csv}, capability -> {capability}")
+                typer.echo(f"trend: {csv}\ncapability: {capability}")
             return
         rows = store.runs(
             part=part or part_arg,

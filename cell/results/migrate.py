@@ -36,7 +36,9 @@ def upgrade(engine: Engine) -> bool:
 
     if current(engine) == head():
         return False
-    with engine.begin() as conn:
+    # write=True: on SQLite the store's "begin" listener takes the write lock at once (BEGIN IMMEDIATE), so
+    # two first openers queue instead of both reading "no schema" and one failing to write
+    with engine.connect() as conn, conn.execution_options(write=True).begin():
         if conn.dialect.name == "postgresql":
             conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _PG_LOCK})
         config = Config()

@@ -161,6 +161,12 @@ class ResultsStore:
             with conn.begin():
                 yield conn
 
+    @property
+    def absent(self) -> bool:
+        """An SQLite store whose folder does not exist: nothing recorded, and reading creates nothing."""
+        path = self.sqlite_path
+        return path is not None and not path.parent.is_dir()
+
     @contextmanager
     def _read(self, doing: str) -> Iterator[Connection]:
         self._open()
@@ -329,6 +335,8 @@ class ResultsStore:
         if until is not None:
             wanted.append(c.started < until)
         query = select(runs).where(and_(True, *wanted)).order_by(c.started.desc(), c.id.desc()).limit(limit)
+        if self.absent:
+            return []
         with self._read("listing runs") as conn:
             return [_row(r) for r in conn.execute(query)]
 
@@ -338,6 +346,8 @@ class ResultsStore:
         query = select(verifications).order_by(v.time, v.id)
         if cell is not None:
             query = query.where(v.cell == cell)
+        if self.absent:
+            return []
         with self._read("listing verifications") as conn:
             return [
                 VerificationRow(
@@ -356,6 +366,8 @@ class ResultsStore:
         over its runs that finished with a pass or fail verdict."""
         c = runs.c
         counted = and_(c.recipe == recipe, c.status == "done", c.verdict.in_(FINISHED))
+        if self.absent:
+            return Spc(recipe, 0, series(PART, [], None, None), [])
         with self._read("reading SPC figures") as conn:
             rows = list(conn.execute(select(runs).where(counted).order_by(c.started, c.id)))
             by_run: dict[int, list[Any]] = {}
