@@ -86,7 +86,7 @@ def start_run(
     final = out if out else RUNS_ROOT / RunFolder.new_name(part, identity.serial or "")
     from cell.verification.history import inspection_block
 
-    blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections)
+    blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections, cfg)
     if blocked:
         raise ConfigError(blocked, path=str(cell_path))
     holder = RunFolder(final).lock_holder() if final.is_dir() else None

@@ -27,16 +27,19 @@ from cell.analysis.regions import Region, Tolerance
 from cell.analysis.report import ReportInput, write_report
 from cell.cli import main
 from cell.results import ResultsDamaged, ResultsStore, ResultsUnavailable, open_results
-from cell.results.folder import PENDING_NAME
+from cell.results.folder import PENDING_NAME, mark_pending
 from cell.results.migrate import current, head
 from cell.run_data import RunIdentity
 from cell.runs import RunFolder, write_json_atomic
+from cell.verification.history import VerificationHistory, inspection_block
+from cell.verification.procedure import AcceptanceResult
 from tests.postgres_server import PostgresServer, require_postgres
 
 T0 = datetime(2026, 11, 20, 8, 0, tzinfo=UTC)
 N_POINTS = 40  # points 0..39 along x; x < 10: region "left" (the recipe's band), x >= 30: "right" (its own)
 BAND = (-0.3, 0.3)
 RIGHT_BAND = (-0.1, 0.2)
+MPE = {"PF": 0.05, "PS": 0.05, "SD": 0.025, "F": 0.05}
 
 
 # ---------------------------------------------------------------------------------------------- fixtures
@@ -48,7 +51,7 @@ def pg_server() -> Iterator[PostgresServer]:
     server.destroy()
 
 
-@pytest.fixture(params=["sqlite", "postgresql"])
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
 def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
     """A fresh, empty database of each backend (the PostgreSQL server starts once per module)."""
     if request.param == "sqlite":
@@ -242,7 +245,7 @@ def _record_all(url: str, root: str, folders: list[str], barrier: Any) -> None:
     store.close()
 
 
-@pytest.mark.parametrize("backend", ["postgresql", "sqlite"])
+@pytest.mark.parametrize("backend", [pytest.param("postgresql", marks=pytest.mark.postgres), "sqlite"])
 def test_two_cells_write_one_database_at_once(
     backend: str, request: pytest.FixtureRequest, tmp_path: Path
 ) -> None:
@@ -291,6 +294,7 @@ def test_two_cells_write_one_database_at_once(
 
 
 # ---------------------------------------------------------------------------------------------- lost database
+@pytest.mark.postgres
 def test_lost_postgresql_connection_records_the_run_later(pg_server: PostgresServer, tmp_path: Path) -> None:
     """The server goes down between two runs: the second run's recording says why it failed (journalled,
     a pending marker in its folder), and the next sync, once the server is back, records it."""
@@ -373,7 +377,14 @@ def test_old_index_sqlite_is_read_in(tmp_path: Path) -> None:
             "CREATE TABLE runs (folder TEXT PRIMARY KEY, part TEXT, started TEXT, status TEXT, verdict TEXT, "
             "n_points INTEGER, coverage REAL, dev_min REAL, dev_max REAL, updated TEXT)"
         )
-        db.execute("CREATE TABLE verification (folder TEXT PRIMARY KEY, time TEXT, kind TEXT, cell TEXT)")
+        db.execute(  # the verification history's table as cell/verification/history.py made it
+            "CREATE TABLE verification (folder TEXT PRIMARY KEY, time TEXT, kind TEXT, cell TEXT, pf REAL, "
+            "ps REAL, sd REAL, f REAL, verdict TEXT)"
+        )
+        db.execute(
+            "INSERT INTO verification VALUES ('/old/check', '2026-11-02T06:00:00+00:00', 'check', 'cell-a', "
+            "0.01, NULL, 0.031, 0.02, 'fail')"
+        )
         for folder, started, verdict in (
             (str(kept), "2026-11-20T08:00:00+00:00", "pass"),
             (str(root / "gone"), "2026-11-01T08:00:00+00:00", "fail"),
@@ -389,7 +400,65 @@ def test_old_index_sqlite_is_read_in(tmp_path: Path) -> None:
         (str(root / "gone"), "fail", None),
     ]
     assert rows[1].dev_min == pytest.approx(-0.6) and rows[1].started == datetime(2026, 11, 1, 8, tzinfo=UTC)
+    (check,) = VerificationHistory(root).entries("cell-a")
+    assert (check.folder, check.time, check.verdict) == ("/old/check", "2026-11-02T06:00:00+00:00", "fail")
+    assert check.figures_mm == {"PF": 0.01, "PS": None, "SD": 0.031, "F": 0.02}
     assert index.read_bytes() == before
+
+
+def make_check(root: Path, name: str, cell: str, sd_mm: float, verdict: str) -> Path:
+    """A verification folder as `cell verify check` leaves it: verification.json by the real writer."""
+    from cell.verification.certificate import load_certificate
+    from cell.verification.report import write_json
+
+    result = AcceptanceResult(
+        cell, "nominal", {}, MPE, [], figures_mm={"PF": 0.01, "PS": 0.002, "SD": sd_mm, "F": 0.02}
+    )
+    result.verdict, result.interim = verdict, True
+    folder = root / name
+    folder.mkdir(parents=True)
+    write_json(folder / "verification.json", result, load_certificate(), "Interim check.")
+    return folder
+
+
+@pytest.mark.postgres
+def test_verification_history_in_postgresql_follows_the_cell(
+    pg_server: PostgresServer, tmp_path: Path
+) -> None:
+    """With results_db set, a cell's failed check blocks its inspections from any runs root; with the server
+    down the block comes from the check folders of the runs root itself, a check made meanwhile is marked
+    pending, and the next sync records it."""
+    import yaml
+
+    from cell.config import load_cell_config
+    from tests.box_part import small_cell
+
+    data = small_cell().model_dump(mode="json")
+    cell_file = tmp_path / "cell.yaml"
+    cell_file.write_text(yaml.safe_dump({**data, "results_db": pg_server.create_database()}))
+    cfg = load_cell_config(cell_file)
+    a, b = tmp_path / "a", tmp_path / "b"
+    b.mkdir()
+    failed = make_check(a, "verify-check-1", cfg.name, 0.031, "fail")
+    history = VerificationHistory(a, cfg)
+    assert [e.verdict for e in history.entries(cfg.name)] == ["fail"]  # read in from root a's folders
+    assert "SD 31.0 um" in (inspection_block(b, cfg.name, True, cfg) or "")  # from another root too
+    assert inspection_block(b, "another-cell", True, cfg) is None
+
+    pg_server.stop()
+    try:
+        assert "SD 31.0 um" in (inspection_block(a, cfg.name, True, cfg) or "")  # the folders say so
+        assert inspection_block(b, cfg.name, True, cfg) is None  # b holds no check of this cell
+        with pytest.raises(ResultsUnavailable):
+            history.entries()
+        passed = make_check(a, "verify-check-2", cfg.name, 0.004, "pass")
+        mark_pending(passed, "server down")  # as interim_check does when the database refuses the check
+    finally:
+        pg_server.start()
+    store = open_results(cfg, a)
+    assert store.sync() == 1
+    assert [e.folder for e in VerificationHistory(a, cfg).entries(cfg.name)] == [str(failed), str(passed)]
+    assert inspection_block(b, cfg.name, True, cfg) is None
 
 
 def test_a_bad_results_db_url_names_the_field(tmp_path: Path) -> None:

@@ -166,3 +166,34 @@ def pending_folders(root: Path) -> list[Path]:
     if not root.is_dir():
         return []
     return sorted(p.parent for p in root.glob(f"*/{PENDING_NAME}") if not p.parent.name.startswith("."))
+
+
+def read_verification(path: Path) -> dict[str, Any] | None:
+    """The ``verifications`` row of a finished verification folder (its ``verification.json``: a ``cell
+    verify check`` is kind ``check``, a full test ``acceptance``), or None when the folder holds none."""
+    doc = _json(Path(path) / "verification.json")
+    if doc is None or not doc.get("cell") or "figures_mm" not in doc:
+        return None
+    try:
+        time = datetime.fromisoformat(str(doc["created_utc"]))
+    except (KeyError, ValueError):
+        time = datetime.fromtimestamp((Path(path) / "verification.json").stat().st_mtime, UTC)
+    figures = doc["figures_mm"] or {}
+    return {
+        "cell": str(doc["cell"]),
+        "folder": str(Path(path).resolve()),
+        "kind": "check" if doc.get("interim") else "acceptance",
+        "time": time if time.tzinfo else time.replace(tzinfo=UTC),
+        "verdict": str(doc.get("verdict") or "incomplete"),
+        **{k.lower(): figures.get(k) for k in ("PF", "PS", "SD", "F")},
+    }
+
+
+def verification_folders(root: Path) -> list[Path]:
+    """Every folder directly under ``root`` holding a verification result (verification.json)."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    return sorted(
+        p for p in root.iterdir() if not p.name.startswith(".") and (p / "verification.json").is_file()
+    )

@@ -215,29 +215,34 @@ class ResultsStore:
         return None
 
     def sync(self) -> int:
-        """Record every run of the runs root that has a pending marker; the number recorded."""
+        """Record every run (or verification) of the runs root that has a pending marker; how many."""
         n = 0
         for path in fold.pending_folders(self.runs_root):
-            self.record_run(path)
-            if fold.read_run(path).run["status"] != "running":
+            with self._write(f"recording {path.name}") as conn:
+                running = _record_folder(conn, path)
+            if not running:
                 (path / fold.PENDING_NAME).unlink(missing_ok=True)
             n += 1
         return n
 
     def rebuild(self, runs_root: Path | None = None, *, say: Callable[[str], None] | None = None) -> int:
-        """Record every inspection folder under ``runs_root`` (default: the store's) again; a damaged SQLite
-        file is first moved aside (``results.sqlite.damaged-<UTC time>``, said through ``say``), never
-        deleted. The number of runs recorded."""
+        """Record every inspection and verification folder under ``runs_root`` (default: the store's)
+        again; a damaged SQLite file is first moved aside (``results.sqlite.damaged-<UTC time>``, said
+        through ``say``), never deleted. The number of inspection runs recorded."""
         if self.is_sqlite and self._damaged():
             moved = self._move_aside()
             if say is not None:
                 say(f"the damaged database was moved aside: {moved}")
-        folders = fold.inspection_folders(Path(runs_root or self.runs_root))
+        root = Path(runs_root or self.runs_root)
+        folders = fold.inspection_folders(root)
+        running = set()
         with self._write("rebuilding it from the run folders") as conn:
-            for path in folders:
-                _upsert(conn, fold.read_run(path))
-        for path in folders:
-            (path / fold.PENDING_NAME).unlink(missing_ok=True)
+            for path in [*folders, *fold.verification_folders(root)]:
+                if _record_folder(conn, path):
+                    running.add(path)
+        for path in fold.pending_folders(root):
+            if path not in running:
+                (path / fold.PENDING_NAME).unlink(missing_ok=True)
         return len(folders)
 
     def _damaged(self) -> bool:
@@ -263,19 +268,21 @@ class ResultsStore:
         return path.with_name(f"{path.name}.damaged-{stamp}")
 
     def _import_root(self) -> None:
-        """Once per runs root and database: record the root's run folders and the rows of a legacy
-        ``index.sqlite`` whose folders are gone, so that switching databases loses no history."""
+        """Once per runs root and database: record the root's run and verification folders, and the rows
+        of a legacy ``index.sqlite`` whose folders are gone, so that switching databases loses no history."""
         key = f"{socket.gethostname()}:{self.runs_root}"
         with self._read("reading it") as conn:
             if conn.execute(select(imported_roots).where(imported_roots.c.root == key)).first():
                 return
-        folders = fold.inspection_folders(self.runs_root)
-        legacy = _legacy_rows(self.runs_root / LEGACY_INDEX, self.cell)
+        folders = [*fold.inspection_folders(self.runs_root), *fold.verification_folders(self.runs_root)]
+        legacy_runs, legacy_checks = _legacy_rows(self.runs_root / LEGACY_INDEX, self.cell)
         with self._write("reading in the runs root") as conn:
             for path in folders:
-                _upsert(conn, fold.read_run(path))
-            for row in legacy:
+                _record_folder(conn, path)
+            for row in legacy_runs:
                 _upsert(conn, fold.RunRecord(row), replace=False)
+            for row in legacy_checks:
+                _upsert_verification(conn, row, replace=False)
             stmt = _insert(conn)(imported_roots).values(root=key, time=datetime.now(UTC))
             conn.execute(stmt.on_conflict_do_nothing())
 
@@ -289,7 +296,7 @@ class ResultsStore:
         time: datetime | None = None,
     ) -> None:
         """Store one verification's figures (PF, PS, SD, F in mm); replaces an earlier one of the folder."""
-        values = {
+        row = {
             "cell": cell,
             "folder": str(Path(folder).resolve()),
             "kind": kind,
@@ -298,8 +305,7 @@ class ResultsStore:
             **{k.lower(): figures_mm.get(k) for k in ("PF", "PS", "SD", "F")},
         }
         with self._write("recording a verification") as conn:
-            stmt = _insert(conn)(verifications).values(**values)
-            conn.execute(stmt.on_conflict_do_update(index_elements=["cell", "folder"], set_=values))
+            _upsert_verification(conn, row)
 
     # ------------------------------------------------------------------ reading
     def runs(
@@ -436,48 +442,85 @@ def _upsert(conn: Connection, record: fold.RunRecord, *, replace: bool = True) -
         conn.execute(regions.insert(), [{**r, "run_id": run_id} for r in record.regions])
 
 
-def _legacy_rows(path: Path, cell: str) -> list[dict[str, Any]]:
-    """The rows of an old ``index.sqlite`` (RunIndex's ``runs`` table) whose folders no longer exist, as
-    ``runs`` rows; nothing when there is no such file or table, or it cannot be read."""
+def _record_folder(conn: Connection, path: Path) -> bool:
+    """Record an inspection or a verification folder; True if it is an inspection still running."""
+    if fold.is_inspection_folder(path):
+        record = fold.read_run(path)
+        _upsert(conn, record)
+        return record.run["status"] == "running"
+    row = fold.read_verification(path)
+    if row is not None:
+        _upsert_verification(conn, row)
+    return False
+
+
+def _upsert_verification(conn: Connection, row: dict[str, Any], *, replace: bool = True) -> None:
+    stmt = _insert(conn)(verifications).values(**row)
+    keys = ["cell", "folder"]
+    if replace:
+        conn.execute(stmt.on_conflict_do_update(index_elements=keys, set_=row))
+    else:
+        conn.execute(stmt.on_conflict_do_nothing(index_elements=keys))
+
+
+def _legacy_tables(path: Path) -> dict[str, list[dict[str, Any]]]:
+    """The ``runs`` and ``verification`` tables of an old ``index.sqlite``, as far as they can be read."""
+    out: dict[str, list[dict[str, Any]]] = {"runs": [], "verification": []}
     if not path.is_file():
-        return []
+        return out
     try:
         with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
             db.row_factory = sqlite3.Row
-            found = db.execute("SELECT name FROM sqlite_master WHERE type='table' AND name='runs'").fetchone()
-            rows = [dict(r) for r in db.execute("SELECT * FROM runs")] if found else []
+            tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            for name in out:
+                if name in tables:
+                    out[name] = [dict(r) for r in db.execute(f"SELECT * FROM {name}")]
     except sqlite3.DatabaseError:
-        return []
-    out = []
-    for r in rows:
-        if fold.is_inspection_folder(Path(r["folder"])):
+        pass
+    return out
+
+
+def _utc(text: Any) -> datetime | None:
+    try:
+        t = datetime.fromisoformat(str(text))
+    except ValueError:
+        return None
+    return t if t.tzinfo else t.replace(tzinfo=UTC)
+
+
+def _legacy_rows(path: Path, cell: str) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The rows of an old ``index.sqlite``: RunIndex's ``runs`` whose folders are gone (as ``runs`` rows of
+    ``cell``; a folder still there is read itself) and the verification history's ``verification`` rows."""
+    tables = _legacy_tables(path)
+    checks = []
+    for r in tables["verification"]:
+        time = _utc(r.get("time"))
+        if time is None or not r.get("cell") or not r.get("folder"):
             continue
-        try:
-            started = datetime.fromisoformat(r["started"])
-        except (TypeError, ValueError):
+        figures = {k: r.get(k) for k in ("pf", "ps", "sd", "f")}
+        checks.append(
+            {"cell": r["cell"], "folder": r["folder"], "kind": r.get("kind") or "check", "time": time}
+            | figures
+            | {"verdict": r.get("verdict") or "incomplete"}
+        )
+    runs_ = []
+    for r in tables["runs"]:
+        started = _utc(r.get("started"))
+        if started is None or not r.get("folder") or fold.is_inspection_folder(Path(r["folder"])):
             continue
-        out.append(
-            {
-                "cell": cell,
-                "folder": r["folder"],
-                "recipe": r["part"] or "",
-                "recipe_sha256": None,
-                "part": r["part"] or "",
-                "serial": None,
-                "operator": None,
-                "production_order": None,
-                "started": started if started.tzinfo else started.replace(tzinfo=UTC),
-                "finished": None,
-                "status": r["status"] or "unknown",
-                "verdict": r["verdict"],
-                "n_points": r["n_points"],
-                "coverage": r["coverage"],
-                "dev_min": r["dev_min"],
-                "dev_max": r["dev_max"],
-                "dev_mean": None,
-                "dev_std": None,
+        kept = {k: r.get(k) for k in ("verdict", "n_points", "coverage", "dev_min", "dev_max")}
+        unknown = dict.fromkeys(
+            ("recipe_sha256", "serial", "operator", "production_order", "finished", "dev_mean", "dev_std")
+        )
+        runs_.append(
+            {"cell": cell, "folder": r["folder"], "recipe": r.get("part") or "", "part": r.get("part") or ""}
+            | {
+                "started": started,
+                "status": r.get("status") or "unknown",
                 "tol_lower": None,
                 "tol_upper": None,
             }
+            | kept
+            | unknown
         )
-    return out
+    return runs_, checks
