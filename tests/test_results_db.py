@@ -461,6 +461,16 @@ def test_verification_history_in_postgresql_follows_the_cell(
     assert inspection_block(b, cfg.name, True, cfg) is None
 
 
+def test_a_schema_newer_than_the_software_is_refused_untouched(tmp_path: Path) -> None:
+    store = ResultsStore(f"sqlite:///{tmp_path / 'results.sqlite'}", tmp_path)
+    assert store.runs() == [] and current(store.engine) == head()
+    store.close()
+    with sqlite3.connect(tmp_path / "results.sqlite") as db:
+        db.execute("UPDATE alembic_version SET version_num = 'f00d'")
+    with pytest.raises(ResultsUnavailable, match=r"revision f00d\) is newer than this software"):
+        ResultsStore(f"sqlite:///{tmp_path / 'results.sqlite'}", tmp_path).runs()
+
+
 def test_a_bad_results_db_url_names_the_field(tmp_path: Path) -> None:
     from cell.config import CellConfig, load_cell_config
     from cell.errors import ConfigError

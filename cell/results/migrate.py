@@ -34,8 +34,16 @@ def upgrade(engine: Engine) -> bool:
     from alembic import command
     from alembic.config import Config
 
-    if current(engine) == head():
+    from cell.results.errors import ResultsUnavailable
+
+    now, known = current(engine), head()
+    if now == known:
         return False
+    if now is not None and now not in _revisions():
+        raise ResultsUnavailable(
+            f"the results database's schema (revision {now}) is newer than this software knows (up to "
+            f"{known}): update the cell software; nothing was changed in the database"
+        )
     # write=True: on SQLite the store's "begin" listener takes the write lock at once (BEGIN IMMEDIATE), so
     # two first openers queue instead of both reading "no schema" and one failing to write
     with engine.connect() as conn, conn.execution_options(write=True).begin():
@@ -46,3 +54,9 @@ def upgrade(engine: Engine) -> bool:
         config.attributes["connection"] = conn
         command.upgrade(config, "head")
     return True
+
+
+def _revisions() -> set[str]:
+    from alembic.script import ScriptDirectory
+
+    return {r.revision for r in ScriptDirectory(str(MIGRATIONS)).walk_revisions()}
