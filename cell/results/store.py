@@ -101,7 +101,9 @@ class ResultsStore:
         """The database for messages, password hidden."""
         if self.is_sqlite:
             return str(self.sqlite_path)
-        return self.url.render_as_string(hide_password=True)
+        from urllib.parse import unquote
+
+        return unquote(self.url.render_as_string(hide_password=True))
 
     @property
     def is_sqlite(self) -> bool:
