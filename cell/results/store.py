@@ -203,23 +203,28 @@ class ResultsStore:
         """:meth:`record_run`, or when the database cannot take it, the reason (a pending marker in the
         folder has it, and :meth:`sync` records the run later). The marker is written first and removed
         once a finished run is in: a run killed meanwhile is recorded by the next sync too."""
-        fold.mark_pending(run_dir, "being recorded")
+        self.mark_pending(run_dir, "being recorded")
         try:
             self.record_run(run_dir)
         except Exception as e:  # whatever the database did, the run goes on; the reason is kept
             reason = (
                 str(e) if isinstance(e, (ResultsUnavailable, ResultsDamaged)) else f"{type(e).__name__}: {e}"
             )
-            fold.mark_pending(run_dir, reason)
+            self.mark_pending(run_dir, reason)
             return reason
         if fold.read_run(run_dir).run["status"] != "running":
             (Path(run_dir) / fold.PENDING_NAME).unlink(missing_ok=True)
         return None
 
+    def mark_pending(self, folder: Path, reason: str) -> None:
+        """Note in a run or verification folder that it is not in this database yet, and why: the next
+        :meth:`sync` of this database records it."""
+        fold.mark_pending(folder, reason, self.where)
+
     def sync(self) -> int:
         """Record every run (or verification) of the runs root that has a pending marker; how many."""
         n = 0
-        for path in fold.pending_folders(self.runs_root):
+        for path in fold.pending_folders(self.runs_root, self.where):
             with self._write(f"recording {path.name}") as conn:
                 running = _record_folder(conn, path)
             if not running:
@@ -242,7 +247,7 @@ class ResultsStore:
             for path in [*folders, *fold.verification_folders(root)]:
                 if _record_folder(conn, path):
                     running.add(path)
-        for path in fold.pending_folders(root):
+        for path in fold.pending_folders(root, self.where):
             if path not in running:
                 (path / fold.PENDING_NAME).unlink(missing_ok=True)
         return len(folders)
