@@ -167,6 +167,8 @@ def test_record_query_and_filter(db_url: str, tmp_path: Path) -> None:
         "SN-2",
     ]
     assert [r.serial for r in store.runs(limit=2)] == ["SN-4", "SN-3"]
+    assert [r.serial for r in store.runs(limit=2, offset=2)] == ["SN-2", "SN-1"]
+    assert store.distinct("part") == ["box", "lid"] and store.distinct("operator") == ["ann", "bob"]
     assert store.runs(operator="nobody") == []
 
     # a re-recorded folder updates its row, never adds one

@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from sqlalchemy import Connection, Engine, and_, create_engine, delete, event, exc, select
 from sqlalchemy.engine import make_url
@@ -327,9 +327,10 @@ class ResultsStore:
         since: datetime | None = None,
         until: datetime | None = None,
         limit: int | None = None,
+        offset: int = 0,
     ) -> list[RunRow]:
         """The runs matching every filter given (exact matches; ``since`` <= started < ``until``), newest
-        first, at most ``limit``."""
+        first, at most ``limit`` after skipping ``offset`` (a page)."""
         c = runs.c
         wanted = [
             col == value
@@ -347,11 +348,22 @@ class ResultsStore:
             wanted.append(c.started >= since)
         if until is not None:
             wanted.append(c.started < until)
-        query = select(runs).where(and_(True, *wanted)).order_by(c.started.desc(), c.id.desc()).limit(limit)
+        query = select(runs).where(and_(True, *wanted)).order_by(c.started.desc(), c.id.desc())
+        query = query.limit(limit).offset(offset or None)
         if self.absent:
             return []
         with self._read("listing runs") as conn:
             return [_row(r) for r in conn.execute(query)]
+
+    def distinct(
+        self, column: Literal["cell", "recipe", "part", "operator", "verdict", "status"]
+    ) -> list[str]:
+        """The values of ``column`` that recorded runs have (for a filter's choices), sorted."""
+        if self.absent:
+            return []
+        col = runs.c[column]
+        with self._read(f"listing {column}s") as conn:
+            return [v for (v,) in conn.execute(select(col).where(col.is_not(None)).distinct().order_by(col))]
 
     def verifications(self, cell: str | None = None) -> list[VerificationRow]:
         """Every stored verification of ``cell`` (all cells when None), oldest first."""
