@@ -26,7 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "inspect": ("inspect", "Run an inspection recipe end to end; Ctrl-C pauses safely."),
     "resume": ("inspect", "Finish an interrupted or paused run from its last checkpoint."),
     "report": ("inspect", "Rebuild a finished run's report from its stored views."),
-    "history": ("history", "List the runs of a part: time, status, verdict and key figures."),
+    "history": ("history", "Past runs from the results database, filtered; SPC of a recipe."),
     "demo": ("inspect", "A full simulated inspection of the demo pillar, ending in a report."),
     "plan": ("plan", "Plan the viewpoints of a recipe's part and print its cycle-time limit."),
     "scan": ("scan", "One structured-light scan of a mesh in the simulated cell, from one pose."),

@@ -15,7 +15,7 @@ import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
@@ -26,11 +26,13 @@ from cell.runs import (
     RESUME_OR_ANOTHER,
     RUNS_ROOT,
     RunFolder,
-    RunIndex,
     require_empty_output,
     write_atomic,
     write_json_atomic,
 )
+
+if TYPE_CHECKING:
+    from cell.results import ResultsStore
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_RECIPE = REPO / "recipes" / "pillar.yaml"
@@ -91,7 +93,7 @@ def start_run(
     final = out if out else RUNS_ROOT / RunFolder.new_name(part, identity.serial or "")
     from cell.verification.history import inspection_block
 
-    blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections)
+    blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections, cfg)
     if blocked:
         raise ConfigError(blocked, path=str(cell_path))
     holder = RunFolder(final).lock_holder() if final.is_dir() else None
@@ -236,8 +238,10 @@ def _execute_locked(
         devices = record_devices(devices)
     job = LambertianInspection(recipe, cfg, nominal_W)
     ctl = inspection_controller(devices, job, run, settings, on_progress=on_progress)
-    index = RunIndex(run.path.parent)
-    index.upsert(run.path, job.part_name, "running")
+    from cell.results import open_results
+
+    results = open_results(cfg, run.path.parent)
+    results.record_or_defer(run.path)  # "running"; whatever the database does, the run goes on
     try:
         state = ctl.execute(resume=resume)
     finally:
@@ -245,18 +249,20 @@ def _execute_locked(
             saved = save_recording(devices, record, cfg.model_dump(mode="json"))
             say(f"device traffic recorded: replay with --cell {saved / 'cell.yaml'}")
     summary = Checkpoint.from_json(run.load_checkpoint()).summary or {}
-    dev = summary.get("deviation") or {}
-    index.upsert(
-        run.path,
-        job.part_name,
-        state,
-        verdict=summary.get("verdict"),
-        n_points=summary.get("n_points"),
-        coverage=summary.get("coverage"),
-        dev_min=dev.get("min_mm"),
-        dev_max=dev.get("max_mm"),
-    )
+    _record_results(run, results, say)
     return RunOutcome(run, state, ctl.message, summary)
+
+
+def _record_results(run: RunFolder, results: ResultsStore, say: Say) -> None:
+    """Record the run in the results database; when it cannot be, journal why and leave the folder's
+    pending marker for the next `cell history --sync` (the run's own files are complete either way)."""
+    reason = results.record_or_defer(run.path)
+    results.close()
+    if reason is None:
+        run.log("results_recorded", database=results.where)
+        return
+    run.log("results_not_recorded", database=results.where, reason=reason)
+    say(f"results not recorded in the database yet: {reason}")
 
 
 def inspect(

@@ -1,5 +1,6 @@
-"""A judging command's exit code is its outcome (docs/exit-codes.md): `cell compare` on a dented plate ends 4
-(fail), within a wide band 0 (pass), with too few points for the required coverage 5 (incomplete); bad input 2."""
+"""A judging command's exit code is its outcome (docs/exit-codes.md): `cell compare` on a dented plate ends
+4 (fail), within a wide band 0 (pass), with too few points for the required coverage 5 (incomplete); bad
+input 2."""
 
 from __future__ import annotations
 
@@ -41,7 +42,9 @@ def _exit_code(*args: object) -> int:
         (["--tolerance", "1,-1"], ExitCode.USAGE),  # lower above upper
     ],
 )
-def test_compare_exits_with_its_verdict(plate, tmp_path: Path, options: list[str], expected: ExitCode) -> None:
+def test_compare_exits_with_its_verdict(
+    plate, tmp_path: Path, options: list[str], expected: ExitCode
+) -> None:
     nominal, cloud = plate
     assert _exit_code("compare", nominal, cloud, "--out", tmp_path / "o", *options) == expected
 
