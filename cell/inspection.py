@@ -27,6 +27,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from cell.analysis.alignment import Aligner, AlignmentError
+from cell.analysis.crop import PartCrop
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.judge import judge
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
@@ -226,10 +227,9 @@ class LambertianInspection:
         points_W = transform_points(T_W_C, cloud.points_C[keep])
         quality = cloud.contrast[keep].astype(np.float32)
         oblique_kept = oblique[keep]
-        on_table = points_W[:, 2] < self.settings.table_margin_mm
         deviation = signed_distance(self.nominal, points_W).deviation_mm
-        far = np.abs(deviation) > self.settings.crop_mm
-        part = ~on_table & ~far
+        crop = PartCrop(0.0, self.settings.table_margin_mm, self.settings.crop_mm).split(points_W, deviation)
+        part = crop.part
         points_W, quality, deviation = points_W[part], quality[part], deviation[part]
         np.save(out_dir / "points_W.npy", points_W)
         np.save(out_dir / "oblique.npy", oblique_kept[part])
@@ -249,7 +249,7 @@ class LambertianInspection:
             "link_filtered": int((valid & ~kept.keep).sum()),
             "rim_filtered": int((valid & kept.keep & edges).sum()),
             "oblique_filtered": int(oblique_kept[part].sum()),
-            "excluded": {"table": int(on_table.sum()), "background": int((far & ~on_table).sum())},
+            "excluded": crop.counts(),
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
         }
         write_json_atomic(out_dir / "view.json", summary)
