@@ -30,6 +30,7 @@ from cell.runs import (
     write_atomic,
     write_json_atomic,
 )
+from cell.storage import new_folder
 
 if TYPE_CHECKING:
     from cell.results import ResultsStore
@@ -106,25 +107,27 @@ def start_run(
     require_empty_output(final, then=RESUME_OR_ANOTHER)
     # the folder appears under its name only once every input is copied: a run killed before that never
     # started, and leaves nothing that a resume could mistake for a run
-    run = RunFolder.create(final.parent, part, name=f".{final.name}.partial-{os.getpid()}")
-    run.acquire_lock("cell inspect")  # held from the start: the folder appears under its name locked
-    manifest: dict[str, Any] = {
-        "recipe": run.copy_input(recipe_path, "recipe.yaml").name,
-        "cell_as_given": run.copy_input(cell_path, "cell.original.yaml").name,
-        "cell": _copy_cell_with_calibration(run, cell_path, cfg),
-        "settings": {"seed": seed, "pipelining": pipelining},
-        "identity": identity.to_json(),
-        "cad": run.copy_input(recipe.part.cad, "nominal" + recipe.part.cad.suffix).name,
-        "actual": run.copy_input(actual, "actual" + Path(actual).suffix).name if actual else None,
-        "sources": {
-            "recipe": str(recipe_path),
-            "cell": str(cell_path),
-            "cad": str(recipe.part.cad),
-            "actual": str(actual) if actual else None,
-        },
-    }
-    write_json_atomic(run.path / "inputs" / "manifest.json", manifest)
-    run.log("run_created", part=part, **manifest["sources"], **identity.to_json())
+    partial = final.parent / f".{final.name}.partial-{os.getpid()}"
+    with new_folder(partial, shown=final):  # the disk filling up meanwhile: refused, nothing left
+        run = RunFolder.create(final.parent, part, name=partial.name)
+        run.acquire_lock("cell inspect")  # held from the start: the folder appears under its name locked
+        manifest: dict[str, Any] = {
+            "recipe": run.copy_input(recipe_path, "recipe.yaml").name,
+            "cell_as_given": run.copy_input(cell_path, "cell.original.yaml").name,
+            "cell": _copy_cell_with_calibration(run, cell_path, cfg),
+            "settings": {"seed": seed, "pipelining": pipelining},
+            "identity": identity.to_json(),
+            "cad": run.copy_input(recipe.part.cad, "nominal" + recipe.part.cad.suffix).name,
+            "actual": run.copy_input(actual, "actual" + Path(actual).suffix).name if actual else None,
+            "sources": {
+                "recipe": str(recipe_path),
+                "cell": str(cell_path),
+                "cad": str(recipe.part.cad),
+                "actual": str(actual) if actual else None,
+            },
+        }
+        write_json_atomic(run.path / "inputs" / "manifest.json", manifest)
+        run.log("run_created", part=part, **manifest["sources"], **identity.to_json())
     if final.exists():
         final.rmdir()  # empty (checked above)
     os.replace(run.path, final)

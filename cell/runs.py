@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from cell.errors import ConfigError
+from cell.storage import require_writable
 
 INDEX_NAME = "index.sqlite"  # the verification history (cell.verification.history)
 RUNS_ROOT = Path(__file__).resolve().parents[1] / "runs"  # the default runs root: runs/ in the repository
@@ -333,9 +334,11 @@ def require_empty_output(
     out: Path, *, field: str = "--out", then: str = "choose another folder (results are never written over)"
 ) -> Path:
     """``out`` as a folder a command may write into: absent or empty, else a ConfigError naming ``field`` and
-    saying what to do (``then``). Results are never written over earlier ones (a compare into a scan's folder
-    would replace the scan's cloud.ply; an inspection into a run's folder would mix two runs)."""
+    saying what to do (``then``); and writable (not on a full disk or a read-only file system: probed, see
+    :func:`cell.storage.require_writable`). Results are never written over earlier ones (a compare into a
+    scan's folder would replace its cloud.ply; an inspection into a run's folder would mix two runs)."""
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ConfigError(f"{field} holds files already; {then}", path=str(out), field=field)
+    require_writable(out, field=field)  # refused before any work: a full disk or read-only folder
     return out
