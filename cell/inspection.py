@@ -59,6 +59,7 @@ from cell.planning.kinematics import UR5E
 from cell.planning.measured import DefectRegion, MeasuredView, measured_view_from_masks
 from cell.planning.motion import MotionPlanner
 from cell.planning.planner import Plan, plan_initial
+from cell.planning.unseen import plan_feedback
 from cell.planning.viewpoints import Viewpoint
 from cell.raycast import RayCaster
 from cell.run_data import Checkpoint, Evaluation, View
@@ -148,7 +149,9 @@ class LambertianInspection:
     def plan_model(self) -> Plan:
         """The f0 plan (recomputed deterministically after a resume: it also holds the surface samples)."""
         if self._plan is None:
-            self._plan = plan_initial(self.nominal_W, self.cfg, self.recipe.plan)
+            self._plan = plan_initial(
+                self.nominal_W, self.cfg, self.recipe.plan, self.recipe.exclude_from_coverage
+            )
         return self._plan
 
     @staticmethod
@@ -489,6 +492,7 @@ class LambertianInspection:
                 f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
                 f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
             )
+        plan = plan_feedback(self.plan_model, self.recipe)  # what no reachable viewpoint sees, for the reader
         inp = judge(
             NominalMesh.from_trimesh(nominal_P),
             pts_P,
@@ -499,7 +503,7 @@ class LambertianInspection:
             excluded=excluded,
             coverage=self.inspectable_coverage(run, T_align),
             min_coverage=self.recipe.min_coverage,
-            warnings=alignment.get("warnings", []),
+            warnings=[*alignment.get("warnings", []), *plan.warnings],
             incomplete_reasons=reasons,
             alignment=alignment,
             calibration=calibration,
@@ -511,6 +515,7 @@ class LambertianInspection:
                 ],
                 "registration": registration,
                 "evaluation": evaluation,
+                "plan": plan.to_json(),  # predicted coverage, min_coverage, unseen_surfaces, warnings
                 "geometry_source": self.geometry_source,
             },
         )
