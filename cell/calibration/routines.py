@@ -28,7 +28,7 @@ from cell.errors import CalibrationError, ConfigError, RoutinePaused
 from cell.planning.kinematics import UR5E
 from cell.run_data import Checkpoint, Phase
 from cell.runs import RunFolder, write_json_atomic
-from cell.storage import new_folder
+from cell.storage import new_folder, require_writable
 
 
 # --------------------------------------------------------------------------------------------- runner
@@ -173,6 +173,7 @@ def calibrate_all(
     files) and ``out/calibration.json``; returns (the cell file, the summary)."""
     cfg = load_cell_config(cell)
     out = Path(out)
+    require_writable(out)  # a full disk or read-only folder: refused before the first routine
     out.mkdir(parents=True, exist_ok=True)
     steps: list[tuple[str, Callable[[CellConfig], CalibrationJob]]] = [
         ("intrinsics", lambda c: IntrinsicsJob(c, seed=seed)),
