@@ -110,12 +110,13 @@ def new_folder(path: str | Path, shown: str | Path | None = None) -> Iterator[Pa
     try:
         yield path
     except BaseException as exc:
+        storage = is_storage_error(exc, path)  # judged while what was written still fills the disk
         if not existed:
             shutil.rmtree(path, ignore_errors=True)
         elif was_empty:
             for child in path.iterdir():
                 shutil.rmtree(child, ignore_errors=True) if child.is_dir() else child.unlink(missing_ok=True)
-        if is_storage_error(exc):
+        if storage:
             assert isinstance(exc, OSError)
             raise ConfigError(describe(exc, shown if shown is not None else path)) from exc
         raise

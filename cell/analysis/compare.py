@@ -59,6 +59,20 @@ def _is_numeric_row(line: str, delim: str | None) -> bool:
         return False
 
 
+def check_units(pts: np.ndarray, nominal: NominalMesh, cloud_path: Path) -> None:
+    """ConfigError when the finite points ``pts`` are none, or not the nominal's size (another unit)."""
+    if len(pts) == 0:
+        raise ConfigError("the cloud has no finite points (empty or all NaN)", path=str(cloud_path))
+    ratio = np.linalg.norm(np.ptp(pts, 0)) / nominal.extent_mm
+    inches = any(abs(ratio * k - 1) < 0.1 for k in (25.4, 1 / 25.4))
+    if len(pts) >= 3 and (not 1 / 30 < ratio < 30 or inches):
+        hint = " (a factor of 25.4: inches?)" if inches else ""
+        raise ConfigError(
+            f"the cloud is {ratio:.3g}x the size of the nominal{hint}: wrong units? (both must be in mm)",
+            path=str(cloud_path),
+        )
+
+
 def parse_tolerance(text: str) -> tuple[float, float]:
     """'-0.3,0.3' -> (-0.3, 0.3) mm; limits as plausible as a recipe's (:func:`cell.config.tolerance_problem`:
     '-0.0003,0.0003' is a band in metres)."""
@@ -167,6 +181,8 @@ def run_compare(
     lo, hi = parse_tolerance(tolerance)
     if min_coverage is not None and not 0 <= min_coverage <= 1:
         raise ConfigError(f"--min-coverage must be a fraction in [0, 1], got {min_coverage}")
+    if crop_mm is not None and crop_mm < 0:
+        raise ConfigError(f"must be >= 0 mm (0: keep the background), got {crop_mm}", field="--crop-mm")
     if min_defect_points < 1:
         raise ConfigError(f"--min-defect-points must be >= 1, got {min_defect_points}")
     if min_coverage is not None and density_per_mm2 is None and radius_mm is None:
@@ -183,16 +199,7 @@ def run_compare(
     raw = load_cloud(cloud_path)
     finite = np.isfinite(raw).all(1)
     pts = raw[finite]
-    if len(pts) == 0:
-        raise ConfigError("the cloud has no finite points (empty or all NaN)", path=str(cloud_path))
-    ratio = np.linalg.norm(np.ptp(pts, 0)) / nominal.extent_mm
-    inches = any(abs(ratio * k - 1) < 0.1 for k in (25.4, 1 / 25.4))
-    if len(pts) >= 3 and (not 1 / 30 < ratio < 30 or inches):
-        hint = " (a factor of 25.4: inches?)" if inches else ""
-        raise ConfigError(
-            f"the cloud is {ratio:.3g}x the size of the nominal{hint}: wrong units? (both must be in mm)",
-            path=str(cloud_path),
-        )
+    check_units(pts, nominal, cloud_path)
     T = np.eye(4)
     if align == "datums":
         if datums is None:
@@ -203,9 +210,8 @@ def run_compare(
         if d.shape[1] != 6:
             raise ConfigError("datum file needs 6 columns: nominal x,y,z, measured x,y,z", path=str(datums))
         T = datum_align(d[:, 3:6], d[:, 0:3])
-    elif (
-        align == "bestfit"
-    ):  # ICP starts where the cloud is: on the part there (table, background would pull)
+    elif align == "bestfit":
+        # ICP starts where the cloud is, on what is the part there: table and background would pull it
         T = icp_point_to_plane(nominal, pts, region=crop_to_part(nominal, pts, crop, cloud_path)[1].part).T
     if align != "none":  # the identity would only copy millions of points
         pts = transform_points(T, pts)
