@@ -215,7 +215,8 @@ def test_sigterm_mid_move_pauses_and_resume_gives_the_same_result(
     journal = _journal(run)
     stops = [e for e in journal if e["event"] == "error" and e["kind"] == "MotionStopped"]
     assert stops and "into the move" in stops[0]["error"], "the arm was not stopped mid-move"
-    assert journal[-1]["event"] == "exit" and journal[-1]["state"] == "paused"
+    exits = [e for e in journal if e["event"] == "exit"]
+    assert exits[-1]["state"] == "paused"  # (the results database's record of it follows)
     assert not (run / "run.lock").exists()  # released on the way out
     views_before = set(RunFolder.open(run).completed_views())
     done = _cell("resume", str(run))
