@@ -40,6 +40,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sensor": ("sensor", "Structured-light sensor model utilities."),
     "devices": ("devices", "Connect each configured device and print its status."),
     "docs": ("docs", "Regenerate the schema pages and the state diagram in docs/ from the code."),
+    "station": ("station", "The operator's web application (start, live, verdict, runs, SPC) and its users."),
 }
 
 
