@@ -669,8 +669,8 @@ def abort_stopped(run: RunFolder, reason: str) -> str:
     try:
         model.abort()
     except MachineError:
-        why = "it is finished: its verdict stands" if state == "done" else f"it is {state} already"
-        raise ConfigError(f"the run cannot be aborted: {why}", path=str(run.path)) from None
+        why = "the run is finished and its verdict stands" if state == "done" else "the run is aborted already"
+        raise ConfigError(f"{why}; nothing to abort", path=str(run.path)) from None
     return str(model.state)
 
 

@@ -43,6 +43,14 @@ class Station:
             self.results.record(run_dir)
 
 
+def said(exc: Exception) -> str:
+    """An error as the page says it: a ConfigError without its "field '--serial': " prefix (a page has no
+    command-line options; the message names what is wrong)."""
+    text = str(exc)
+    field = getattr(exc, "field", None)
+    return text.replace(f"field '{field}': ", "", 1) if field else text
+
+
 def flash(request: Request, text: str, kind: str = "error") -> None:
     """A message shown once on the next page (kind: error, info)."""
     request.session.setdefault("flash", []).append({"kind": kind, "text": text})

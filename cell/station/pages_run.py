@@ -18,7 +18,7 @@ from starlette.responses import FileResponse, RedirectResponse, Response
 
 from cell.errors import CellError, ConfigError
 from cell.station.auth import require
-from cell.station.core import flash, station_of
+from cell.station.core import flash, said, station_of
 from cell.station.live import snapshot
 from cell.station.progress import Timeline, history, read_progress
 from cell.station.recipes import find_recipe, list_recipes
@@ -67,15 +67,16 @@ async def start_run(request: Request) -> Response:
     form = await request.form()
     serial, key = str(form.get("serial", "")), str(form.get("recipe", ""))
     try:
+        station.supervisor.check_identity(serial, user.name)  # what was scanned first is checked first
         if not key:
             raise ConfigError("pick the recipe of the part first", field="recipe")
         entry = await asyncio.to_thread(find_recipe, station.settings.recipes, key)
         rec = station.supervisor.start_inspection(entry, serial, user.name)
     except CellError as exc:
         station.journal.log(
-            "start_refused", user=user.name, serial=serial[:80], recipe=key[:80], why=str(exc)
+            "start_refused", user=user.name, serial=serial[:80], recipe=key[:80], why=said(exc)
         )
-        flash(request, f"Not started: {exc}")
+        flash(request, f"Not started: {said(exc)}")
         return RedirectResponse("/start?" + urlencode({"serial": serial[:80], "recipe": key[:80]}), 303)
     request.session["recipe"] = key
     return RedirectResponse(f"/run/{rec.run}", status_code=303)
@@ -146,8 +147,8 @@ async def run_action(request: Request) -> Response:
         else:
             raise HTTPException(404, f"no action {action!r}")
     except CellError as exc:
-        station.journal.log(f"{action}_refused", user=user.name, run=name, why=str(exc))
-        flash(request, f"{action.capitalize()} refused: {exc}")
+        station.journal.log(f"{action}_refused", user=user.name, run=name, why=said(exc))
+        flash(request, f"{action.capitalize()} refused: {said(exc)}")
     return RedirectResponse(f"/run/{name}", status_code=303)
 
 

@@ -12,7 +12,7 @@ from starlette.responses import RedirectResponse, Response
 
 from cell.errors import CellError
 from cell.station.auth import require
-from cell.station.core import flash, station_of
+from cell.station.core import flash, said, station_of
 from cell.station.recipes import list_recipes, save_recipe
 from cell.station.supervisor import ROUTINES
 from cell.station.users import Role
@@ -46,8 +46,8 @@ async def calibrate_start(request: Request) -> Response:
     try:
         rec = station.supervisor.start_calibration(routine, user.name)
     except CellError as exc:
-        station.journal.log("start_refused", user=user.name, routine=routine[:40], why=str(exc))
-        flash(request, f"Not started: {exc}")
+        station.journal.log("start_refused", user=user.name, routine=routine[:40], why=said(exc))
+        flash(request, f"Not started: {said(exc)}")
         return RedirectResponse("/calibrate", status_code=303)
     return RedirectResponse(f"/run/{rec.run}", status_code=303)
 
@@ -80,11 +80,11 @@ async def recipe_save(request: Request) -> Response:
     try:
         await asyncio.to_thread(save_recipe, station.settings.recipes, key, text)
     except CellError as exc:
-        station.journal.log("recipe_refused", user=user.name, recipe=key, why=str(exc))
+        station.journal.log("recipe_refused", user=user.name, recipe=key, why=said(exc))
         entry = next((r for r in list_recipes(station.settings.recipes) if r.key == key), None)
         if entry is None:
             raise HTTPException(404, f"unknown recipe {key!r}") from None
-        context = {"user": user, "entry": entry, "text": text, "error": f"Not saved: {exc}"}
+        context = {"user": user, "entry": entry, "text": text, "error": f"Not saved: {said(exc)}"}
         return station.templates.TemplateResponse(request, "recipe_edit.html", context, status_code=400)
     station.journal.log("recipe_saved", user=user.name, recipe=key)
     flash(request, f"Recipe {key} saved.", "info")

@@ -172,12 +172,17 @@ class Supervisor:
         self.journal.log("child_started", run=run, kind=kind, pid=popen.pid, user=user, args=args)
         return rec
 
+    @staticmethod
+    def check_identity(serial: str, user: str) -> None:
+        """ConfigError for a missing serial or one a folder name cannot hold (the CLI's own check)."""
+        if not serial.strip():
+            raise ConfigError("scan or type the part's serial number first", field="serial")
+        RunIdentity(serial=serial.strip(), operator=user)
+
     def start_inspection(self, recipe: RecipeEntry, serial: str, user: str) -> ChildRecord:
         """Start ``cell inspect`` of ``recipe`` for part ``serial`` by ``user`` into a new run folder;
         ConfigError for a serial a folder cannot hold or when a run is in progress."""
-        RunIdentity(serial=serial.strip() or None, operator=user)  # the CLI's own check, before any process
-        if not serial.strip():
-            raise ConfigError("scan or type the part's serial number first", field="serial")
+        self.check_identity(serial, user)
         with self._lock:
             why = self.busy()
             if why:

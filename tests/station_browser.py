@@ -1,0 +1,157 @@
+"""What the station's browser tests share: a station server in a child process on a free port with a tmp runs
+root, the small simulated cell and the dented box recipe; real headless Chromium (Debian's ``chromium``)
+driven by Playwright; screenshots. Skipped without Chromium or Playwright unless CELL_REQUIRE_CHROMIUM=1
+(CI), where their absence fails the tests."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from cell.runs import process_alive
+from cell.station.users import Role, add_user
+from tests.box_part import small_cell, write_dented_box_recipe
+
+REPO = Path(__file__).resolve().parent.parent
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+SCREEN = {"width": 1280, "height": 800}  # a 15" industrial touch panel
+USERS = {"olga": ("operator", "2468"), "tom": ("technician", "1357")}
+# CELL_STATION_SCREENSHOTS=docs/station writes the pages' pictures for docs/station.md
+SHOTS = os.environ.get("CELL_STATION_SCREENSHOTS")
+
+
+def need_chromium() -> None:
+    """Skip (or fail under CELL_REQUIRE_CHROMIUM=1) when Chromium or Playwright is missing."""
+    missing = []
+    if not CHROMIUM.is_file():
+        missing.append(f"{CHROMIUM} (Debian package chromium)")
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        missing.append("the playwright Python package (pip install playwright)")
+    if missing:
+        message = "station browser tests need " + " and ".join(missing)
+        if os.environ.get("CELL_REQUIRE_CHROMIUM") == "1":
+            pytest.fail(message)
+        pytest.skip(message)
+
+
+@dataclass
+class StationServer:
+    """A running ``cell station serve`` and its folders."""
+
+    url: str
+    root: Path
+    runs: Path
+    recipes: Path
+    proc: subprocess.Popen[bytes]
+
+    def journal(self) -> list[dict]:
+        path = self.runs / ".station" / "journal.jsonl"
+        return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+    def run_dirs(self) -> list[Path]:
+        return sorted(p for p in self.runs.iterdir() if p.is_dir() and not p.name.startswith("."))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def start_station(root: Path, *extra: str) -> StationServer:
+    """Recipes (the dented box; a second copy, ``old-box``), the small cell, two users, then the server."""
+    recipes, runs = root / "recipes", root / "runs"
+    recipes.mkdir(parents=True)
+    runs.mkdir()
+    write_dented_box_recipe(recipes)
+    shutil.copy(recipes / "box.yaml", recipes / "old-box.yaml")
+    (root / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
+    users = root / "users.yaml"
+    for name, (role, pin) in USERS.items():
+        add_user(users, name, Role(role), pin)
+    port = _free_port()
+    log = open(root / "server.log", "wb")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cell", "station", "serve", "--cell", str(root / "cell.yaml")]
+        + ["--recipes", str(recipes), "--runs", str(runs), "--users", str(users), "--port", str(port), *extra],
+        cwd=REPO,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            urllib.request.urlopen(url + "/signin", timeout=2)
+            break
+        except OSError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError("station did not start: " + (root / "server.log").read_text()) from None
+            time.sleep(0.2)
+    return StationServer(url, root, runs, recipes, proc)
+
+
+def stop_station(server: StationServer) -> None:
+    """Stop the server, then any inspection it started that still runs (a failed test's)."""
+    server.proc.send_signal(signal.SIGINT)
+    try:
+        server.proc.wait(timeout=15)
+    except subprocess.TimeoutExpired:
+        server.proc.kill()
+    for record in (server.runs / ".station" / "children").glob("*.json"):
+        child = json.loads(record.read_text())
+        if child.get("exit_code") is None and process_alive(child["pid"], child.get("start")):
+            os.kill(child["pid"], signal.SIGKILL)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[object]:
+    need_chromium()
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        chromium = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield chromium
+        chromium.close()
+
+
+def shot(page: Any, name: str, tmp: Path) -> None:
+    """A screenshot of the page: into CELL_STATION_SCREENSHOTS (docs/station) when set, else tmp."""
+    folder = Path(SHOTS) if SHOTS else tmp
+    folder.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(folder / f"{name}.png"))
+
+
+def sign_in(page: Any, url: str, name: str, pin: str | None = None) -> None:
+    """Sign in at the station's sign-in page, typing the PIN on the page's keypad."""
+    pin = USERS[name][1] if pin is None else pin
+    page.goto(url + "/signin")
+    page.fill("#name", name)
+    for digit in pin:
+        page.click(f".keypad button[data-key='{digit}']")
+    page.click("#signin")

@@ -1,0 +1,194 @@
+"""The station end to end in real headless Chromium (Debian's chromium, driven by Playwright; no mocked
+browser): sign in, scan a serial (typed, then Enter, as a keyboard-wedge reader does), start a simulated
+inspection of a dented box, follow it live, pause and resume it from the page, read the verdict and its
+reasons; and the refusals: a wrong PIN, a serial a folder cannot hold, a recipe gone since the page was
+loaded, a start while a run is in progress, an operator at the technician's pages. What the pages say is
+checked against the run folder's journal and report and the dent the simulated part carries."""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from playwright.sync_api import expect
+
+from cell.errors import ConfigError
+from cell.inspection_run import resume
+from tests.box_part import DENT, IN_REACH_MM
+from tests.station_browser import SCREEN, StationServer, browser, shot, sign_in, start_station, stop_station
+
+pytestmark = pytest.mark.slow
+__all__ = ["browser"]  # the fixture, imported for the tests of this module
+
+
+@pytest.fixture(scope="module")
+def station(tmp_path_factory: pytest.TempPathFactory, browser: object) -> Iterator[StationServer]:
+    server = start_station(tmp_path_factory.mktemp("station"))
+    yield server
+    stop_station(server)
+
+
+@pytest.fixture
+def page(browser, station: StationServer):  # noqa: ANN001, ANN201 (Playwright's types)
+    context = browser.new_context(viewport=SCREEN)
+    page = context.new_page()
+    page.set_default_timeout(20_000)
+    yield page
+    context.close()
+
+
+def _events(station: StationServer, event: str) -> list[dict]:
+    return [e for e in station.journal() if e["event"] == event]
+
+
+def test_a_wrong_pin_is_refused_and_journalled(page, station: StationServer, tmp_path: Path) -> None:
+    sign_in(page, station.url, "olga", "1111")
+    assert page.locator(".msg.error").inner_text().startswith("Wrong name or PIN")
+    assert "/signin" in page.url
+    assert _events(station, "sign_in_failed")[-1]["name"] == "olga"
+    shot(page, "signin", tmp_path)
+    sign_in(page, station.url, "olga")
+    page.wait_for_url("**/start")
+    assert page.locator("#who").inner_text().startswith("olga")
+
+
+def test_a_bad_serial_and_a_vanished_recipe_start_nothing(page, station: StationServer) -> None:
+    sign_in(page, station.url, "olga")
+    page.fill("#serial", "SN/01 ?")
+    page.press("#serial", "Enter")  # the barcode reader's Enter submits
+    message = page.locator(".msg.error").inner_text()
+    assert "Not started" in message and "'SN/01 ?' is not a valid serial" in message
+    assert page.locator("#serial").input_value() == "SN/01 ?"  # kept for the operator to see
+    # the recipe list was read when the page loaded; the file goes away before Start is pressed
+    page.goto(station.url + "/start")
+    page.check("input[value='old-box']", force=True)
+    (station.recipes / "old-box.yaml").unlink()
+    page.fill("#serial", "SN-0002")
+    page.click("#start")
+    assert "unknown recipe 'old-box'" in page.locator(".msg.error").inner_text()
+    assert station.run_dirs() == []  # nothing started, no folder made
+    refused = [e["why"] for e in _events(station, "start_refused")]
+    assert any("not a valid serial" in why for why in refused)
+    assert any("unknown recipe 'old-box'" in why for why in refused)
+
+
+def test_an_operator_may_not_calibrate_or_edit_recipes(page, station: StationServer, tmp_path: Path) -> None:
+    sign_in(page, station.url, "olga")
+    page.wait_for_url("**/start")
+    assert page.locator("nav a[href='/calibrate']").count() == 0
+    for path in ("/calibrate", "/recipes", "/recipes/box"):
+        response = page.goto(station.url + path)
+        assert response.status == 403
+        assert "only a technician may run calibration routines or edit recipes" in page.inner_text("#text")
+    assert {e["path"] for e in _events(station, "refused") if e["user"] == "olga"} >= {"/calibrate"}
+    # a technician gets the routines, and a recipe edit that breaks the schema is refused, the file unchanged
+    page.click("text=Sign out")
+    sign_in(page, station.url, "tom")
+    page.goto(station.url + "/calibrate")
+    assert page.locator("button[name='routine']").count() == 8
+    shot(page, "calibrate", tmp_path)
+    before = (station.recipes / "box.yaml").read_text()
+    page.goto(station.url + "/recipes/box")
+    page.fill("#text", before.replace("min_coverage", "min_coverag"))
+    page.click("#save")
+    assert "Not saved" in page.locator(".msg.error").inner_text()
+    assert "min_coverag" in page.locator(".msg.error").inner_text()
+    assert (station.recipes / "box.yaml").read_text() == before
+
+
+def _state(page) -> str:  # noqa: ANN001
+    return page.locator("#live").get_attribute("data-state") or ""
+
+
+def test_an_inspection_started_paused_and_resumed_from_the_page(
+    page, station: StationServer, tmp_path: Path
+) -> None:
+    sign_in(page, station.url, "olga")
+    page.wait_for_url("**/start")
+    page.check("input[value='box']", force=True)
+    shot(page, "start", tmp_path)
+    page.locator("#serial").press_sequentially("SN-1001")
+    page.press("#serial", "Enter")
+    page.wait_for_url("**/run/box-SN-1001-*")
+    run = station.runs / page.url.rsplit("/", 1)[1]
+    # live: the progress comes by server-sent events as the run goes
+    page.wait_for_function(
+        "() => +document.getElementById('done').textContent >= 2"
+        " && document.getElementById('live').dataset.state.startsWith('scanning')",
+        timeout=90_000,
+    )
+    assert re.fullmatch(r"(Moving to|Measuring) view \d+", page.inner_text("#words"))
+    view, total = int(page.inner_text("#view")), int(page.inner_text("#total"))
+    assert 2 <= view <= total
+    assert re.fullmatch(r"\d+ (min \d\d )?s", page.inner_text("#left"))
+    page.wait_for_function("() => document.getElementById('thumb').complete")  # the last view's picture
+    assert page.locator("#thumb").evaluate("img => img.naturalWidth") == 320
+    shot(page, "live", tmp_path)
+    page.click("#pause")
+    page.wait_for_function("() => document.getElementById('live').dataset.state === 'paused'", timeout=60_000)
+    assert page.inner_text("#words") == "Paused by olga"
+    expect(page.locator("#resume")).to_be_enabled()  # once the paused process has ended
+    assert page.locator("#pause").is_disabled()
+    shot(page, "paused", tmp_path)
+    journal = [json.loads(line) for line in (run / "journal.jsonl").read_text().splitlines()]
+    asked = next(i for i, e in enumerate(journal) if e["event"] == "operator" and e["action"] == "pause")
+    assert journal[asked]["by"] == "olga"
+    assert any(e.get("state") == "paused" for e in journal[asked:])  # the controller paused it, after
+    measured = len(list((run / "views").iterdir()))
+    page.click("#resume")
+    page.wait_for_url("**/verdict", timeout=120_000)
+    # the verdict against the dent the simulated part carries (part frame)
+    assert page.inner_text("#word") == "FAIL"
+    assert page.inner_text("#serial") == "SN-1001"
+    assert page.inner_text("#defect-kind") == "dent"
+    value = float(page.inner_text("#defect-value").split()[0])
+    assert value == pytest.approx(-DENT["depth_mm"], abs=0.08)
+    at = [float(v) for v in re.findall(r"-?\d+\.\d", page.inner_text("#defect-at"))]
+    assert np.linalg.norm(np.subtract(at[:2], DENT["centre_mm"][:2])) < 0.6 * DENT["radius_mm"]
+    assert page.inner_text("#defect-region").startswith("lid")
+    assert "region 'lid' is fail" in page.inner_text("#reasons")
+    report = json.loads((run / "results" / "report.json").read_text())
+    assert value == pytest.approx(report["regions"][0]["extreme_mm"], abs=5e-4)
+    assert page.locator("#report").count() == 1  # the run's own report, embedded
+    assert IN_REACH_MM  # the box stood where every face is reachable
+    shot(page, "verdict", tmp_path)
+    # the resumed run kept what was measured before the pause and went on from there
+    journal = [json.loads(line) for line in (run / "journal.jsonl").read_text().splitlines()]
+    assert [e["state"] for e in journal if e["event"] == "exit"] == ["paused", "done"]
+    assert measured >= 2
+
+
+def test_a_start_while_running_is_refused_and_the_run_is_aborted_from_the_page(
+    page, browser, station: StationServer, tmp_path: Path
+) -> None:
+    sign_in(page, station.url, "olga")
+    page.wait_for_url("**/start")
+    page.fill("#serial", "SN-1002")
+    page.press("#serial", "Enter")
+    page.wait_for_url("**/run/box-SN-1002-*")
+    run = station.runs / page.url.rsplit("/", 1)[1]
+    page.wait_for_function("() => document.getElementById('live').dataset.state.startsWith('scanning')")
+    # a second operator tab: the start page says a run is in progress, and a start is refused
+    other = page.context.new_page()
+    other.goto(station.url + "/start")
+    assert "A run is in progress" in other.inner_text(".banner")
+    other.fill("#serial", "SN-1003")
+    other.press("#serial", "Enter")
+    assert "cannot start: run box-SN-1002-" in other.locator(".msg.error").inner_text()
+    shot(other, "refused", tmp_path)
+    other.close()
+    page.click("#abort")
+    page.click("#confirm-yes")  # asked on the page itself
+    page.wait_for_url("**/verdict", timeout=90_000)
+    assert page.inner_text("#word") == "ABORTED"
+    journal = [json.loads(line) for line in (run / "journal.jsonl").read_text().splitlines()]
+    states = [e["state"] for e in journal if e["event"] == "state"]
+    assert states[-2:] == ["paused", "aborted"]  # paused safely first, then aborted by the state machine
+    assert "aborted by olga at the station" in journal[-1]["message"]
+    with pytest.raises(ConfigError, match="was aborted"):
+        resume(run)  # the terminal's `cell resume` refuses it too
+    assert not list(station.runs.glob("box-SN-1003-*"))
