@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -312,6 +313,19 @@ class CellConfig(Strict):
     )
     calibration: CalibrationFiles = CalibrationFiles()
     verification: VerificationConfig = VerificationConfig()
+    results_db: str | None = Field(
+        None,
+        description="where runs are recorded for `cell history`, SPC and the station: a plant's "
+        "PostgreSQL (postgresql://user@host/db; docs/results-db.md) or sqlite:///file; absent: "
+        "results.sqlite in the runs root",
+    )
+
+    @field_validator("results_db")
+    @classmethod
+    def _database_url(cls, url: str | None) -> str | None:
+        if url is not None and not re.match(r"(postgresql(\+psycopg)?|sqlite)://", url):
+            raise ValueError("a postgresql://user@host/database or sqlite:///path URL")
+        return url
 
 
 # --------------------------------------------------------------------------------------------- recipes
@@ -558,8 +572,9 @@ def load_recipe(path: str | Path) -> Recipe:
 def config_fingerprint(cfg: CellConfig) -> str:
     """SHA-256 of the cell config as validated, without its ``calibration:`` section: what a calibration file
     records as the config it was made for (``cell_config_sha256``). Adding the file to the config does not
-    change it; changing the robot, the sensor, the scene or the world does."""
-    data = cfg.model_dump(mode="json", exclude={"calibration"})
+    change it; changing the robot, the sensor, the scene or the world does. Where results are recorded
+    (``results_db``) measures nothing and is left out too."""
+    data = cfg.model_dump(mode="json", exclude={"calibration", "results_db"})
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 

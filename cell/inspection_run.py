@@ -15,14 +15,17 @@ import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
 from cell.config import CellConfig, PartConfig, Recipe, load_cell_config, load_recipe, read_yaml, validate
 from cell.errors import ConfigError
 from cell.run_data import Checkpoint, Phase, RunIdentity
-from cell.runs import RUNS_ROOT, RunFolder, RunIndex, write_atomic, write_json_atomic
+from cell.runs import RUNS_ROOT, RunFolder, write_atomic, write_json_atomic
+
+if TYPE_CHECKING:
+    from cell.results import ResultsStore
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_RECIPE = REPO / "recipes" / "pillar.yaml"
@@ -83,7 +86,7 @@ def start_run(
     final = out if out else RUNS_ROOT / RunFolder.new_name(part, identity.serial or "")
     from cell.verification.history import inspection_block
 
-    blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections)
+    blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections, cfg)
     if blocked:
         raise ConfigError(blocked, path=str(cell_path))
     holder = RunFolder(final).lock_holder() if final.is_dir() else None
@@ -231,8 +234,10 @@ def _execute_locked(
         devices = record_devices(devices)
     job = LambertianInspection(recipe, cfg, nominal_W)
     ctl = inspection_controller(devices, job, run, settings, on_progress=on_progress)
-    index = RunIndex(run.path.parent)
-    index.upsert(run.path, job.part_name, "running")
+    from cell.results import open_results
+
+    results = open_results(cfg, run.path.parent)
+    results.record_or_defer(run.path)  # "running"; whatever the database does, the run goes on
     try:
         state = ctl.execute(resume=resume)
     finally:
@@ -240,18 +245,19 @@ def _execute_locked(
             saved = save_recording(devices, record, cfg.model_dump(mode="json"))
             say(f"device traffic recorded: replay with --cell {saved / 'cell.yaml'}")
     summary = Checkpoint.from_json(run.load_checkpoint()).summary or {}
-    dev = summary.get("deviation") or {}
-    index.upsert(
-        run.path,
-        job.part_name,
-        state,
-        verdict=summary.get("verdict"),
-        n_points=summary.get("n_points"),
-        coverage=summary.get("coverage"),
-        dev_min=dev.get("min_mm"),
-        dev_max=dev.get("max_mm"),
-    )
+    _record_results(run, results, say)
     return RunOutcome(run, state, ctl.message, summary)
+
+
+def _record_results(run: RunFolder, results: ResultsStore, say: Say) -> None:
+    """Record the run in the results database; when it cannot be, journal why and leave the folder's
+    pending marker for the next `cell history --sync` (the run's own files are complete either way)."""
+    reason = results.record_or_defer(run.path)
+    if reason is None:
+        run.log("results_recorded", database=results.where)
+        return
+    run.log("results_not_recorded", database=results.where, reason=reason)
+    say(f"results not recorded in the database yet: {reason}")
 
 
 def inspect(

@@ -11,7 +11,8 @@ Layout of a run folder::
 
 Killing the process at any instant leaves a folder from which the job resumes: a view folder exists whole or
 not at all, the checkpoint is replaced atomically, and a torn last journal line is ignored when reading.
-An SQLite index in the runs root (``index.sqlite``) lists runs by part, time and verdict for ``cell history``.
+What a run's results were is recorded in the results database (``cell.results``: results.sqlite in the runs
+root, or the cell's PostgreSQL), a copy of the folders that ``cell history --rebuild`` can make again.
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ import os
 import re
 import shutil
 import socket
-import sqlite3
 import tempfile
 import time
 from collections.abc import Iterator
@@ -33,7 +33,7 @@ from typing import Any
 
 from cell.errors import ConfigError
 
-INDEX_NAME = "index.sqlite"
+INDEX_NAME = "index.sqlite"  # the verification history (cell.verification.history)
 RUNS_ROOT = Path(__file__).resolve().parents[1] / "runs"  # the default runs root: runs/ in the repository
 LOCK_NAME = "run.lock"
 
@@ -337,47 +337,6 @@ class RunFolder:
         holder = self.lock_holder()
         if holder and holder.get("pid") == os.getpid() and holder.get("host") == socket.gethostname():
             self.lock_path.unlink(missing_ok=True)
-
-
-# ---------------------------------------------------------------------------------------------- index
-class RunIndex:
-    """SQLite index of runs in a runs root: part, start time, verdict and key figures."""
-
-    def __init__(self, root: Path) -> None:
-        self.path = Path(root) / INDEX_NAME
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        with self._connect() as db:
-            db.execute(
-                "CREATE TABLE IF NOT EXISTS runs (folder TEXT PRIMARY KEY, part TEXT, started TEXT, "
-                "status TEXT, verdict TEXT, n_points INTEGER, coverage REAL, dev_min REAL, dev_max REAL, "
-                "updated TEXT)"
-            )
-
-    def _connect(self) -> sqlite3.Connection:
-        return sqlite3.connect(self.path, timeout=10)
-
-    def upsert(self, folder: Path, part: str, status: str, **figures: Any) -> None:
-        now = datetime.now(UTC).isoformat(timespec="seconds")
-        with self._connect() as db:
-            db.execute(
-                "INSERT INTO runs (folder, part, started, status, updated) VALUES (?, ?, ?, ?, ?) "
-                "ON CONFLICT(folder) DO UPDATE SET status=excluded.status, updated=excluded.updated",
-                (str(Path(folder).resolve()), part, now, status, now),
-            )
-            for key in ("verdict", "n_points", "coverage", "dev_min", "dev_max"):
-                if key in figures and figures[key] is not None:
-                    db.execute(
-                        f"UPDATE runs SET {key}=? WHERE folder=?", (figures[key], str(Path(folder).resolve()))
-                    )
-
-    def history(self, part: str | None = None) -> list[dict[str, Any]]:
-        with self._connect() as db:
-            db.row_factory = sqlite3.Row
-            if part:
-                rows = db.execute("SELECT * FROM runs WHERE part=? ORDER BY started", (part,)).fetchall()
-            else:
-                rows = db.execute("SELECT * FROM runs ORDER BY started").fetchall()
-        return [dict(r) for r in rows]
 
 
 def require_empty_output(out: Path) -> Path:

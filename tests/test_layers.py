@@ -90,6 +90,7 @@ RULES = [
             "cell.analysis",
             "cell.planning",
             "cell.glass",
+            "cell.results",
         ),
         ("cell.controller", "cell.inspection", "cell.devices", "cell.calibration_state", "cell.docgen"),
         exempt=JOBS,  # a package's job module (cell.glass.job) builds its devices
