@@ -671,6 +671,7 @@ def abort_stopped(run: RunFolder, reason: str) -> str:
     except MachineError:
         why = "the run is finished and its verdict stands" if state == "done" else "the run is aborted already"
         raise ConfigError(f"{why}; nothing to abort", path=str(run.path)) from None
+    run.log("exit", state=model.state, message=reason)  # the run's record closed, as a controller closes it
     return str(model.state)
 
 

@@ -308,8 +308,10 @@ def abort_run(run_dir: Path, reason: str) -> str:
         state = abort_stopped(run, reason)
     finally:
         run.release_lock()
-    created = next((e for e in run.journal() if e.get("event") == "run_created"), {})
-    RunIndex(run.path.parent).upsert(run.path, str(created.get("part", "")), state)
+    from cell.results import open_results
+
+    _, cfg, _ = load_run_inputs(run)
+    _record_results(run, open_results(cfg, run.path.parent), lambda _: None)
     return state
 
 

@@ -82,14 +82,22 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def start_station(root: Path, *extra: str) -> StationServer:
-    """Recipes (the dented box; a second copy, ``old-box``), the small cell, two users, then the server."""
+def start_station(root: Path, results_db: str | None = None, *extra: str) -> StationServer:
+    """Recipes (the dented box without the feedback loop's extra views, for speed; a second copy,
+    ``old-box``), the small cell recording into ``results_db`` (default: the runs root's SQLite file), two
+    users, then the server, offering missed results to the database every second."""
     recipes, runs = root / "recipes", root / "runs"
     recipes.mkdir(parents=True)
     runs.mkdir()
-    write_dented_box_recipe(recipes)
-    shutil.copy(recipes / "box.yaml", recipes / "old-box.yaml")
-    (root / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
+    recipe = write_dented_box_recipe(recipes)
+    doc = yaml.safe_load(recipe.read_text())
+    doc["plan"]["max_iterations"] = 0
+    recipe.write_text(yaml.safe_dump(doc))
+    shutil.copy(recipe, recipes / "old-box.yaml")
+    cell = small_cell().model_dump(mode="json")
+    if results_db:
+        cell["results_db"] = results_db
+    (root / "cell.yaml").write_text(yaml.safe_dump(cell))
     users = root / "users.yaml"
     for name, (role, pin) in USERS.items():
         add_user(users, name, Role(role), pin)
@@ -97,7 +105,8 @@ def start_station(root: Path, *extra: str) -> StationServer:
     log = open(root / "server.log", "wb")
     proc = subprocess.Popen(
         [sys.executable, "-m", "cell", "station", "serve", "--cell", str(root / "cell.yaml")]
-        + ["--recipes", str(recipes), "--runs", str(runs), "--users", str(users), "--port", str(port), *extra],
+        + ["--recipes", str(recipes), "--runs", str(runs), "--users", str(users), "--port", str(port)]
+        + ["--sync-every", "1", *extra],
         cwd=REPO,
         stdout=log,
         stderr=subprocess.STDOUT,

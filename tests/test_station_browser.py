@@ -1,14 +1,21 @@
 """The station end to end in real headless Chromium (Debian's chromium, driven by Playwright; no mocked
-browser): sign in, scan a serial (typed, then Enter, as a keyboard-wedge reader does), start a simulated
-inspection of a dented box, follow it live, pause and resume it from the page, read the verdict and its
-reasons; and the refusals: a wrong PIN, a serial a folder cannot hold, a recipe gone since the page was
-loaded, a start while a run is in progress, an operator at the technician's pages. What the pages say is
-checked against the run folder's journal and report and the dent the simulated part carries."""
+browser) and a real PostgreSQL results database: sign in, scan a serial (typed, then Enter, as a
+keyboard-wedge reader does), start a simulated inspection of a dented box, follow it live, pause and resume it
+from the page, read the verdict and its reasons; lose the database while the run is paused and see it
+recorded once the database is back; read the runs list and the SPC table; abort a run from the page. And the
+refusals: a wrong PIN, a serial a folder cannot hold, a recipe gone since the page was loaded, a start while a
+run is in progress, an operator at the technician's pages. What the pages say is checked against the run
+folders' journals and reports, the dent the simulated part carries, and Cp/Cpk computed here from the
+reports.
+
+The tests of this module share one station and run in order: the runs of the early ones are the history of
+the later ones (two finished runs make the SPC)."""
 
 from __future__ import annotations
 
 import json
 import re
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,15 +26,26 @@ from playwright.sync_api import expect
 from cell.errors import ConfigError
 from cell.inspection_run import resume
 from tests.box_part import DENT, IN_REACH_MM
+from tests.postgres_server import PostgresServer, require_postgres
 from tests.station_browser import SCREEN, StationServer, browser, shot, sign_in, start_station, stop_station
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.chromium, pytest.mark.postgres]
 __all__ = ["browser"]  # the fixture, imported for the tests of this module
 
 
 @pytest.fixture(scope="module")
-def station(tmp_path_factory: pytest.TempPathFactory, browser: object) -> Iterator[StationServer]:
-    server = start_station(tmp_path_factory.mktemp("station"))
+def database() -> Iterator[PostgresServer]:
+    server = PostgresServer(require_postgres())
+    server.start()
+    yield server
+    server.destroy()
+
+
+@pytest.fixture(scope="module")
+def station(
+    tmp_path_factory: pytest.TempPathFactory, browser: object, database: PostgresServer
+) -> Iterator[StationServer]:
+    server = start_station(tmp_path_factory.mktemp("station"), database.create_database())
     yield server
     stop_station(server)
 
@@ -104,17 +122,33 @@ def _state(page) -> str:  # noqa: ANN001
     return page.locator("#live").get_attribute("data-state") or ""
 
 
-def test_an_inspection_started_paused_and_resumed_from_the_page(
-    page, station: StationServer, tmp_path: Path
-) -> None:
+def _journal(run: Path) -> list[dict]:
+    return [json.loads(line) for line in (run / "journal.jsonl").read_text().splitlines()]
+
+
+def _start(page, station: StationServer, serial: str) -> Path:  # noqa: ANN001
+    """Sign in as olga, scan ``serial`` (typed, then Enter), start; the run folder the live page follows."""
     sign_in(page, station.url, "olga")
     page.wait_for_url("**/start")
     page.check("input[value='box']", force=True)
-    shot(page, "start", tmp_path)
-    page.locator("#serial").press_sequentially("SN-1001")
+    page.locator("#serial").press_sequentially(serial)
     page.press("#serial", "Enter")
-    page.wait_for_url("**/run/box-SN-1001-*")
-    run = station.runs / page.url.rsplit("/", 1)[1]
+    page.wait_for_url(f"**/run/box-{serial}-*")
+    return station.runs / page.url.rsplit("/", 1)[1]
+
+
+def test_an_inspection_started_paused_and_resumed_from_the_page(
+    page, station: StationServer, database: PostgresServer, tmp_path: Path
+) -> None:
+    """The run loses its database while paused: it finishes all the same, and the verdict page says its
+    results wait for the database (the next test brings the database back)."""
+    sign_in(page, station.url, "olga")
+    page.wait_for_url("**/start")
+    page.check("input[value='box']", force=True)
+    page.fill("#serial", "SN-1001")
+    shot(page, "start", tmp_path)
+    page.fill("#serial", "")
+    run = _start(page, station, "SN-1001")
     # live: the progress comes by server-sent events as the run goes
     page.wait_for_function(
         "() => +document.getElementById('done').textContent >= 2"
@@ -134,11 +168,12 @@ def test_an_inspection_started_paused_and_resumed_from_the_page(
     expect(page.locator("#resume")).to_be_enabled()  # once the paused process has ended
     assert page.locator("#pause").is_disabled()
     shot(page, "paused", tmp_path)
-    journal = [json.loads(line) for line in (run / "journal.jsonl").read_text().splitlines()]
+    journal = _journal(run)
     asked = next(i for i, e in enumerate(journal) if e["event"] == "operator" and e["action"] == "pause")
     assert journal[asked]["by"] == "olga"
     assert any(e.get("state") == "paused" for e in journal[asked:])  # the controller paused it, after
     measured = len(list((run / "views").iterdir()))
+    database.stop()  # the plant's database goes away while the run waits
     page.click("#resume")
     page.wait_for_url("**/verdict", timeout=120_000)
     # the verdict against the dent the simulated part carries (part frame)
@@ -155,22 +190,40 @@ def test_an_inspection_started_paused_and_resumed_from_the_page(
     assert value == pytest.approx(report["regions"][0]["extreme_mm"], abs=5e-4)
     assert page.locator("#report").count() == 1  # the run's own report, embedded
     assert IN_REACH_MM  # the box stood where every face is reachable
+    # the database was away: said on the page and in the run's journal; the run is whole all the same
+    assert "Not yet in the results database" in page.inner_text("#unsynced")
     shot(page, "verdict", tmp_path)
-    # the resumed run kept what was measured before the pause and went on from there
-    journal = [json.loads(line) for line in (run / "journal.jsonl").read_text().splitlines()]
+    journal = _journal(run)
     assert [e["state"] for e in journal if e["event"] == "exit"] == ["paused", "done"]
-    assert measured >= 2
+    assert any(e["event"] == "results_not_recorded" for e in journal)
+    assert measured >= 2 and (run / "results" / "cloud.ply").is_file()
 
 
-def test_a_start_while_running_is_refused_and_the_run_is_aborted_from_the_page(
-    page, browser, station: StationServer, tmp_path: Path
+def test_the_database_back_the_run_is_recorded_and_listed(
+    page, station: StationServer, database: PostgresServer, tmp_path: Path
 ) -> None:
+    database.start()
+    (run,) = station.run_dirs()
+    deadline = time.monotonic() + 60
+    while not any(e["event"] == "results_recorded" and e.get("later") for e in _journal(run)):
+        assert time.monotonic() < deadline, "the station did not record the run once the database was back"
+        time.sleep(0.5)
+    events = [e["event"] for e in _journal(run)]
+    assert events.index("results_not_recorded") < len(events) - 1 - events[::-1].index("results_recorded")
+    assert any(e["event"] == "results_recorded_later" for e in station.journal())
     sign_in(page, station.url, "olga")
-    page.wait_for_url("**/start")
-    page.fill("#serial", "SN-1002")
-    page.press("#serial", "Enter")
-    page.wait_for_url("**/run/box-SN-1002-*")
-    run = station.runs / page.url.rsplit("/", 1)[1]
+    page.goto(station.url + "/runs")
+    page.fill("#f-serial", "SN-1001")
+    page.click("#filter")
+    rows = page.locator("#runs tbody tr")
+    expect(rows).to_have_count(1)
+    assert "FAIL" in rows.inner_text().upper() and "olga" in rows.inner_text()
+    page.goto(station.url + "/runs?verdict=pass")
+    assert page.inner_text("#runs tbody") == "No run matches."
+
+
+def test_a_start_while_running_is_refused(page, station: StationServer, tmp_path: Path) -> None:
+    run = _start(page, station, "SN-1002")
     page.wait_for_function("() => document.getElementById('live').dataset.state.startsWith('scanning')")
     # a second operator tab: the start page says a run is in progress, and a start is refused
     other = page.context.new_page()
@@ -181,14 +234,69 @@ def test_a_start_while_running_is_refused_and_the_run_is_aborted_from_the_page(
     assert "cannot start: run box-SN-1002-" in other.locator(".msg.error").inner_text()
     shot(other, "refused", tmp_path)
     other.close()
+    assert not list(station.runs.glob("box-SN-1003-*"))
+    assert any("in progress" in e["why"] for e in _events(station, "start_refused"))
+    page.wait_for_url("**/verdict", timeout=120_000)  # this one runs to its end: the SPC's second run
+    assert page.inner_text("#word") == "FAIL" and page.locator("#unsynced").count() == 0
+    assert run.is_dir()
+
+
+def _extreme(report: dict) -> float:
+    low, high = report["deviation"]["min_mm"], report["deviation"]["max_mm"]
+    return high if abs(high) >= abs(low) else low
+
+
+def test_the_spc_table_agrees_with_the_runs_reports(page, station: StationServer, tmp_path: Path) -> None:
+    runs = sorted(station.run_dirs(), key=lambda r: _journal(r)[0]["t"])  # oldest first, as the page
+    reports = [json.loads((r / "results" / "report.json").read_text()) for r in runs]
+    sign_in(page, station.url, "olga")
+    page.goto(station.url + "/runs")
+    shot(page, "runs", tmp_path)
+    page.goto(station.url + "/spc")
+    page.click("a.tile[href='/spc/box']")
+    rows = page.locator("#trend tbody tr")
+    expect(rows).to_have_count(2)
+    for row, report in zip(rows.all(), reports):
+        assert float(row.locator(".mean").inner_text()) == pytest.approx(
+            report["deviation"]["mean_mm"], abs=6e-5
+        )
+        assert float(row.locator(".extreme").inner_text()) == pytest.approx(_extreme(report), abs=6e-5)
+    # Cp and Cpk of the per-run means against the band, computed here from the reports
+    means = np.array([r["deviation"]["mean_mm"] for r in reports])
+    s, xbar = means.std(ddof=1), means.mean()
+    lower, upper = reports[-1]["tolerance"]["lower_mm"], reports[-1]["tolerance"]["upper_mm"]
+    part = page.locator("#capability tr[data-series='part']")
+    assert float(part.locator(".cp").inner_text()) == pytest.approx((upper - lower) / (6 * s), rel=0.01)
+    assert float(part.locator(".cpk").inner_text()) == pytest.approx(
+        min(upper - xbar, xbar - lower) / (3 * s), rel=0.01
+    )
+    lid = [next(v for v in r["region_verdicts"] if v["name"] == "lid")["mean_mm"] for r in reports]
+    expected = (upper - lower) / (6 * np.std(lid, ddof=1))
+    assert float(page.locator("#capability tr[data-series='lid'] .cp").inner_text()) == pytest.approx(
+        expected, rel=0.01
+    )
+    assert page.locator("figure.chart svg").count() == 2  # the trends of the part and of the region
+    shot(page, "spc", tmp_path)
+    with page.expect_download() as download:
+        page.click("#csv")
+    text = Path(download.value.path()).read_text()
+    part_rows = [line.split(",") for line in text.splitlines()[1:] if line.startswith("part,")]
+    assert [float(r[5]) for r in part_rows] == pytest.approx(list(means), abs=1e-5)
+
+
+def test_a_run_aborted_from_the_page(page, station: StationServer) -> None:
+    run = _start(page, station, "SN-1004")
+    page.wait_for_function("() => document.getElementById('live').dataset.state.startsWith('scanning')")
     page.click("#abort")
     page.click("#confirm-yes")  # asked on the page itself
     page.wait_for_url("**/verdict", timeout=90_000)
     assert page.inner_text("#word") == "ABORTED"
-    journal = [json.loads(line) for line in (run / "journal.jsonl").read_text().splitlines()]
+    assert "aborted by olga at the station" in page.inner_text("#reasons")
+    journal = _journal(run)
     states = [e["state"] for e in journal if e["event"] == "state"]
     assert states[-2:] == ["paused", "aborted"]  # paused safely first, then aborted by the state machine
-    assert "aborted by olga at the station" in journal[-1]["message"]
+    assert [e["state"] for e in journal if e["event"] == "exit"] == ["paused", "aborted"]
     with pytest.raises(ConfigError, match="was aborted"):
         resume(run)  # the terminal's `cell resume` refuses it too
-    assert not list(station.runs.glob("box-SN-1003-*"))
+    page.goto(station.url + "/runs?serial=SN-1004")
+    assert "aborted" in page.inner_text("#runs tbody").lower()

@@ -39,7 +39,9 @@ def serve_cmd(
     ),
     tls_cert: Path = typer.Option(None, "--tls-cert", help="TLS certificate (PEM)"),
     tls_key: Path = typer.Option(None, "--tls-key", help="TLS private key (PEM)"),
-    results_url: str = typer.Option(None, "--results-url", help="results database URL (default: in RUNS)"),
+    sync_every: float = typer.Option(
+        30.0, "--sync-every", help="seconds between offering the results database the runs it missed"
+    ),
 ) -> None:
     """Serve the station (start, live, verdict, runs, SPC pages) until Ctrl-C; runs it started go on."""
     from cell.station.server import serve
@@ -50,7 +52,7 @@ def serve_cmd(
         recipes=recipes.resolve(),
         runs=runs.resolve(),
         users=_users_file(users, runs).resolve(),
-        results_url=results_url,
+        sync_every_s=sync_every,
         host=host,
         port=port,
         token_file=token_file,

@@ -17,13 +17,12 @@ from starlette.responses import RedirectResponse, Response
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
-from cell.station import pages_run, pages_tech
+from cell.station import pages_results, pages_run, pages_tech
 from cell.station.auth import NotAllowed, SignInNeeded, TokenGate, sign_in, sign_out, signed_in
 from cell.station.core import HERE, Station, flash, station_of
 from cell.station.settings import StationSettings, session_secret
 
 REAP_S = 0.5  # how often finished children are looked for
-RETRY_S = 30.0  # how often runs the results database could not take are offered again
 
 
 async def home(request: Request) -> Response:
@@ -114,6 +113,10 @@ def create_app(settings: StationSettings) -> Starlette:
         Route("/run/{name}/views/{view:int}/thumbnail.png", pages_run.thumbnail),
         Route("/run/{name}/results/{path:path}", pages_run.result_file),
         Route("/run/{name}/{action}", pages_run.run_action, methods=["POST"]),
+        Route("/runs", pages_results.runs_page),
+        Route("/spc", pages_results.spc_index),
+        Route("/spc/{recipe}", pages_results.spc_page),
+        Route("/spc/{recipe}/{table}.csv", pages_results.spc_csv),
         Route("/calibrate", pages_tech.calibrate_page),
         Route("/calibrate", pages_tech.calibrate_start, methods=["POST"]),
         Route("/recipes", pages_tech.recipes_page),
@@ -142,9 +145,9 @@ async def _background(station: Station) -> None:
         try:
             await asyncio.to_thread(station.supervisor.poll)
             since_retry += REAP_S
-            if since_retry >= RETRY_S and station.results.pending():
+            if since_retry >= station.settings.sync_every_s and station.supervisor.current() is None:
                 since_retry = 0.0
-                await asyncio.to_thread(station.results.retry)
+                await asyncio.to_thread(station.results.sync)
         except Exception as exc:  # the loop must outlive one bad pass; the journal says what went wrong
             station.journal.log("background_error", error=repr(exc))
         await asyncio.sleep(REAP_S)

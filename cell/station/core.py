@@ -12,7 +12,7 @@ from starlette.templating import Jinja2Templates
 from cell.station.journal import StationJournal
 from cell.station.results import ResultsSync
 from cell.station.settings import StationSettings
-from cell.station.supervisor import ChildRecord, Supervisor
+from cell.station.supervisor import Supervisor
 from cell.station.users import UsersFile, load_users
 
 HERE = Path(__file__).resolve().parent
@@ -25,7 +25,7 @@ class Station:
         self.settings = settings
         self.journal = StationJournal(settings.state_dir / "journal.jsonl")
         self.results = ResultsSync(settings, self.journal)
-        self.supervisor = Supervisor(settings, self.journal, on_finished=self._finished)
+        self.supervisor = Supervisor(settings, self.journal)
         self.templates = Jinja2Templates(directory=str(HERE / "templates"), context_processors=[_flash])
         self._users: tuple[float, UsersFile] | None = None
 
@@ -35,12 +35,6 @@ class Station:
         if self._users is None or self._users[0] != mtime:
             self._users = (mtime, load_users(self.settings.users))
         return self._users[1]
-
-    def _finished(self, rec: ChildRecord) -> None:
-        """A child ended: an inspection that reached a verdict goes into the results database."""
-        run_dir = self.settings.runs / rec.run
-        if rec.kind in ("inspect", "resume") and (run_dir / "results" / "report.json").is_file():
-            self.results.record(run_dir)
 
 
 def said(exc: Exception) -> str:

@@ -56,7 +56,7 @@ async def start_page(request: Request) -> Response:
             "chosen": chosen,
             "serial": request.query_params.get("serial", ""),
             "current": current,
-            "unsynced": station.results.pending(),
+            "unsynced": [p.name for p in station.results.pending() if not current or p.name != current.run],
         },
     )
 
@@ -171,8 +171,7 @@ async def verdict_page(request: Request) -> Response:
             "progress": progress,
             "verdict": verdict,
             "report": f"/run/{name}/results/report.html" if report.is_file() else None,
-            "unsynced": name in station.results.pending(),
-            "db_error": station.results.last_error,
+            "unsynced": station.results.waiting(run_dir),
         },
     )
 

@@ -1,8 +1,8 @@
-"""The station's door to the results database (:mod:`cell.results`): every run that reached a verdict is
-recorded there when its process ends. When the database cannot take it (connection lost, server down), the
-run is listed in ``<runs root>/.station/unsynced.json`` and the failure is journalled (the station's journal
-and the run's); :meth:`ResultsSync.retry` records the listed runs once the database answers again. Nothing is
-lost: the run folder holds everything the database gets."""
+"""The station's door to the results database (:mod:`cell.results`). Each run records itself when its process
+ends (``cell inspect`` does); a run the database could not take keeps a pending marker in its folder and a
+``results_not_recorded`` line in its journal, and its files hold everything. The station offers those runs to
+the database again every half minute (:meth:`ResultsSync.sync`), journals each one recorded later (its own
+journal and the run's), and reads the runs list and SPC through the same store."""
 
 from __future__ import annotations
 
@@ -11,72 +11,65 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from cell.runs import RunFolder, write_json_atomic
+from cell.config import load_cell_config
+from cell.errors import CellError
+from cell.runs import RunFolder
 from cell.station.journal import StationJournal
 from cell.station.settings import StationSettings
 
 
 class ResultsSync:
-    """Records finished runs in the results database, keeping those it could not record for later."""
+    """The results store of the station's cell, and the runs still waiting for it."""
 
     def __init__(self, settings: StationSettings, journal: StationJournal) -> None:
         self.settings = settings
         self.journal = journal
-        self.pending_path = settings.state_dir / "unsynced.json"
         self.last_error: str | None = None
         self._store: Any = None
         self._lock = threading.Lock()
 
     def store(self) -> Any:
-        """The results store (opened once)."""
+        """The :class:`cell.results.ResultsStore` the station's cell records into (opened once; it connects
+        when first used)."""
         if self._store is None:
             from cell.results import open_results
 
-            self._store = open_results(self.settings.results_url, self.settings.runs)
+            self._store = open_results(load_cell_config(self.settings.cell), self.settings.runs)
         return self._store
 
-    def pending(self) -> list[str]:
-        """Names of the run folders not yet in the database."""
+    def pending(self) -> list[Path]:
+        """The run folders whose results wait for the database (their pending marker)."""
+        from cell.results.folder import pending_folders
+
+        return pending_folders(self.settings.runs)
+
+    def waiting(self, run_dir: Path) -> str | None:
+        """Why ``run_dir``'s results are not in the database yet, or None when they are (no marker)."""
+        from cell.results.folder import PENDING_NAME
+
         try:
-            return list(json.loads(self.pending_path.read_text()))
+            marker = json.loads((run_dir / PENDING_NAME).read_text())
+        except FileNotFoundError:
+            return None
         except (OSError, json.JSONDecodeError):
-            return []
+            return "unknown"
+        return str(marker.get("reason") or "unknown")
 
-    def _set_pending(self, names: list[str]) -> None:
-        write_json_atomic(self.pending_path, sorted(set(names)))
-
-    def record(self, run_dir: Path) -> bool:
-        """Record one run; on failure keep it for :meth:`retry` and journal why. True when recorded."""
+    def sync(self) -> int:
+        """Record the waiting runs; journal each one that is in now. How many; 0 and :attr:`last_error` set
+        when the database still cannot take them."""
         with self._lock:
+            before = set(self.pending())
+            if not before:
+                return 0
             try:
-                self.store().record_run(run_dir)
-            except Exception as exc:  # any database failure: the run waits in the list, nothing is lost
-                self.last_error = f"{type(exc).__name__}: {exc}".splitlines()[0][:300]
-                if run_dir.name in self.pending():
-                    return False  # journalled when it first failed
-                self._set_pending([*self.pending(), run_dir.name])
-                message = (
-                    f"results database unreachable ({self.last_error}); the run is kept in its folder and "
-                    "will be recorded when the database answers again"
-                )
-                self.journal.log("results_unsynced", run=run_dir.name, error=self.last_error)
-                RunFolder(run_dir).log("results", synced=False, message=message)
-                return False
-            self._set_pending([n for n in self.pending() if n != run_dir.name])
+                self.store().sync()
+            except CellError as exc:  # still away: the runs keep waiting, nothing is lost
+                self.last_error = str(exc)
+                return 0
             self.last_error = None
-            RunFolder(run_dir).log("results", synced=True)
-            return True
-
-    def retry(self) -> int:
-        """Record the runs still waiting, stopping at the first failure; returns how many were recorded."""
-        done = 0
-        for name in self.pending():
-            run_dir = self.settings.runs / name
-            if not run_dir.is_dir():
-                self._set_pending([n for n in self.pending() if n != name])
-                continue
-            if not self.record(run_dir):
-                break
-            self.journal.log("results_synced", run=name, later=True)
-            done += 1
-        return done
+            recorded = sorted(before - set(self.pending()))
+            for run_dir in recorded:
+                self.journal.log("results_recorded_later", run=run_dir.name)
+                RunFolder(run_dir).log("results_recorded", database=self.store().where, later=True)
+            return len(recorded)

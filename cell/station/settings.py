@@ -14,6 +14,7 @@ from pathlib import Path
 
 from pydantic import Field
 
+from cell.config import load_cell_config
 from cell.errors import ConfigError
 from cell.schema import Strict
 
@@ -27,7 +28,9 @@ class StationSettings(Strict):
     recipes: Path = Field(description="folder of recipe YAML files offered on the start page")
     runs: Path = Field(description="runs root: one folder per run, and .station/ (journal, logs, secret)")
     users: Path = Field(description="users file (cell station users add)")
-    results_url: str | None = Field(None, description="results database URL (SQLAlchemy); default: runs root")
+    sync_every_s: float = Field(
+        30.0, gt=0, description="how often runs the database missed are offered again"
+    )
     host: str = LOOPBACK
     port: int = Field(8400, ge=1, le=65535)
     token_file: Path | None = Field(None, description="file holding the access token for a wider binding")
@@ -68,6 +71,7 @@ def check_settings(settings: StationSettings) -> None:
                 option == "--users"
             )
             raise ConfigError(f"{what} not found{hint}", path=str(path), field=option)
+    load_cell_config(settings.cell)  # a cell config that cannot run stops the station here, named
     if not settings.wide:
         return
     missing = [

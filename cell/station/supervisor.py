@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -24,6 +25,7 @@ from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
+from cell.config import load_cell_config
 from cell.errors import ConfigError
 from cell.run_data import RunIdentity
 from cell.runs import LOCK_NAME, RunFolder, process_alive, process_start, write_json_atomic
@@ -191,6 +193,10 @@ class Supervisor:
             out = self.settings.runs / name
             args = ["inspect", str(recipe.path), "--cell", str(self.settings.cell), "--out", str(out)]
             args += ["--serial", serial.strip(), "--operator", user]
+            if load_cell_config(self.settings.cell).robot.driver == "sim":
+                # each simulated part gets its own sensor noise, as each real one does (the manifest keeps
+                # the seed, so a resume renders what the run would have)
+                args += ["--seed", str(secrets.randbelow(2**31))]
             return self._spawn(name, "inspect", user, args)
 
     def start_calibration(self, routine: str, user: str) -> ChildRecord:
