@@ -207,7 +207,7 @@ def test_progress_and_verdict_of_a_finished_run(tmp_path: Path) -> None:
     assert verdict.defect.at_mm == [25.2, 15.1, 39.2] and verdict.defect.value_mm == -0.8
     assert verdict.reasons == [
         "dent of -0.800 mm, beyond the tolerance -0.300 / +0.300 mm (and 1 more out-of-tolerance region(s))",
-        "region 'lid' is fail: -0.800 to +0.100 mm",
+        "region 'lid' failed: -0.800 to +0.100 mm",
         "coverage 50.0 % is below the required 60.0 %",
     ]
 

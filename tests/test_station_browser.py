@@ -109,6 +109,13 @@ def test_an_operator_may_not_calibrate_or_edit_recipes(page, station: StationSer
     page.goto(station.url + "/calibrate")
     assert page.locator("button[name='routine']").count() == 8
     shot(page, "calibrate", tmp_path)
+    page.click("button[value='gamma']")  # the projector's response: a short routine, run like an inspection
+    page.wait_for_url("**/run/calibration-gamma-*")
+    page.wait_for_url("**/verdict", timeout=90_000)
+    assert page.inner_text("#word") == "DONE"
+    folder = station.runs / page.url.split("/")[-2]
+    assert f"gamma: {folder / 'gamma.yaml'}" in page.inner_text("#output")  # the config line to use it
+    assert (folder / "gamma.yaml").is_file()
     before = (station.recipes / "box.yaml").read_text()
     page.goto(station.url + "/recipes/box")
     page.fill("#text", before.replace("min_coverage", "min_coverag"))
@@ -165,7 +172,7 @@ def test_an_inspection_started_paused_and_resumed_from_the_page(
     page.click("#pause")
     page.wait_for_function("() => document.getElementById('live').dataset.state === 'paused'", timeout=60_000)
     assert page.inner_text("#words") == "Paused by olga"
-    expect(page.locator("#resume")).to_be_enabled()  # once the paused process has ended
+    expect(page.locator("#resume")).to_be_enabled(timeout=60_000)  # once the paused process has ended
     assert page.locator("#pause").is_disabled()
     shot(page, "paused", tmp_path)
     journal = _journal(run)
@@ -185,7 +192,7 @@ def test_an_inspection_started_paused_and_resumed_from_the_page(
     at = [float(v) for v in re.findall(r"-?\d+\.\d", page.inner_text("#defect-at"))]
     assert np.linalg.norm(np.subtract(at[:2], DENT["centre_mm"][:2])) < 0.6 * DENT["radius_mm"]
     assert page.inner_text("#defect-region").startswith("lid")
-    assert "region 'lid' is fail" in page.inner_text("#reasons")
+    assert "region 'lid' failed" in page.inner_text("#reasons")
     report = json.loads((run / "results" / "report.json").read_text())
     assert value == pytest.approx(report["regions"][0]["extreme_mm"], abs=5e-4)
     assert page.locator("#report").count() == 1  # the run's own report, embedded
@@ -231,7 +238,7 @@ def test_a_start_while_running_is_refused(page, station: StationServer, tmp_path
     assert "A run is in progress" in other.inner_text(".banner")
     other.fill("#serial", "SN-1003")
     other.press("#serial", "Enter")
-    assert "cannot start: run box-SN-1002-" in other.locator(".msg.error").inner_text()
+    assert "Not started: run box-SN-1002-" in other.locator(".msg.error").inner_text()
     shot(other, "refused", tmp_path)
     other.close()
     assert not list(station.runs.glob("box-SN-1003-*"))

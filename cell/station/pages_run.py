@@ -162,6 +162,11 @@ async def verdict_page(request: Request) -> Response:
         return RedirectResponse(f"/run/{name}", status_code=303)
     verdict = await asyncio.to_thread(read_verdict, run_dir, _region_boxes(run_dir))
     report = run_dir / "results" / "report.html"
+    rec = station.supervisor.record(name)
+    output = None
+    if progress.kind not in (None, "inspection") and rec is not None:  # a calibration: what it printed
+        lines = Path(rec.log).read_text(errors="replace").splitlines() if Path(rec.log).is_file() else []
+        output = "\n".join(lines[-80:])
     return station.templates.TemplateResponse(
         request,
         "verdict.html",
@@ -171,7 +176,8 @@ async def verdict_page(request: Request) -> Response:
             "progress": progress,
             "verdict": verdict,
             "report": f"/run/{name}/results/report.html" if report.is_file() else None,
-            "unsynced": station.results.waiting(run_dir),
+            "unsynced": station.results.waiting(run_dir) if progress.kind == "inspection" else None,
+            "output": output,
         },
     )
 

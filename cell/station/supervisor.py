@@ -188,7 +188,7 @@ class Supervisor:
         with self._lock:
             why = self.busy()
             if why:
-                raise ConfigError(f"cannot start: {why}")
+                raise ConfigError(why)
             name = RunFolder.new_name(recipe.part, serial.strip())
             out = self.settings.runs / name
             args = ["inspect", str(recipe.path), "--cell", str(self.settings.cell), "--out", str(out)]
@@ -206,7 +206,7 @@ class Supervisor:
         with self._lock:
             why = self.busy()
             if why:
-                raise ConfigError(f"cannot start: {why}")
+                raise ConfigError(why)
             stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
             name = f"calibration-{routine}-{stamp}"
             out = self.settings.runs / name
@@ -245,7 +245,7 @@ class Supervisor:
             run_dir = self._run_dir(run)
             why = self.busy()
             if why:
-                raise ConfigError(f"cannot resume: {why}")
+                raise ConfigError(why)
             state = read_progress(run_dir).state
             if state in ("done", "aborted"):
                 raise ConfigError(f"run {run} is {state}: it cannot be resumed; start a new run of the part")

@@ -82,7 +82,10 @@ def read_verdict(run_dir: Path, region_boxes: Sequence[tuple[str, list[list[floa
         if rv.get("verdict") in ("fail", "incomplete", "no_data"):
             low, high = rv.get("min_mm"), rv.get("max_mm")
             span = f": {low:+.3f} to {high:+.3f} mm" if low is not None and high is not None else ""
-            out.reasons.append(f"region '{rv.get('name')}' is {rv.get('verdict')}{span}")
+            said = {"fail": "failed", "incomplete": "is incomplete", "no_data": "has no points"}[
+                rv["verdict"]
+            ]
+            out.reasons.append(f"region '{rv.get('name')}' {said}{span}")
     out.reasons.extend(doc.get("incomplete_reasons") or [])
     coverage, needed = doc.get("coverage"), doc.get("min_coverage")
     if coverage is not None and needed is not None and coverage < needed:
