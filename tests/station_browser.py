@@ -60,13 +60,14 @@ def need_chromium() -> None:
 
 @dataclass
 class StationServer:
-    """A running ``cell station serve`` and its folders."""
+    """A running ``cell station serve`` (restartable with the same arguments) and its folders."""
 
     url: str
     root: Path
     runs: Path
     recipes: Path
-    proc: subprocess.Popen[bytes]
+    args: list[str]
+    proc: subprocess.Popen[bytes] | None = None
 
     def journal(self) -> list[dict]:
         path = self.runs / ".station" / "journal.jsonl"
@@ -75,6 +76,43 @@ class StationServer:
     def run_dirs(self) -> list[Path]:
         """The inspection run folders (of the box), by name."""
         return sorted(self.runs.glob("box-*"))
+
+    def serve(self) -> None:
+        """Start the server and wait until it answers."""
+        log = open(self.root / "server.log", "ab")
+        self.proc = subprocess.Popen(
+            self.args,
+            cwd=REPO,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+        )
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                urllib.request.urlopen(self.url + "/signin", timeout=2)
+                return
+            except OSError:
+                if self.proc.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(
+                        "station did not start: " + (self.root / "server.log").read_text()
+                    ) from None
+                time.sleep(0.2)
+
+    def stop(self, how: int = signal.SIGTERM) -> None:
+        """Stop the server process (runs it started go on in their own processes)."""
+        assert self.proc is not None
+        self.proc.send_signal(how)
+        try:
+            self.proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+    def children(self) -> list[dict]:
+        """The records of the runs this station started that still run."""
+        found = [json.loads(p.read_text()) for p in (self.runs / ".station" / "children").glob("*.json")]
+        return [c for c in found if c.get("exit_code") is None and process_alive(c["pid"], c.get("start"))]
 
 
 def _free_port() -> int:
@@ -103,40 +141,20 @@ def start_station(root: Path, results_db: str | None = None, *extra: str) -> Sta
     for name, (role, pin) in USERS.items():
         add_user(users, name, Role(role), pin)
     port = _free_port()
-    log = open(root / "server.log", "wb")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cell", "station", "serve", "--cell", str(root / "cell.yaml")]
-        + ["--recipes", str(recipes), "--runs", str(runs), "--users", str(users), "--port", str(port)]
-        + ["--sync-every", "1", *extra],
-        cwd=REPO,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
+    args = [sys.executable, "-m", "cell", "station", "serve", "--cell", str(root / "cell.yaml")]
+    args += ["--recipes", str(recipes), "--runs", str(runs), "--users", str(users), "--port", str(port)]
+    server = StationServer(
+        f"http://127.0.0.1:{port}", root, runs, recipes, [*args, "--sync-every", "1", *extra]
     )
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            urllib.request.urlopen(url + "/signin", timeout=2)
-            break
-        except OSError:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError("station did not start: " + (root / "server.log").read_text()) from None
-            time.sleep(0.2)
-    return StationServer(url, root, runs, recipes, proc)
+    server.serve()
+    return server
 
 
 def stop_station(server: StationServer) -> None:
     """Stop the server, then any inspection it started that still runs (a failed test's)."""
-    server.proc.send_signal(signal.SIGINT)
-    try:
-        server.proc.wait(timeout=15)
-    except subprocess.TimeoutExpired:
-        server.proc.kill()
-    for record in (server.runs / ".station" / "children").glob("*.json"):
-        child = json.loads(record.read_text())
-        if child.get("exit_code") is None and process_alive(child["pid"], child.get("start")):
-            os.kill(child["pid"], signal.SIGKILL)
+    server.stop(signal.SIGINT)
+    for child in server.children():
+        os.kill(child["pid"], signal.SIGKILL)
 
 
 @pytest.fixture(scope="module")

@@ -25,6 +25,7 @@ from playwright.sync_api import expect
 
 from cell.errors import ConfigError
 from cell.inspection_run import resume
+from cell.runs import process_alive
 from tests.box_part import DENT, IN_REACH_MM
 from tests.postgres_server import PostgresServer, require_postgres
 from tests.station_browser import SCREEN, StationServer, browser, shot, sign_in, start_station, stop_station
@@ -229,7 +230,9 @@ def test_the_database_back_the_run_is_recorded_and_listed(
     assert page.inner_text("#runs tbody") == "No run matches."
 
 
-def test_a_start_while_running_is_refused(page, station: StationServer, tmp_path: Path) -> None:
+def test_a_start_while_running_is_refused_and_a_station_restart_leaves_the_run_alone(
+    page, station: StationServer, tmp_path: Path
+) -> None:
     run = _start(page, station, "SN-1002")
     page.wait_for_function("() => document.getElementById('live').dataset.state.startsWith('scanning')")
     # a second operator tab: the start page says a run is in progress, and a start is refused
@@ -243,6 +246,12 @@ def test_a_start_while_running_is_refused(page, station: StationServer, tmp_path
     other.close()
     assert not list(station.runs.glob("box-SN-1003-*"))
     assert any("in progress" in e["why"] for e in _events(station, "start_refused"))
+    # the station stops (an update, a crash) and comes back: the run goes on meanwhile, the page follows it
+    (child,) = station.children()
+    station.stop()
+    assert process_alive(child["pid"], child["start"])
+    station.serve()
+    assert station.children() == [child]
     page.wait_for_url("**/verdict", timeout=120_000)  # this one runs to its end: the SPC's second run
     assert page.inner_text("#word") == "FAIL" and page.locator("#unsynced").count() == 0
     assert run.is_dir()

@@ -20,7 +20,6 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -66,35 +65,37 @@ def _error_line(log: Path) -> str | None:
 
 
 class Supervisor:
-    """Starts, pauses, resumes and aborts the station's runs; ``on_finished(record)`` is called once for each
-    child that ended (from :meth:`poll`)."""
+    """Starts, pauses, resumes and aborts the station's runs, one at a time."""
 
-    def __init__(
-        self,
-        settings: StationSettings,
-        journal: StationJournal,
-        on_finished: Callable[[ChildRecord], None] | None = None,
-    ) -> None:
+    def __init__(self, settings: StationSettings, journal: StationJournal) -> None:
         self.settings = settings
         self.journal = journal
-        self.on_finished = on_finished
         self.dir = settings.state_dir / "children"
-        self.dir.mkdir(parents=True, exist_ok=True)
+        (self.dir / "ended").mkdir(parents=True, exist_ok=True)
         (settings.state_dir / "logs").mkdir(exist_ok=True)
         self._popen: dict[int, subprocess.Popen[bytes]] = {}
         self._lock = threading.RLock()
 
     # ------------------------------------------------------------------ records
     def record(self, run: str) -> ChildRecord | None:
-        """The latest child record of run folder ``run``, or None."""
-        path = self.dir / f"{run}.json"
-        try:
-            return ChildRecord(**json.loads(path.read_text()))
-        except (OSError, json.JSONDecodeError, TypeError):
-            return None
+        """The latest child record of run folder ``run`` (a running child's, else the last ended one's)."""
+        for path in (self.dir / f"{run}.json", self.dir / "ended" / f"{run}.json"):
+            try:
+                return ChildRecord(**json.loads(path.read_text()))
+            except FileNotFoundError:
+                continue
+            except (OSError, json.JSONDecodeError, TypeError):
+                return None
+        return None
 
     def _save(self, rec: ChildRecord) -> None:
-        write_json_atomic(self.dir / f"{rec.run}.json", asdict(rec))
+        """A running child's record in ``children/``; an ended one's in ``children/ended/`` (so that the
+        station's frequent look for the running child reads only the few records of running ones)."""
+        if rec.exit_code is None:
+            write_json_atomic(self.dir / f"{rec.run}.json", asdict(rec))
+            return
+        write_json_atomic(self.dir / "ended" / f"{rec.run}.json", asdict(rec))
+        (self.dir / f"{rec.run}.json").unlink(missing_ok=True)
 
     def _alive(self, rec: ChildRecord) -> bool:
         popen = self._popen.get(rec.pid)
@@ -103,8 +104,7 @@ class Supervisor:
         return process_alive(rec.pid, rec.start)
 
     def poll(self) -> None:
-        """Reap children that ended: record their exit code and error, call ``on_finished``."""
-        ended = []
+        """Reap children that ended: record their exit code and the error they printed."""
         with self._lock:
             for path in sorted(self.dir.glob("*.json")):
                 rec = self.record(path.stem)
@@ -119,10 +119,6 @@ class Supervisor:
                     rec.error = _error_line(Path(rec.log))
                 self._save(rec)
                 self.journal.log("child_ended", run=rec.run, kind=rec.kind, exit_code=rec.exit_code)
-                ended.append(rec)
-        for rec in ended:  # outside the lock: recording results may wait for a database
-            if self.on_finished is not None:
-                self.on_finished(rec)
 
     def current(self) -> ChildRecord | None:
         """The station's child that is still running, if any."""
