@@ -243,6 +243,7 @@ def started(folders: StationSettings, tmp_path: Path) -> Path:
         tmp_path / "runs" / "r",
         identity=RunIdentity("SN-9", "olga"),
     )
+    run.release_lock()  # start_run hands the folder over locked, for execute_run
     return run.path
 
 
@@ -279,3 +280,26 @@ def test_abort_refuses_a_finished_run_and_one_a_process_runs(started: Path) -> N
     assert proc.returncode == 2
     assert "the run is finished and its verdict stands; nothing to abort" in proc.stderr
     assert [e.get("state") for e in run.journal() if e["event"] == "state"][-1] == "done"
+
+
+def test_the_live_page_offers_nothing_on_a_run_another_process_runs(
+    folders: StationSettings, started: Path
+) -> None:
+    from cell.station.live import snapshot
+
+    run = RunFolder.open(started)
+    run.log("state", state="paused", message="")
+    supervisor = Supervisor(folders, StationJournal(folders.state_dir / "journal.jsonl"))
+    free = snapshot(supervisor, folders.runs, started.name, None)
+    assert free["actions"] == {"pause": False, "resume": True, "abort": True}  # paused, nobody on it
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:  # a terminal's `cell resume` holds it now
+        lock = {"pid": holder.pid, "host": os.uname().nodename, "command": "cell resume", "start": None}
+        (started / "run.lock").write_text(json.dumps(lock))
+        taken = snapshot(supervisor, folders.runs, started.name, None)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert taken["actions"] == {"pause": False, "resume": False, "abort": False}
+    assert f"run by another process (PID {holder.pid}, cell resume)" in taken["message"]
+    assert not taken["final"]

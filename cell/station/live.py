@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from cell.runs import LOCK_NAME, RunFolder
 from cell.station.progress import TERMINAL, Progress, Timeline, read_progress
 from cell.station.supervisor import Supervisor
 
@@ -35,13 +36,25 @@ def snapshot(supervisor: Supervisor, runs: Path, name: str, past: list[Timeline]
         progress = Progress(name, words="Could not start", message=failed)
     inspection = progress.kind in (None, "inspection") and (rec is None or rec.kind != "calibrate")
     state = progress.state
+    elsewhere = None  # a process this station did not start works on the run (a terminal's `cell inspect`)
+    if not running and (runs / name / LOCK_NAME).is_file():
+        folder = RunFolder(runs / name)
+        holder = folder.lock_holder()
+        if holder is not None and folder.holder_is_live(holder):
+            elsewhere = f"run by another process (PID {holder.get('pid')}, {holder.get('command')})"
+    free = not running and elsewhere is None
     actions = {
         "pause": running and state is not None and state not in TERMINAL,
-        "resume": not running and inspection and state is not None and state not in ("done", "aborted"),
-        "abort": inspection and state not in ("done", "aborted", None) and failed is None,
+        "resume": free and inspection and state is not None and state not in ("done", "aborted"),
+        "abort": inspection
+        and state not in ("done", "aborted", None)
+        and failed is None
+        and elsewhere is None,
     }
-    final = failed is not None or (not running and state in ("done", "aborted"))
-    if not running and state is not None and state not in TERMINAL:
+    final = failed is not None or (free and state in ("done", "aborted"))
+    if elsewhere:
+        progress.message = f"{elsewhere}; {progress.message}" if progress.message else elsewhere
+    elif not running and state is not None and state not in TERMINAL:
         progress.words = "Stopped (the process ended without pausing: it was killed or lost)"
     return {
         **progress.to_json(),
