@@ -669,7 +669,8 @@ def abort_stopped(run: RunFolder, reason: str) -> str:
     try:
         model.abort()
     except MachineError:
-        why = "the run is finished and its verdict stands" if state == "done" else "the run is aborted already"
+        done = state == "done"
+        why = "the run is finished and its verdict stands" if done else "the run is aborted already"
         raise ConfigError(f"{why}; nothing to abort", path=str(run.path)) from None
     run.log("exit", state=model.state, message=reason)  # the run's record closed, as a controller closes it
     return str(model.state)

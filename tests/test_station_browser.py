@@ -234,7 +234,9 @@ def test_a_start_while_running_is_refused_and_a_station_restart_leaves_the_run_a
     page, station: StationServer, tmp_path: Path
 ) -> None:
     run = _start(page, station, "SN-1002")
-    page.wait_for_function("() => document.getElementById('live').dataset.state.startsWith('scanning')")
+    page.wait_for_function(
+        "() => document.getElementById('live').dataset.state.startsWith('scanning')", timeout=90_000
+    )
     # a second operator tab: the start page says a run is in progress, and a start is refused
     other = page.context.new_page()
     other.goto(station.url + "/start")
@@ -302,7 +304,9 @@ def test_the_spc_table_agrees_with_the_runs_reports(page, station: StationServer
 
 def test_a_run_aborted_from_the_page(page, station: StationServer) -> None:
     run = _start(page, station, "SN-1004")
-    page.wait_for_function("() => document.getElementById('live').dataset.state.startsWith('scanning')")
+    page.wait_for_function(
+        "() => document.getElementById('live').dataset.state.startsWith('scanning')", timeout=90_000
+    )
     page.click("#abort")
     page.click("#confirm-yes")  # asked on the page itself
     page.wait_for_url("**/verdict", timeout=90_000)

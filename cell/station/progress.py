@@ -135,6 +135,8 @@ def read_progress(run_dir: Path, past: list[Timeline] | None = None, now: float 
     asked = [e for e in entries if e.get("event") == "operator" and e.get("action") == "pause"]
     if p.state == "paused" and asked and float(asked[-1]["t"]) <= float(states[-1]["t"]):
         p.words = f"Paused by {asked[-1].get('by')}"
+        # the station asks as Ctrl-C does (SIGINT), so the controller says Ctrl-C: the words say who asked
+        p.message = p.message.removeprefix("pause requested: Ctrl-C").removeprefix("; ")
     if p.state == "done":
         p.verdict = (checkpoint.get("summary") or {}).get("verdict")
         p.elapsed_s = float(states[-1]["t"]) - float(entries[0]["t"])
