@@ -323,7 +323,16 @@ class CellConfig(Strict):
     @field_validator("results_db")
     @classmethod
     def _database_url(cls, url: str | None) -> str | None:
-        if url is not None and not re.match(r"(postgresql(\+psycopg)?|sqlite)://", url):
+        if url is None:
+            return url
+        from sqlalchemy.engine import make_url  # here: only a config that names a database pays for it
+        from sqlalchemy.exc import ArgumentError
+
+        try:
+            make_url(url)
+        except ArgumentError:
+            url = ""
+        if not re.match(r"(postgresql(\+psycopg)?|sqlite)://", url):
             raise ValueError("a postgresql://user@host/database or sqlite:///path URL")
         return url
 

@@ -253,6 +253,7 @@ def _record_results(run: RunFolder, results: ResultsStore, say: Say) -> None:
     """Record the run in the results database; when it cannot be, journal why and leave the folder's
     pending marker for the next `cell history --sync` (the run's own files are complete either way)."""
     reason = results.record_or_defer(run.path)
+    results.close()
     if reason is None:
         run.log("results_recorded", database=results.where)
         return

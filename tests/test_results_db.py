@@ -14,7 +14,10 @@ import io
 import json
 import math
 import multiprocessing
+import socket
 import sqlite3
+import subprocess
+import sys
 from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -27,7 +30,7 @@ from cell.analysis.regions import Region, Tolerance
 from cell.analysis.report import ReportInput, write_report
 from cell.cli import main
 from cell.results import ResultsDamaged, ResultsStore, ResultsUnavailable, open_results
-from cell.results.folder import PENDING_NAME, mark_pending
+from cell.results.folder import PENDING_NAME
 from cell.results.migrate import current, head
 from cell.run_data import RunIdentity
 from cell.runs import RunFolder, write_json_atomic
@@ -164,6 +167,8 @@ def test_record_query_and_filter(db_url: str, tmp_path: Path) -> None:
         "SN-2",
     ]
     assert [r.serial for r in store.runs(limit=2)] == ["SN-4", "SN-3"]
+    assert [r.serial for r in store.runs(limit=2, offset=2)] == ["SN-2", "SN-1"]
+    assert store.distinct("part") == ["box", "lid"] and store.distinct("operator") == ["ann", "bob"]
     assert store.runs(operator="nobody") == []
 
     # a re-recorded folder updates its row, never adds one
@@ -309,7 +314,7 @@ def test_lost_postgresql_connection_records_the_run_later(pg_server: PostgresSer
     pg_server.stop()
     try:
         _record_results(RunFolder.open(second), store, said.append)
-        with pytest.raises(ResultsUnavailable, match="unavailable while listing runs.*cell history --sync"):
+        with pytest.raises(ResultsUnavailable, match="unavailable while .*cell history --sync"):
             store.runs()
     finally:
         pg_server.start()
@@ -326,6 +331,26 @@ def test_lost_postgresql_connection_records_the_run_later(pg_server: PostgresSer
     store.close()
 
 
+def test_a_killed_run_stays_pending_and_is_recorded_interrupted(tmp_path: Path) -> None:
+    """A run records itself as running with its marker kept; killed (its lock left by a dead process), the
+    next sync records it as interrupted and removes the marker."""
+    root = tmp_path / "runs"
+    run = make_run(root, "r", deviations(0.0), state=None)
+    folder = RunFolder.open(run)
+    folder.acquire_lock("cell inspect")
+    store = open_results(None, root)
+    assert store.record_or_defer(run) is None
+    assert [r.status for r in store.runs()] == ["running"] and (run / PENDING_NAME).is_file()
+    folder.release_lock()
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    )
+    lock = {"pid": int(dead.stdout), "host": socket.gethostname(), "command": "cell inspect"}
+    (run / "run.lock").write_text(json.dumps(lock))  # what a SIGKILLed process leaves
+    assert store.sync() == 1
+    assert [r.status for r in store.runs()] == ["interrupted"] and not (run / PENDING_NAME).exists()
+
+
 def test_unwritable_sqlite_defers_and_syncs(tmp_path: Path) -> None:
     root = tmp_path / "runs"
     run = make_run(root, "r", deviations(0.0))
@@ -335,9 +360,12 @@ def test_unwritable_sqlite_defers_and_syncs(tmp_path: Path) -> None:
     assert reason is not None and "unavailable" in reason and "results.sqlite" in reason
     assert (run / PENDING_NAME).is_file()
     (root / "results.sqlite").rmdir()
+    elsewhere = make_run(root, "pg", deviations(0.0))
+    ResultsStore("postgresql://cell@db.plant/results", root).mark_pending(elsewhere, "server down")
     store = open_results(None, root)
-    assert [r.status for r in store.runs()] == ["done"]  # the first open reads the root's folders in
+    assert len(store.runs()) == 2  # the first open reads the root's folders in
     assert store.sync() == 1 and not (run / PENDING_NAME).exists()
+    assert (elsewhere / PENDING_NAME).is_file()  # waits for its own database, not this one
 
 
 # ---------------------------------------------------------------------------------------------- damaged, old
@@ -452,7 +480,9 @@ def test_verification_history_in_postgresql_follows_the_cell(
         with pytest.raises(ResultsUnavailable):
             history.entries()
         passed = make_check(a, "verify-check-2", cfg.name, 0.004, "pass")
-        mark_pending(passed, "server down")  # as interim_check does when the database refuses the check
+        history.store.mark_pending(
+            passed, "server down"
+        )  # as interim_check does when the database refuses it
     finally:
         pg_server.start()
     store = open_results(cfg, a)
@@ -508,7 +538,7 @@ def test_history_fits_80_columns_filters_and_says_when_empty(
     main(["history", "--runs", str(root), "--since", "2026-11-21T00:00+00:00", "--operator", "bob"])
     assert len(capsys.readouterr().out.splitlines()) == 2
     main(["history", "--runs", str(root), "--serial", "SN-404"])
-    assert "no runs matching" in capsys.readouterr().out
+    assert "no runs with serial SN-404 in" in capsys.readouterr().out
     main(["history", "--runs", str(root), "--spc", "box", "--csv", str(tmp_path / "box.csv")])
     out = capsys.readouterr().out.splitlines()
     table = [line for line in out if str(tmp_path) not in line]  # the CSV paths are as long as they are

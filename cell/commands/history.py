@@ -84,11 +84,12 @@ def register(app: typer.Typer) -> None:
             limit=limit,
         )
         if not rows:
-            filters = [f for f in (part or part_arg, serial, verdict, operator, since) if f]
+            given = {"part": part or part_arg, "serial": serial, "verdict": verdict, "operator": operator}
+            filters = ", ".join(f"{k} {v}" for k, v in {**given, "since": since}.items() if v)
+            typer.echo(f"no runs{' with ' + filters if filters else ''} in {store.where}")
             typer.echo(
-                f"no runs{' matching ' + ', '.join(filters) if filters else ''} in {store.where}; "
-                "`cell inspect` records each run there"
-                + ("" if cell else " (a cell recording to PostgreSQL: --cell CELL.yaml)")
+                "`cell inspect` records every run there"
+                + ("" if cell else "; for a cell's PostgreSQL: --cell")
             )
             return
         typer.echo("\n".join(history_lines(rows, folders)))

@@ -150,22 +150,29 @@ def inspection_folders(root: Path) -> list[Path]:
     return sorted(p for p in root.iterdir() if not p.name.startswith(".") and is_inspection_folder(p))
 
 
-def mark_pending(run_dir: Path, reason: str) -> None:
-    """Note in the run folder that its results are not in the database yet, and why."""
+def mark_pending(run_dir: Path, reason: str, database: str) -> None:
+    """Note in the folder that its results are not in ``database`` yet, and why."""
     from cell.runs import write_json_atomic
 
     write_json_atomic(
         Path(run_dir) / PENDING_NAME,
-        {"since": datetime.now(UTC).isoformat(timespec="seconds"), "reason": reason},
+        {"since": datetime.now(UTC).isoformat(timespec="seconds"), "database": database, "reason": reason},
     )
 
 
-def pending_folders(root: Path) -> list[Path]:
-    """The run folders under ``root`` whose results wait to be recorded."""
+def pending_folders(root: Path, database: str) -> list[Path]:
+    """The folders under ``root`` whose results wait to be recorded in ``database`` (a folder waiting for
+    another database, a cell's PostgreSQL when this is the runs root's SQLite file, is left to that one)."""
     root = Path(root)
     if not root.is_dir():
         return []
-    return sorted(p.parent for p in root.glob(f"*/{PENDING_NAME}") if not p.parent.name.startswith("."))
+    out = []
+    for marker in sorted(root.glob(f"*/{PENDING_NAME}")):
+        if marker.parent.name.startswith("."):
+            continue
+        if (_json(marker) or {}).get("database", database) == database:
+            out.append(marker.parent)
+    return out
 
 
 def read_verification(path: Path) -> dict[str, Any] | None:

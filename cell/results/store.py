@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from sqlalchemy import Connection, Engine, and_, create_engine, delete, event, exc, select
 from sqlalchemy.engine import make_url
@@ -203,23 +203,28 @@ class ResultsStore:
         """:meth:`record_run`, or when the database cannot take it, the reason (a pending marker in the
         folder has it, and :meth:`sync` records the run later). The marker is written first and removed
         once a finished run is in: a run killed meanwhile is recorded by the next sync too."""
-        fold.mark_pending(run_dir, "being recorded")
+        self.mark_pending(run_dir, "being recorded")
         try:
             self.record_run(run_dir)
         except Exception as e:  # whatever the database did, the run goes on; the reason is kept
             reason = (
                 str(e) if isinstance(e, (ResultsUnavailable, ResultsDamaged)) else f"{type(e).__name__}: {e}"
             )
-            fold.mark_pending(run_dir, reason)
+            self.mark_pending(run_dir, reason)
             return reason
         if fold.read_run(run_dir).run["status"] != "running":
             (Path(run_dir) / fold.PENDING_NAME).unlink(missing_ok=True)
         return None
 
+    def mark_pending(self, folder: Path, reason: str) -> None:
+        """Note in a run or verification folder that it is not in this database yet, and why: the next
+        :meth:`sync` of this database records it."""
+        fold.mark_pending(folder, reason, self.where)
+
     def sync(self) -> int:
         """Record every run (or verification) of the runs root that has a pending marker; how many."""
         n = 0
-        for path in fold.pending_folders(self.runs_root):
+        for path in fold.pending_folders(self.runs_root, self.where):
             with self._write(f"recording {path.name}") as conn:
                 running = _record_folder(conn, path)
             if not running:
@@ -242,7 +247,7 @@ class ResultsStore:
             for path in [*folders, *fold.verification_folders(root)]:
                 if _record_folder(conn, path):
                     running.add(path)
-        for path in fold.pending_folders(root):
+        for path in fold.pending_folders(root, self.where):
             if path not in running:
                 (path / fold.PENDING_NAME).unlink(missing_ok=True)
         return len(folders)
@@ -322,9 +327,10 @@ class ResultsStore:
         since: datetime | None = None,
         until: datetime | None = None,
         limit: int | None = None,
+        offset: int = 0,
     ) -> list[RunRow]:
         """The runs matching every filter given (exact matches; ``since`` <= started < ``until``), newest
-        first, at most ``limit``."""
+        first, at most ``limit`` after skipping ``offset`` (a page)."""
         c = runs.c
         wanted = [
             col == value
@@ -342,11 +348,22 @@ class ResultsStore:
             wanted.append(c.started >= since)
         if until is not None:
             wanted.append(c.started < until)
-        query = select(runs).where(and_(True, *wanted)).order_by(c.started.desc(), c.id.desc()).limit(limit)
+        query = select(runs).where(and_(True, *wanted)).order_by(c.started.desc(), c.id.desc())
+        query = query.limit(limit).offset(offset or None)
         if self.absent:
             return []
         with self._read("listing runs") as conn:
             return [_row(r) for r in conn.execute(query)]
+
+    def distinct(
+        self, column: Literal["cell", "recipe", "part", "operator", "verdict", "status"]
+    ) -> list[str]:
+        """The values of ``column`` that recorded runs have (for a filter's choices), sorted."""
+        if self.absent:
+            return []
+        col = runs.c[column]
+        with self._read(f"listing {column}s") as conn:
+            return [v for (v,) in conn.execute(select(col).where(col.is_not(None)).distinct().order_by(col))]
 
     def verifications(self, cell: str | None = None) -> list[VerificationRow]:
         """Every stored verification of ``cell`` (all cells when None), oldest first."""

@@ -296,7 +296,6 @@ def interim_check(
     a new one."""
     from cell.errors import RoutinePaused
     from cell.results import ResultsError
-    from cell.results.folder import mark_pending
     from cell.verification.history import VerificationHistory, drift_warnings, local_entries
     from cell.verification.procedure import check_positions
 
@@ -315,7 +314,7 @@ def interim_check(
         history.add(folder, "check", result)
         entries, unrecorded = history.entries(cfg.name), []
     except ResultsError as exc:  # the folder keeps the figures; `cell history --sync` records them later
-        mark_pending(folder, str(exc))
+        history.store.mark_pending(folder, str(exc))
         entries = local_entries(runs, cfg.name)
         unrecorded = [f"not recorded in the results database yet, drift judged from {runs} alone: {exc}"]
     checks = [e for e in entries if e.kind == "check"]
