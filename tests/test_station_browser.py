@@ -222,6 +222,8 @@ def test_the_database_back_the_run_is_recorded_and_listed(
     sign_in(page, station.url, "olga")
     page.goto(station.url + "/runs")
     page.fill("#f-serial", "SN-1001")
+    page.select_option("#f-operator", "olga")  # the choices are what the database holds
+    assert page.locator("#f-part option").all_inner_texts() == ["any", "box"]
     page.click("#filter")
     rows = page.locator("#runs tbody tr")
     expect(rows).to_have_count(1)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 from datetime import datetime, timedelta
 from typing import Any
+from urllib.parse import urlencode
 
 from starlette.exceptions import HTTPException
 from starlette.requests import Request
@@ -18,8 +19,8 @@ from cell.station.core import station_of
 from cell.station.recipes import list_recipes
 from cell.station.spc_chart import trend_svg
 
-VERDICTS = ("pass", "fail", "incomplete", "no_data")
 FILTERS = ("part", "serial", "verdict", "operator", "since", "until")
+PAGE = 100  # runs on one page
 
 
 def _day(text: str, field: str) -> datetime | None:
@@ -36,23 +37,40 @@ async def runs_page(request: Request) -> Response:
     user = require(request)
     station = station_of(request)
     q = {k: request.query_params.get(k, "").strip() for k in FILTERS}
+    given = request.query_params.get("page", "0")
+    page = int(given) if given.isdigit() else 0  # newest first, PAGE runs a page
     rows: list[Any] = []
+    choices: dict[str, list[str]] = {"part": [], "verdict": [], "operator": []}
     error = None
+    store = station.results.store()
     try:
         since, until = _day(q["since"], "from"), _day(q["until"], "to")
         filters = {k: q[k] or None for k in ("part", "serial", "verdict", "operator")}
         rows = await asyncio.to_thread(
-            station.results.store().runs,
+            store.runs,
             **filters,
             since=since,
             until=until + timedelta(days=1) if until else None,  # the whole last day
-            limit=200,
+            limit=PAGE + 1,  # one more: is there an older page?
+            offset=page * PAGE,
         )
+        for column in choices:
+            choices[column] = await asyncio.to_thread(store.distinct, column)
     except CellError as exc:
         error = str(exc)
         station.journal.log("results_unreadable", page="runs", error=error)
     here = {str(p.resolve()): p.name for p in station.settings.runs.iterdir()}
-    context = {"user": user, "q": q, "rows": rows, "error": error, "verdicts": VERDICTS, "here": here}
+    context = {
+        "user": user,
+        "q": q,
+        "rows": rows[:PAGE],
+        "error": error,
+        "choices": choices,
+        "here": here,
+        "page": page,
+        "older": len(rows) > PAGE,
+        "query": urlencode({k: v for k, v in q.items() if v}),
+    }
     return station.templates.TemplateResponse(request, "runs.html", context)
 
 

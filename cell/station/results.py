@@ -41,7 +41,7 @@ class ResultsSync:
         """The run folders whose results wait for the database (their pending marker)."""
         from cell.results.folder import pending_folders
 
-        return pending_folders(self.settings.runs)
+        return pending_folders(self.settings.runs, self.store().where)
 
     def waiting(self, run_dir: Path) -> str | None:
         """Why ``run_dir``'s results are not in the database yet, or None when they are (no marker)."""
