@@ -26,7 +26,7 @@ from playwright.sync_api import expect
 from cell.errors import ConfigError
 from cell.inspection_run import resume
 from cell.runs import process_alive
-from tests.box_part import DENT, IN_REACH_MM
+from tests.box_part import DENT
 from tests.postgres_server import PostgresServer, require_postgres
 from tests.station_browser import SCREEN, StationServer, browser, shot, sign_in, start_station, stop_station
 
@@ -126,10 +126,6 @@ def test_an_operator_may_not_calibrate_or_edit_recipes(page, station: StationSer
     assert (station.recipes / "box.yaml").read_text() == before
 
 
-def _state(page) -> str:  # noqa: ANN001
-    return page.locator("#live").get_attribute("data-state") or ""
-
-
 def _journal(run: Path) -> list[dict]:
     return [json.loads(line) for line in (run / "journal.jsonl").read_text().splitlines()]
 
@@ -160,7 +156,7 @@ def test_an_inspection_started_paused_and_resumed_from_the_page(
     # live: the progress comes by server-sent events as the run goes
     page.wait_for_function(
         "() => +document.getElementById('done').textContent >= 2"
-        " && document.getElementById('live').dataset.state.startsWith('scanning')",
+        " && (document.getElementById('live').dataset.state || '').startsWith('scanning')",
         timeout=90_000,
     )
     assert re.fullmatch(r"(Moving to|Measuring) view \d+", page.inner_text("#words"))
@@ -197,7 +193,6 @@ def test_an_inspection_started_paused_and_resumed_from_the_page(
     report = json.loads((run / "results" / "report.json").read_text())
     assert value == pytest.approx(report["regions"][0]["extreme_mm"], abs=5e-4)
     assert page.locator("#report").count() == 1  # the run's own report, embedded
-    assert IN_REACH_MM  # the box stood where every face is reachable
     # the database was away: said on the page and in the run's journal; the run is whole all the same
     assert "Not yet in the results database" in page.inner_text("#unsynced")
     shot(page, "verdict", tmp_path)
@@ -237,7 +232,7 @@ def test_a_start_while_running_is_refused_and_a_station_restart_leaves_the_run_a
 ) -> None:
     run = _start(page, station, "SN-1002")
     page.wait_for_function(
-        "() => document.getElementById('live').dataset.state.startsWith('scanning')", timeout=90_000
+        "() => (document.getElementById('live').dataset.state || '').startsWith('scanning')", timeout=90_000
     )
     # a second operator tab: the start page says a run is in progress, and a start is refused
     other = page.context.new_page()
@@ -307,7 +302,7 @@ def test_the_spc_table_agrees_with_the_runs_reports(page, station: StationServer
 def test_a_run_aborted_from_the_page(page, station: StationServer) -> None:
     run = _start(page, station, "SN-1004")
     page.wait_for_function(
-        "() => document.getElementById('live').dataset.state.startsWith('scanning')", timeout=90_000
+        "() => (document.getElementById('live').dataset.state || '').startsWith('scanning')", timeout=90_000
     )
     page.click("#abort")
     page.click("#confirm-yes")  # asked on the page itself
