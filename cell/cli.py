@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "inspect": ("inspect", "Run an inspection recipe end to end; Ctrl-C pauses safely."),
     "resume": ("inspect", "Finish an interrupted or paused run from its last checkpoint."),
     "report": ("inspect", "Rebuild a finished run's report from its stored views."),
+    "abort": ("abort", "Mark a paused or interrupted run aborted (it can no longer be resumed)."),
     "history": ("history", "Past runs from the results database, filtered; SPC of a recipe."),
     "demo": ("inspect", "A full simulated inspection of the demo pillar, ending in a report."),
     "plan": ("plan", "Plan the viewpoints of a recipe's part and print its cycle-time limit."),
@@ -41,6 +42,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sensor": ("sensor", "Structured-light sensor model utilities."),
     "devices": ("devices", "Connect each configured device and print its status."),
     "docs": ("docs", "Regenerate the schema pages and the state diagram in docs/ from the code."),
+    "station": ("station", "The operator's web application (start, live, verdict, runs, SPC) and its users."),
 }
 
 

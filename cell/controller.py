@@ -36,7 +36,15 @@ from transitions.extensions import HierarchicalGraphMachine
 
 from cell.config import RobotConfig
 from cell.devices import DeviceBundle
-from cell.errors import CellError, DeviceError, DeviceFault, MotionStopped, PlanningError, StorageError
+from cell.errors import (
+    CellError,
+    ConfigError,
+    DeviceError,
+    DeviceFault,
+    MotionStopped,
+    PlanningError,
+    StorageError,
+)
 from cell.planning.motion import Move
 from cell.run_data import Checkpoint, Evaluation, Phase, View
 from cell.runs import RunFolder
@@ -121,7 +129,8 @@ def _transitions() -> list[dict[str, Any]]:
         {"trigger": "reported", "source": "reporting", "dest": "done"},
         {"trigger": "pause", "source": ACTIVE, "dest": "paused"},
         {"trigger": "fault", "source": "*", "dest": "faulted"},
-        {"trigger": "abort", "source": "*", "dest": "aborted"},
+        # a finished run's verdict stands and an aborted run stays aborted: neither can be aborted (again)
+        {"trigger": "abort", "source": ["idle", *ACTIVE, "paused", "faulted"], "dest": "aborted"},
     ]
 
 
@@ -653,6 +662,55 @@ class Controller:
         self.checkpoint.phase, self.checkpoint.summary = Phase.DONE, summary
         self._save()
         self.reported()
+
+
+class _StoppedRun:
+    """A run no process executes, as the state machine sees it: the state its journal last recorded
+    (:func:`stopped_state`); every state change it makes is journalled like a live controller's."""
+
+    state: str
+
+    def __init__(self, run: RunFolder, message: str) -> None:
+        self.run = run
+        self.message = message
+
+    def _journal_state(self) -> None:
+        self.run.log("state", state=self.state, message=self.message)
+
+
+def stopped_state(run: RunFolder) -> str:
+    """The machine state of a run no process executes: ``done``, ``aborted`` or ``paused`` when its journal
+    last recorded that, else ``idle`` (a run killed mid-step or faulted restarts from idle, as `cell resume`
+    always did)."""
+    last = next((e.get("state") for e in reversed(run.journal()) if e.get("event") == "state"), None)
+    return last if last in ("done", "aborted", "paused") else "idle"
+
+
+def abort_stopped(run: RunFolder, reason: str) -> str:
+    """Abort a run that no process executes (the caller holds its lock) through the state machine's ``abort``
+    trigger, from :func:`stopped_state`; the machine refuses a finished or an already aborted run
+    (ConfigError). Journals the new state with ``reason``; returns it."""
+    from transitions import MachineError
+    from transitions.extensions import HierarchicalMachine
+
+    model: Any = _StoppedRun(run, reason)
+    state = stopped_state(run)
+    HierarchicalMachine(
+        model=model,
+        states=STATES,
+        transitions=_transitions(),
+        initial=state,
+        auto_transitions=False,
+        after_state_change="_journal_state",
+    )
+    try:
+        model.abort()
+    except MachineError:
+        done = state == "done"
+        why = "the run is finished and its verdict stands" if done else "the run is aborted already"
+        raise ConfigError(f"{why}; nothing to abort", path=str(run.path)) from None
+    run.log("exit", state=model.state, message=reason)  # the run's record closed, as a controller closes it
+    return str(model.state)
 
 
 def mermaid_diagram() -> str:

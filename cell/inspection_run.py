@@ -292,10 +292,35 @@ def resume(
     run_dir: Path, *, on_progress: Callable[[Any], None] | None = None, say: Say = print
 ) -> RunOutcome:
     """Finish an interrupted or paused inspection run from its last checkpoint; a finished one is refused."""
+    from cell.controller import stopped_state
+
     run = open_inspection_run(run_dir)
     if Checkpoint.from_json(run.load_checkpoint()).phase is Phase.DONE:
         raise ConfigError("this run is already done; `cell report` rebuilds its report", path=str(run_dir))
+    if stopped_state(run) == "aborted":
+        raise ConfigError("this run was aborted; start a new run of the part", path=str(run_dir))
     return execute_run(run, resume=True, on_progress=on_progress, say=say)
+
+
+def abort_run(run_dir: Path, reason: str) -> str:
+    """Abort an inspection run that no process executes (paused, or stopped by a fault or a kill) through
+    the controller's state machine (:func:`cell.controller.abort_stopped`), under the run's lock: a run that a
+    live process executes is refused with that process named (pause it first); a finished or an aborted one is
+    refused by the machine. ``reason`` (who aborted it, and where) goes into the journal; returns the new
+    state, ``aborted``. The run's files stay as they are: nothing measured is deleted."""
+    from cell.controller import abort_stopped
+
+    run = open_inspection_run(run_dir)
+    run.acquire_lock("abort")
+    try:
+        state = abort_stopped(run, reason)
+    finally:
+        run.release_lock()
+    from cell.results import open_results
+
+    _, cfg, _ = load_run_inputs(run)
+    _record_results(run, open_results(cfg, run.path.parent), lambda _: None)
+    return state
 
 
 def rebuild_report(run_dir: Path) -> RunOutcome:

@@ -39,7 +39,7 @@ RUNS_ROOT = Path(__file__).resolve().parents[1] / "runs"  # the default runs roo
 LOCK_NAME = "run.lock"
 
 
-def _process_start(pid: int) -> str | None:
+def process_start(pid: int) -> str | None:
     """The kernel's start time of ``pid`` (field 22 of /proc/PID/stat), or None where /proc is missing:
     with the PID it tells a live holder from a new process that reuses a dead holder's PID."""
     try:
@@ -49,14 +49,21 @@ def _process_start(pid: int) -> str | None:
     return stat.rsplit(")", 1)[1].split()[19]
 
 
-def _alive(pid: int, start: str | None) -> bool:
+def process_alive(pid: int, start: str | None) -> bool:
+    """True while process ``pid`` of this host runs and is the one that started at ``start`` (see
+    :func:`process_start`; None: any process of that PID)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:  # another user's process: it exists
         pass
-    now = _process_start(pid)
+    try:  # a zombie (ended, its parent has not collected it yet) no longer runs
+        if Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+            return False
+    except OSError:
+        pass
+    now = process_start(pid)
     return start is None or now is None or now == start
 
 
@@ -270,7 +277,7 @@ class RunFolder:
         pid = int(holder.get("pid", -1))
         if pid == os.getpid():
             return True
-        return pid > 0 and _alive(pid, holder.get("start"))
+        return pid > 0 and process_alive(pid, holder.get("start"))
 
     def acquire_lock(self, command: str) -> None:
         """Make this process the only one working on the folder; ConfigError naming the holder if another
@@ -278,7 +285,7 @@ class RunFolder:
         me = {
             "pid": os.getpid(),
             "host": socket.gethostname(),
-            "start": _process_start(os.getpid()),
+            "start": process_start(os.getpid()),
             "command": command,
             "since": datetime.now(UTC).isoformat(timespec="seconds"),
         }

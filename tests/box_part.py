@@ -47,3 +47,28 @@ def write_box_recipe(folder: Path, at_mm: tuple[float, float, float] | None = IN
         recipe["part"]["T_W_P"] = {"xyz_mm": [float(v) for v in at_mm]}
     (folder / "box.yaml").write_text(yaml.safe_dump(recipe))
     return folder / "box.yaml"
+
+
+# the dent write_dented_box_recipe presses into the box's top face (part frame, mm): a raised-cosine cap
+DENT = {"centre_mm": (25.0, 15.0, 40.0), "radius_mm": 12.0, "depth_mm": 0.8}
+
+
+def write_dented_box_recipe(folder: Path) -> Path:
+    """The box recipe (:func:`write_box_recipe`, in reach) whose simulated actual part has :data:`DENT` in its
+    top face, and a recipe region ``lid`` (a box around the top face); returns the recipe path. The nominal
+    is the plain box, so the inspection fails with the dent as its largest defect."""
+    import numpy as np
+
+    recipe = write_box_recipe(folder)
+    box = trimesh.load(folder / "box.stl")
+    vertices, faces = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, max_edge=1.5)
+    top = np.isclose(vertices[:, 2], 40.0)
+    r = np.linalg.norm(vertices[:, :2] - np.asarray(DENT["centre_mm"][:2]), axis=1)
+    push = DENT["depth_mm"] * 0.5 * (1.0 + np.cos(np.pi * np.clip(r / DENT["radius_mm"], 0.0, 1.0)))
+    vertices[top, 2] -= push[top]
+    trimesh.Trimesh(vertices, faces, process=True).export(folder / "box_dented.stl")
+    doc = yaml.safe_load(recipe.read_text())
+    doc["part"]["actual"] = "box_dented.stl"
+    doc["regions"] = [{"name": "lid", "box_mm": [[-60.0, -45.0, 35.0], [60.0, 45.0, 41.0]]}]
+    recipe.write_text(yaml.safe_dump(doc))
+    return recipe

@@ -8,7 +8,7 @@ from collections import Counter
 import pytest
 
 # marker -> what the tests marked with it need
-COUNTED = {"postgres": "PostgreSQL server"}
+COUNTED = {"postgres": "PostgreSQL server", "chromium": "headless Chromium browser"}
 
 
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:

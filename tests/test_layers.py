@@ -75,6 +75,20 @@ RULES = [
         ("cell.cli", "cell.commands", "cell.__main__"),
     ),
     Rule("hardware only through the device registry", ("cell",), ("drivers", "fakes"), ("cell.devices",)),
+    # the station (the operator's web application) sits above the run library, beside the commands: it
+    # starts runs as `cell` child processes and reads their folders; nothing below it imports it
+    Rule(
+        "only the entry points reach the station",
+        ("cell",),
+        ("cell.station",),
+        ("cell.station", "cell.cli", "cell.commands"),
+    ),
+    Rule(
+        "the station's web framework stays in the station",
+        ("cell",),
+        ("starlette", "uvicorn", "jinja2", "sse_starlette"),
+        ("cell.station",),
+    ),
     Rule(
         "the foundation stands alone",
         FOUNDATION,
