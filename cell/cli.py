@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "resume": ("inspect", "Finish an interrupted or paused run from its last checkpoint."),
     "report": ("inspect", "Rebuild a finished run's report from its stored views."),
     "history": ("history", "List the runs of a part: time, status, verdict and key figures."),
+    "prune": ("prune", "Remove raw view images the cell's retention policy no longer keeps."),
     "demo": ("inspect", "A full simulated inspection of the demo pillar, ending in a report."),
     "plan": ("plan", "Plan the viewpoints of a recipe's part and print its cycle-time limit."),
     "scan": ("scan", "One structured-light scan of a mesh in the simulated cell, from one pose."),

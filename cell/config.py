@@ -20,6 +20,7 @@ from pydantic import BaseModel, Field, ValidationError, field_validator, model_v
 from cell.errors import ConfigError
 from cell.geometry import Pose, pose_from_xyz_rpy
 from cell.planning.settings import PlanSettings
+from cell.retention import RetentionConfig
 from cell.schema import Fraction, PositiveFloat, Strict, Vec3
 
 
@@ -312,6 +313,9 @@ class CellConfig(Strict):
     )
     calibration: CalibrationFiles = CalibrationFiles()
     verification: VerificationConfig = VerificationConfig()
+    retention: RetentionConfig = Field(
+        RetentionConfig(), description="how long runs keep their raw view images (docs/storage.md)"
+    )
 
 
 # --------------------------------------------------------------------------------------------- recipes
@@ -556,10 +560,11 @@ def load_recipe(path: str | Path) -> Recipe:
 
 
 def config_fingerprint(cfg: CellConfig) -> str:
-    """SHA-256 of the cell config as validated, without its ``calibration:`` section: what a calibration file
-    records as the config it was made for (``cell_config_sha256``). Adding the file to the config does not
-    change it; changing the robot, the sensor, the scene or the world does."""
-    data = cfg.model_dump(mode="json", exclude={"calibration"})
+    """SHA-256 of the cell config as validated, without its ``calibration:`` and ``retention:`` sections:
+    what a calibration file records as the config it was made for (``cell_config_sha256``). Adding the file
+    to the config, or changing how long runs keep their raw images, does not change it; changing the robot,
+    the sensor, the scene or the world does."""
+    data = cfg.model_dump(mode="json", exclude={"calibration", "retention"})
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
