@@ -22,7 +22,6 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
 
 import yaml
 from pydantic import Field, ValidationError
@@ -33,7 +32,6 @@ from cell.runs import RAW_IMAGES, RunFolder
 from cell.schema import Strict
 
 DAY_S = 86400.0
-Days = Annotated[float, Field(ge=0, le=36500)]
 PRUNING = ".raw.pruning"  # a raw folder being deleted (renamed first: a killed prune leaves no half stack)
 
 
@@ -43,13 +41,17 @@ class RetentionConfig(Strict):
     inputs, journal, checkpoint and the decoded views are always kept. ``cell prune`` applies it; a run
     applies it to itself when it finishes, so 0 days removes them then. Both 0: raw images are not written."""
 
-    raw_images_passed_days: Days | None = Field(
+    raw_images_passed_days: float | None = Field(
         0.0,
-        description="a passed part's raw images: not kept by default (about 9-13 MB a view; the results "
-        "and decoded views stay)",
+        ge=0,
+        le=36500,
+        description="a passed part's raw images: not kept by default (13 MB a view of the 1024x768 8-bit "
+        "camera; its results and decoded views stay)",
     )
-    raw_images_failed_days: Days | None = Field(
+    raw_images_failed_days: float | None = Field(
         30.0,
+        ge=0,
+        le=36500,
         description="raw images of a failed or incomplete run: kept a month by default, for the review "
         "of the part and to decode it again (cell scan --from views/NNN/raw)",
     )
@@ -211,7 +213,11 @@ def prune(
     now = time.time() if now is None else now
     report = PruneReport(root, dry_run)
     for run in inspection_runs(root):
-        pol = policy if policy is not None else run_policy(run)
+        try:
+            pol = policy if policy is not None else run_policy(run)
+        except ConfigError as exc:  # that run's own policy is unreadable: leave it, say why
+            report.runs.append(RunPrune(run.path, None, None, raw_dirs(run), 0, "skip", str(exc)))
+            continue
         entry = assess(run, pol, now)
         if entry.action == "delete" and not dry_run:
             try:

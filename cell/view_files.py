@@ -77,11 +77,12 @@ def save_view_points(
             oblique=np.asarray(oblique, dtype=bool),
             eval=mask,
         )
-    return steps * STEP_MM
+    return _from_steps(delta, STEP_MM)
 
 
 def _from_steps(delta: NDArray[np.int32], step_mm: float) -> NDArray[np.float64]:
-    return np.cumsum(delta, axis=0, dtype=np.int64) * step_mm
+    """Points (N, 3) mm from their int32 step differences."""
+    return np.asarray(np.cumsum(delta, axis=0, dtype=np.int64) * step_mm, dtype=np.float64)
 
 
 def load_view_points(view_dir: Path) -> ViewPoints:

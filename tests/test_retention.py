@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from cell.config import load_cell_config
 from cell.errors import ConfigError
 from cell.inspection_run import REPO
 from cell.retention import DAY_S, RetentionConfig, prune
@@ -198,21 +199,45 @@ def test_other_folders_and_a_missing_root(tmp_path):
         prune(tmp_path / "nope")
 
 
+def test_a_bad_retention_section_is_refused_naming_the_field(tmp_path):
+    data = yaml.safe_load((REPO / "recipes" / "cells" / "sim_binned.yaml").read_text())
+    for bad, field in (({"raw_images_passed_days": -1}, "raw_images_passed_days"), ({"keep": 3}, "keep")):
+        path = tmp_path / "cell.yaml"
+        path.write_text(yaml.safe_dump({**data, "retention": bad}))
+        with pytest.raises(ConfigError) as exc:
+            load_cell_config(path)
+        assert exc.value.field == f"retention.{field}" and str(path) in str(exc.value)
+    # a run whose own cell config has a bad section is left alone, with the reason
+    run = make_run(
+        tmp_path / "runs", "r", verdict="fail", age_days=400, retention={"raw_images_failed_days": "x"}
+    )
+    (entry,) = prune(tmp_path / "runs", now=NOW).runs
+    assert entry.action == "skip" and "retention" in entry.reason and len(_raw(run)) == 2
+
+
 def test_cell_prune_command(tmp_path):
+    """The command in process (typer's runner) for its output, and once as a process for the exit code."""
+    from typer.testing import CliRunner
+
+    from cell.cli import app
+
     make_run(tmp_path, "old", verdict="fail", age_days=400)
-    cmd = [sys.executable, "-m", "cell", "prune", "--runs", str(tmp_path)]
-    dry = subprocess.run([*cmd, "--dry-run"], cwd=REPO, capture_output=True, text=True)
-    assert dry.returncode == 0, dry.stderr
-    assert "would remove" in dry.stdout and len(_raw(tmp_path / "old")) == 2
+
+    def prune_cmd(*args: str) -> str:
+        result = CliRunner().invoke(app, ["prune", "--runs", str(tmp_path), *args])
+        assert result.exit_code == 0, result.output
+        return result.output
+
+    assert "would remove" in prune_cmd("--dry-run") and len(_raw(tmp_path / "old")) == 2
     cell = tmp_path.parent / "policy.yaml"
     data = yaml.safe_load((REPO / "recipes" / "cells" / "sim_binned.yaml").read_text())
     cell.write_text(yaml.safe_dump({**data, "retention": {"raw_images_failed_days": None}}))
-    kept = subprocess.run([*cmd, "--cell", str(cell)], cwd=REPO, capture_output=True, text=True)
-    assert kept.returncode == 0 and "removed 0.0 MB" in kept.stdout and len(_raw(tmp_path / "old")) == 2
-    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert f"removed {RAW_PER_RUN / 1e6:.1f} MB" in done.stdout and _raw(tmp_path / "old") == []
+    assert "removed 0.0 MB" in prune_cmd("--cell", str(cell)) and len(_raw(tmp_path / "old")) == 2
+    assert f"removed {RAW_PER_RUN / 1e6:.1f} MB" in prune_cmd() and _raw(tmp_path / "old") == []
     bad = subprocess.run(
-        [*cmd[:-2], "--runs", str(tmp_path / "none")], cwd=REPO, capture_output=True, text=True
+        [sys.executable, "-m", "cell", "prune", "--runs", str(tmp_path / "none")],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
     )
     assert bad.returncode == 2 and "runs root not found" in bad.stderr
