@@ -37,7 +37,7 @@ def register(app: typer.Typer) -> None:
 
             policy = load_cell_config(cell).retention
         report = prune(runs, policy, dry_run=dry_run)
-        console = Console(highlight=False)
+        console = Console(highlight=False, soft_wrap=True)
         verb = "would remove" if dry_run else "removed"
         for r in report.runs:
             if r.action == "delete":
