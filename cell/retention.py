@@ -178,7 +178,8 @@ def delete_raw(run: RunFolder, entry: RunPrune, policy: RetentionConfig, *, lock
             shutil.rmtree(doomed)
             freed += size
         entry.freed_bytes = freed
-        run.log(
+        # reopened under the lock: a torn last line (a killed process's) is cut, so this entry starts a line
+        RunFolder.open(run.path).log(
             "prune",
             removed=[str(d.relative_to(run.path)) for d in entry.raw_dirs],
             freed_bytes=freed,
@@ -197,11 +198,9 @@ def inspection_runs(root: Path) -> Iterator[RunFolder]:
     for path in sorted(root.iterdir()):
         if path.name.startswith(".") or not path.is_dir():
             continue
-        try:
-            run = RunFolder.open(path)
-        except ConfigError:
-            continue
-        if run.kind == "inspection":
+        # not RunFolder.open: it cuts a torn last journal line, in a running run the line being written
+        run = RunFolder(path)
+        if run.journal_path.is_file() and run.kind == "inspection":
             yield run
 
 

@@ -127,6 +127,20 @@ def test_dry_run_touches_nothing_and_says_what_it_would_free(tmp_path):
     assert report.to_free_bytes == 2 * RAW_PER_RUN and report.freed_bytes == 0
 
 
+def test_a_torn_journal_line_is_left_to_a_dry_run_and_cut_before_the_prune_entry(tmp_path):
+    """A dry run reads a run whose last journal line is torn (a process died writing it; in a running run,
+    the line being written) without cutting it; a prune, under the lock, cuts it so its entry parses."""
+    run = make_run(tmp_path, "torn", verdict="fail", age_days=40)
+    with open(run / "journal.jsonl", "a") as f:
+        f.write('{"t": 1, "event": "sta')
+    before = (run / "journal.jsonl").read_bytes()
+    prune(tmp_path, dry_run=True, now=NOW)
+    assert (run / "journal.jsonl").read_bytes() == before
+    prune(tmp_path, now=NOW)
+    entries = RunFolder.open(run).journal()
+    assert entries[-1]["event"] == "prune" and entries[-2]["state"] == "done"
+
+
 def test_unfinished_runs_are_never_pruned_however_old(tmp_path):
     """A run not done can still be resumed: its views (raw images included) stay."""
     run = make_run(tmp_path, "paused", phase="scanning", verdict=None, age_days=10_000)
