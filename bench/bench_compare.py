@@ -31,6 +31,7 @@ import trimesh
 
 REPO = Path(__file__).resolve().parent.parent
 CELL = [sys.executable, "-m", "cell"]
+NO_TABLE = ["--table-z", "none"]  # the sphere stands on no table: every point compared, as by CloudCompare
 CC_ENV = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
 
 
@@ -68,7 +69,7 @@ def child_cpu() -> float:
 def run_cell(nominal: Path, cloud: Path, out: Path) -> float:
     t = time.perf_counter()
     subprocess.run(
-        [*CELL, "compare", str(nominal), str(cloud), "--out", str(out)],
+        [*CELL, "compare", str(nominal), str(cloud), "--out", str(out), *NO_TABLE],
         check=True,
         cwd=REPO,
         capture_output=True,
@@ -123,6 +124,7 @@ def big_run(folder: Path, nominal: Path, n: int) -> str:
             str(cloud),
             "--out",
             str(folder / "big"),
+            *NO_TABLE,
         ],
         cwd=REPO,
         capture_output=True,

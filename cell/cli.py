@@ -6,7 +6,8 @@ however heavy the library behind a command is (bench/bench_startup.py measures i
 
 Errors the cell raises on purpose (:class:`cell.errors.CellError`) end the command with one clear line and the
 error's exit code (2 for bad input); usage errors (unknown option, missing argument) end the same way with
-exit code 2; anything else is a bug and keeps its traceback.
+exit code 2; a disk that is full or read-only ends with one line naming the file (exit code 1); anything
+else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "inspect": ("inspect", "Run an inspection recipe end to end; Ctrl-C pauses safely."),
     "resume": ("inspect", "Finish an interrupted or paused run from its last checkpoint."),
     "report": ("inspect", "Rebuild a finished run's report from its stored views."),
-    "history": ("history", "List the runs of a part: time, status, verdict and key figures."),
+    "history": ("history", "Past runs from the results database, filtered; SPC of a recipe."),
     "prune": ("prune", "Remove raw view images the cell's retention policy no longer keeps."),
     "demo": ("inspect", "A full simulated inspection of the demo pillar, ending in a report."),
     "plan": ("plan", "Plan the viewpoints of a recipe's part and print its cycle-time limit."),
@@ -112,6 +113,12 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(exc.exit_code)
     except CellError as exc:
         _fail(str(exc), exc.exit_code)
+    except OSError as exc:  # a full disk or read-only folder the library did not name: still one line
+        from cell.storage import describe, is_storage_error
+
+        if not is_storage_error(exc):
+            raise
+        _fail(describe(exc), 1)
     except (typer.Abort, KeyboardInterrupt):
         print("aborted", file=sys.stderr)
         sys.exit(130)

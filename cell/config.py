@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -22,6 +23,7 @@ from cell.geometry import Pose, pose_from_xyz_rpy
 from cell.planning.settings import PlanSettings
 from cell.retention import RetentionConfig
 from cell.schema import Fraction, PositiveFloat, Strict, Vec3
+from cell.schema_errors import unknown_key_message, wrong_kind_message
 
 
 class PoseConfig(Strict):
@@ -316,11 +318,50 @@ class CellConfig(Strict):
     retention: RetentionConfig = Field(
         RetentionConfig(), description="how long runs keep their raw view images (docs/storage.md)"
     )
+    results_db: str | None = Field(
+        None,
+        description="where runs are recorded for `cell history`, SPC and the station: a plant's "
+        "PostgreSQL (postgresql://user@host/db; docs/results-db.md) or sqlite:///file; absent: "
+        "results.sqlite in the runs root",
+    )
+
+    @field_validator("results_db")
+    @classmethod
+    def _database_url(cls, url: str | None) -> str | None:
+        if url is None:
+            return url
+        from sqlalchemy.engine import make_url  # here: only a config that names a database pays for it
+        from sqlalchemy.exc import ArgumentError
+
+        try:
+            make_url(url)
+        except ArgumentError:
+            url = ""
+        if not re.match(r"(postgresql(\+psycopg)?|sqlite)://", url):
+            raise ValueError("a postgresql://user@host/database or sqlite:///path URL")
+        return url
 
 
 # --------------------------------------------------------------------------------------------- recipes
+MAX_TOLERANCE_MM = 50.0  # a band wider than this is not a tolerance
+MIN_TOLERANCE_MM = 0.001  # a limit closer to zero than 1 um (but not zero) is a value in metres
+
+
+def tolerance_problem(*limits_mm: float) -> str | None:
+    """What is implausible about tolerance limits in mm, or None: a limit beyond +-50 mm, or one nearer to
+    zero than 0.001 mm without being zero (-0.0003 is a band of 0.3 mm written in metres). Zero itself is a
+    one-sided band's limit."""
+    for v in limits_mm:
+        if abs(v) > MAX_TOLERANCE_MM:
+            return f"{v:g} mm is not a plausible tolerance (units are mm)"
+        if 0 < abs(v) < MIN_TOLERANCE_MM:
+            return f"{v:g} mm is below 1 um: a tolerance in metres? (units are mm; {v:g} m = {v * 1000:g} mm)"
+    return None
+
+
 class ToleranceConfig(Strict):
-    """Allowed signed deviation from the nominal surface, mm (negative = into the material)."""
+    """Allowed signed deviation from the nominal surface, mm (negative = into the material); limits between
+    0.001 mm and 50 mm from zero."""
 
     lower: float = Field(lt=0)
     upper: float = Field(gt=0)
@@ -328,8 +369,9 @@ class ToleranceConfig(Strict):
     @field_validator("lower", "upper")
     @classmethod
     def _plausible(cls, v: float) -> float:
-        if abs(v) > 50:
-            raise ValueError(f"{v} mm is not a plausible tolerance (units are mm)")
+        problem = tolerance_problem(v)
+        if problem:
+            raise ValueError(problem)
         return v
 
 
@@ -356,8 +398,9 @@ class RegionConfig(Strict):
             lower, upper = self.tolerance_mm
             if not lower < upper:
                 raise ValueError("tolerance_mm must be [lower, upper] with lower < upper")
-            if max(abs(lower), abs(upper)) > 50:
-                raise ValueError(f"{list(self.tolerance_mm)} mm is not a plausible tolerance (units are mm)")
+            problem = tolerance_problem(lower, upper)
+            if problem:
+                raise ValueError(f"tolerance_mm {list(self.tolerance_mm)}: {problem}")
         return self
 
 
@@ -448,6 +491,12 @@ class Recipe(Strict):
         description="share of the inspectable surface that must be measured "
         "for a pass/fail verdict; below it the verdict is 'incomplete'",
     )
+    exclude_from_coverage: list[Annotated[int, Field(ge=0)]] = Field(
+        default_factory=list,
+        description="nominal faces (indices as for regions) that coverage leaves out: surfaces no reachable "
+        "pose sees (`cell plan` names them and their faces) or that need no measurement. The planner "
+        "plans no view for them; points measured on them are still judged",
+    )
     plan: PlanSettings = PlanSettings()
     alignment: AlignmentConfig = AlignmentConfig()
     requires_calibration: bool = Field(
@@ -499,16 +548,21 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
 
 
 def validate(model: type[M], data: dict[str, Any], path: str | Path) -> M:
-    """Validate ``data`` against ``model``; the first error becomes a ConfigError naming file and field."""
+    """Validate ``data`` against ``model``; the first error becomes a ConfigError naming file and field. A
+    file of another known kind (a recipe where a cell config belongs) is said to be one; an unknown key gets
+    the closest known key ("did you mean")."""
     try:
         return model.model_validate(data)
     except ValidationError as exc:
+        wrong_kind = wrong_kind_message(model, data) if isinstance(data, dict) else None
+        if wrong_kind:
+            raise ConfigError(wrong_kind, path=str(path)) from exc
         errors = exc.errors()
         # a misspelled key shows as an unknown key and a missing one: name the typo, its cause
         err = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
         msg = err["msg"]
         if err["type"] == "extra_forbidden":
-            msg = "unknown key (typo?); remove it or check the schema in docs/"
+            msg = unknown_key_message(model, err["loc"])
         elif err["type"] == "missing":
             msg = "required field is missing"
         more = f" (and {len(exc.errors()) - 1} more problem(s))" if len(exc.errors()) > 1 else ""
@@ -560,11 +614,11 @@ def load_recipe(path: str | Path) -> Recipe:
 
 
 def config_fingerprint(cfg: CellConfig) -> str:
-    """SHA-256 of the cell config as validated, without its ``calibration:`` and ``retention:`` sections:
-    what a calibration file records as the config it was made for (``cell_config_sha256``). Adding the file
-    to the config, or changing how long runs keep their raw images, does not change it; changing the robot,
-    the sensor, the scene or the world does."""
-    data = cfg.model_dump(mode="json", exclude={"calibration", "retention"})
+    """SHA-256 of the cell config as validated, without its ``calibration:`` section: what a calibration file
+    records as the config it was made for (``cell_config_sha256``). Adding the file to the config does not
+    change it; changing the robot, the sensor, the scene or the world does. Where results are recorded
+    (``results_db``) and how long raw images are kept (``retention``) measure nothing and are left out too."""
+    data = cfg.model_dump(mode="json", exclude={"calibration", "results_db", "retention"})
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 

@@ -20,6 +20,8 @@ Decoding of view k runs in a worker thread while the robot moves to view k+1 (pi
 
 from __future__ import annotations
 
+import errno
+import os
 import signal
 import threading
 import time
@@ -34,10 +36,11 @@ from transitions.extensions import HierarchicalGraphMachine
 
 from cell.config import RobotConfig
 from cell.devices import DeviceBundle
-from cell.errors import CellError, DeviceError, DeviceFault, MotionStopped, PlanningError
+from cell.errors import CellError, DeviceError, DeviceFault, MotionStopped, PlanningError, StorageError
 from cell.planning.motion import Move
 from cell.run_data import Checkpoint, Evaluation, Phase, View
 from cell.runs import RunFolder
+from cell.storage import is_storage_error, require_room, storage_error
 
 ACTIVE = [
     "connecting",
@@ -256,6 +259,7 @@ class Controller:
         self._pending: dict[int, Future[dict[str, Any]]] = {}
         self._registration: dict[str, Any] | None = None
         self._attempts = 0
+        self._storage_failed = False  # the run folder refused a write: the run is pausing for it
         self.current_view: int | None = None
         self.machine = HierarchicalGraphMachine(
             model=self,
@@ -304,8 +308,18 @@ class Controller:
         return self.checkpoint.phase is Phase.REPORTING
 
     # ------------------------------------------------------------------ bookkeeping
+    def _log(self, event: str, **fields: Any) -> None:
+        """Journal an entry. Once the run folder refused a write (a full disk, a read-only file system), an
+        entry that cannot be written is dropped: the run is pausing for that very reason, and the message
+        says so; the journal's reader skips a torn last line."""
+        try:
+            self.run.log(event, **fields)
+        except OSError as exc:
+            if not (self._storage_failed and is_storage_error(exc)):
+                raise
+
     def _journal_state(self) -> None:
-        self.run.log("state", state=self.state, message=self.message)
+        self._log("state", state=self.state, message=self.message)
         if self.on_progress:
             self.on_progress(self)
 
@@ -369,7 +383,7 @@ class Controller:
             self._make_safe()
             self._executor.shutdown(wait=True, cancel_futures=False)
             self._close_devices()
-            self.run.log("exit", state=self.state, message=self.message)
+            self._log("exit", state=self.state, message=self.message)
         return self.state
 
     def _step(self) -> None:
@@ -379,14 +393,20 @@ class Controller:
             self._attempts = 0
         except CellError as exc:
             self._handle_error(exc)
-        except Exception as exc:  # a bug: record it, make safe, fault
+        except Exception as exc:
+            if is_storage_error(exc, self.run.path):  # a full disk or read-only run folder: pause for room
+                assert isinstance(exc, OSError)
+                self._handle_error(storage_error(exc, self.run.path))
+                return
+            # a bug: record it, make safe, fault
             self.message = f"internal error: {type(exc).__name__}: {exc}"
             self.run.log("error", kind="internal", error=repr(exc))
             self.fault()
 
     def _handle_error(self, exc: CellError) -> None:
         retryable = isinstance(exc, DeviceError) and exc.retryable
-        self.run.log(
+        self._storage_failed = self._storage_failed or isinstance(exc, StorageError)
+        self._log(
             "error", kind=type(exc).__name__, error=str(exc), attempt=self._attempts + 1, retryable=retryable
         )
         if retryable and self._attempts < self.settings.max_retries:
@@ -401,7 +421,7 @@ class Controller:
         else:
             self.message = str(exc)
         self._drain_decodes()
-        if isinstance(exc, DeviceError):
+        if isinstance(exc, (DeviceError, StorageError)):
             self.pause()  # needs the operator; `cell resume` continues from the last checkpoint
         else:
             self.fault()
@@ -419,7 +439,7 @@ class Controller:
                 self.run.log("error", kind=type(exc).__name__, error=str(exc), during="reconnect")
 
     def _close_devices(self) -> None:
-        self.devices.close_all(lambda name, exc: self.run.log("close_failed", device=name, error=repr(exc)))
+        self.devices.close_all(lambda name, exc: self._log("close_failed", device=name, error=repr(exc)))
 
     def _make_safe(self) -> None:
         """Stop the robot and blank the projector; never raises (this runs on every exit path)."""
@@ -427,7 +447,7 @@ class Controller:
             try:
                 action()
             except Exception as exc:  # a device that is gone cannot be made safer; record and go on
-                self.run.log("safe_stop_failed", error=repr(exc))
+                self._log("safe_stop_failed", error=repr(exc))
 
     # ------------------------------------------------------------------ state handlers
     def _do_resuming(self) -> None:
@@ -545,7 +565,14 @@ class Controller:
 
     def _decode_view(self, index: int, view: View, captured: Any) -> dict[str, Any]:
         with self.run.writing_view(index) as tmp:
-            summary = self.job.decode(view, captured, tmp)
+            try:
+                summary = self.job.decode(view, captured, tmp)
+                require_room(tmp)  # a full disk after the writes: a writer may have failed without a word
+            except OSError as exc:  # judged while the half-written view still fills the disk
+                if is_storage_error(exc, tmp):  # named by the view, not by its temporary folder
+                    code = exc.errno or errno.ENOSPC
+                    raise OSError(code, os.strerror(code), str(self.run.view_dir(index))) from exc
+                raise
         return summary
 
     def _collect(self, *, block: bool) -> None:
@@ -563,9 +590,11 @@ class Controller:
         (their folders do not exist, so a resume measures them again)."""
         for index in sorted(self._pending):
             try:
-                self.run.log("view", view=index, summary=self._pending[index].result())
+                summary = self._pending[index].result()
             except Exception as exc:  # recorded here; the view is redone on resume
-                self.run.log("error", kind="decode", view=index, error=repr(exc))
+                self._log("error", kind="decode", view=index, error=repr(exc))
+            else:
+                self._log("view", view=index, summary=summary)
         self._pending.clear()
 
     def _do_scanning_decoding(self) -> None:

@@ -130,7 +130,8 @@ def check_world(cfg: CellConfig, path: str | Path) -> None:
         return
     from pydantic import ValidationError
 
-    from fakes.sim.world import world_config
+    from cell.schema_errors import unknown_key_message
+    from fakes.sim.world import WorldConfig, world_config
 
     try:
         world_config(cfg.world)
@@ -138,7 +139,7 @@ def check_world(cfg: CellConfig, path: str | Path) -> None:
         err = exc.errors()[0]
         msg = err["msg"]
         if err["type"] == "extra_forbidden":
-            msg = "unknown key (typo?); see docs/world-schema.md"
+            msg = f"{unknown_key_message(WorldConfig, err['loc'])} (docs/world-schema.md)"
         raise ConfigError(msg, path=str(path), field=".".join(["world", *map(str, err["loc"])])) from exc
 
 

@@ -63,6 +63,16 @@ class DeviceLibraryError(DeviceFault):
     wrapped with the device's name so that the run pauses for the operator instead of faulting."""
 
 
+class StorageError(CellError):
+    """A folder the cell writes cannot take a write: the disk is full, the file system read-only, or the
+    folder not ours. ``path`` names the folder; the message says what to do. A run under way pauses on it
+    (its views on disk are whole); elsewhere it ends the command with exit code 1."""
+
+    def __init__(self, message: str, *, path: str | None = None) -> None:
+        self.path = path
+        super().__init__(message)
+
+
 class CalibrationError(CellError):
     """A calibration routine failed or would be worse than the active calibration."""
 

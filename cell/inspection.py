@@ -27,6 +27,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from cell.analysis.alignment import Aligner, AlignmentError
+from cell.analysis.crop import PartCrop
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.judge import judge
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
@@ -58,6 +59,7 @@ from cell.planning.kinematics import UR5E
 from cell.planning.measured import DefectRegion, MeasuredView, measured_view_from_masks
 from cell.planning.motion import MotionPlanner
 from cell.planning.planner import Plan, plan_initial
+from cell.planning.unseen import plan_feedback
 from cell.planning.viewpoints import Viewpoint
 from cell.raycast import RayCaster
 from cell.run_data import Checkpoint, Evaluation, View
@@ -148,7 +150,9 @@ class LambertianInspection:
     def plan_model(self) -> Plan:
         """The f0 plan (recomputed deterministically after a resume: it also holds the surface samples)."""
         if self._plan is None:
-            self._plan = plan_initial(self.nominal_W, self.cfg, self.recipe.plan)
+            self._plan = plan_initial(
+                self.nominal_W, self.cfg, self.recipe.plan, self.recipe.exclude_from_coverage
+            )
         return self._plan
 
     @staticmethod
@@ -227,10 +231,9 @@ class LambertianInspection:
         points_W = transform_points(T_W_C, cloud.points_C[keep])
         quality = cloud.contrast[keep].astype(np.float32)
         oblique_kept = oblique[keep]
-        on_table = points_W[:, 2] < self.settings.table_margin_mm
         deviation = signed_distance(self.nominal, points_W).deviation_mm
-        far = np.abs(deviation) > self.settings.crop_mm
-        part = ~on_table & ~far
+        crop = PartCrop(0.0, self.settings.table_margin_mm, self.settings.crop_mm).split(points_W, deviation)
+        part = crop.part
         points_W, quality = points_W[part], quality[part]
         sub = voxel_subsample_index(points_W, self.settings.eval_voxel_mm)
         save_view_points(out_dir, points_W, quality, oblique_kept[part], sub)
@@ -249,7 +252,7 @@ class LambertianInspection:
             "link_filtered": int((valid & ~kept.keep).sum()),
             "rim_filtered": int((valid & kept.keep & edges).sum()),
             "oblique_filtered": int(oblique_kept[part].sum()),
-            "excluded": {"table": int(on_table.sum()), "background": int((far & ~on_table).sum())},
+            "excluded": crop.counts(),
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
         }
         write_json_atomic(out_dir / "view.json", summary)
@@ -489,6 +492,7 @@ class LambertianInspection:
                 f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
                 f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
             )
+        plan = plan_feedback(self.plan_model, self.recipe)  # what no reachable viewpoint sees, for the reader
         inp = judge(
             NominalMesh.from_trimesh(nominal_P),
             pts_P,
@@ -499,7 +503,7 @@ class LambertianInspection:
             excluded=excluded,
             coverage=self.inspectable_coverage(run, T_align),
             min_coverage=self.recipe.min_coverage,
-            warnings=alignment.get("warnings", []),
+            warnings=[*alignment.get("warnings", []), *plan.warnings],
             incomplete_reasons=reasons,
             alignment=alignment,
             calibration=calibration,
@@ -511,6 +515,7 @@ class LambertianInspection:
                 ],
                 "registration": registration,
                 "evaluation": evaluation,
+                "plan": plan.to_json(),  # predicted coverage, min_coverage, unseen_surfaces, warnings
                 "geometry_source": self.geometry_source,
             },
         )

@@ -15,14 +15,25 @@ import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
 from cell.config import CellConfig, PartConfig, Recipe, load_cell_config, load_recipe, read_yaml, validate
 from cell.errors import ConfigError
 from cell.run_data import Checkpoint, Phase, RunIdentity
-from cell.runs import RUNS_ROOT, RunFolder, RunIndex, write_atomic, write_json_atomic
+from cell.runs import (
+    RESUME_OR_ANOTHER,
+    RUNS_ROOT,
+    RunFolder,
+    require_empty_output,
+    write_atomic,
+    write_json_atomic,
+)
+from cell.storage import new_folder
+
+if TYPE_CHECKING:
+    from cell.results import ResultsStore
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_RECIPE = REPO / "recipes" / "pillar.yaml"
@@ -83,7 +94,7 @@ def start_run(
     final = out if out else RUNS_ROOT / RunFolder.new_name(part, identity.serial or "")
     from cell.verification.history import inspection_block
 
-    blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections)
+    blocked = inspection_block(final.parent, cfg.name, cfg.verification.block_inspections, cfg)
     if blocked:
         raise ConfigError(blocked, path=str(cell_path))
     holder = RunFolder(final).lock_holder() if final.is_dir() else None
@@ -93,31 +104,30 @@ def start_run(
             f"({holder.get('command')}); choose another --out",
             path=str(final),
         )
-    if final.exists() and any(final.iterdir()):
-        raise ConfigError(
-            "run folder exists and is not empty; choose another --out or `cell resume` it", path=str(final)
-        )
+    require_empty_output(final, then=RESUME_OR_ANOTHER)
     # the folder appears under its name only once every input is copied: a run killed before that never
     # started, and leaves nothing that a resume could mistake for a run
-    run = RunFolder.create(final.parent, part, name=f".{final.name}.partial-{os.getpid()}")
-    run.acquire_lock("cell inspect")  # held from the start: the folder appears under its name locked
-    manifest: dict[str, Any] = {
-        "recipe": run.copy_input(recipe_path, "recipe.yaml").name,
-        "cell_as_given": run.copy_input(cell_path, "cell.original.yaml").name,
-        "cell": _copy_cell_with_calibration(run, cell_path, cfg),
-        "settings": {"seed": seed, "pipelining": pipelining},
-        "identity": identity.to_json(),
-        "cad": run.copy_input(recipe.part.cad, "nominal" + recipe.part.cad.suffix).name,
-        "actual": run.copy_input(actual, "actual" + Path(actual).suffix).name if actual else None,
-        "sources": {
-            "recipe": str(recipe_path),
-            "cell": str(cell_path),
-            "cad": str(recipe.part.cad),
-            "actual": str(actual) if actual else None,
-        },
-    }
-    write_json_atomic(run.path / "inputs" / "manifest.json", manifest)
-    run.log("run_created", part=part, **manifest["sources"], **identity.to_json())
+    partial = final.parent / f".{final.name}.partial-{os.getpid()}"
+    with new_folder(partial, shown=final):  # the disk filling up meanwhile: refused, nothing left
+        run = RunFolder.create(final.parent, part, name=partial.name)
+        run.acquire_lock("cell inspect")  # held from the start: the folder appears under its name locked
+        manifest: dict[str, Any] = {
+            "recipe": run.copy_input(recipe_path, "recipe.yaml").name,
+            "cell_as_given": run.copy_input(cell_path, "cell.original.yaml").name,
+            "cell": _copy_cell_with_calibration(run, cell_path, cfg),
+            "settings": {"seed": seed, "pipelining": pipelining},
+            "identity": identity.to_json(),
+            "cad": run.copy_input(recipe.part.cad, "nominal" + recipe.part.cad.suffix).name,
+            "actual": run.copy_input(actual, "actual" + Path(actual).suffix).name if actual else None,
+            "sources": {
+                "recipe": str(recipe_path),
+                "cell": str(cell_path),
+                "cad": str(recipe.part.cad),
+                "actual": str(actual) if actual else None,
+            },
+        }
+        write_json_atomic(run.path / "inputs" / "manifest.json", manifest)
+        run.log("run_created", part=part, **manifest["sources"], **identity.to_json())
     if final.exists():
         final.rmdir()  # empty (checked above)
     os.replace(run.path, final)
@@ -231,8 +241,10 @@ def _execute_locked(
         devices = record_devices(devices)
     job = LambertianInspection(recipe, cfg, nominal_W)
     ctl = inspection_controller(devices, job, run, settings, on_progress=on_progress)
-    index = RunIndex(run.path.parent)
-    index.upsert(run.path, job.part_name, "running")
+    from cell.results import open_results
+
+    results = open_results(cfg, run.path.parent)
+    results.record_or_defer(run.path)  # "running"; whatever the database does, the run goes on
     try:
         state = ctl.execute(resume=resume)
     finally:
@@ -246,18 +258,20 @@ def _execute_locked(
         if pruned is not None:
             say(f"raw view images removed ({pruned.freed_bytes / 1e6:.1f} MB): {pruned.reason}")
     summary = Checkpoint.from_json(run.load_checkpoint()).summary or {}
-    dev = summary.get("deviation") or {}
-    index.upsert(
-        run.path,
-        job.part_name,
-        state,
-        verdict=summary.get("verdict"),
-        n_points=summary.get("n_points"),
-        coverage=summary.get("coverage"),
-        dev_min=dev.get("min_mm"),
-        dev_max=dev.get("max_mm"),
-    )
+    _record_results(run, results, say)
     return RunOutcome(run, state, ctl.message, summary)
+
+
+def _record_results(run: RunFolder, results: ResultsStore, say: Say) -> None:
+    """Record the run in the results database; when it cannot be, journal why and leave the folder's
+    pending marker for the next `cell history --sync` (the run's own files are complete either way)."""
+    reason = results.record_or_defer(run.path)
+    results.close()
+    if reason is None:
+        run.log("results_recorded", database=results.where)
+        return
+    run.log("results_not_recorded", database=results.where, reason=reason)
+    say(f"results not recorded in the database yet: {reason}")
 
 
 def inspect(
@@ -274,8 +288,8 @@ def inspect(
     say: Say = print,
 ) -> RunOutcome:
     """Start a run of ``recipe`` on ``cell`` (see :func:`start_run`) and execute it."""
-    if record is not None and record.exists() and any(record.iterdir()):
-        raise ConfigError("recording folder exists and is not empty; choose another", path=str(record))
+    if record is not None:
+        require_empty_output(record, field="--record")
     run = start_run(recipe, cell, out, sim_actual, seed=seed, pipelining=pipelining, identity=identity)
     return execute_run(run, resume=False, record=record, on_progress=on_progress, say=say)
 

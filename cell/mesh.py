@@ -224,11 +224,12 @@ def working_volume_W(cfg: CellConfig) -> tuple[np.ndarray, np.ndarray]:
 
 def load_part_W(recipe: Recipe, recipe_path: str | Path, cfg: CellConfig) -> trimesh.Trimesh:
     """A recipe's validated nominal CAD placed in the world {W} (mm); ConfigError when it does not fit the
-    cell's working volume or the recipe's face regions name faces it does not have."""
-    from cell.analysis.regions import check_region_faces
+    cell's working volume or the recipe's face regions or coverage exclusions name faces it does not have."""
+    from cell.analysis.regions import check_face_indices, check_region_faces
 
     mesh = load_mesh(recipe.part.cad)
     check_region_faces(recipe.regions, len(mesh.faces), recipe_path, prefix="regions.")
+    check_face_indices(recipe.exclude_from_coverage, len(mesh.faces), recipe_path, "exclude_from_coverage")
     T_W_P = recipe.part.T_W_P.matrix()
     lo, hi = working_volume_W(cfg)
     check_in_volume(mesh, recipe.part.cad, lo, hi, T_W_P)

@@ -12,7 +12,8 @@ Layout of a run folder::
 
 Killing the process at any instant leaves a folder from which the job resumes: a view folder exists whole or
 not at all, the checkpoint is replaced atomically, and a torn last journal line is ignored when reading.
-An SQLite index in the runs root (``index.sqlite``) lists runs by part, time and verdict for ``cell history``.
+What a run's results were is recorded in the results database (``cell.results``: results.sqlite in the runs
+root, or the cell's PostgreSQL), a copy of the folders that ``cell history --rebuild`` can make again.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ import os
 import re
 import shutil
 import socket
-import sqlite3
 import tempfile
 import time
 from collections.abc import Iterator
@@ -33,8 +33,9 @@ from pathlib import Path
 from typing import Any
 
 from cell.errors import ConfigError
+from cell.storage import require_writable
 
-INDEX_NAME = "index.sqlite"
+INDEX_NAME = "index.sqlite"  # the verification history (cell.verification.history)
 RUNS_ROOT = Path(__file__).resolve().parents[1] / "runs"  # the default runs root: runs/ in the repository
 LOCK_NAME = "run.lock"
 RAW_IMAGES = "raw"  # views/NNN/raw/: a view's raw pattern stack (cell.view_files), what `cell prune` removes
@@ -101,6 +102,7 @@ def write_json_atomic(path: Path, obj: Any) -> None:
     write_atomic(path, json.dumps(obj, indent=2, default=_json_default).encode())
 
 
+RESUME_OR_ANOTHER = "choose another --out, or `cell resume` the run that is there"
 _UNSAFE = re.compile(r"[^A-Za-z0-9._+-]+")
 
 
@@ -128,11 +130,7 @@ class RunFolder:
     @classmethod
     def create(cls, root: Path, part_name: str, *, name: str | None = None) -> RunFolder:
         """A new, empty run folder under ``root`` named :meth:`new_name` unless ``name`` is given."""
-        path = Path(root) / (name or cls.new_name(part_name))
-        if path.exists() and any(path.iterdir()):
-            raise ConfigError(
-                "run folder exists and is not empty; choose another --out or `cell resume` it", path=str(path)
-            )
+        path = require_empty_output(Path(root) / (name or cls.new_name(part_name)), then=RESUME_OR_ANOTHER)
         (path / "inputs").mkdir(parents=True, exist_ok=True)
         (path / "views").mkdir(exist_ok=True)
         (path / "results").mkdir(exist_ok=True)
@@ -337,55 +335,15 @@ class RunFolder:
             self.lock_path.unlink(missing_ok=True)
 
 
-# ---------------------------------------------------------------------------------------------- index
-class RunIndex:
-    """SQLite index of runs in a runs root: part, start time, verdict and key figures."""
-
-    def __init__(self, root: Path) -> None:
-        self.path = Path(root) / INDEX_NAME
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        with self._connect() as db:
-            db.execute(
-                "CREATE TABLE IF NOT EXISTS runs (folder TEXT PRIMARY KEY, part TEXT, started TEXT, "
-                "status TEXT, verdict TEXT, n_points INTEGER, coverage REAL, dev_min REAL, dev_max REAL, "
-                "updated TEXT)"
-            )
-
-    def _connect(self) -> sqlite3.Connection:
-        return sqlite3.connect(self.path, timeout=10)
-
-    def upsert(self, folder: Path, part: str, status: str, **figures: Any) -> None:
-        now = datetime.now(UTC).isoformat(timespec="seconds")
-        with self._connect() as db:
-            db.execute(
-                "INSERT INTO runs (folder, part, started, status, updated) VALUES (?, ?, ?, ?, ?) "
-                "ON CONFLICT(folder) DO UPDATE SET status=excluded.status, updated=excluded.updated",
-                (str(Path(folder).resolve()), part, now, status, now),
-            )
-            for key in ("verdict", "n_points", "coverage", "dev_min", "dev_max"):
-                if key in figures and figures[key] is not None:
-                    db.execute(
-                        f"UPDATE runs SET {key}=? WHERE folder=?", (figures[key], str(Path(folder).resolve()))
-                    )
-
-    def history(self, part: str | None = None) -> list[dict[str, Any]]:
-        with self._connect() as db:
-            db.row_factory = sqlite3.Row
-            if part:
-                rows = db.execute("SELECT * FROM runs WHERE part=? ORDER BY started", (part,)).fetchall()
-            else:
-                rows = db.execute("SELECT * FROM runs ORDER BY started").fetchall()
-        return [dict(r) for r in rows]
-
-
-def require_empty_output(out: Path) -> Path:
-    """``out`` as a folder a command may write its results into: absent or empty. Results are never written
-    over earlier ones (a compare into a scan's folder would replace the scan's cloud.ply)."""
+def require_empty_output(
+    out: Path, *, field: str = "--out", then: str = "choose another folder (results are never written over)"
+) -> Path:
+    """``out`` as a folder a command may write into: absent or empty, else a ConfigError naming ``field`` and
+    saying what to do (``then``); and writable (not on a full disk or a read-only file system: probed, see
+    :func:`cell.storage.require_writable`). Results are never written over earlier ones (a compare into a
+    scan's folder would replace its cloud.ply; an inspection into a run's folder would mix two runs)."""
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ConfigError(
-            "--out holds files already; choose another folder (results are never written over)",
-            path=str(out),
-            field="--out",
-        )
+        raise ConfigError(f"{field} holds files already; {then}", path=str(out), field=field)
+    require_writable(out, field=field)  # refused before any work: a full disk or read-only folder
     return out

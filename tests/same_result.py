@@ -3,7 +3,13 @@ uninterrupted one)."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+from pathlib import Path
+
 import pytest
+
+from cell.exit_codes import ExitCode, for_verdict
 
 
 def assert_same_result(got: dict, expected: dict, context: object = "") -> None:
@@ -28,3 +34,12 @@ def _flatten(stats: dict, prefix: str = "") -> dict[str, float]:
         else:
             out[f"{prefix}{key}"] = value
     return out
+
+
+def judged_report(proc: subprocess.CompletedProcess[str], run: Path) -> dict:
+    """The report of a run a `cell inspect` / `cell resume` process finished, after checking that the
+    process exited with the code of the report's verdict (pass 0, fail 4, incomplete 5)."""
+    assert proc.returncode in (ExitCode.PASS, ExitCode.FAIL, ExitCode.INCOMPLETE), proc.stdout + proc.stderr
+    doc = json.loads((run / "results" / "report.json").read_text())
+    assert proc.returncode == for_verdict(doc["verdict"]), (doc["verdict"], proc.stdout + proc.stderr)
+    return doc

@@ -66,6 +66,8 @@ def test_a_command_help_loads_only_its_own_light_module(command: str) -> None:
         (["compare", "a.stl", "b.ply", "--bogus"], "No such option: --bogus"),
         (["nosuch"], "No such command 'nosuch'"),
         (["sensor", "error-table", "--x"], "No such option: --x"),
+        # a serial a folder cannot hold, before anything is read or written
+        (["inspect", "recipes/pillar.yaml", "--serial", "../SN 7"], "field '--serial': '../SN 7' is not a"),
     ],
 )
 def test_usage_errors_are_one_line_with_exit_code_2(args: list[str], says: str) -> None:

@@ -23,7 +23,7 @@ import yaml
 
 from cell.runs import RunFolder
 from tests.box_part import small_cell, write_box_recipe
-from tests.same_result import assert_same_result
+from tests.same_result import assert_same_result, judged_report
 from tests.test_controller import make_controller, recipe_path, reference, result_of  # noqa: F401
 
 REPO = Path(__file__).resolve().parent.parent
@@ -169,8 +169,7 @@ def cli_reference(box_inputs: tuple[Path, Path], tmp_path_factory: pytest.TempPa
     recipe, cell_file = box_inputs
     out = tmp_path_factory.mktemp("cliref") / "ref"
     ref = _cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(out))
-    assert ref.returncode == 0, ref.stdout + ref.stderr
-    return json.loads((out / "results" / "report.json").read_text())
+    return judged_report(ref, out)
 
 
 def _journal(run: Path) -> list[dict]:
@@ -220,9 +219,8 @@ def test_sigterm_mid_move_pauses_and_resume_gives_the_same_result(
     assert not (run / "run.lock").exists()  # released on the way out
     views_before = set(RunFolder.open(run).completed_views())
     done = _cell("resume", str(run))
-    assert done.returncode == 0, done.stdout + done.stderr
+    doc = judged_report(done, run)
     assert views_before <= set(RunFolder.open(run).completed_views())
-    doc = json.loads((run / "results" / "report.json").read_text())
     assert_same_result(doc, cli_reference, "SIGTERM mid-move")
 
 
@@ -276,7 +274,7 @@ def test_stale_lock_is_taken_over_and_a_live_one_refused(
 
     (run / "run.lock").write_text(json.dumps(dict(holder, pid=_dead_pid())))
     done = _cell("resume", str(run))
-    assert done.returncode == 0, done.stdout + done.stderr
+    judged_report(done, run)
     takeovers = [e for e in _journal(run) if e["event"] == "lock"]
     assert takeovers and takeovers[0]["action"] == "stale lock taken over"
     assert not (run / "run.lock").exists()

@@ -23,6 +23,7 @@ from cell.inspection_run import load_run_inputs
 from cell.mesh import load_mesh
 from cell.runs import RunFolder
 from fakes.sim.world import build_world, place_about
+from tests.same_result import judged_report
 
 REPO = Path(__file__).resolve().parent.parent
 PILLAR = REPO / "recipes" / "pillar.yaml"
@@ -65,8 +66,7 @@ def inspect(recipe: Path, cell: Path, actual: Path, out: Path) -> dict:
         cwd=REPO,
         timeout=2400,
     )
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    return json.loads((out / "results" / "report.json").read_text())
+    return judged_report(proc, out)
 
 
 def true_placement(cell: Path, actual: Path) -> np.ndarray:

@@ -25,6 +25,7 @@ FOUNDATION = (
     "cell.runs",
     "cell.raycast",
     "cell.run_data",
+    "cell.storage",
 )
 # the domain packages, lowest first: each imports only packages before it
 DOMAIN = (
@@ -78,7 +79,7 @@ RULES = [
         "the foundation stands alone",
         FOUNDATION,
         ("cell",),
-        allowed=("cell.errors", "cell.geometry", "cell.schema"),
+        allowed=("cell.errors", "cell.geometry", "cell.schema", "cell.storage"),
     ),
     Rule(
         "libraries never import a job, the controller or the device registry",
@@ -90,6 +91,7 @@ RULES = [
             "cell.analysis",
             "cell.planning",
             "cell.glass",
+            "cell.results",
         ),
         ("cell.controller", "cell.inspection", "cell.devices", "cell.calibration_state", "cell.docgen"),
         exempt=JOBS,  # a package's job module (cell.glass.job) builds its devices

@@ -82,5 +82,5 @@ def test_recorded_inspection_replays_to_the_same_report(tmp_path: Path) -> None:
         "--record",
         str(fx),
     )
-    assert again.returncode != 0 and "recording folder exists" in again.stdout + again.stderr
+    assert again.returncode != 0 and "--record holds files already" in again.stdout + again.stderr
     assert not (tmp_path / "d").exists()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cell.errors import ConfigError
-from cell.runs import RunFolder, RunIndex
+from cell.runs import RunFolder
 
 
 def test_view_exists_whole_or_not_at_all(tmp_path: Path) -> None:
@@ -54,16 +54,5 @@ def test_checkpoint_round_trip_and_reopen(tmp_path: Path) -> None:
     assert again.load_checkpoint()["views"][0]["T_B_T"] == np.eye(4).tolist()
     with pytest.raises(ConfigError, match="not a run folder"):
         RunFolder.open(tmp_path / "elsewhere")
-    with pytest.raises(ConfigError, match="not empty"):
+    with pytest.raises(ConfigError, match="holds files already; choose another --out, or `cell resume`"):
         RunFolder.create(tmp_path, "part", name="r1")
-
-
-def test_index_lists_runs_by_part(tmp_path: Path) -> None:
-    index = RunIndex(tmp_path)
-    index.upsert(tmp_path / "a", "pillar", "running")
-    index.upsert(tmp_path / "b", "gauge", "running")
-    index.upsert(tmp_path / "a", "pillar", "done", verdict="fail", n_points=1000, dev_min=-0.6)
-    rows = index.history("pillar")
-    assert len(rows) == 1 and rows[0]["status"] == "done" and rows[0]["verdict"] == "fail"
-    assert rows[0]["dev_min"] == pytest.approx(-0.6)
-    assert len(index.history()) == 2

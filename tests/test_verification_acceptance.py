@@ -143,7 +143,7 @@ def test_cli_refuses_a_non_empty_output_folder(tmp_path, capsys) -> None:
         main(["verify", "acceptance", "--cell", CELL, "--out", str(tmp_path)])
     assert exc.value.code == 2
     assert (tmp_path / "x").read_text() == "keep me"
-    assert "not empty" in capsys.readouterr().err
+    assert "holds files already" in capsys.readouterr().err
 
 
 def test_report_escapes_every_user_string(tmp_path) -> None:

@@ -14,8 +14,17 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from cell.analysis.crop import CropMasks, PartCrop
+from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.errors import ConfigError
 from cell.mesh import load_mesh
+
+# share of the points off the table that must lie near the nominal surface. Measured on a simulated scan of
+# the good pillar (`cell scan --pose auto`, sim_binned): 1.0 in the right frame; 0.0 moved 20 mm up, 0.05
+# 20 mm down, 0.47 30 mm across the pillar, 0.38 turned 90 degrees about z; 0.98 moved 50 mm along it (its
+# cross-section does not change there: no cloud-only test can see that shift)
+MIN_OVERLAP = 0.5
+OVERLAP_MM = 5.0  # "near" when background cropping is off: the inspection's crop distance
 
 
 def load_cloud(path: Path) -> np.ndarray:
@@ -50,15 +59,80 @@ def _is_numeric_row(line: str, delim: str | None) -> bool:
         return False
 
 
+def check_units(pts: np.ndarray, nominal: NominalMesh, cloud_path: Path) -> None:
+    """ConfigError when the finite points ``pts`` are none, or not the nominal's size (another unit)."""
+    if len(pts) == 0:
+        raise ConfigError("the cloud has no finite points (empty or all NaN)", path=str(cloud_path))
+    ratio = np.linalg.norm(np.ptp(pts, 0)) / nominal.extent_mm
+    inches = any(abs(ratio * k - 1) < 0.1 for k in (25.4, 1 / 25.4))
+    if len(pts) >= 3 and (not 1 / 30 < ratio < 30 or inches):
+        hint = " (a factor of 25.4: inches?)" if inches else ""
+        raise ConfigError(
+            f"the cloud is {ratio:.3g}x the size of the nominal{hint}: wrong units? (both must be in mm)",
+            path=str(cloud_path),
+        )
+
+
 def parse_tolerance(text: str) -> tuple[float, float]:
-    """'-0.3,0.3' -> (-0.3, 0.3) mm."""
+    """'-0.3,0.3' -> (-0.3, 0.3) mm; limits as plausible as a recipe's (:func:`cell.config.tolerance_problem`:
+    '-0.0003,0.0003' is a band in metres)."""
+    from cell.config import tolerance_problem
+
     try:
         lo, hi = (float(x) for x in text.split(","))
     except ValueError as exc:
-        raise ConfigError(f"--tolerance must be 'LOWER,UPPER' in mm, got '{text}'") from exc
+        raise ConfigError(f"must be 'LOWER,UPPER' in mm, got '{text}'", field="--tolerance") from exc
     if not lo < hi:
-        raise ConfigError(f"--tolerance lower bound must be below the upper one, got '{text}'")
+        raise ConfigError(f"the lower limit must be below the upper one, got '{text}'", field="--tolerance")
+    problem = tolerance_problem(lo, hi)
+    if problem:
+        raise ConfigError(problem, field="--tolerance")
     return lo, hi
+
+
+def parse_table_z(text: str | float | None, nominal: NominalMesh) -> float | None:
+    """The table top's z in the nominal's frame (mm): 'lowest' (the nominal's lowest point: the part stands on
+    the table), a number, or 'none' (no table)."""
+    if text is None or str(text).lower() == "none":
+        return None
+    if str(text).lower() == "lowest":
+        return float(nominal.vertices[:, 2].min())
+    try:
+        return float(text)
+    except ValueError as exc:
+        raise ConfigError(f"must be 'lowest', 'none' or a z in mm, got '{text}'", field="--table-z") from exc
+
+
+def crop_to_part(
+    nominal: NominalMesh, pts: np.ndarray, crop: PartCrop, cloud_path: Path
+) -> tuple[ErrorMap, CropMasks]:
+    """The points' error map and what of them is table and background (:class:`PartCrop`, as the inspection
+    crops its views). ConfigError when the cloud does not overlap the nominal: fewer than
+    :data:`MIN_OVERLAP` of its points off the table lie within the overlap distance of the surface (a cloud
+    in another frame: the camera's, a scanner's, the part's placed elsewhere)."""
+    em = signed_distance(nominal, pts)
+    masks = crop.split(pts, em.deviation_mm)
+    off_table = ~masks.on_table
+    if not off_table.any():
+        raise ConfigError(
+            f"no point lies {crop.table_margin_mm} mm or more above the table top (z = {crop.table_z_mm:g} "
+            "mm in the nominal's frame): nothing of the part. Is the cloud in another frame (upside down)? "
+            "Else give the table's z with --table-z",
+            path=str(cloud_path),
+        )
+    near_mm = crop.background_mm or OVERLAP_MM
+    share = float((np.abs(em.deviation_mm[off_table]) <= near_mm).mean())
+    if share < MIN_OVERLAP:
+        offset = np.median(pts[off_table], axis=0) - 0.5 * (nominal.vertices.min(0) + nominal.vertices.max(0))
+        raise ConfigError(
+            f"the cloud does not overlap the nominal: {100 * share:.1f}% of its points (off the table) lie "
+            f"within {near_mm:g} mm of the nominal surface (at least {100 * MIN_OVERLAP:.0f}% expected); its "
+            f"median point is ({', '.join(f'{v:.0f}' for v in offset)}) mm from the nominal's centre. Is it "
+            "in another frame? Bring it into the nominal's frame or align it (--align datums); crop a cloud "
+            "that is mostly not the part (fixtures, clutter) to the part first",
+            path=str(cloud_path),
+        )
+    return em, masks
 
 
 def run_compare(
@@ -75,6 +149,8 @@ def run_compare(
     min_coverage: float | None = None,
     min_defect_points: int = 1,
     csv: bool = False,
+    table_z: str | float | None = "lowest",
+    crop_mm: float | None = 5.0,
 ) -> dict:
     """Load, check, align, compute the error map and write the report; return report.json's document.
 
@@ -84,8 +160,11 @@ def run_compare(
     counted under ``excluded`` as ``cell inspect`` does (1, the default, keeps every point: a cloud from
     elsewhere may have been filtered already). ``csv``: also write deviations.csv (off by default: at 5M
     points the text file takes longer to write than the whole comparison; cloud.ply holds the same numbers).
+    ``table_z`` (:func:`parse_table_z`) and ``crop_mm`` (None or 0: keep the background) crop the cloud to
+    the part as the inspection crops its views (:class:`cell.analysis.crop.PartCrop`), after the alignment;
+    the points left out are counted under ``excluded`` (``table_points``, ``background_points``). A cloud
+    that does not overlap the nominal is refused (:func:`crop_to_part`).
     """
-    from cell.analysis.errormap import ErrorMap, NominalMesh
     from cell.analysis.judge import judge
     from cell.analysis.regions import (
         Coverage,
@@ -102,6 +181,8 @@ def run_compare(
     lo, hi = parse_tolerance(tolerance)
     if min_coverage is not None and not 0 <= min_coverage <= 1:
         raise ConfigError(f"--min-coverage must be a fraction in [0, 1], got {min_coverage}")
+    if crop_mm is not None and crop_mm < 0:
+        raise ConfigError(f"must be >= 0 mm (0: keep the background), got {crop_mm}", field="--crop-mm")
     if min_defect_points < 1:
         raise ConfigError(f"--min-defect-points must be >= 1, got {min_defect_points}")
     if min_coverage is not None and density_per_mm2 is None and radius_mm is None:
@@ -114,19 +195,11 @@ def run_compare(
     user_regions = [region_from_config(spec) for spec in region_specs]
     t0 = time.perf_counter()
     nominal = NominalMesh.from_trimesh(mesh)
+    crop = PartCrop(parse_table_z(table_z, nominal), background_mm=crop_mm or None)
     raw = load_cloud(cloud_path)
     finite = np.isfinite(raw).all(1)
     pts = raw[finite]
-    if len(pts) == 0:
-        raise ConfigError("the cloud has no finite points (empty or all NaN)", path=str(cloud_path))
-    ratio = np.linalg.norm(np.ptp(pts, 0)) / nominal.extent_mm
-    inches = any(abs(ratio * k - 1) < 0.1 for k in (25.4, 1 / 25.4))
-    if len(pts) >= 3 and (not 1 / 30 < ratio < 30 or inches):
-        hint = " (a factor of 25.4: inches?)" if inches else ""
-        raise ConfigError(
-            f"the cloud is {ratio:.3g}x the size of the nominal{hint}: wrong units? (both must be in mm)",
-            path=str(cloud_path),
-        )
+    check_units(pts, nominal, cloud_path)
     T = np.eye(4)
     if align == "datums":
         if datums is None:
@@ -138,9 +211,12 @@ def run_compare(
             raise ConfigError("datum file needs 6 columns: nominal x,y,z, measured x,y,z", path=str(datums))
         T = datum_align(d[:, 3:6], d[:, 0:3])
     elif align == "bestfit":
-        T = icp_point_to_plane(nominal, pts).T
+        # ICP starts where the cloud is, on what is the part there: table and background would pull it
+        T = icp_point_to_plane(nominal, pts, region=crop_to_part(nominal, pts, crop, cloud_path)[1].part).T
     if align != "none":  # the identity would only copy millions of points
         pts = transform_points(T, pts)
+    em, masks = crop_to_part(nominal, pts, crop, cloud_path)
+    keep = masks.part
     warning = "best-fit alignment hides global deviations" if align == "bestfit" else None
     meta: dict[str, Any] = {
         "nominal": str(nominal_path),
@@ -157,16 +233,20 @@ def run_compare(
 
     inp = judge(
         nominal,
-        pts,
+        pts[keep],
         Tolerance(lo, hi),
         n_points_input=len(raw),
         regions=user_regions,
         min_defect_points=min_defect_points,
-        excluded={"non_finite_points": int((~finite).sum())},
+        excluded={
+            "non_finite_points": int((~finite).sum()),
+            **{f"{reason}_points": n for reason, n in masks.counts().items()},
+        },
         coverage=measured_coverage if density_per_mm2 is not None or radius_mm is not None else None,
         min_coverage=min_coverage,
         warnings=[warning] if warning else [],
         metadata=meta,
+        error_map=em.take(keep),
     )
     meta["seconds"] = round(time.perf_counter() - t0, 3)  # the comparison, error map included
     return write_report(out, inp, pictures=pictures, csv=csv)

@@ -155,6 +155,12 @@ class ErrorMap:
     face: NDArray[np.int64]
     feature: NDArray[np.int8]
 
+    def take(self, which: NDArray[np.bool_] | NDArray[np.int64]) -> ErrorMap:
+        """The error map of the points ``which`` selects (a mask or indices), in their order."""
+        return ErrorMap(
+            self.deviation_mm[which], self.closest_mm[which], self.face[which], self.feature[which]
+        )
+
 
 def signed_distance(nominal: NominalMesh, points_mm: ArrayLike) -> ErrorMap:
     """Exact signed distance of every point (N, 3, mm, part frame) to the nominal mesh."""

@@ -37,6 +37,7 @@ def judge(
     alignment: dict[str, Any] | None = None,
     calibration: dict[str, Any] | None = None,
     metadata: dict[str, Any] | None = None,
+    error_map: ErrorMap | None = None,
 ) -> ReportInput:
     """The report input of ``points_mm`` (N, 3, part frame, finite) against ``nominal`` (same frame).
 
@@ -46,9 +47,10 @@ def judge(
     reason), reported after the nominal's own exclusions. ``coverage``: the coverage, or how to compute it
     from the error map of every given point (e.g. from their closest nominal points). ``n_points_input``:
     the points measured (default: those given). ``warnings`` follow the nominal's sign warning; the other
-    arguments go to :class:`ReportInput` as they are.
+    arguments go to :class:`ReportInput` as they are. ``error_map``: the points' signed distances when the
+    caller computed them already (``cell compare`` crops by them), else computed here.
     """
-    em = signed_distance(nominal, points_mm)
+    em = signed_distance(nominal, points_mm) if error_map is None else error_map
     faces = nominal.source_face[em.face] if nominal.source_face is not None else em.face
     points, deviation = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3), em.deviation_mm
     counts: dict[str, int] = {**nominal.excluded, **(excluded or {})}

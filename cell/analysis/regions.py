@@ -21,14 +21,13 @@ from typing import Any
 
 import numpy as np
 import trimesh
-import yaml
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, ValidationError
 from scipy.spatial import cKDTree
 
 from cell.analysis.errormap import NominalMesh
-from cell.config import RegionConfig
+from cell.config import RegionConfig, read_yaml, validate
 from cell.errors import ConfigError
+from cell.schema import Strict
 
 
 @dataclass(frozen=True)
@@ -102,8 +101,9 @@ def point_bands(
     return PointBands(lower, upper)
 
 
-class _RegionFile(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class _RegionFile(Strict):
+    """A region file (``cell compare --regions``): a recipe's ``regions:`` alone."""
+
     regions: list[RegionConfig]
 
 
@@ -129,16 +129,22 @@ def check_region_faces(specs: Sequence[RegionConfig], n_faces: int, path: str | 
             )
 
 
+def check_face_indices(faces: Sequence[int], n_faces: int, path: str | Path, field: str) -> None:
+    """ConfigError naming the file and field when ``faces`` name a face the nominal does not have."""
+    if faces and max(faces) >= n_faces:
+        raise ConfigError(
+            f"face {max(faces)} does not exist: the nominal mesh has {n_faces} faces (indices "
+            f"0..{n_faces - 1}); check the list against the CAD file",
+            path=str(path),
+            field=field,
+        )
+
+
 def load_regions(path: Path) -> list[RegionConfig]:
     """Region specs from YAML (``regions: [{name, faces | box_mm, tolerance_mm}]``), in the schema of a
-    recipe's ``regions``: :class:`cell.config.RegionConfig`."""
-    try:
-        spec = _RegionFile.model_validate(yaml.safe_load(Path(path).read_text()))
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"cannot read the region file: {exc}", path=str(path)) from exc
-    except ValidationError as exc:
-        raise ConfigError(f"invalid region file: {exc}", path=str(path)) from exc
-    return list(spec.regions)
+    recipe's ``regions``: :class:`cell.config.RegionConfig`; errors name the file and field as a recipe's
+    do."""
+    return list(validate(_RegionFile, read_yaml(path), path).regions)
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ import numpy as np
 from cell.config import CellConfig, ProjectorConfig, config_fingerprint
 from cell.contracts import Camera, Projector, TimedProjector
 from cell.errors import CalibrationError, ConfigError, DeviceFault
+from cell.storage import require_writable
 
 KIND = "display_latency"
 RAMP = (0.05, 0.95)  # white shares that count as on the ramp
@@ -119,6 +120,7 @@ def calibrate_latency(
     from cell.calibration.store import save_calibration
     from cell.devices import build_devices, ready_to_capture
 
+    require_writable(out)  # before the measurement: a full disk or read-only folder would lose it
     devices = build_devices(cfg)
     with ready_to_capture(devices, cfg.sensor.camera) as settings:
         m = measure_latency(

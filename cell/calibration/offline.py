@@ -25,6 +25,7 @@ from cell.errors import CalibrationError, ConfigError
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.scan import masks_image, write_ply
 from cell.sensing.triangulate import SensorCloud, Triangulator
+from cell.storage import new_folder
 
 
 @dataclass
@@ -282,10 +283,13 @@ def calibrate_from_folder(
     folder = load_capture_folder(source)  # checked before the run folder is made
     if (out / "journal.jsonl").exists():
         run = RunFolder.open(out)
+        run.copy_input(cell, "cell.yaml")
+        run.copy_input(source / MANIFEST, MANIFEST)
     else:
-        run = RunFolder.create(out.parent, "calibration", name=out.name)
-    run.copy_input(cell, "cell.yaml")
-    run.copy_input(source / MANIFEST, MANIFEST)
+        with new_folder(out):  # a full disk or read-only folder: refused, nothing left behind
+            run = RunFolder.create(out.parent, "calibration", name=out.name)
+            run.copy_input(cell, "cell.yaml")
+            run.copy_input(source / MANIFEST, MANIFEST)
     kind, path, figs = run_offline(routine, folder, run.path, cell, **options)
     report: dict[str, Any] = {"kind": kind, "file": str(path), "source": str(source), "summary": figs}
     report["cell_config_lines"] = config_lines(kind, path)

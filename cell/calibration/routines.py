@@ -28,6 +28,7 @@ from cell.errors import CalibrationError, ConfigError, RoutinePaused
 from cell.planning.kinematics import UR5E
 from cell.run_data import Checkpoint, Phase
 from cell.runs import RunFolder, write_json_atomic
+from cell.storage import new_folder, require_writable
 
 
 # --------------------------------------------------------------------------------------------- runner
@@ -62,11 +63,12 @@ def _calibration_folder(
                 (out / name).rename(keep / name)
         (out / "views").mkdir()
     else:
-        run = RunFolder.create(out.parent, "calibration", name=out.name)
-        for name, path in {"cell.yaml": cell, **(inputs or {})}.items():
-            if path is not None:
-                run.copy_input(path, name)
-        run.mark_kind(kind)
+        with new_folder(out):  # a full disk or read-only folder: refused, nothing left behind
+            run = RunFolder.create(out.parent, "calibration", name=out.name)
+            for name, path in {"cell.yaml": cell, **(inputs or {})}.items():
+                if path is not None:
+                    run.copy_input(path, name)
+            run.mark_kind(kind)
     return run, False
 
 
@@ -171,6 +173,7 @@ def calibrate_all(
     files) and ``out/calibration.json``; returns (the cell file, the summary)."""
     cfg = load_cell_config(cell)
     out = Path(out)
+    require_writable(out)  # a full disk or read-only folder: refused before the first routine
     out.mkdir(parents=True, exist_ok=True)
     steps: list[tuple[str, Callable[[CellConfig], CalibrationJob]]] = [
         ("intrinsics", lambda c: IntrinsicsJob(c, seed=seed)),

@@ -30,6 +30,14 @@ def register(app: typer.Typer) -> None:
             "(cell inspect uses 10; 1 keeps every point)",
         ),
         csv: bool = typer.Option(False, "--csv", help="also write deviations.csv (x,y,z,deviation in mm)"),
+        table_z: str = typer.Option(
+            "lowest",
+            help="the table top's z in the nominal's frame: points less than 0.5 mm above it are the table "
+            "and left out, as cell inspect does; 'lowest' (the nominal's lowest point), a z in mm, or 'none'",
+        ),
+        crop_mm: float = typer.Option(
+            5.0, help="points farther than this from the nominal are background and left out (0: keep them)"
+        ),
     ) -> None:
         """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report. Exits
         0 on pass, 4 on fail, 5 when incomplete (docs/exit-codes.md)."""
@@ -51,6 +59,8 @@ def register(app: typer.Typer) -> None:
             min_coverage=min_coverage,
             min_defect_points=min_defect_points,
             csv=csv,
+            table_z=table_z,
+            crop_mm=crop_mm,
         )
         typer.echo(
             f"{doc['verdict']}: {doc['n_points']} points, {doc['n_out_of_tolerance']} out of tolerance "

@@ -1,45 +1,97 @@
-"""``cell history``: the runs of a part from the runs root's index (cell.runs.RunIndex), as a table."""
+"""``cell history``: past runs from the results database (cell.results), filtered; its SPC of a recipe;
+``--sync`` and ``--rebuild`` bring the database up to date with the run folders."""
 
 from __future__ import annotations
 
+from datetime import datetime
 from pathlib import Path
 
 import typer
 
 from cell.runs import RUNS_ROOT
 
-COLUMNS = ("started", "part", "status", "verdict", "points", "coverage", "dev min", "dev max", "folder")
 
+def _since(text: str | None) -> datetime | None:
+    """``--since`` as an aware datetime: ``YYYY-MM-DD`` or an ISO time, local time unless it says."""
+    if text is None:
+        return None
+    from cell.errors import ConfigError
 
-def _figure(value: float | None, fmt: str = "{:.3f}") -> str:
-    return "" if value is None else fmt.format(value)
+    try:
+        t = datetime.fromisoformat(text)
+    except ValueError:
+        raise ConfigError(
+            f"{text!r} is not a date: YYYY-MM-DD or YYYY-MM-DDTHH:MM", field="--since"
+        ) from None
+    return t if t.tzinfo else t.astimezone()
 
 
 def register(app: typer.Typer) -> None:
     @app.command("history")
     def history_cmd(
-        part: str = typer.Argument(None, help="part name (default: all parts)"),
-        runs: Path = typer.Option(RUNS_ROOT, "--runs", help="runs root holding index.sqlite"),
+        part_arg: str = typer.Argument(None, metavar="[PART]", help="part name (default: all parts)"),
+        part: str = typer.Option(None, "--part", help="only this part (same as PART)"),
+        serial: str = typer.Option(None, "--serial", help="only this serial number"),
+        verdict: str = typer.Option(None, "--verdict", help="only this verdict: pass, fail, incomplete"),
+        operator: str = typer.Option(None, "--operator", help="only this operator"),
+        since: str = typer.Option(None, "--since", help="only runs started at or after (YYYY-MM-DD)"),
+        limit: int = typer.Option(50, "--limit", min=1, help="at most this many runs, newest first"),
+        folders: bool = typer.Option(False, "--folders", help="add each run's folder (wider than 80)"),
+        runs: Path = typer.Option(RUNS_ROOT, "--runs", help="runs root (its results.sqlite by default)"),
+        cell: Path = typer.Option(None, "--cell", help="cell config whose results_db to read"),
+        sync: bool = typer.Option(False, "--sync", help="only record the runs still waiting for the db"),
+        rebuild: bool = typer.Option(False, "--rebuild", help="rebuild the database from the run folders"),
+        spc: str = typer.Option(None, "--spc", metavar="RECIPE", help="SPC of a recipe: Cp/Cpk, trends"),
+        csv: Path = typer.Option(None, "--csv", help="with --spc: write the trend table to this CSV file"),
     ) -> None:
-        """List the runs of a part: time, status, verdict and key figures."""
-        from rich.console import Console
-        from rich.table import Table
+        """Past runs, newest first: time, part, serial, operator, verdict and deviation range (mm).
 
-        from cell.runs import RunIndex
+        The runs come from the results database (results.sqlite in the runs root, or the cell config's
+        results_db). Runs the database missed while it was down are recorded first.
+        """
+        from cell.config import load_cell_config
+        from cell.results import open_results
+        from cell.results.text import history_lines, spc_lines
 
-        table = Table(title=f"runs of {part or 'all parts'} in {runs}")
-        for column in COLUMNS:
-            table.add_column(column)
-        for r in RunIndex(runs).history(part):
-            table.add_row(
-                r["started"],
-                r["part"],
-                r["status"],
-                r["verdict"] or "",
-                _figure(r["n_points"], "{}"),
-                _figure(r["coverage"]),
-                _figure(r["dev_min"]),
-                _figure(r["dev_max"]),
-                r["folder"],
+        store = open_results(load_cell_config(cell) if cell else None, runs)
+        if rebuild:
+            n = store.rebuild(say=typer.echo)
+            typer.echo(f"rebuilt {store.where} from {n} run folders in {runs}")
+            return
+        n = store.sync()
+        if n or sync:
+            typer.echo(f"recorded {n} run(s) that were waiting for {store.where}")
+        if sync:
+            return
+        if spc:
+            result = store.spc(spc)
+            if not result.n_runs:
+                typer.echo(f"no finished runs of recipe {spc!r} in {store.where} (recipes are named by file)")
+                return
+            typer.echo("\n".join(spc_lines(result)))
+            if csv:
+                csv.write_text(store.spc_csv(spc))
+                capability = csv.with_name(csv.stem + "-capability.csv")
+                capability.write_text(store.spc_csv(spc, "capability"))
+                typer.echo(f"trend: {csv}\ncapability: {capability}")
+            return
+        rows = store.runs(
+            part=part or part_arg,
+            serial=serial,
+            verdict=verdict,
+            operator=operator,
+            since=_since(since),
+            limit=limit,
+        )
+        if not rows:
+            given = {"part": part or part_arg, "serial": serial, "verdict": verdict, "operator": operator}
+            filters = ", ".join(f"{k} {v}" for k, v in {**given, "since": since}.items() if v)
+            typer.echo(f"no runs{' with ' + filters if filters else ''} in {store.where}")
+            typer.echo(
+                "`cell inspect` records every run there"
+                + ("" if cell else "; for a cell's PostgreSQL: --cell")
             )
-        Console().print(table)
+            return
+        typer.echo("\n".join(history_lines(rows, folders)))
+        if len(rows) == limit:
+            typer.echo(f"(the newest {limit}; --limit shows more)")

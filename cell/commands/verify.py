@@ -70,7 +70,7 @@ def _print_figures(result: AcceptanceResult) -> None:
 def check_cmd(
     cell: Path = typer.Option(None, "--cell", help="cell config YAML (default: recipes/cells/sim.yaml)"),
     certificate: Path = typer.Option(None, "--certificate", help="artefact certificate YAML"),
-    runs: Path = typer.Option(RUNS_ROOT, "--runs", help="runs root holding index.sqlite"),
+    runs: Path = typer.Option(RUNS_ROOT, "--runs", help="runs root (its results.sqlite by default)"),
 ) -> None:
     """The interim check for the start of a shift: one ball-bar and one plane position. Its figures join the
     verification history in RUNS; warns when a figure drifts toward its MPE, exits 1 when one exceeds it."""
@@ -88,13 +88,16 @@ def check_cmd(
 @verify_app.command("history")
 def history_cmd(
     cell: str = typer.Option(None, "--cell-name", help="only this cell (its config's name)"),
-    runs: Path = typer.Option(RUNS_ROOT, "--runs", help="runs root holding index.sqlite"),
+    runs: Path = typer.Option(RUNS_ROOT, "--runs", help="runs root (its results.sqlite by default)"),
+    config: Path = typer.Option(None, "--cell", help="cell config whose results_db to read"),
 ) -> None:
     """Every stored interim check, oldest first: PF, PS, SD, F (um) and the verdict."""
+    from cell.config import load_cell_config
     from cell.verification.history import FIGURES, VerificationHistory
 
+    entries = VerificationHistory(runs, load_cell_config(config) if config else None).entries(cell)
     typer.echo(f"{'time':<26}{'kind':<12}{'cell':<24}" + "".join(f"{k:>9}" for k in FIGURES) + "  verdict")
-    for e in VerificationHistory(runs).entries(cell):
+    for e in entries:
         values = "".join(
             f"{'-':>9}" if (x := e.figures_mm[k]) is None else f"{x * 1000:>9.1f}" for k in FIGURES
         )

@@ -8,7 +8,8 @@ import json
 import os
 import tempfile
 import time
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -71,12 +72,21 @@ class Plan:
         }
 
 
-def plan_initial(mesh_W: trimesh.Trimesh, cfg: CellConfig, settings: PlanSettings | None = None) -> Plan:
-    """Plan V0 for a validated part mesh in world coordinates (mm)."""
+def plan_initial(
+    mesh_W: trimesh.Trimesh,
+    cfg: CellConfig,
+    settings: PlanSettings | None = None,
+    exclude_faces: Sequence[int] = (),
+) -> Plan:
+    """Plan V0 for a validated part mesh in world coordinates (mm). ``exclude_faces`` (indices into the mesh's
+    faces: a recipe's ``exclude_from_coverage``) are left out of the inspectable surface: no viewpoint is
+    planned for them and coverage does not count them."""
     t0 = time.perf_counter()
     st = settings or PlanSettings()
     sensor = SensorModel.from_config(cfg, st)
     surface = sample_surface(mesh_W, st.samples, st.seed, sensor.standoff_mm, np.deg2rad(st.theta_camera_deg))
+    excluded = surface.inspectable & np.isin(surface.face, np.asarray(exclude_faces, dtype=np.int64))
+    surface = replace(surface, inspectable=surface.inspectable & ~excluded)
     log: list[dict[str, Any]] = [
         {
             "event": "surface",
@@ -86,6 +96,15 @@ def plan_initial(mesh_W: trimesh.Trimesh, cfg: CellConfig, settings: PlanSetting
             "area_mm2": round(float(mesh_W.area), 1),
         }
     ]
+    if len(exclude_faces):
+        log.append(
+            {
+                "event": "excluded",
+                "reason": "the recipe's exclude_from_coverage",
+                "faces": len(set(exclude_faces)),
+                "area_mm2": round(float(surface.area[excluded].sum()), 1),
+            }
+        )
     reach = ReachChecker(cfg, np.vstack([mesh_W.vertices, surface.points]), st.clearance_mm)
     pp = PatchPlanner(sensor, surface, reach, log)
     face_patch = cluster_patches(mesh_W, np.deg2rad(st.patch_cone_deg))
@@ -233,7 +252,8 @@ def plan_recipe(recipe_path: Path, cell_path: Path, settings: PlanSettings | Non
 
     cfg = load_cell_config(cell_path)
     recipe = load_recipe(recipe_path)
-    return plan_initial(load_part_W(recipe, recipe_path, cfg), cfg, settings or recipe.plan)
+    part_W = load_part_W(recipe, recipe_path, cfg)
+    return plan_initial(part_W, cfg, settings or recipe.plan, recipe.exclude_from_coverage)
 
 
 def write_plan(plan: Plan, out: Path, extra: dict[str, Any] | None = None) -> None:

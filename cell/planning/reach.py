@@ -53,6 +53,12 @@ class ReachChecker:
         self.kin = kinematics
         self.arm = arm
 
+    def _near(self, points_W: Array, within_mm: float) -> NDArray[np.float64]:
+        """Distance (mm) of each point to the part's nearest point, exact where it is at most ``within_mm``
+        and inf beyond: the search stops there, which makes a path's thousands of arm points, mostly far
+        from the part, several times cheaper to check (the same answer for every clearance test)."""
+        return np.asarray(self.tree.query(points_W, distance_upper_bound=within_mm + 1.0)[0])
+
     def target(self, T_W_C: Pose) -> Pose:
         """Flange target T_B_T = inv(T_W_B) @ T_W_C @ inv(T_T_C)."""
         return self.T_B_W @ T_W_C @ self.T_C_T
@@ -66,7 +72,7 @@ class ReachChecker:
         low = body_W[:, 2].min()
         if low < self.clearance:
             return False, f"sensor body {low:.1f} mm above the table, needs {self.clearance:.0f} mm"
-        d, _ = self.tree.query(body_W)
+        d = self._near(body_W, self.clearance)
         if np.min(d) < self.clearance:
             return False, f"sensor body {np.min(d):.1f} mm from the part, needs {self.clearance:.0f} mm"
         return self.kin.reachable(T_B_T)
@@ -88,7 +94,7 @@ class ReachChecker:
                 False,
                 f"sensor body {low:.1f} mm above the table on the way, needs {self.clearance:.0f} mm",
             )
-        d, _ = self.tree.query(body_W.reshape(-1, 3))
+        d = self._near(body_W.reshape(-1, 3), self.clearance)
         if np.min(d) < self.clearance:
             return (
                 False,
@@ -109,7 +115,7 @@ class ReachChecker:
                 f"robot {arm.link[m]} {pts_W[n, m, 2] - arm.radius_mm[m]:.1f} mm above the table on the way, "
                 f"needs {self.clearance:.0f} mm"
             )
-        d = np.asarray(self.tree.query(pts_W.reshape(-1, 3))[0]).reshape(low.shape)
+        d = self._near(pts_W.reshape(-1, 3), float(need.max())).reshape(low.shape)
         gap = d - need
         if gap.min() < 0:
             n, m = np.unravel_index(int(np.argmin(gap)), gap.shape)

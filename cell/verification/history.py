@@ -1,6 +1,6 @@
 """The verification history: every interim check's figures (and any acceptance test stored with them) in the
-runs root's SQLite index (its own table beside the inspections' ``runs`` table), their trend and the drift
-warning.
+results database (``cell.results``: the runs root's results.sqlite, or the plant's PostgreSQL that the cell
+config names, so a cell's history follows its name across runs roots), their trend and the drift warning.
 
 Drift: a check warns when a figure has used more than ``warn_fraction`` of its maximum permissible error, or
 when the straight line through the last checks of a figure (at least three) reaches the MPE within
@@ -9,15 +9,17 @@ when the straight line through the last checks of a figure (at least three) reac
 
 from __future__ import annotations
 
-import sqlite3
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cell.runs import INDEX_NAME
 from cell.verification.procedure import AcceptanceResult
+
+if TYPE_CHECKING:
+    from cell.config import CellConfig
 
 FIGURES = ("PF", "PS", "SD", "F")
 
@@ -35,50 +37,26 @@ class Entry:
 
 
 class VerificationHistory:
-    """The ``verification`` table of ``<runs root>/index.sqlite``."""
+    """The ``verifications`` table of the results database of ``cfg`` (None: ``<root>/results.sqlite``).
+    Its methods raise ``cell.results.ResultsError`` when the database cannot be used; the verification's
+    folder (verification.json) keeps the figures, and ``cell history --sync`` or ``--rebuild`` records
+    them."""
 
-    def __init__(self, root: Path) -> None:
-        self.path = Path(root) / INDEX_NAME
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        with self._connect() as db:
-            db.execute(
-                "CREATE TABLE IF NOT EXISTS verification (folder TEXT PRIMARY KEY, time TEXT, kind TEXT, "
-                "cell TEXT, pf REAL, ps REAL, sd REAL, f REAL, verdict TEXT)"
-            )
+    def __init__(self, root: Path, cfg: CellConfig | None = None) -> None:
+        from cell.results import open_results
 
-    def _connect(self) -> sqlite3.Connection:
-        return sqlite3.connect(self.path, timeout=10)
+        self.store = open_results(cfg, root)
 
     def add(self, folder: Path, kind: str, result: AcceptanceResult, time: str | None = None) -> None:
         """Store one result (``time``: ISO 8601 UTC, default now)."""
-        f = result.figures_mm
-        with self._connect() as db:
-            db.execute(
-                "INSERT OR REPLACE INTO verification VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    str(Path(folder).resolve()),
-                    time or datetime.now(UTC).isoformat(timespec="seconds"),
-                    kind,
-                    result.cell,
-                    f["PF"],
-                    f["PS"],
-                    f["SD"],
-                    f["F"],
-                    result.verdict,
-                ),
-            )
+        when = datetime.fromisoformat(time) if time else None
+        self.store.record_verification(folder, kind, result.cell, result.figures_mm, result.verdict, when)
 
     def entries(self, cell: str | None = None) -> list[Entry]:
         """Every stored verification of ``cell`` (all cells when None), oldest first."""
-        query = "SELECT folder, time, kind, cell, pf, ps, sd, f, verdict FROM verification"
-        args: tuple = ()
-        if cell is not None:
-            query, args = query + " WHERE cell=?", (cell,)
-        with self._connect() as db:
-            rows = db.execute(query + " ORDER BY time", args).fetchall()
         return [
-            Entry(t, kind, folder, c, dict(zip(FIGURES, (pf, ps, sd, f), strict=True)), verdict)
-            for folder, t, kind, c, pf, ps, sd, f, verdict in rows
+            Entry(v.time.isoformat(timespec="seconds"), v.kind, v.folder, v.cell, v.figures_mm, v.verdict)
+            for v in self.store.verifications(cell)
         ]
 
 
@@ -118,13 +96,22 @@ def drift_warnings(
     return out
 
 
-def inspection_block(root: Path, cell: str, block: bool = True) -> str | None:
-    """Why ``cell`` may not inspect now: its newest verification in ``root``'s history failed (the figures
-    over their MPE, when and where), or None (no verification yet, the newest passed, or ``block`` is off).
-    A cell never checked is not blocked: the check is the technician's shift routine, not a precondition."""
-    if not block or not (Path(root) / INDEX_NAME).is_file():
+def inspection_block(root: Path, cell: str, block: bool = True, cfg: CellConfig | None = None) -> str | None:
+    """Why ``cell`` may not inspect now: its newest verification failed (the figures over their MPE, when
+    and where), or None (no verification yet, the newest passed, or ``block`` is off). A cell never checked
+    is not blocked: the check is the technician's shift routine, not a precondition.
+
+    The verifications are read from the results database of ``cfg`` (None: ``root``'s results.sqlite); when
+    it cannot be read (server down, file damaged), from the verification folders in ``root`` themselves,
+    which is where this cell's checks were written: a lost database neither blocks nor unblocks a cell."""
+    if not block:
         return None
-    entries = VerificationHistory(root).entries(cell)
+    from cell.results import ResultsError
+
+    try:
+        entries = VerificationHistory(root, cfg).entries(cell)
+    except ResultsError:
+        entries = local_entries(root, cell)
     if not entries or entries[-1].verdict != "fail":
         return None
     last = entries[-1]
@@ -135,3 +122,23 @@ def inspection_block(root: Path, cell: str, block: bool = True) -> str | None:
         "(recalibrate first: `cell calibrate all`), or the cell config sets verification.block_inspections: "
         "false"
     )
+
+
+def local_entries(root: Path, cell: str | None = None) -> list[Entry]:
+    """The verifications of ``cell`` (all when None) read from the folders in ``root`` (their
+    verification.json), oldest first: the history without the database."""
+    from cell.results.folder import read_verification, verification_folders
+
+    rows = [r for p in verification_folders(root) if (r := read_verification(p)) is not None]
+    rows = sorted((r for r in rows if cell is None or r["cell"] == cell), key=lambda r: r["time"])
+    return [
+        Entry(
+            r["time"].isoformat(timespec="seconds"),
+            r["kind"],
+            r["folder"],
+            r["cell"],
+            {k: r[k.lower()] for k in FIGURES},
+            r["verdict"],
+        )
+        for r in rows
+    ]

@@ -291,10 +291,12 @@ def interim_check(
     on_progress: Callable[[Any], None] | None = None,
 ) -> tuple[AcceptanceResult, Path, list[str]]:
     """``cell verify check``: one ball-bar and one plane position into a new folder under ``runs``, added to
-    the verification history there; returns (the result, its folder, the drift warnings of this cell's
-    checks). A paused check is not resumed: RoutinePaused says to start a new one."""
+    the verification history (the cell's results database); returns (the result, its folder, the warnings:
+    not recorded, drift of this cell's checks). A paused check is not resumed: RoutinePaused says to start
+    a new one."""
     from cell.errors import RoutinePaused
-    from cell.verification.history import VerificationHistory, drift_warnings
+    from cell.results import ResultsError
+    from cell.verification.history import VerificationHistory, drift_warnings, local_entries
     from cell.verification.procedure import check_positions
 
     cfg_path, cfg, cert_path, cert = load_cell_and_certificate(cell, certificate)
@@ -307,8 +309,14 @@ def interim_check(
         raise RoutinePaused(
             f"interim check paused ({exc}); run `cell verify check` again for a new check"
         ) from exc
-    history = VerificationHistory(runs)
-    history.add(folder, "check", result)
-    checks = [e for e in history.entries(cfg.name) if e.kind == "check"]
+    history = VerificationHistory(runs, cfg)
+    try:
+        history.add(folder, "check", result)
+        entries, unrecorded = history.entries(cfg.name), []
+    except ResultsError as exc:  # the folder keeps the figures; `cell history --sync` records them later
+        history.store.mark_pending(folder, str(exc))
+        entries = local_entries(runs, cfg.name)
+        unrecorded = [f"not recorded in the results database yet, drift judged from {runs} alone: {exc}"]
+    checks = [e for e in entries if e.kind == "check"]
     warnings = drift_warnings(checks, result.mpe_mm, warn_fraction=cfg.verification.warn_fraction)
-    return result, folder, list(warnings)
+    return result, folder, [*unrecorded, *warnings]
