@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("inspect", "Rebuild a finished run's report from its stored views."),
     "abort": ("abort", "Mark a paused or interrupted run aborted (it can no longer be resumed)."),
     "history": ("history", "Past runs from the results database, filtered; SPC of a recipe."),
+    "prune": ("prune", "Remove raw view images the cell's retention policy no longer keeps."),
     "demo": ("inspect", "A full simulated inspection of the demo pillar, ending in a report."),
     "plan": ("plan", "Plan the viewpoints of a recipe's part and print its cycle-time limit."),
     "scan": ("scan", "One structured-light scan of a mesh in the simulated cell, from one pose."),

@@ -21,6 +21,7 @@ from pydantic import BaseModel, Field, ValidationError, field_validator, model_v
 from cell.errors import ConfigError
 from cell.geometry import Pose, pose_from_xyz_rpy
 from cell.planning.settings import PlanSettings
+from cell.retention import RetentionConfig
 from cell.schema import Fraction, PositiveFloat, Strict, Vec3
 from cell.schema_errors import unknown_key_message, wrong_kind_message
 
@@ -314,6 +315,9 @@ class CellConfig(Strict):
     )
     calibration: CalibrationFiles = CalibrationFiles()
     verification: VerificationConfig = VerificationConfig()
+    retention: RetentionConfig = Field(
+        RetentionConfig(), description="how long runs keep their raw view images (docs/storage.md)"
+    )
     results_db: str | None = Field(
         None,
         description="where runs are recorded for `cell history`, SPC and the station: a plant's "
@@ -613,8 +617,8 @@ def config_fingerprint(cfg: CellConfig) -> str:
     """SHA-256 of the cell config as validated, without its ``calibration:`` section: what a calibration file
     records as the config it was made for (``cell_config_sha256``). Adding the file to the config does not
     change it; changing the robot, the sensor, the scene or the world does. Where results are recorded
-    (``results_db``) measures nothing and is left out too."""
-    data = cfg.model_dump(mode="json", exclude={"calibration", "results_db"})
+    (``results_db``) and how long raw images are kept (``retention``) measure nothing and are left out too."""
+    data = cfg.model_dump(mode="json", exclude={"calibration", "results_db", "retention"})
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 

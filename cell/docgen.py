@@ -23,6 +23,7 @@ def _type_name(annotation: Any) -> str:
         "cell.planning.settings.",
         "cell.schema.",
         "cell.calibration.capture_folder.",
+        "cell.retention.",
     ):
         text = text.replace(prefix, "")
     return text.replace("NoneType", "None")

@@ -34,7 +34,7 @@ FILE_KINDS: tuple[FileKind, ...] = (
         "cell config",
         "cell.config:CellConfig",
         "name robot sensor",
-        "description sim world calibration verification results_db",
+        "description sim world calibration verification results_db retention",
         "give it with --cell (recipes/cells/ holds the shipped ones)",
     ),
     _kind(

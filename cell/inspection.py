@@ -5,7 +5,7 @@ Each step reads and writes the run folder only, so any step can run again after 
 - capture: the GCLS pattern stack at one view (the robot is already there);
 - decode: sub-pixel decoding, triangulation in {C}, the kinematic chain into {W} (eqs 4.1-4.4), the
   link filter (4.4), and the view's defect regions (shadow, glare, low contrast) on the nominal surface
-  -> views/NNN/;
+  -> views/NNN/ (cell.view_files: points, flags, and the raw stack while the cell's retention keeps it);
 - evaluate / replan: coverage, accuracy map and Q (eq 3.22) and the feedback viewpoints g_k (3.2-3.3);
 - register / report: all views in the part frame, merged; signed deviations against the nominal; report.
 
@@ -69,6 +69,7 @@ from cell.sensing.patterns import PatternSet, measuring_patterns
 from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
 from cell.sensing.triangulate import normalized_coords
+from cell.view_files import load_eval_points, load_view_points, save_raw_stack, save_view_points
 
 # which decode reasons become which defect map of chapter 3 (IS: shadow, IR: glare)
 DEFECT_REASONS = {"shadow": Reason.DARK, "glare": Reason.SATURATED, "low_contrast": Reason.LOW_CONTRAST}
@@ -233,13 +234,12 @@ class LambertianInspection:
         deviation = signed_distance(self.nominal, points_W).deviation_mm
         crop = PartCrop(0.0, self.settings.table_margin_mm, self.settings.crop_mm).split(points_W, deviation)
         part = crop.part
-        points_W, quality, deviation = points_W[part], quality[part], deviation[part]
-        np.save(out_dir / "points_W.npy", points_W)
-        np.save(out_dir / "oblique.npy", oblique_kept[part])
+        points_W, quality = points_W[part], quality[part]
         sub = voxel_subsample_index(points_W, self.settings.eval_voxel_mm)
-        np.save(out_dir / "points_eval_W.npy", points_W[sub])
-        np.save(out_dir / "deviation_eval.npy", deviation[sub])
-        np.save(out_dir / "quality.npy", quality)
+        save_view_points(out_dir, points_W, quality, oblique_kept[part], sub)
+        if self.cfg.retention.writes_raw_images:
+            proj = self.cfg.sensor.projector
+            save_raw_stack(out_dir, stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
         cv2.imwrite(str(out_dir / "reasons.png"), cloud.reasons)
         regions = self._defects(T_W_C, cloud.reasons)
         _save_regions(out_dir / "defects.npz", regions)
@@ -281,7 +281,7 @@ class LambertianInspection:
         run gets the same)."""
         done = tuple(run.completed_views())
         if self._refinement is None or self._refinement[0] != done:
-            points = [np.load(run.view_dir(i) / "points_eval_W.npy") for i in done]
+            points = [load_eval_points(run.view_dir(i)) for i in done]
             for i, p in zip(done, points, strict=True):
                 if i not in self._planes:
                     self._planes[i] = estimate_normals(p)
@@ -317,7 +317,7 @@ class LambertianInspection:
             d = run.view_dir(i)
             meta = json.loads((d / "view.json").read_text())
             T = T_fix if T_W_align is None else T_W_align @ T_fix
-            points = transform_points(T, np.load(d / "points_eval_W.npy"))
+            points = transform_points(T, load_eval_points(d))
             out[i] = MeasuredView(
                 T @ np.asarray(meta["T_W_C"]),
                 points,
@@ -406,13 +406,13 @@ class LambertianInspection:
         done, refined = self.refinement(run)
         points, weights = [], []
         for i, T_fix in zip(done, refined.T, strict=True):
-            d = run.view_dir(i)
-            measured = _measured(d)  # the sensor's points, without those lit too obliquely
-            points.append(transform_points(T_P_W @ T_fix, np.load(d / "points_W.npy")[measured]))
-            weights.append(np.square(np.load(d / "quality.npy")[measured]).astype(np.float64) + 1e-6)
+            view = load_view_points(run.view_dir(i))
+            measured = ~view.oblique  # the sensor's points, without those lit too obliquely
+            points.append(transform_points(T_P_W @ T_fix, view.points_W[measured]))
+            weights.append(np.square(view.quality[measured]).astype(np.float64) + 1e-6)
         if not points or not sum(len(p) for p in points):
             return {"n_points": 0, "views": len(points)}
-        eval_points = [np.load(run.view_dir(i) / "points_eval_W.npy") for i in done]
+        eval_points = [load_eval_points(run.view_dir(i)) for i in done]
         refinement = {
             **refined.to_json(eval_points),
             "unregistered_views": [done[k] for k in refined.unregistered],
@@ -528,13 +528,6 @@ class LambertianInspection:
         }
 
 
-def _measured(view_dir: Path) -> NDArray[np.bool_] | slice:
-    """Which of a view's saved points the measured cloud takes: all but those the projector lit beyond
-    ``sensor.max_projector_incidence_deg`` (``oblique.npy``; a view stored before it existed: all)."""
-    path = view_dir / "oblique.npy"
-    return ~np.load(path) if path.is_file() else slice(None)
-
-
 def _save_regions(path: Path, regions: list[DefectRegion]) -> None:
     arrays: dict[str, Any] = {
         "reasons": np.array([r.reason for r in regions], dtype="U16"),
@@ -544,7 +537,7 @@ def _save_regions(path: Path, regions: list[DefectRegion]) -> None:
         arrays[f"boundary_{k}"] = r.boundary_W
         arrays[f"points_{k}"] = r.points_W
     with open(path, "wb") as f:
-        np.savez(f, **arrays)
+        np.savez_compressed(f, **arrays)
 
 
 def _load_regions(path: Path) -> list[DefectRegion]:

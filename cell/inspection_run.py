@@ -251,6 +251,12 @@ def _execute_locked(
         if record is not None:
             saved = save_recording(devices, record, cfg.model_dump(mode="json"))
             say(f"device traffic recorded: replay with --cell {saved / 'cell.yaml'}")
+    if state == "done":  # the cell's retention for this verdict may keep no raw images past the run
+        from cell.retention import apply_at_finish
+
+        pruned = apply_at_finish(run, cfg.retention)
+        if pruned is not None:
+            say(f"raw view images removed ({pruned.freed_bytes / 1e6:.1f} MB): {pruned.reason}")
     summary = Checkpoint.from_json(run.load_checkpoint()).summary or {}
     _record_results(run, results, say)
     return RunOutcome(run, state, ctl.message, summary)

@@ -5,7 +5,8 @@ Layout of a run folder::
     inputs/          copies of the recipe, the cell config, the CAD files and calibration files the run read
     journal.jsonl    one JSON object per line: state changes, device commands, decisions (append + fsync)
     checkpoint.json  what is done: the plan, the completed views, the current step (atomic replace)
-    views/NNN/       one folder per measured view (pose, cloud, masks), written atomically (a dir rename)
+    views/NNN/       one folder per measured view (pose, points, masks; raw/ its raw images while the cell's
+                     retention keeps them), written atomically (a dir rename); docs/storage.md
     results/         report.json, report.html, cloud.ply, deviations.csv
     run.lock         while a process works on the run: its PID, host and command (one process per folder)
 
@@ -37,6 +38,7 @@ from cell.storage import require_writable
 INDEX_NAME = "index.sqlite"  # the verification history (cell.verification.history)
 RUNS_ROOT = Path(__file__).resolve().parents[1] / "runs"  # the default runs root: runs/ in the repository
 LOCK_NAME = "run.lock"
+RAW_IMAGES = "raw"  # views/NNN/raw/: a view's raw pattern stack (cell.view_files), what `cell prune` removes
 
 
 def process_start(pid: int) -> str | None:
@@ -230,7 +232,10 @@ class RunFolder:
         tmp = Path(tempfile.mkdtemp(dir=self.path / "views", prefix=f".{index:03d}."))
         try:
             yield tmp
-            for child in tmp.iterdir():
+            for child in sorted(tmp.rglob("*"), reverse=True):  # files before the folders holding them
+                if child.is_dir():
+                    _fsync_dir(child)
+                    continue
                 with open(child, "rb") as f:
                     os.fsync(f.fileno())
             if final.exists():

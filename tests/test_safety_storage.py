@@ -1,8 +1,8 @@
 """A full disk or a read-only folder: one clear error naming the path, never a traceback, never a half-made or
 corrupted run. Run folders, calibration folders and the output of compare, on a real tmpfs: a
 read-only one (EROFS) and a tiny one that fills up (ENOSPC, and numpy's errno-less short writes); and the
-controller's pause on a full disk in process, with the disk simulated at numpy's writer (np.save raising
-OSError(ENOSPC)) so that it is tested where no tmpfs can be mounted."""
+controller's pause on a full disk in process, with the disk simulated at numpy's writer
+(np.savez_compressed raising OSError(ENOSPC)) so that it is tested where no tmpfs can be mounted."""
 
 from __future__ import annotations
 
@@ -151,16 +151,17 @@ def test_the_controller_pauses_on_a_full_disk_keeping_every_whole_view(tmp_path:
 
     recipe = write_box_recipe(tmp_path)
     run_dir = tmp_path / "run"
-    real_save = np.save
+    real_save = np.savez_compressed  # the view files' writer (cell.view_files, defects.npz)
     views: set[str] = set()
 
-    def full_disk_save(file, arr, *args, **kwargs):
-        views.add(Path(file).parent.name)
+    def full_disk_save(file, *args, **kwargs):
+        name = getattr(file, "name", file)  # an open file or a path
+        views.add(Path(name).parent.name)
         if len(views) > 2:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(file))
-        return real_save(file, arr, *args, **kwargs)
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(name))
+        return real_save(file, *args, **kwargs)
 
-    monkeypatch.setattr(np, "save", full_disk_save)
+    monkeypatch.setattr(np, "savez_compressed", full_disk_save)
     ctl, _ = make_controller(recipe, run_dir, pipelining=False)
     assert ctl.execute() == "paused", ctl.message
     assert ctl.message.startswith(f"cannot write {run_dir}: the disk is full")

@@ -320,6 +320,22 @@ def _natural(path: Path) -> list[int | str]:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
 
 
+def code_spec(patterns: PatternSet) -> dict[str, object]:
+    """The manifest's ``code:`` section that names ``patterns`` (a set of :mod:`cell.sensing.patterns` or
+    :mod:`cell.sensing.graycode`), so that a stack stored with it is read back in its code
+    (:func:`cell.view_files.save_raw_stack`)."""
+    axes = [c.axis for c in patterns.codes]
+    direction = "both" if len(axes) == 2 else axes[0]
+    if patterns.codec == "graycode":
+        return {"kind": "graycode", "direction": direction}
+    c = patterns.codes[0]
+    spec: dict[str, object] = {"kind": patterns.codec, "direction": direction, "stripe_px": c.stripe_px}
+    spec |= {"n_shifts": c.n_shifts} if patterns.codec == "gcls" else {"n_phase": c.n_phase}
+    if len({a.n_gray for a in patterns.codes}) == 1:
+        spec["n_gray"] = c.n_gray
+    return spec
+
+
 def load_capture_folder(path: str | Path) -> CaptureFolder:
     """Read and check a capture folder's manifest and file lists (counts); images are read per pose later.
 

@@ -1,0 +1,157 @@
+"""What an inspection view folder (``views/NNN/``) stores, and one reader for every format it was stored in.
+
+Format 2 (docs/storage.md), written by :func:`save_view_points` and :func:`save_raw_stack`:
+
+- ``points.npz`` (deflate): the view's points in the world frame {W}, in pixel order, as int32 steps of
+  :data:`STEP_MM` (0.1 um), each the difference to the point before (neighbouring pixels lie close, so the
+  differences are small numbers that compress to about 2.4 bytes a point against 24 for float64); the points'
+  ``quality`` (float32 contrast, exact), ``oblique`` (bool: lit beyond the incidence limit) and ``eval``
+  (bool: the evaluation subset, one point per 0.5 mm voxel). The 0.1 um step rounds a coordinate by at most
+  0.05 um (0.029 um RMS), what float32 itself would do at 500 mm and a thousandth of the sensor's noise.
+- ``raw/`` (optional, by the cell's ``retention:``): the pattern stack as the camera gave it, one lossless
+  PNG a frame (8-bit cameras 8-bit files, 10/12-bit cameras 16-bit files), laid out as a capture folder
+  (``raw/capture.yaml``, ``raw/frames/NN_<frame>.png``; docs/capture-folders.md), so ``cell scan --from
+  views/NNN/raw`` decodes the view again and :func:`load_raw_stack` reads it with the capture-folder reader.
+
+Format 1 (run folders before format 2): ``points_W.npy`` (float64), ``points_eval_W.npy`` (the evaluation
+subset, a copy), ``quality.npy``, ``oblique.npy`` (absent in the oldest folders: no point oblique) and the
+unread ``deviation_eval.npy``. :func:`load_view_points` and :func:`load_eval_points` read either.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from cell.runs import RAW_IMAGES
+
+POINTS_FILE = "points.npz"
+FORMAT = 2
+STEP_MM = 1e-4  # storage step of a coordinate: 0.1 um
+_LIMIT = 2**30  # |coordinate| / STEP_MM: 107 m, so that differences of two stay within int32
+PNG_LEVEL = 1  # zlib level of the raw PNGs: level 3 saves 5 % for 1.5x the time (docs/storage.md)
+FRAMES = "frames"
+
+
+@dataclass
+class ViewPoints:
+    """A view's stored points (N, 3) in {W} mm, pixel order, with their quality and oblique flags (the
+    evaluation subset is read on its own: :func:`load_eval_points`)."""
+
+    points_W: NDArray[np.float64]
+    quality: NDArray[np.float32]
+    oblique: NDArray[np.bool_]  # lit beyond sensor.max_projector_incidence_deg: not in the merged cloud
+
+
+def save_view_points(
+    out_dir: Path,
+    points_W: NDArray[np.float64],
+    quality: NDArray[np.floating[Any]],
+    oblique: NDArray[np.bool_],
+    eval_index: NDArray[np.integer[Any]],
+) -> NDArray[np.float64]:
+    """Write ``out_dir/points.npz`` (format 2) and return the points as they are stored (rounded to
+    :data:`STEP_MM`), which is what every later step reads back. ``eval_index``: ascending indices of the
+    evaluation subset."""
+    p = np.asarray(points_W, dtype=np.float64).reshape(-1, 3)
+    q = np.round(p / STEP_MM)
+    if len(q) and not np.abs(q).max() < _LIMIT:
+        raise ValueError(f"view points beyond {_LIMIT * STEP_MM / 1000:.0f} m from the world origin")
+    steps = q.astype(np.int64)
+    delta = np.diff(steps, axis=0, prepend=np.zeros((1, 3), np.int64)).astype(np.int32)
+    mask = np.zeros(len(p), dtype=bool)
+    mask[np.asarray(eval_index, dtype=np.int64)] = True
+    with open(out_dir / POINTS_FILE, "wb") as f:
+        np.savez_compressed(
+            f,
+            format=np.int32(FORMAT),
+            step_mm=np.float64(STEP_MM),
+            delta=delta,
+            quality=np.asarray(quality, dtype=np.float32),
+            oblique=np.asarray(oblique, dtype=bool),
+            eval=mask,
+        )
+    return _from_steps(delta, STEP_MM)
+
+
+def _from_steps(delta: NDArray[np.int32], step_mm: float) -> NDArray[np.float64]:
+    """Points (N, 3) mm from their int32 step differences."""
+    return np.asarray(np.cumsum(delta, axis=0, dtype=np.int64) * step_mm, dtype=np.float64)
+
+
+def load_view_points(view_dir: Path) -> ViewPoints:
+    """A view's points and flags, from format 2 or format 1."""
+    path = view_dir / POINTS_FILE
+    if path.is_file():
+        with np.load(path) as z:
+            return ViewPoints(_from_steps(z["delta"], float(z["step_mm"])), z["quality"], z["oblique"])
+    points = np.load(view_dir / "points_W.npy")
+    oblique_file = view_dir / "oblique.npy"
+    oblique = np.load(oblique_file) if oblique_file.is_file() else np.zeros(len(points), dtype=bool)
+    return ViewPoints(points, np.load(view_dir / "quality.npy"), oblique)
+
+
+def load_eval_points(view_dir: Path) -> NDArray[np.float64]:
+    """A view's evaluation subset (mm, {W}), from format 2 or format 1."""
+    path = view_dir / POINTS_FILE
+    if path.is_file():
+        with np.load(path) as z:
+            return _from_steps(z["delta"], float(z["step_mm"]))[z["eval"]]
+    return np.load(view_dir / "points_eval_W.npy")
+
+
+# --------------------------------------------------------------------------------------------- raw images
+def save_raw_stack(
+    view_dir: Path,
+    stack: NDArray[Any],
+    patterns: Any,
+    bit_depth: int,
+    projector_size: tuple[int, int],
+) -> int:
+    """Write the checked pattern stack ``stack`` ((N, H, W) uint8 or uint16, in the order of ``patterns``, a
+    :class:`cell.sensing.patterns.PatternSet`) losslessly as a capture folder ``view_dir/raw/``; returns the
+    bytes written. The manifest names the code by its parameters and the frames by name, so the capture-folder
+    reader puts them back in the code's order."""
+    from cell.calibration.capture_folder import code_spec
+
+    root = view_dir / RAW_IMAGES
+    (root / FRAMES).mkdir(parents=True)
+    n = len(patterns.names)
+    width = len(str(n - 1))
+    written = 0
+    for k, (name, frame) in enumerate(zip(patterns.names, stack, strict=True)):
+        ok, png = cv2.imencode(".png", frame, [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL])
+        if not ok:
+            raise OSError(f"OpenCV could not encode frame '{name}' as PNG")
+        (root / FRAMES / f"{k:0{width}d}_{name}.png").write_bytes(png.tobytes())
+        written += len(png)
+    manifest = {
+        "version": 1,
+        "camera": {"width_px": int(stack.shape[2]), "height_px": int(stack.shape[1]), "bit_depth": bit_depth},
+        "projector": {"width_px": projector_size[0], "height_px": projector_size[1]},
+        "code": code_spec(patterns),
+        "order": list(patterns.names),
+        "images": "*.png",
+        "poses": [{"dir": FRAMES}],
+    }
+    text = yaml.safe_dump(manifest, sort_keys=False).encode()
+    (root / "capture.yaml").write_bytes(text)
+    return written + len(text)
+
+
+def load_raw_stack(view_dir: Path) -> NDArray[Any] | None:
+    """The view's raw pattern stack ((N, H, W), the code's order) read back by the capture-folder reader, or
+    None when the view has none (not stored, pruned, or a folder from before raw images were kept)."""
+    from cell.calibration.capture_folder import load_capture_folder
+
+    root = view_dir / RAW_IMAGES
+    if not (root / "capture.yaml").is_file():
+        return None
+    folder = load_capture_folder(root)
+    return folder.stack(folder.poses[0])

@@ -1,0 +1,114 @@
+"""A view folder's stored points and raw images (cell.view_files): format 2 round trips within its stated
+step, raw stacks come back bit for bit through the capture-folder reader, and format-1 folders still load."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cell.calibration.capture_folder import CodeSpec, ProjectorSpec, code_spec
+from cell.config import load_cell_config
+from cell.inspection_run import REPO
+from cell.sensing.patterns import gcps_patterns, measuring_patterns, sensor_calibration_patterns
+from cell.view_files import (
+    STEP_MM,
+    load_eval_points,
+    load_raw_stack,
+    load_view_points,
+    save_raw_stack,
+    save_view_points,
+)
+
+
+def _surface_points(n: int, rng: np.random.Generator) -> np.ndarray:
+    """A scan-like cloud: a tilted, wavy surface sampled in pixel order 400-600 mm from the origin, with
+    20 um of noise (float64 to the last bit)."""
+    u, v = np.meshgrid(np.linspace(-80, 80, n), np.linspace(-60, 60, n))
+    z = 40 + 0.2 * u + 3 * np.sin(v / 7)
+    p = np.column_stack([u.ravel() + 450.0, v.ravel() - 120.0, z.ravel() + 300.0])
+    return p + rng.normal(0, 0.02, p.shape)
+
+
+def test_points_round_trip_within_the_step_and_flags_exactly(tmp_path):
+    rng = np.random.default_rng(1)
+    p = _surface_points(300, rng)
+    quality = rng.uniform(0.4, 1.0, len(p)).astype(np.float32)
+    oblique = rng.random(len(p)) < 0.1
+    sub = np.sort(rng.choice(len(p), 5000, replace=False))
+    stored = save_view_points(tmp_path, p, quality, oblique, sub)
+    back = load_view_points(tmp_path)
+    assert np.abs(back.points_W - p).max() <= STEP_MM / 2 * (1 + 1e-6)  # 0.05 um
+    assert np.array_equal(back.points_W, stored)  # what the writer said it stored is what is read
+    assert np.array_equal(back.quality, quality) and np.array_equal(back.oblique, oblique)
+    assert np.array_equal(load_eval_points(tmp_path), stored[sub])
+
+
+def test_an_empty_view_round_trips(tmp_path):
+    stored = save_view_points(tmp_path, np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool), np.zeros(0, int))
+    assert stored.shape == (0, 3) and load_view_points(tmp_path).points_W.shape == (0, 3)
+    assert load_eval_points(tmp_path).shape == (0, 3)
+
+
+def test_points_too_far_out_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="beyond"):
+        save_view_points(tmp_path, np.array([[2.0e8, 0.0, 0.0]]), np.ones(1), np.zeros(1, bool), [0])
+
+
+def test_format_1_view_folders_still_load(tmp_path):
+    """A view written before format 2 (float64 .npy files; the oldest without oblique.npy)."""
+    rng = np.random.default_rng(2)
+    p = _surface_points(50, rng)
+    q = rng.uniform(0.4, 1.0, len(p)).astype(np.float32)
+    np.save(tmp_path / "points_W.npy", p)
+    np.save(tmp_path / "quality.npy", q)
+    np.save(tmp_path / "points_eval_W.npy", p[::7])
+    old = load_view_points(tmp_path)
+    assert np.array_equal(old.points_W, p) and np.array_equal(old.quality, q) and not old.oblique.any()
+    assert np.array_equal(load_eval_points(tmp_path), p[::7])
+    oblique = rng.random(len(p)) < 0.3
+    np.save(tmp_path / "oblique.npy", oblique)
+    assert np.array_equal(load_view_points(tmp_path).oblique, oblique)
+
+
+@pytest.mark.parametrize("bit_depth", [8, 12])
+def test_raw_stack_round_trips_bit_for_bit(tmp_path, bit_depth):
+    """Noisy frames of an 8-bit and a 12-bit camera (16-bit PNG files) come back exactly, in code order,
+    through the capture-folder reader, which also checks the stack (black and white frames, sizes)."""
+    ps = measuring_patterns(load_cell_config(REPO / "recipes" / "cells" / "sim_binned.yaml").sensor.projector)
+    rng = np.random.default_rng(bit_depth)
+    top = (1 << bit_depth) - 1
+    dtype = np.uint8 if bit_depth == 8 else np.uint16
+    h, w = 48, 64
+    base = rng.integers(0, top // 8, (h, w))
+    stack = np.stack(
+        [np.clip(base + (top // 2) * (f[:h, :w] > 0) + rng.integers(0, 9, (h, w)), 0, top) for f in ps.frames]
+    ).astype(dtype)
+    stack[ps.index("white")] = np.clip(base + top // 2 + 40, 0, top).astype(dtype)
+    stack[ps.index("black")] = base.astype(dtype)
+    written = save_raw_stack(tmp_path, stack, ps, bit_depth, (ps.width_px, ps.height_px))
+    assert written == sum(f.stat().st_size for f in (tmp_path / "raw").rglob("*") if f.is_file())
+    back = load_raw_stack(tmp_path)
+    assert back is not None and back.dtype == dtype and np.array_equal(back, stack)
+
+
+def test_no_raw_images_reads_as_none(tmp_path):
+    assert load_raw_stack(tmp_path) is None
+
+
+@pytest.mark.parametrize(
+    "patterns",
+    [
+        measuring_patterns(load_cell_config(REPO / "recipes" / "cells" / "sim.yaml").sensor.projector),
+        sensor_calibration_patterns(
+            load_cell_config(REPO / "recipes" / "cells" / "sim.yaml").sensor.projector
+        ),
+        gcps_patterns(640, 480, 16, 4, "both"),
+    ],
+    ids=["measuring", "sensor-both", "gcps"],
+)
+def test_code_spec_names_the_same_patterns(patterns):
+    """The manifest's code section regenerates the very frames the projector showed."""
+    again = CodeSpec.model_validate(code_spec(patterns)).patterns(
+        ProjectorSpec(width_px=patterns.width_px, height_px=patterns.height_px)
+    )
+    assert again.names == patterns.names and np.array_equal(again.frames, patterns.frames)
