@@ -34,6 +34,7 @@ from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixel
 from cell.analysis.merge import cut_unregistered, merge_views, voxel_subsample_index
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import write_report
+from cell.analysis.report_files import read_ply_points, write_file_set, write_ply
 from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
 from cell.calibration import (
     active_gamma_lut,
@@ -63,6 +64,7 @@ from cell.planning.unseen import plan_feedback
 from cell.planning.viewpoints import Viewpoint
 from cell.raycast import RayCaster
 from cell.run_data import Checkpoint, Evaluation, View
+from cell.run_record import run_record
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
 from cell.sensing.patterns import PatternSet, measuring_patterns
@@ -430,7 +432,7 @@ class LambertianInspection:
             alignment = found.to_json()
         except AlignmentError as exc:
             points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
-        np.save(run.results_dir / "points_P.npy", points_P)
+        write_file_set(run.results_dir, {"cloud.ply": lambda path: write_ply(path, points_P)})
         return {
             "n_points": int(len(points_P)),
             "n_points_views": n_points_views,
@@ -464,8 +466,12 @@ class LambertianInspection:
             covered=covered[ins],
         )
 
-    def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
-        pts_P = np.load(run.results_dir / "points_P.npy")
+    def report(self, run: RunFolder, registration: dict[str, Any], csv: bool = False) -> dict[str, Any]:
+        """Judge the registered cloud (results/cloud.ply as :meth:`register` wrote it, or as an earlier
+        report rewrote it: the same points in the same order) and write the report into results/, with
+        deviations.csv when ``csv``. The report replaces the cloud.ply by one with the deviation field."""
+        legacy = run.results_dir / "points_P.npy"  # a run registered before the cloud was stored once
+        pts_P = np.load(legacy) if legacy.is_file() else read_ply_points(run.results_dir / "cloud.ply")
         nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
         tol = self.recipe.tolerance
         checkpoint = Checkpoint.from_json(run.load_checkpoint())
@@ -517,9 +523,11 @@ class LambertianInspection:
                 "evaluation": evaluation,
                 "plan": plan.to_json(),  # predicted coverage, min_coverage, unseen_surfaces, warnings
                 "geometry_source": self.geometry_source,
+                "run": run_record(run, self.cfg.name),
             },
         )
-        doc = write_report(run.results_dir, inp, pictures=self.settings.pictures)
+        doc = write_report(run.results_dir, inp, pictures=self.settings.pictures, csv=csv)
+        legacy.unlink(missing_ok=True)  # cloud.ply now holds the same points
         return {
             "verdict": doc.get("verdict"),
             "n_points": doc.get("n_points"),

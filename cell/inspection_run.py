@@ -329,8 +329,9 @@ def abort_run(run_dir: Path, reason: str) -> str:
     return state
 
 
-def rebuild_report(run_dir: Path) -> RunOutcome:
-    """Rebuild the report of a run that reached reporting from its stored views (journalled)."""
+def rebuild_report(run_dir: Path, *, csv: bool = False, pdf: bool = False) -> RunOutcome:
+    """Rebuild the report of a run that reached reporting from its stored views (journalled); with ``csv``
+    also deviations.csv, with ``pdf`` also report.pdf (headless Chromium)."""
     from cell.inspection import LambertianInspection
     from cell.mesh import load_mesh
 
@@ -340,8 +341,12 @@ def rebuild_report(run_dir: Path) -> RunOutcome:
         raise ConfigError("the run has not reached reporting; `cell resume` it first", path=str(run_dir))
     recipe, cfg, _ = load_run_inputs(run)
     nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
-    summary = LambertianInspection(recipe, cfg, nominal_W).report(run, checkpoint.registration or {})
-    run.log("report_rebuilt", **summary)
+    summary = LambertianInspection(recipe, cfg, nominal_W).report(run, checkpoint.registration or {}, csv=csv)
+    if pdf:
+        from cell.analysis.report import print_report_pdf
+
+        print_report_pdf(run.results_dir)
+    run.log("report_rebuilt", csv=csv, pdf=pdf, **summary)
     return RunOutcome(run, "done", "", summary)
 
 

@@ -68,12 +68,16 @@ def test_cli_reports_the_sag(sag_run):
     assert abs(-deepest - TRUTH["sag_depth_mm"]) <= 0.1 * TRUTH["sag_depth_mm"]  # sag depth within 10%
     assert doc["regions"][0]["kind"] == "dent"
     assert doc["n_points"] > 0.75 * doc["n_points_input"]
-    for name in ("report.html", "cloud.ply", "deviations.csv", "normals.ply"):
+    for name in ("report.html", "report.json", "cloud.ply"):
         assert (sag_run / "results" / name).stat().st_size > 0
-    # normals.ply: every accepted point with its measured normal, close to the made pane's true normal
-    raw = (sag_run / "results" / "normals.ply").read_bytes()
+    assert not (sag_run / "results" / "deviations.csv").exists()  # the cloud is stored once, in cloud.ply
+    # cloud.ply: every accepted point with its deviation and measured normal, close to the made pane's
+    # true normal
+    raw = (sag_run / "results" / "cloud.ply").read_bytes()
     head, body = raw.split(b"end_header\n")
-    rec = np.frombuffer(body, dtype=[*((k, "<f8") for k in ("x", "y", "z", "nx", "ny", "nz")), ("d", "<f4")])
+    assert b"property double nx" in head
+    xyz = [(k, "<f8") for k in ("x", "y", "z")]
+    rec = np.frombuffer(body, dtype=[*xyz, ("d", "<f4"), *((k, "<f8") for k in ("nx", "ny", "nz"))])
     assert len(rec) == doc["n_points"]
     x, y, h = rec["x"], rec["y"], 1e-3
     n_true = unit(

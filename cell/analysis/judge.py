@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.regions import Coverage, Region, Tolerance, point_bands
-from cell.analysis.report import ReportInput, isolated_out_of_tolerance
+from cell.analysis.report import ReportInput, StoredCloud, isolated_out_of_tolerance
 
 
 def judge(
@@ -38,6 +38,7 @@ def judge(
     calibration: dict[str, Any] | None = None,
     metadata: dict[str, Any] | None = None,
     error_map: ErrorMap | None = None,
+    point_fields: Mapping[str, NDArray[Any]] | None = None,
 ) -> ReportInput:
     """The report input of ``points_mm`` (N, 3, part frame, finite) against ``nominal`` (same frame).
 
@@ -46,18 +47,25 @@ def judge(
     default, keeps every point and adds no count). ``excluded``: what the caller left out before (counts by
     reason), reported after the nominal's own exclusions. ``coverage``: the coverage, or how to compute it
     from the error map of every given point (e.g. from their closest nominal points). ``n_points_input``:
-    the points measured (default: those given). ``warnings`` follow the nominal's sign warning; the other
-    arguments go to :class:`ReportInput` as they are. ``error_map``: the points' signed distances when the
-    caller computed them already (``cell compare`` crops by them), else computed here.
+    the points measured (default: those given). ``warnings`` follow the nominal's sign warning;
+    ``point_fields``: more values per given point for cloud.ply (e.g. normals). cloud.ply stores every given
+    point in order, isolated outliers flagged (:class:`StoredCloud`), so a report rebuilt from it judges the
+    same points. ``error_map``: the points' signed distances when the caller computed them already (``cell
+    compare`` crops by them), else computed here. The other arguments go to :class:`ReportInput` as they are.
     """
     em = signed_distance(nominal, points_mm) if error_map is None else error_map
     faces = nominal.source_face[em.face] if nominal.source_face is not None else em.face
     points, deviation = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3), em.deviation_mm
     counts: dict[str, int] = {**nominal.excluded, **(excluded or {})}
+    stored = None
+    if min_defect_points > 1 or point_fields:
+        stored = StoredCloud(points, deviation, fields=dict(point_fields or {}))
     if min_defect_points > 1:
         bands = point_bands(regions, points, faces, tolerance)
         isolated = isolated_out_of_tolerance(points, deviation, bands, min_defect_points)
         counts["isolated_out_of_tolerance_points"] = int(isolated.sum())
+        if stored is not None:
+            stored.isolated = isolated
         kept = ~isolated
         points, deviation, faces = points[kept], deviation[kept], faces[kept]
     return ReportInput(
@@ -76,4 +84,5 @@ def judge(
         incomplete_reasons=list(incomplete_reasons),
         alignment=alignment,
         calibration=calibration,
+        stored=stored,
     )

@@ -1,13 +1,16 @@
 """The inspection report of an error map: report.json, report.html, cloud.ply (``deviation``), deviations.csv.
 
-The schema of report.json is documented in docs/report-schema.md. Deviations in mm, + outside the material.
-Out-of-tolerance points are grouped into regions by a radius graph (cKDTree pairs + connected components).
+The schema of report.json is documented in docs/report-schema.md, the page in docs/report.md. Deviations in
+mm, + outside the material. Out-of-tolerance points are grouped into regions by a radius graph (cKDTree
+pairs + connected components). The files are written as one set (:mod:`cell.analysis.report_files`): a
+failed or killed report leaves the previous one whole, or none.
 """
 
 from __future__ import annotations
 
-import html
 import json
+import subprocess
+import time
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -19,6 +22,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+import cell
+from cell.analysis.colour_scale import BandedScale
+from cell.analysis.formatting import utc_iso
 from cell.analysis.regions import (
     Coverage,
     PointBands,
@@ -29,10 +35,23 @@ from cell.analysis.regions import (
     verdict,
 )
 
-__all__ = ["ReportInput", "Tolerance", "out_of_tolerance_regions", "summarise", "write_report"]
+__all__ = ["ReportInput", "StoredCloud", "Tolerance", "out_of_tolerance_regions", "summarise", "write_report"]
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
+
+
+@dataclass
+class StoredCloud:
+    """Every point cloud.ply stores, in the order measured, when that is more than the judged points or
+    carries more fields: ``isolated`` marks the points set aside as isolated outliers (not judged; the
+    judged points are those not marked, in order); ``fields``: more per-point values (e.g. the glass
+    normals ``nx, ny, nz``)."""
+
+    points_mm: NDArray[np.float64]
+    deviation_mm: NDArray[np.float64]
+    isolated: NDArray[np.bool_] | None = None
+    fields: dict[str, NDArray[Any]] = field(default_factory=dict)
 
 
 @dataclass
@@ -63,6 +82,7 @@ class ReportInput:
         None  # how the cloud was put into the part frame (cell.analysis.alignment)
     )
     calibration: dict[str, Any] | None = None  # the calibration files used (cell.calibration_state)
+    stored: StoredCloud | None = None  # what cloud.ply stores when not just the judged points
 
     @cached_property
     def bands(self) -> PointBands:
@@ -137,6 +157,8 @@ def out_of_tolerance_regions(
         idx = np.flatnonzero(lab == r)
         dev = deviation_mm[bad[idx]]
         ext = int(idx[np.argmax(np.abs(dev))])
+        d_ext = float(deviation_mm[bad[ext]])
+        limit = _limit(band, int(bad[ext]), above=d_ext > 0)
         regions.append(
             {
                 "name": f"out-of-tolerance-{len(regions) + 1}",
@@ -145,10 +167,39 @@ def out_of_tolerance_regions(
                 "centre_mm": [round(float(c), 4) for c in pts[idx].mean(0)],
                 "extreme_mm": round(float(deviation_mm[bad[ext]]), 5),
                 "extreme_at_mm": [round(float(c), 4) for c in pts[ext]],
-                "kind": "excess" if deviation_mm[bad[ext]] > 0 else "dent",
+                "kind": "excess" if d_ext > 0 else "dent",
+                "limit_mm": round(limit, 5),
+                "beyond_mm": round(d_ext - limit, 5),
             }
         )
     return regions
+
+
+def _limit(band: Tolerance | PointBands, i: int, above: bool) -> float:
+    """The limit a point ``i`` outside its band crossed: its band's upper limit when ``above``, else lower."""
+    if isinstance(band, Tolerance):
+        return band.upper_mm if above else band.lower_mm
+    return float(band.upper_mm[i] if above else band.lower_mm[i])
+
+
+def software() -> dict[str, str | None]:
+    """The software that made the report: package name, version and, in a git checkout, the commit
+    (``git describe --always --dirty``; null when installed from a package)."""
+    repo = Path(cell.__file__).resolve().parents[1]
+    commit = None
+    if (repo / ".git").exists():
+        try:
+            done = subprocess.run(
+                ["git", "-C", str(repo), "describe", "--always", "--dirty", "--abbrev=10"],
+                capture_output=True,
+                text=True,
+                timeout=5,
+                check=False,
+            )
+            commit = done.stdout.strip() or None
+        except (OSError, subprocess.TimeoutExpired):
+            commit = None
+    return {"name": "inspection-cell", "version": cell.__version__, "commit": commit}
 
 
 def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> dict[str, Any]:
@@ -185,6 +236,8 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
         overall = "incomplete"  # a measurement that cannot be trusted neither passes nor fails a part
     return {
         "schema_version": SCHEMA_VERSION,
+        "created_utc": utc_iso(time.time()),
+        "software": software(),
         "verdict": overall,
         "incomplete_reasons": list(inp.incomplete_reasons),
         "tolerance": {"lower_mm": tol.lower_mm, "upper_mm": tol.upper_mm},
@@ -207,161 +260,87 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
     }
 
 
-def write_ply(path: Path, points_mm: NDArray, deviation_mm: NDArray) -> None:
-    """Binary little-endian PLY with x, y, z (double) and a float ``deviation`` scalar field per vertex."""
-    rec = np.empty(len(points_mm), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("deviation", "<f4")])
-    rec["x"], rec["y"], rec["z"] = points_mm[:, 0], points_mm[:, 1], points_mm[:, 2]
-    rec["deviation"] = deviation_mm
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment units mm; deviation = signed distance to nominal, mm\n"
-        f"element vertex {len(rec)}\nproperty double x\nproperty double y\nproperty double z\n"
-        "property float deviation\nend_header\n"
+def _labels(regions: list[dict[str, Any]]) -> list[tuple[str, NDArray[np.float64], str]]:
+    """(number, point, hover text) of each out-of-tolerance region, flagged at its extreme point."""
+    return [
+        (
+            str(i + 1),
+            np.asarray(r["extreme_at_mm"], np.float64),
+            f"{i + 1}: {r['kind']} {r['extreme_mm']:+.3f} mm, {r['n_points']} points",
+        )
+        for i, r in enumerate(regions)
+    ]
+
+
+def _unmeasured(cov: Coverage | None) -> tuple[NDArray[np.float64] | None, float | None]:
+    """The nominal surface samples no point covered (mm) and the samples' spacing (mm), if known."""
+    if cov is None or len(cov.covered) == 0:
+        return None, None
+    spacing = float(np.sqrt(cov.area_mm2 / len(cov.covered)))
+    return np.asarray(cov.samples_mm)[~np.asarray(cov.covered)], spacing
+
+
+def render(doc: dict[str, Any], inp: ReportInput, pictures: bool = True) -> str:
+    """report.html for the report.json document ``doc`` of ``inp``: pictures, 3D view, page."""
+    from cell.analysis.report_html import render_html
+
+    scale = BandedScale(inp.tolerance.lower_mm, inp.tolerance.upper_mm)
+    images: list[dict[str, Any]] = []
+    hist = view = None
+    if pictures and len(inp.points_mm):
+        from cell.analysis.pictures import error_map_views, histogram_svg
+        from cell.analysis.view3d import figure, view3d_html
+
+        bad = inp.bands.outside(inp.deviation_mm)
+        unmeasured, spacing = _unmeasured(inp.coverage)
+        labels = _labels(doc["regions"])
+        images = error_map_views(
+            inp.points_mm,
+            inp.deviation_mm,
+            scale,
+            bad,
+            unmeasured_mm=unmeasured,
+            unmeasured_spacing_mm=spacing,
+            labels=[(t, p) for t, p, _ in labels],
+        )
+        hist = histogram_svg(inp.deviation_mm, scale)
+        view = view3d_html(
+            figure(inp.points_mm, inp.deviation_mm, scale, bad, unmeasured_mm=unmeasured, labels=labels)
+        )
+    return render_html(doc, scale, images, hist, view)
+
+
+def write_report(out_dir: Path, inp: ReportInput, pictures: bool = True, csv: bool = False) -> dict[str, Any]:
+    """Write report.json, report.html, cloud.ply and (``csv``) deviations.csv into ``out_dir`` as one set
+    (a deviations.csv of an earlier report goes when ``csv`` is off); return the json doc. A folder that
+    cannot be written is a :class:`cell.errors.ConfigError` naming it."""
+    from cell.analysis.pictures import VIEWS
+    from cell.analysis.report_files import write_csv, write_file_set, write_ply
+
+    views = [{"name": n, "elev_deg": el, "azim_deg": az} for n, el, az in VIEWS]
+    doc = summarise(inp, views if pictures and len(inp.points_mm) else [])
+    page = render(doc, inp, pictures)
+    stored = inp.stored or StoredCloud(inp.points_mm, inp.deviation_mm)
+    fields = dict(stored.fields)
+    if stored.isolated is not None:
+        fields = {"isolated": np.asarray(stored.isolated, bool), **fields}
+    writers = {
+        "cloud.ply": lambda p: write_ply(p, stored.points_mm, stored.deviation_mm, fields),
+        **({"deviations.csv": lambda p: write_csv(p, inp.points_mm, inp.deviation_mm)} if csv else {}),
+        "report.html": lambda p: p.write_text(page, encoding="utf-8"),
+        "report.json": lambda p: p.write_text(json.dumps(doc, indent=2), encoding="utf-8"),
+    }
+    # an earlier report's print or CSV would not match this report: they go (the print is made from
+    # report.html afterwards, :func:`print_report_pdf`)
+    write_file_set(
+        Path(out_dir), writers, remove=("report.pdf",) if csv else ("report.pdf", "deviations.csv")
     )
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(rec.tobytes())
-
-
-def write_csv(path: Path, points_mm: NDArray, deviation_mm: NDArray) -> None:
-    """deviations.csv: x_mm,y_mm,z_mm,deviation_mm."""
-    np.savetxt(
-        path,
-        np.column_stack([points_mm, deviation_mm]),
-        fmt="%.5f",
-        delimiter=",",
-        header="x_mm,y_mm,z_mm,deviation_mm",
-        comments="",
-    )
-
-
-def _pictures(
-    points: NDArray, dev: NDArray, tol: Tolerance, bad: NDArray[np.bool_], max_points: int = 100_000
-) -> tuple[list, str]:
-    """Colour error-map views (base64 PNG, clipped at twice the tolerance) and an SVG histogram; ``bad``:
-    the points outside their band, always drawn (cell.analysis.pictures)."""
-    from cell.analysis.pictures import error_map_views, histogram_svg
-
-    lim = max(abs(tol.lower_mm), abs(tol.upper_mm)) * 2
-    images = error_map_views(points, dev, lim, bad, max_points)
-    return images, histogram_svg(dev, tol.lower_mm, tol.upper_mm)
-
-
-def _percent(fraction: float | None) -> str:
-    return "not measured" if fraction is None else f"{100 * fraction:.2f} % of the inspectable surface"
-
-
-def _alignment_html(al: dict[str, Any] | None) -> str:
-    """The alignment used, its correction, residuals per datum and the uncertainty it adds."""
-    if not al:
-        return "<p>kinematic chain (no alignment recorded)</p>"
-    if "error" in al:
-        return f"<p><b>{html.escape(al['method'])}</b>: failed: {html.escape(al['error'])}</p>"
-    c, u = al.get("correction", {}), al.get("uncertainty_mm")
-    unc = (
-        "not estimated"
-        if not u
-        else ", ".join(f"{k} {v:.4f} mm" for k, v in u.items()) + " (1 sigma along the surface normal)"
-    )
-    rows = "".join(
-        f"<tr><td>{html.escape(r['name'])}</td><td>{r['before_mm']:+.4f}</td><td>{r['after_mm']:+.4f}</td>"
-        f"<td>{r['spread_mm']:.4f}</td><td>{r['n_points']}</td></tr>"
-        for r in al.get("residuals", [])
-    )
-    table = (
-        "<table><tr><th>datum</th><th>before mm</th><th>after mm</th><th>spread mm</th><th>points</th></tr>"
-        f"{rows}</table>"
-        if rows
-        else ""
-    )
-    rms = "" if al.get("rms_mm") is None else f"; residual rms {al['rms_mm']:.4f} mm"
-    return (
-        f"<p><b>{html.escape(al['method'])}</b>: moved the measured part by up to "
-        f"{c.get('max_mm', 0):.4f} mm "
-        f"({c.get('translation_mm', 0):.4f} mm, {c.get('rotation_deg', 0):.4f} deg){rms}; uncertainty added: "
-        f"{unc}</p>{table}"
-    )
-
-
-def _calibration_html(cal: dict[str, Any] | None) -> str:
-    """The calibration files the run measured with, their age and state."""
-    if not cal:
-        return "<p>not recorded</p>"
-    rows = "".join(
-        f"<tr><td>{f['field']}</td><td>{html.escape(f['file'])}</td><td>{f['created_utc']}</td>"
-        f"<td>{f['age_days']:.2f}</td><td>{f['made_for_this_config']}</td>"
-        f"<td>{html.escape('; '.join(f['problems']) or 'ok')}</td></tr>"
-        for f in cal.get("files", [])
-    )
-    if not rows:
-        return f"<p>none: the cell config's nominal geometry (required by the recipe: {cal['required']})</p>"
-    return (
-        f"<p>required by the recipe: {cal['required']}</p><table><tr><th>calibration</th><th>file</th>"
-        "<th>created (UTC)</th><th>age (days)</th><th>made for this cell config</th><th>state</th></tr>"
-        f"{rows}</table>"
-    )
-
-
-def _html(doc: dict[str, Any], images: list, hist: str | None) -> str:
-    colour = {"pass": "#2a2", "fail": "#c22", "incomplete": "#d80"}.get(doc["verdict"], "#888")
-    st = doc["deviation"]
-    rows = "".join(
-        f"<tr><td>{i + 1}</td><td>{r['kind']}</td><td>{r['n_points']}</td><td>{r['extreme_mm']:+.3f}</td>"
-        f"<td>{', '.join(f'{c:.2f}' for c in r['centre_mm'])}</td></tr>"
-        for i, r in enumerate(doc["regions"])
-    )
-    user_rows = "".join(
-        f"<tr><td>{r['name']}</td><td>{r['verdict'].upper()}</td><td>{r['n_points']}</td>"
-        f"<td>{r['n_out_of_tolerance']}</td><td>{r['tolerance']['lower_mm']:+.3f} .. "
-        f"{r['tolerance']['upper_mm']:+.3f}</td><td>{r['coverage']}</td></tr>"
-        for r in doc["region_verdicts"]
-    )
-    pics = "".join(
-        f'<figure style="display:inline-block"><img alt="{im["name"]}" '
-        f'src="data:image/png;base64,{im["png"]}"><figcaption>{im["name"]}</figcaption></figure>'
-        for im in images
-    )
-    if images:
-        from cell.analysis.pictures import colour_bar_html
-
-        tol_d = doc["tolerance"]
-        pics += colour_bar_html(2 * max(abs(tol_d["lower_mm"]), abs(tol_d["upper_mm"])))
-    hist_html = hist or "<p>(no pictures)</p>"
-    stats = "".join(f"<tr><td>{k}</td><td>{v}</td></tr>" for k, v in st.items())
-    meta = json.dumps({"metadata": doc["metadata"], "excluded": doc["excluded"]}, indent=1)
-    tol = doc["tolerance"]
-    return f"""<!doctype html><html><head><meta charset="utf-8"><title>Inspection report</title>
-<style>body{{font-family:sans-serif;margin:2em}} td,th{{border:1px solid #ccc;padding:2px 6px}}
-table{{border-collapse:collapse}}
-.v{{font-size:2em;color:white;background:{colour};padding:.3em;display:inline-block}}</style>
-</head><body><div class="v">{doc["verdict"].upper()}</div>
-<p>tolerance {tol["lower_mm"]:+.3f} .. {tol["upper_mm"]:+.3f} mm; {doc["n_points"]} points,
-{doc["n_out_of_tolerance"]} out of tolerance; coverage {_percent(doc["coverage"])}</p>
-{"".join(f'<p style="color:#d80"><b>incomplete:</b> {html.escape(w)}</p>' for w in doc["incomplete_reasons"])}
-{"".join(f'<p style="color:#c22"><b>warning:</b> {html.escape(w)}</p>' for w in doc["warnings"])}
-<h2>Alignment</h2>{_alignment_html(doc["alignment"])}<h2>Calibration</h2>{_calibration_html(doc["calibration"])}
-<h2>Error map (mm, + outside the material)</h2>{pics}<h2>Histogram</h2>{hist_html}
-<h2>Regions</h2><table><tr><th>region</th><th>verdict</th><th>points</th><th>out</th><th>tolerance mm</th>
-<th>coverage</th></tr>{user_rows}</table><h2>Out-of-tolerance clusters</h2>
-<table><tr><th>#</th><th>kind</th><th>points</th><th>extreme mm</th>
-<th>centre mm</th></tr>{rows}</table><h2>Statistics</h2><table>{stats}</table>
-<h2>Run</h2><pre>{meta}</pre></body></html>"""
-
-
-def write_report(out_dir: Path, inp: ReportInput, pictures: bool = True, csv: bool = True) -> dict[str, Any]:
-    """Write report.json, report.html, cloud.ply and (``csv``) deviations.csv into ``out_dir``; return the
-    json doc."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    images, hist = (
-        _pictures(inp.points_mm, inp.deviation_mm, inp.tolerance, inp.bands.outside(inp.deviation_mm))
-        if pictures and len(inp.points_mm)
-        else ([], None)
-    )
-    views = [{k: v for k, v in im.items() if k != "png"} for im in images]
-    doc = summarise(inp, views)
-    (out_dir / "report.json").write_text(json.dumps(doc, indent=2))
-    (out_dir / "report.html").write_text(_html(doc, images, hist))
-    write_ply(out_dir / "cloud.ply", inp.points_mm, inp.deviation_mm)
-    if csv:
-        write_csv(out_dir / "deviations.csv", inp.points_mm, inp.deviation_mm)
     return doc
+
+
+def print_report_pdf(out_dir: Path) -> Path:
+    """Print ``out_dir``/report.html to report.pdf beside it with headless Chromium (:mod:`cell.chromium`):
+    A4, the page's print stylesheet, at most three pages."""
+    from cell.chromium import print_pdf
+
+    return print_pdf(Path(out_dir) / "report.html", Path(out_dir) / "report.pdf")

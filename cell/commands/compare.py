@@ -38,6 +38,7 @@ def register(app: typer.Typer) -> None:
         crop_mm: float = typer.Option(
             5.0, help="points farther than this from the nominal are background and left out (0: keep them)"
         ),
+        pdf: bool = typer.Option(False, "--pdf", help="also print report.pdf (headless Chromium)"),
     ) -> None:
         """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report. Exits
         0 on pass, 4 on fail, 5 when incomplete (docs/exit-codes.md)."""
@@ -62,6 +63,10 @@ def register(app: typer.Typer) -> None:
             table_z=table_z,
             crop_mm=crop_mm,
         )
+        if pdf:
+            from cell.analysis.report import print_report_pdf
+
+            print_report_pdf(out)
         typer.echo(
             f"{doc['verdict']}: {doc['n_points']} points, {doc['n_out_of_tolerance']} out of tolerance "
             f"-> {out}"

@@ -114,11 +114,18 @@ def register(app: typer.Typer) -> None:
         _finish(resume(run_dir, on_progress=_progress, say=_say))
 
     @app.command("report")
-    def report_cmd(run_dir: Path = typer.Argument(..., help="run folder")) -> None:
-        """Rebuild a finished run's report from its stored views."""
+    def report_cmd(
+        run_dir: Path = typer.Argument(..., help="run folder"),
+        pdf: bool = typer.Option(False, "--pdf", help="also print results/report.pdf (headless Chromium)"),
+        csv: bool = typer.Option(False, "--csv", help="also write results/deviations.csv (x,y,z,deviation)"),
+    ) -> None:
+        """Rebuild a finished run's report from its stored views (docs/report.md)."""
         from cell.inspection_run import rebuild_report
 
-        _finish(rebuild_report(run_dir))
+        outcome = rebuild_report(run_dir, csv=csv, pdf=pdf)
+        if pdf:
+            console.print(f"printed: {outcome.run.results_dir / 'report.pdf'}", markup=False)
+        _finish(outcome)
 
     @app.command("demo")
     def demo_cmd(

@@ -4,14 +4,15 @@ and report into a run folder. The rig is injected (the ``cell glass`` command bu
 Run folder (cell/runs.py layout): ``inputs/`` copies of recipe, rig config and meshes; ``views/<camera>.npy``
 the averaged frame of each camera; ``calibration/`` the view-vector calibrations used (when computed in
 this run); ``results/`` the report files of the lambertian inspection (report.json/html, cloud.ply with
-``deviation``, deviations.csv) for the accepted points in the part frame, plus ``normals.ply`` (x, y, z,
-nx, ny, nz, deviation) and ``glass_points.npz`` with every measured point and its rejection figures.
+``deviation``) for the accepted points in the part frame, their measured normals in cloud.ply too (``nx ny
+nz``), and ``glass_points.npz`` with every measured point (world frame, accepted or not) and its rejection
+figures.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -227,9 +228,9 @@ def _report(
         excluded=excluded,
         link_radius_mm=glass_link_radius_mm(m.points[acc], m.camera[acc]) or None,
         metadata=metadata,
+        point_fields={f"n{k}": np.asarray(normals_P[:, i], np.float64) for i, k in enumerate("xyz")},
     )
     doc = write_report(r, inp)
-    write_normals_ply(r / "normals.ply", pts_P, normals_P, inp.deviation_mm)
     np.savez_compressed(
         r / "glass_points.npz",
         points_W=m.points,
@@ -266,29 +267,3 @@ def glass_link_radius_mm(
         if np.sum(camera == c) > 1
     ]
     return factor * float(np.median(np.concatenate(gaps))) if gaps else 0.0
-
-
-def write_normals_ply(
-    path: Path,
-    points: NDArray[np.float64],
-    normals: NDArray[np.float64],
-    deviation: Sequence[float] | NDArray[np.float64],
-) -> None:
-    """Binary little-endian PLY: x, y, z, nx, ny, nz (double) and ``deviation`` (float) per vertex.
-
-    Written with a numpy structured array (a dozen lines) rather than trimesh, whose point-cloud export
-    drops normals and custom scalar fields.
-    """
-    rec = np.empty(
-        len(points), dtype=[*((k, "<f8") for k in ("x", "y", "z", "nx", "ny", "nz")), ("deviation", "<f4")]
-    )
-    for i, k in enumerate(("x", "y", "z")):
-        rec[k] = points[:, i]
-        rec["n" + k] = normals[:, i]
-    rec["deviation"] = np.asarray(deviation, np.float32)
-    props = "".join(f"property double {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz"))
-    header = (
-        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n{props}"
-        "property float deviation\nend_header\n"
-    )
-    path.write_bytes(header.encode("ascii") + rec.tobytes())

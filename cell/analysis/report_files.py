@@ -1,0 +1,143 @@
+"""The report's files on disk: the cloud (PLY with its deviation field, CSV on request) and writing the whole
+set of files so that a reader never finds half of one.
+
+Every file of a report is first written to a hidden temporary file beside its target and flushed to disk;
+only when all of them are written are they renamed into place, ``report.json`` last (it is what readers
+look for first). A process killed or an error raised while writing leaves the previous report as it was
+(or no report) and no partial file. A folder that cannot be written (read-only, full disk, missing
+permission) is one :class:`ConfigError` naming the path.
+
+PLY: binary little-endian, vertex ``x y z`` double (mm, part frame), ``deviation`` float (mm, + outside the
+material), then optional fields (``isolated`` uchar: an out-of-tolerance point set aside as an isolated
+outlier, not judged; the glass normals ``nx ny nz`` double). CloudCompare and MeshLab show
+every field as a scalar field.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.errors import ConfigError
+
+Writer = Callable[[Path], None]
+
+
+def write_ply(
+    path: Path,
+    points_mm: NDArray,
+    deviation_mm: NDArray | None = None,
+    fields: Mapping[str, NDArray] | None = None,
+) -> None:
+    """A binary PLY of the points, with ``deviation`` (float) when given and the extra per-point ``fields``
+    (bool as uchar, float64 as double, others as float)."""
+    columns: list[tuple[str, NDArray, str, str]] = [
+        (c, np.asarray(points_mm)[:, k], "<f8", "double") for k, c in enumerate("xyz")
+    ]
+    if deviation_mm is not None:
+        columns.append(("deviation", np.asarray(deviation_mm), "<f4", "float"))
+    for name, values in (fields or {}).items():
+        values = np.asarray(values)
+        kind = {np.dtype(bool): ("u1", "uchar"), np.dtype(np.float64): ("<f8", "double")}.get(
+            values.dtype, ("<f4", "float")
+        )
+        columns.append((name, values, *kind))
+    rec = np.empty(len(points_mm), dtype=[(n, t) for n, _, t, _ in columns])
+    for name, values, _, _ in columns:
+        rec[name] = values
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment units mm, part frame; deviation = signed distance to "
+        f"the nominal, mm, + outside the material\nelement vertex {len(rec)}\n"
+        + "".join(f"property {ply} {name}\n" for name, _, _, ply in columns)
+        + "end_header\n"
+    )
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(rec.tobytes())
+
+
+def read_ply_points(path: Path) -> NDArray[np.float64]:
+    """The x, y, z (N, 3, float64) of a PLY written by :func:`write_ply`, exactly as stored."""
+    with open(path, "rb") as fh:
+        head = b""
+        while not head.endswith(b"end_header\n"):
+            line = fh.readline()
+            if not line:
+                raise ConfigError("not a PLY file written by the cell (no end_header)", path=str(path))
+            head += line
+        props, n = [], 0
+        for line in head.decode("ascii").splitlines():
+            words = line.split()
+            if words[:2] == ["element", "vertex"]:
+                n = int(words[2])
+            elif words[:1] == ["property"]:
+                props.append((words[2], {"double": "<f8", "float": "<f4", "uchar": "u1"}[words[1]]))
+        rec = np.fromfile(fh, dtype=np.dtype(props), count=n)
+    if len(rec) != n:
+        raise ConfigError(f"the PLY file is truncated ({len(rec)} of {n} points)", path=str(path))
+    return np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+
+
+def write_csv(path: Path, points_mm: NDArray, deviation_mm: NDArray) -> None:
+    """deviations.csv: x_mm,y_mm,z_mm,deviation_mm (5 decimals: 10 nm)."""
+    np.savetxt(
+        path,
+        np.column_stack([points_mm, deviation_mm]),
+        fmt="%.5f",
+        delimiter=",",
+        header="x_mm,y_mm,z_mm,deviation_mm",
+        comments="",
+    )
+
+
+def _unwritable(exc: OSError, out_dir: Path, name: str | None) -> ConfigError:
+    why = exc.strerror or str(exc)
+    what = f"the report file {name}" if name else "the report"
+    return ConfigError(
+        f"cannot write {what} here ({why}); nothing of the new report was kept: make the folder writable "
+        "or free some space, or choose another folder",
+        path=str(out_dir),
+    )
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_file_set(out_dir: Path, writers: Mapping[str, Writer], remove: tuple[str, ...] = ()) -> None:
+    """Write every file ``name -> writer(path)`` into ``out_dir`` all or none: each to a temporary file,
+    then renamed into place in the given order (put ``report.json`` last); files named in ``remove`` (a
+    previous report's that this one does not have) are deleted before the renames."""
+    out_dir = Path(out_dir)
+    temps: list[Path] = []
+    name: str | None = None
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        staged = {}
+        for name, write in writers.items():
+            tmp = out_dir / f".{name}.{os.getpid()}-{secrets.token_hex(4)}.partial"
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # the umask applies
+            temps.append(tmp)
+            write(tmp)
+            _fsync(tmp)
+            staged[name] = tmp
+        name = None
+        for stale in remove:
+            (out_dir / stale).unlink(missing_ok=True)
+        for done, tmp in staged.items():
+            os.replace(tmp, out_dir / done)
+        _fsync(out_dir)
+    except OSError as exc:
+        raise _unwritable(exc, out_dir, name) from exc
+    finally:
+        for tmp in temps:
+            tmp.unlink(missing_ok=True)
