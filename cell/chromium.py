@@ -188,8 +188,9 @@ class Browser:
         return reply
 
     # ------------------------------------------------------------------ the page
-    def open(self, page: Path, width_px: int = 1200, height_px: int = 1600) -> None:
-        """Load the HTML file ``page`` in a ``width_px`` x ``height_px`` window; wait for its load event."""
+    def open(self, page: Path, width_px: int = 1200, height_px: int = 1600, fragment: str = "") -> None:
+        """Load the HTML file ``page`` (with ``#fragment`` when given) in a ``width_px`` x ``height_px``
+        window; wait for its load event."""
         page = Path(page).resolve()
         if not page.is_file():
             raise ConfigError("no such page to render", path=str(page))
@@ -199,7 +200,8 @@ class Browser:
         ]
         metrics = {"width": width_px, "height": height_px, "deviceScaleFactor": 1, "mobile": False}
         self._call("Emulation.setDeviceMetricsOverride", metrics, session=True)
-        nav = self._call("Page.navigate", {"url": page.as_uri()}, session=True)
+        url = page.as_uri() + (f"#{fragment}" if fragment else "")
+        nav = self._call("Page.navigate", {"url": url}, session=True)
         if nav.get("errorText"):
             raise ConfigError(f"Chromium cannot open it: {nav['errorText']}", path=str(page))
         self.wait_for("document.readyState === 'complete'")
@@ -233,10 +235,13 @@ class Browser:
         return write_file_atomic(pdf, base64.b64decode(data))
 
 
-def print_pdf(page: Path, pdf: Path, ready: str | None = None, timeout_s: float = 180.0) -> Path:
-    """Print the HTML file ``page`` to ``pdf`` once it loaded and ``ready`` (a JavaScript condition) holds."""
+def print_pdf(
+    page: Path, pdf: Path, ready: str | None = None, fragment: str = "", timeout_s: float = 180.0
+) -> Path:
+    """Print the HTML file ``page`` (``#fragment``) to ``pdf`` once it loaded and ``ready`` (a JavaScript
+    condition) holds."""
     with Browser(timeout_s) as browser:
-        browser.open(page)
+        browser.open(page, fragment=fragment)
         if ready:
             browser.wait_for(ready)
         return browser.pdf(pdf)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -23,6 +24,7 @@ import yaml
 
 from cell.runs import RunFolder
 from tests.box_part import small_cell, write_box_recipe
+from tests.browser import require_chromium
 from tests.same_result import assert_same_result, judged_report
 from tests.test_controller import make_controller, recipe_path, reference, result_of  # noqa: F401
 
@@ -163,13 +165,48 @@ def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return recipe, folder / "cell.yaml"
 
 
+OPERATOR = "<script>alert(1)</script>"  # a valid operator name (printable) that must reach the page escaped
+
+
 @pytest.fixture(scope="module")
-def cli_reference(box_inputs: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """The report of an uninterrupted `cell inspect` of the box (same inputs, seed and settings)."""
+def cli_reference_run(box_inputs: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The run folder of an uninterrupted `cell inspect` of the box (same inputs, seed and settings)."""
     recipe, cell_file = box_inputs
     out = tmp_path_factory.mktemp("cliref") / "ref"
-    ref = _cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(out))
-    return judged_report(ref, out)
+    args = ("--serial", "SN-7", "--operator", OPERATOR)
+    ref = _cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(out), *args)
+    judged_report(ref, out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def cli_reference(cli_reference_run: Path) -> dict:
+    """The report of the uninterrupted `cell inspect` of the box."""
+    return json.loads((cli_reference_run / "results" / "report.json").read_text())
+
+
+def test_cell_report_rebuilds_from_the_stored_cloud_and_prints(
+    cli_reference_run: Path, cli_reference: dict, tmp_path: Path
+) -> None:
+    """`cell report RUN --pdf --csv`: the same result rebuilt from results/cloud.ply (the cloud stored once:
+    no other copy of it in results/), the CSV on request, and a PDF of at most three pages that names the
+    part's serial; the operator's name reaches the page escaped."""
+    require_chromium()
+    from pypdf import PdfReader
+
+    run = tmp_path / "run"
+    shutil.copytree(cli_reference_run, run)
+    results = run / "results"
+    assert sorted(p.name for p in results.iterdir()) == ["cloud.ply", "report.html", "report.json"]
+    doc = judged_report(_cell("report", str(run), "--pdf", "--csv"), run)
+    assert_same_result(doc, cli_reference, "cell report")
+    assert doc["metadata"]["run"]["identity"] == {"serial": "SN-7", "operator": OPERATOR, "order": None}
+    rows = (results / "deviations.csv").read_text().count("\n") - 1
+    assert rows == doc["n_points"]
+    pages = PdfReader(results / "report.pdf").pages
+    assert 1 <= len(pages) <= 3 and "SN-7" in pages[0].extract_text() and "PASS" in pages[0].extract_text()
+    page = (results / "report.html").read_text()
+    assert OPERATOR not in page and "&lt;script&gt;alert(1)&lt;/script&gt;" in page
 
 
 def _journal(run: Path) -> list[dict]:

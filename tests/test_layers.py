@@ -26,6 +26,7 @@ FOUNDATION = (
     "cell.raycast",
     "cell.run_data",
     "cell.storage",
+    "cell.chromium",
 )
 # the domain packages, lowest first: each imports only packages before it
 DOMAIN = (

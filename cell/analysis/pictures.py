@@ -145,10 +145,10 @@ def render_view(
     col, row, depth = frame.project(points_mm)
     pix, dep, src = _splat(col, row, depth, max(1, point_px // 2 + 1), shape)
     winner, depth_img = _zbuffer(pix, dep, shape[0] * shape[1])
-    img = np.full((shape[0] * shape[1], 3), 255, np.uint8)
+    flat = np.full((shape[0] * shape[1], 3), 255, np.uint8)
     hit = winner >= 0
-    img[hit] = rgb[src[winner[hit]]]
-    img, depth_img = img.reshape(*shape, 3), depth_img.reshape(shape)
+    flat[hit] = rgb[src[winner[hit]]]
+    img, depth_img = flat.reshape(*shape, 3), depth_img.reshape(shape)
     _drop_seen_through(depth_img, 4 * point_px + 1, max(1.0, 4 * point_px / frame.scale_px_per_mm))
     _fill_holes(img, depth_img, 3 * point_px)
     img[~np.isfinite(depth_img)] = 255
@@ -315,7 +315,7 @@ def point_spacing_mm(points_mm: NDArray, sample: int = 4000) -> float:
     from scipy.spatial import cKDTree
 
     pick = np.random.default_rng(0).choice(len(points_mm), min(sample, len(points_mm)), replace=False)
-    d = cKDTree(points_mm).query(points_mm[pick], k=2)[0][:, 1]
+    d = np.asarray(cKDTree(points_mm).query(points_mm[pick], k=2)[0])[:, 1]
     return float(np.median(d[d > 0])) if (d > 0).any() else 0.0
 
 

@@ -280,8 +280,9 @@ def _unmeasured(cov: Coverage | None) -> tuple[NDArray[np.float64] | None, float
     return np.asarray(cov.samples_mm)[~np.asarray(cov.covered)], spacing
 
 
-def render(doc: dict[str, Any], inp: ReportInput, pictures: bool = True) -> str:
-    """report.html for the report.json document ``doc`` of ``inp``: pictures, 3D view, page."""
+def render(doc: dict[str, Any], inp: ReportInput, pictures: bool = True, csv: bool = False) -> str:
+    """report.html for the report.json document ``doc`` of ``inp``: pictures, 3D view, page (``csv``: it
+    says that deviations.csv is beside it)."""
     from cell.analysis.report_html import render_html
 
     scale = BandedScale(inp.tolerance.lower_mm, inp.tolerance.upper_mm)
@@ -307,7 +308,7 @@ def render(doc: dict[str, Any], inp: ReportInput, pictures: bool = True) -> str:
         view = view3d_html(
             figure(inp.points_mm, inp.deviation_mm, scale, bad, unmeasured_mm=unmeasured, labels=labels)
         )
-    return render_html(doc, scale, images, hist, view)
+    return render_html(doc, scale, images, hist, view, csv)
 
 
 def write_report(out_dir: Path, inp: ReportInput, pictures: bool = True, csv: bool = False) -> dict[str, Any]:
@@ -319,7 +320,7 @@ def write_report(out_dir: Path, inp: ReportInput, pictures: bool = True, csv: bo
 
     views = [{"name": n, "elev_deg": el, "azim_deg": az} for n, el, az in VIEWS]
     doc = summarise(inp, views if pictures and len(inp.points_mm) else [])
-    page = render(doc, inp, pictures)
+    page = render(doc, inp, pictures, csv)
     stored = inp.stored or StoredCloud(inp.points_mm, inp.deviation_mm)
     fields = dict(stored.fields)
     if stored.isolated is not None:
@@ -343,4 +344,6 @@ def print_report_pdf(out_dir: Path) -> Path:
     A4, the page's print stylesheet, at most three pages."""
     from cell.chromium import print_pdf
 
-    return print_pdf(Path(out_dir) / "report.html", Path(out_dir) / "report.pdf")
+    # "#print": the page leaves its 3D view out (the print shows the static views), so the browser does not
+    # spend seconds drawing it in software
+    return print_pdf(Path(out_dir) / "report.html", Path(out_dir) / "report.pdf", fragment="print")

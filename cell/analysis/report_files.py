@@ -3,8 +3,9 @@ set of files so that a reader never finds half of one.
 
 Every file of a report is first written to a hidden temporary file beside its target and flushed to disk;
 only when all of them are written are they renamed into place, ``report.json`` last (it is what readers
-look for first). A process killed or an error raised while writing leaves the previous report as it was
-(or no report) and no partial file. A folder that cannot be written (read-only, full disk, missing
+look for first). An error raised while writing leaves the previous report as it was (or no report) and no
+partial file; a process killed while writing leaves the same, plus hidden ``.NAME.*.partial`` files that
+the next report removes. A folder that cannot be written (read-only, full disk, missing
 permission) is one :class:`ConfigError` naming the path.
 
 PLY: binary little-endian, vertex ``x y z`` double (mm, part frame), ``deviation`` float (mm, + outside the
@@ -71,8 +72,8 @@ def read_ply_points(path: Path) -> NDArray[np.float64]:
                 raise ConfigError("not a PLY file written by the cell (no end_header)", path=str(path))
             head += line
         props, n = [], 0
-        for line in head.decode("ascii").splitlines():
-            words = line.split()
+        for text in head.decode("ascii").splitlines():
+            words = text.split()
             if words[:2] == ["element", "vertex"]:
                 n = int(words[2])
             elif words[:1] == ["property"]:
@@ -122,6 +123,10 @@ def write_file_set(out_dir: Path, writers: Mapping[str, Writer], remove: tuple[s
     name: str | None = None
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
+        # what a killed writer left (one writer per folder at a time: the run lock, an empty --out)
+        for known in (*writers, *remove):
+            for stale in out_dir.glob(f".{known}.*.partial"):
+                stale.unlink(missing_ok=True)
         staged = {}
         for name, write in writers.items():
             tmp = out_dir / f".{name}.{os.getpid()}-{secrets.token_hex(4)}.partial"

@@ -149,6 +149,7 @@ def figure_json(fig: dict[str, Any]) -> str:
 LOADER = """<script>
 (async () => {
   const el = document.getElementById("view3d");
+  if (location.hash === "#print") { el.dataset.ready = "skipped"; return; }
   try {
     const packed = document.getElementById("plotly-js-gz").textContent.trim();
     const bytes = Uint8Array.from(atob(packed), (c) => c.charCodeAt(0));

@@ -1,0 +1,162 @@
+"""The report's files on disk: the cloud stored once (PLY with the deviation field, every measured point in
+order, CSV on request), written as one set (a failure mid-write leaves the previous report whole, or none),
+and an unwritable folder as one ConfigError naming it."""
+
+from __future__ import annotations
+
+import errno
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from cell.analysis import report_files
+from cell.analysis.report import ReportInput, Tolerance, write_report
+from cell.analysis.report_files import read_ply_points, write_ply
+from cell.errors import ConfigError
+from tests.synthetic_report import synthetic_input
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def inp():
+    """The synthetic box with isolated outliers set aside (min_defect_points 10)."""
+    return synthetic_input(n_points=8_000)
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_cloud_ply_holds_every_measured_point_once(inp, tmp_path: Path) -> None:
+    write_report(tmp_path, inp, pictures=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cloud.ply", "report.html", "report.json"]
+    stored = inp.stored
+    assert stored is not None and stored.isolated is not None and stored.isolated.any()
+    points = read_ply_points(tmp_path / "cloud.ply")
+    assert np.array_equal(points, stored.points_mm)  # exactly, in order: a rebuild judges the same points
+    ply = trimesh.load(tmp_path / "cloud.ply", process=False)  # an independent reader sees the fields
+    raw = ply.metadata["_ply_raw"]["vertex"]["data"]
+    assert np.allclose(raw["deviation"], stored.deviation_mm, atol=1e-6)
+    assert np.array_equal(raw["isolated"].astype(bool), stored.isolated)
+    assert np.array_equal(points[raw["isolated"] == 0], inp.points_mm)  # the judged ones
+
+
+def test_csv_on_request_and_gone_with_the_next_report(inp, tmp_path: Path) -> None:
+    write_report(tmp_path, inp, pictures=False, csv=True)
+    csv = np.loadtxt(tmp_path / "deviations.csv", delimiter=",", skiprows=1)
+    assert np.allclose(csv[:, :3], inp.points_mm, atol=1e-5) and np.allclose(
+        csv[:, 3], inp.deviation_mm, atol=1e-5
+    )
+    (tmp_path / "report.pdf").write_bytes(b"%PDF an older print")
+    write_report(tmp_path, inp, pictures=False)  # a report without CSV: the older CSV and print would lie
+    assert not (tmp_path / "deviations.csv").exists() and not (tmp_path / "report.pdf").exists()
+
+
+def test_a_failure_mid_write_leaves_no_half_set(inp, tmp_path: Path, monkeypatch) -> None:
+    """The CSV writer dies half way: a fresh folder stays empty; a folder with a report keeps it byte for
+    byte (no report.json beside a half CSV, no temporary files)."""
+
+    def dying_csv(path: Path, points, deviation) -> None:
+        path.write_text("x_mm,y_mm,z_mm,deviation_mm\n1.0,2.0,")
+        raise RuntimeError("killed while writing the CSV")
+
+    monkeypatch.setattr(report_files, "write_csv", dying_csv)
+    fresh = tmp_path / "fresh"
+    with pytest.raises(RuntimeError, match="killed"):
+        write_report(fresh, inp, pictures=False, csv=True)
+    assert list(fresh.iterdir()) == []
+    old = tmp_path / "old"
+    write_report(old, inp, pictures=False)
+    before = snapshot(old)
+    inp.tolerance = type(inp.tolerance)(-0.1, 0.1)  # the new report would differ
+    try:
+        with pytest.raises(RuntimeError, match="killed"):
+            write_report(old, inp, pictures=False, csv=True)
+    finally:
+        inp.tolerance = type(inp.tolerance)(-0.3, 0.3)
+    assert snapshot(old) == before
+
+
+def test_a_report_killed_mid_write_leaves_no_half_set(tmp_path: Path) -> None:
+    """SIGKILL while the CSV is being written (no handler runs): no report.json, no CSV, no cloud; only
+    hidden partial files, which the next report removes."""
+    out = tmp_path / "results"
+    script = (
+        "import sys, numpy as np\n"
+        "from cell.analysis.report import ReportInput, Tolerance, write_report\n"
+        "n = 600_000\n"
+        "pts = np.c_[np.random.default_rng(0).uniform(0, 300, (n, 2)), np.zeros(n)]\n"
+        "write_report(sys.argv[1], ReportInput(pts, np.zeros(n), Tolerance(-0.3, 0.3), n), pictures=False, "
+        "csv=True)\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script, str(out)], cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}
+    )
+    deadline = time.monotonic() + 120
+    while not any(p.stat().st_size > 100_000 for p in out.glob(".deviations.csv.*.partial")):
+        assert proc.poll() is None and time.monotonic() < deadline, "the writer ended before it was killed"
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=60)
+    left = sorted(p.name for p in out.iterdir())
+    assert left and all(name.startswith(".") and name.endswith(".partial") for name in left), left
+    pts = np.zeros((10, 3))
+    write_report(out, ReportInput(pts, np.zeros(10), Tolerance(-0.3, 0.3), 10), pictures=False)
+    assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "report.html", "report.json"]
+
+
+def test_a_full_disk_is_one_clear_error(inp, tmp_path: Path, monkeypatch) -> None:
+    def full(path: Path, *args, **kwargs) -> None:
+        path.write_bytes(b"ply\n")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr(report_files, "write_ply", full)
+    with pytest.raises(ConfigError) as err:
+        write_report(tmp_path, inp, pictures=False)
+    assert str(tmp_path) in str(err.value) and "No space left on device" in str(err.value)
+    assert "cloud.ply" in str(err.value) and list(tmp_path.iterdir()) == []
+
+
+@contextmanager
+def read_only(folder: Path) -> Iterator[None]:
+    """``folder`` read-only for this process: mode 555, and as root (who writes anyway) run as nobody."""
+    folder.chmod(0o555)
+    root = os.geteuid() == 0
+    try:
+        if root:
+            os.seteuid(65534)
+        yield
+    finally:
+        if root:
+            os.seteuid(0)
+        folder.chmod(0o755)
+
+
+def test_a_read_only_folder_is_one_clear_error(inp) -> None:
+    with tempfile.TemporaryDirectory() as parent:  # under /tmp: every user may pass through it
+        Path(parent).chmod(0o755)
+        out = Path(parent) / "results"
+        out.mkdir()
+        with read_only(out), pytest.raises(ConfigError) as err:
+            write_report(out, inp, pictures=False)
+        assert str(out) in str(err.value) and "Permission denied" in str(err.value)
+        assert list(out.iterdir()) == []
+
+
+def test_a_truncated_cloud_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "cloud.ply"
+    write_ply(path, np.arange(30.0).reshape(10, 3), np.zeros(10))
+    path.write_bytes(path.read_bytes()[:-20])
+    with pytest.raises(ConfigError, match="truncated"):
+        read_ply_points(path)
