@@ -25,15 +25,36 @@ def box_mesh() -> trimesh.Trimesh:
     return box
 
 
+def _box_faces(spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points on a regular grid of ``spacing`` mm on the box's top and four sides, and their normals."""
+    half = np.array([60.0, 45.0, 20.0])
+    pts, normals = [], []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            if axis == 2 and sign < 0:
+                continue  # the underside, on the table
+            u, v = [k for k in range(3) if k != axis]
+            gu = np.arange(-half[u] + spacing / 2, half[u], spacing)
+            gv = np.arange(-half[v] + spacing / 2, half[v], spacing)
+            grid = np.stack(np.meshgrid(gu, gv), -1).reshape(-1, 2)
+            p = np.zeros((len(grid), 3))
+            p[:, axis], p[:, u], p[:, v] = sign * half[axis], grid[:, 0], grid[:, 1]
+            n = np.zeros_like(p)
+            n[:, axis] = sign
+            pts.append(p + [0.0, 0.0, 20.0])
+            normals.append(n)
+    return np.vstack(pts), np.vstack(normals)
+
+
 def measured_box(n_points: int = 40_000, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Points on the box (mm) with a dent and a bump (and 10 um noise), the +y side's x > 20 part and the
-    underside unmeasured; and their true deviations."""
-    mesh = box_mesh()
+    """About ``n_points`` points on the box (mm), evenly spaced as a scanner's cloud merged on a voxel grid
+    is, with a dent and a bump (and 10 um noise); the +y side's x > 20 part and the underside unmeasured;
+    and their true deviations."""
     rng = np.random.default_rng(seed)
-    pts, face = trimesh.sample.sample_surface(mesh, int(n_points * 1.3), seed=seed)
-    normal = mesh.face_normals[face]
-    keep = (normal[:, 2] > -0.5) & ~((normal[:, 1] > 0.5) & (pts[:, 0] > 20.0))
-    pts, normal = pts[keep][:n_points], normal[keep][:n_points]
+    area = 120 * 90 + 2 * (120 + 90) * 40  # top and sides, mm^2
+    pts, normal = _box_faces(float(np.sqrt(area / n_points)))
+    keep = ~((normal[:, 1] > 0.5) & (pts[:, 0] > 20.0))
+    pts, normal = pts[keep], normal[keep]
     dev = -0.6 * np.exp(-np.sum((pts - DENT_AT) ** 2, axis=1) / (2 * 5.0**2)) * (normal[:, 2] > 0.5)
     dev += 0.45 * np.exp(-np.sum((pts - BUMP_AT) ** 2, axis=1) / (2 * 4.0**2)) * (normal[:, 1] < -0.5)
     dev += rng.normal(0.0, 0.01, len(pts))

@@ -132,6 +132,10 @@ def test_defects_are_numbered_on_the_maps_and_in_the_table(hostile: tuple[dict, 
     fig = json.loads(re.search(r'<script id="fig3d" type="application/json">(.*?)</script>', page, re.S)[1])
     flags = next(t for t in fig["data"] if t["name"] == "out-of-tolerance regions")
     assert flags["text"] == [str(i + 1) for i in range(len(regions))]
+    callouts = fig["layout"]["scene"]["annotations"]  # the numbered flags over the 3D view
+    assert [c["text"] for c in callouts] == [f"<b>{i + 1}</b>" for i in range(len(regions))]
+    at = np.array([[c["x"], c["y"], c["z"]] for c in callouts])
+    assert np.allclose(at, [r["extreme_at_mm"] for r in regions])
     assert len(re.findall(r'src="data:image/png;base64,', page)) == 4  # the views, flags drawn in
 
 

@@ -120,7 +120,7 @@ def verdict_reasons(doc: dict[str, Any]) -> list[str]:
 
 def _verdict_html(doc: dict[str, Any]) -> str:
     colour, symbol, word = VERDICT_STYLE.get(doc["verdict"], VERDICT_STYLE["no_data"])
-    reasons = "".join(f"<li>{e(r)}</li>" for r in verdict_reasons(doc))
+    reasons = "".join(f"<li>{e(r)}</li>" for r in dict.fromkeys(verdict_reasons(doc)))  # each once
     return (
         f'<section class="verdict" style="--vc:{colour}"><div class="badge" role="status">'
         f'<span class="sym">{symbol}</span><span class="word">{word}</span></div>'

@@ -19,7 +19,7 @@ h3 { font-size: 14px; margin: 14px 0 6px; }
 .verdict { display: flex; gap: 18px; align-items: center; margin: 14px 0; border: 2px solid var(--vc);
   border-radius: 6px; overflow: hidden; }
 .badge { background: var(--vc); color: #fff; padding: 12px 22px; display: flex; align-items: center;
-  gap: 10px;
+  flex: none; gap: 10px;
   min-width: 230px; align-self: stretch; }
 .badge .sym { font-size: 34px; line-height: 1; }
 .badge .word { font-size: 30px; font-weight: 700; letter-spacing: .04em; }
@@ -92,6 +92,7 @@ tr.excess td:nth-child(3) { color: #b01010; }
   table { font-size: 9.5px; } th { font-size: 8.5px; } th, td { padding: 1.5px 6px; }
   .callouts-sec { break-before: page; }
   .stats-sec, table { break-inside: avoid; }
+  h2, h3 { break-after: avoid; }
   .hist { width: 112mm; height: auto; }
   * { -webkit-print-color-adjust: exact; print-color-adjust: exact; }
 }

@@ -108,20 +108,39 @@ def figure(
                 hoverinfo="skip",
             )
         )
+    callouts = []
     if labels:
         data.append(
             go.Scatter3d(
                 **_xyz(np.array([p for _, p, _ in labels], np.float64)),
-                mode="markers+text",
+                mode="markers",
                 name="out-of-tolerance regions",
                 text=[t for t, _, _ in labels],
-                textposition="top center",
-                textfont={"size": 15, "color": "#000"},
-                marker={"size": 7, "symbol": "diamond-open", "color": "#000", "line": {"width": 2}},
+                marker={"size": 6, "symbol": "circle-open", "color": "#000", "line": {"width": 2}},
                 hovertext=[h for _, _, h in labels],
                 hoverinfo="text",
             )
         )
+        # numbered flags drawn over the scene (never hidden behind points), their arrows at the worst point
+        callouts = [
+            {
+                "x": float(p[0]),
+                "y": float(p[1]),
+                "z": float(p[2]),
+                "text": f"<b>{t}</b>",
+                "showarrow": True,
+                "arrowhead": 0,
+                "arrowwidth": 1.5,
+                "ax": 26,
+                "ay": -30,
+                "bgcolor": "white",
+                "bordercolor": "#111",
+                "borderwidth": 1.5,
+                "borderpad": 3,
+                "font": {"size": 13, "color": "#000"},
+            }
+            for t, p, _ in labels
+        ]
     axis = {"showbackground": False, "gridcolor": "#ddd", "zerolinecolor": "#bbb", "ticksuffix": ""}
     layout = go.Layout(
         height=560,
@@ -134,6 +153,7 @@ def figure(
             "yaxis": {**axis, "title": {"text": "y (mm)"}},
             "zaxis": {**axis, "title": {"text": "z (mm)"}},
             "camera": {"eye": {"x": 1.25, "y": -1.9, "z": 1.25}},
+            "annotations": callouts,
         },
     )
     return go.Figure(data=data, layout=layout).to_plotly_json()
