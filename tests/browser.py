@@ -1,7 +1,8 @@
 """Tests in a real browser: headless Chromium found by :func:`cell.chromium.find_chromium`.
 
 Without Chromium such a test is skipped, unless ``CELL_REQUIRE_CHROMIUM`` is set (CI, ``.ci/run``), which
-makes it fail instead: in CI a browser test must never pass by not running.
+makes it fail instead: in CI a browser test must never pass by not running. Mark such tests
+``@pytest.mark.chromium``: the end of the run counts them (tests/conftest.py).
 """
 
 from __future__ import annotations

@@ -17,6 +17,7 @@ from cell.analysis.report import ReportInput
 
 DENT_AT = np.array([20.0, 10.0, 40.0])  # on the top face; depth 0.6 mm (Gaussian, sigma 5 mm)
 BUMP_AT = np.array([-30.0, -45.0, 20.0])  # on the front face (-y); height 0.45 mm (sigma 4 mm)
+SPIKES = 5  # single points 0.9 mm high on the top face, far apart
 
 
 def box_mesh() -> trimesh.Trimesh:
@@ -48,8 +49,8 @@ def _box_faces(spacing: float) -> tuple[np.ndarray, np.ndarray]:
 
 def measured_box(n_points: int = 40_000, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """About ``n_points`` points on the box (mm), evenly spaced as a scanner's cloud merged on a voxel grid
-    is, with a dent and a bump (and 10 um noise); the +y side's x > 20 part and the underside unmeasured;
-    and their true deviations."""
+    is, with a dent, a bump, :data:`SPIKES` isolated spikes (and 10 um noise); the +y side's x > 20 part
+    and the underside unmeasured; and their true deviations."""
     rng = np.random.default_rng(seed)
     area = 120 * 90 + 2 * (120 + 90) * 40  # top and sides, mm^2
     pts, normal = _box_faces(float(np.sqrt(area / n_points)))
@@ -58,6 +59,8 @@ def measured_box(n_points: int = 40_000, seed: int = 1) -> tuple[np.ndarray, np.
     dev = -0.6 * np.exp(-np.sum((pts - DENT_AT) ** 2, axis=1) / (2 * 5.0**2)) * (normal[:, 2] > 0.5)
     dev += 0.45 * np.exp(-np.sum((pts - BUMP_AT) ** 2, axis=1) / (2 * 4.0**2)) * (normal[:, 1] < -0.5)
     dev += rng.normal(0.0, 0.01, len(pts))
+    spikes = np.flatnonzero((normal[:, 2] > 0.5) & (pts[:, 0] < -20))[:: max(1, n_points // 40)][:SPIKES]
+    dev[spikes] = 0.9  # single-point spikes (mixed pixels): isolated outliers, not a defect
     return pts + normal * dev[:, None], dev
 
 

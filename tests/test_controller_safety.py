@@ -185,6 +185,7 @@ def cli_reference(cli_reference_run: Path) -> dict:
     return json.loads((cli_reference_run / "results" / "report.json").read_text())
 
 
+@pytest.mark.chromium
 def test_cell_report_rebuilds_from_the_stored_cloud_and_prints(
     cli_reference_run: Path, cli_reference: dict, tmp_path: Path
 ) -> None:

@@ -19,6 +19,7 @@ from tests.browser import require_chromium
 from tests.synthetic_report import synthetic_input
 
 DOCS_IMG = Path(__file__).resolve().parents[1] / "docs" / "img"
+pytestmark = pytest.mark.chromium
 
 
 def test_the_3d_view_draws_the_banded_map(tmp_path: Path) -> None:

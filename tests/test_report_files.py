@@ -23,7 +23,7 @@ from cell.analysis import report_files
 from cell.analysis.report import ReportInput, Tolerance, write_report
 from cell.analysis.report_files import read_ply_points, write_ply
 from cell.errors import ConfigError
-from tests.synthetic_report import synthetic_input
+from tests.synthetic_report import SPIKES, synthetic_input
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -42,7 +42,8 @@ def test_cloud_ply_holds_every_measured_point_once(inp, tmp_path: Path) -> None:
     write_report(tmp_path, inp, pictures=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cloud.ply", "report.html", "report.json"]
     stored = inp.stored
-    assert stored is not None and stored.isolated is not None and stored.isolated.any()
+    assert stored is not None and stored.isolated is not None
+    assert stored.isolated.sum() == SPIKES == inp.excluded["isolated_out_of_tolerance_points"]
     points = read_ply_points(tmp_path / "cloud.ply")
     assert np.array_equal(points, stored.points_mm)  # exactly, in order: a rebuild judges the same points
     ply = trimesh.load(tmp_path / "cloud.ply", process=False)  # an independent reader sees the fields
