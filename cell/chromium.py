@@ -56,7 +56,8 @@ def find_chromium() -> Path | None:
     return None
 
 
-def _require() -> Path:
+def require_chromium() -> Path:
+    """The Chromium executable, or a ConfigError saying how to get one (before any work that needs it)."""
     exe = find_chromium()
     if exe is None:
         raise ConfigError(
@@ -99,7 +100,7 @@ class Browser:
 
     # ------------------------------------------------------------------ the process
     def __enter__(self) -> Browser:
-        exe = _require()
+        exe = require_chromium()
         self._profile = tempfile.TemporaryDirectory(prefix="cell-chromium-")
         self._stderr = tempfile.TemporaryFile()
         to_browser, self._wfd = os.pipe()

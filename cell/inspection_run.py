@@ -339,6 +339,10 @@ def rebuild_report(run_dir: Path, *, csv: bool = False, pdf: bool = False) -> Ru
     checkpoint = Checkpoint.from_json(run.load_checkpoint())
     if checkpoint.phase not in (Phase.REPORTING, Phase.DONE):
         raise ConfigError("the run has not reached reporting; `cell resume` it first", path=str(run_dir))
+    if pdf:
+        from cell.chromium import require_chromium
+
+        require_chromium()  # before the rebuild, not after it
     recipe, cfg, _ = load_run_inputs(run)
     nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
     summary = LambertianInspection(recipe, cfg, nominal_W).report(run, checkpoint.registration or {}, csv=csv)

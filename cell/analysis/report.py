@@ -12,7 +12,7 @@ import json
 import subprocess
 import time
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -182,24 +182,30 @@ def _limit(band: Tolerance | PointBands, i: int, above: bool) -> float:
     return float(band.upper_mm[i] if above else band.lower_mm[i])
 
 
+@lru_cache(maxsize=1)
+def _commit() -> str | None:
+    """``git describe --always --dirty`` of the checkout the code runs from, or None (an installed package,
+    no git)."""
+    repo = Path(cell.__file__).resolve().parents[1]
+    if not (repo / ".git").exists():
+        return None
+    try:
+        done = subprocess.run(
+            ["git", "-C", str(repo), "describe", "--always", "--dirty", "--abbrev=10"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return done.stdout.strip() or None
+
+
 def software() -> dict[str, str | None]:
     """The software that made the report: package name, version and, in a git checkout, the commit
-    (``git describe --always --dirty``; null when installed from a package)."""
-    repo = Path(cell.__file__).resolve().parents[1]
-    commit = None
-    if (repo / ".git").exists():
-        try:
-            done = subprocess.run(
-                ["git", "-C", str(repo), "describe", "--always", "--dirty", "--abbrev=10"],
-                capture_output=True,
-                text=True,
-                timeout=5,
-                check=False,
-            )
-            commit = done.stdout.strip() or None
-        except (OSError, subprocess.TimeoutExpired):
-            commit = None
-    return {"name": "inspection-cell", "version": cell.__version__, "commit": commit}
+    (null when installed from a package)."""
+    return {"name": "inspection-cell", "version": cell.__version__, "commit": _commit()}
 
 
 def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> dict[str, Any]:

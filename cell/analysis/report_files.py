@@ -136,10 +136,10 @@ def write_file_set(out_dir: Path, writers: Mapping[str, Writer], remove: tuple[s
             _fsync(tmp)
             staged[name] = tmp
         name = None
-        for stale in remove:
-            (out_dir / stale).unlink(missing_ok=True)
-        for done, tmp in staged.items():
-            os.replace(tmp, out_dir / done)
+        for old in remove:
+            (out_dir / old).unlink(missing_ok=True)
+        for done, staged_tmp in staged.items():
+            os.replace(staged_tmp, out_dir / done)
         _fsync(out_dir)
     except OSError as exc:
         raise _unwritable(exc, out_dir, name) from exc

@@ -47,6 +47,10 @@ def register(app: typer.Typer) -> None:
         from cell.runs import require_empty_output
 
         require_empty_output(out)
+        if pdf:
+            from cell.chromium import require_chromium
+
+            require_chromium()
         doc = run_compare(
             nominal,
             cloud,

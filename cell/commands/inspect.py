@@ -122,10 +122,7 @@ def register(app: typer.Typer) -> None:
         """Rebuild a finished run's report from its stored views (docs/report.md)."""
         from cell.inspection_run import rebuild_report
 
-        outcome = rebuild_report(run_dir, csv=csv, pdf=pdf)
-        if pdf:
-            console.print(f"printed: {outcome.run.results_dir / 'report.pdf'}", markup=False)
-        _finish(outcome)
+        _finish(rebuild_report(run_dir, csv=csv, pdf=pdf))
 
     @app.command("demo")
     def demo_cmd(
