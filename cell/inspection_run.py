@@ -30,7 +30,7 @@ from cell.runs import (
     write_atomic,
     write_json_atomic,
 )
-from cell.storage import new_folder
+from cell.storage import new_folder, require_writable
 
 if TYPE_CHECKING:
     from cell.results import ResultsStore
@@ -332,17 +332,18 @@ def abort_run(run_dir: Path, reason: str) -> str:
 def rebuild_report(run_dir: Path, *, csv: bool = False, pdf: bool = False) -> RunOutcome:
     """Rebuild the report of a run that reached reporting from its stored views (journalled); with ``csv``
     also deviations.csv, with ``pdf`` also report.pdf (headless Chromium)."""
-    from cell.inspection import LambertianInspection
-    from cell.mesh import load_mesh
-
     run = open_inspection_run(run_dir)
     checkpoint = Checkpoint.from_json(run.load_checkpoint())
     if checkpoint.phase not in (Phase.REPORTING, Phase.DONE):
         raise ConfigError("the run has not reached reporting; `cell resume` it first", path=str(run_dir))
+    require_writable(run.results_dir, field=None)  # a read-only or full results folder: refused first
     if pdf:
         from cell.chromium import require_chromium
 
         require_chromium()  # before the rebuild, not after it
+    from cell.inspection import LambertianInspection
+    from cell.mesh import load_mesh
+
     recipe, cfg, _ = load_run_inputs(run)
     nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
     summary = LambertianInspection(recipe, cfg, nominal_W).report(run, checkpoint.registration or {}, csv=csv)

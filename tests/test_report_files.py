@@ -5,6 +5,7 @@ and an unwritable folder as one ConfigError naming it."""
 from __future__ import annotations
 
 import errno
+import json
 import os
 import signal
 import subprocess
@@ -22,8 +23,10 @@ import trimesh
 from cell.analysis import report_files
 from cell.analysis.report import ReportInput, Tolerance, write_report
 from cell.analysis.report_files import read_ply_points, write_ply
-from cell.errors import ConfigError
+from cell.errors import ConfigError, StorageError
+from cell.inspection_run import rebuild_report
 from tests.synthetic_report import SPIKES, synthetic_input
+from tests.tmpfs import run_script
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -117,16 +120,47 @@ def test_a_report_killed_mid_write_leaves_no_half_set(tmp_path: Path) -> None:
     assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "report.html", "report.json"]
 
 
-def test_a_full_disk_is_one_clear_error(inp, tmp_path: Path, monkeypatch) -> None:
+def test_a_full_disk_is_one_clear_error_and_leaves_nothing(inp, tmp_path: Path, monkeypatch) -> None:
+    """ENOSPC while the cloud is written: a StorageError naming the folder and the file (a run under way
+    pauses on it, cell.controller), and nothing of the report left."""
+
     def full(path: Path, *args, **kwargs) -> None:
         path.write_bytes(b"ply\n")
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
 
     monkeypatch.setattr(report_files, "write_ply", full)
-    with pytest.raises(ConfigError) as err:
+    with pytest.raises(StorageError) as err:
         write_report(tmp_path, inp, pictures=False)
-    assert str(tmp_path) in str(err.value) and "No space left on device" in str(err.value)
-    assert "cloud.ply" in str(err.value) and list(tmp_path.iterdir()) == []
+    text = str(err.value)
+    assert f"cannot write {tmp_path}: the disk is full ({tmp_path / 'cloud.ply'})" in text
+    assert err.value.path == str(tmp_path) and list(tmp_path.iterdir()) == []
+
+
+def test_a_disk_filling_up_while_the_report_is_written(tmp_path: Path) -> None:
+    """A real full disk (a 1.5 MB tmpfs): cell compare writes the cloud, then the page does not fit; one line
+    naming the folder and the file, no traceback, and no report file left (tests/tmpfs.py)."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    trimesh.creation.box(extents=(100.0, 60.0, 4.0)).export(folder / "plate.stl")
+    xy = np.random.default_rng(0).uniform((-45, -25), (45, 25), (20_000, 2))
+    np.savetxt(folder / "cloud.xyz", np.c_[xy, np.full(len(xy), 2.0)])
+    out = tmp_path / "out"
+    out.mkdir()
+    script = (
+        'mount -t tmpfs -o size=1536k tmpfs "$M" || exit 99\n'
+        f'PYTHONPATH={REPO} "{sys.executable}" -m cell compare plate.stl cloud.xyz --out "$M/cmp" '
+        f"> {out}/out 2> {out}/err; echo $? > {out}/rc\n"
+        f'ls -A "$M/cmp" > {out}/left\n'
+    )
+    proc = run_script(script, tmp_path / "mnt", folder)
+    assert proc.returncode == 0, proc.stderr
+    code, err = int((out / "rc").read_text()), (out / "err").read_text()
+    assert code == 1 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    cmp_dir = tmp_path / "mnt" / "cmp"
+    assert "".join(
+        f"error: cannot write {cmp_dir}: the disk is full ({cmp_dir / 'report.html'})".split()
+    ) in ("".join(err.split()))
+    assert (out / "left").read_text().split() == []  # the cloud written before is not kept either
 
 
 @contextmanager
@@ -145,14 +179,26 @@ def read_only(folder: Path) -> Iterator[None]:
 
 
 def test_a_read_only_folder_is_one_clear_error(inp) -> None:
+    """The report into a folder it may not write: a StorageError naming it, nothing left; `cell report` of a
+    run whose results folder is read-only: refused before any work, a ConfigError (exit 2) naming it."""
     with tempfile.TemporaryDirectory() as parent:  # under /tmp: every user may pass through it
         Path(parent).chmod(0o755)
         out = Path(parent) / "results"
         out.mkdir()
-        with read_only(out), pytest.raises(ConfigError) as err:
+        with read_only(out), pytest.raises(StorageError) as err:
             write_report(out, inp, pictures=False)
-        assert str(out) in str(err.value) and "Permission denied" in str(err.value)
-        assert list(out.iterdir()) == []
+        assert f"cannot write {out}: permission denied" in str(err.value) and list(out.iterdir()) == []
+        run = Path(parent) / "run"  # a finished inspection run, as far as `cell report` looks first
+        (run / "inputs").mkdir(parents=True)
+        (run / "inputs" / "manifest.json").write_text("{}")
+        (run / "journal.jsonl").write_text("")
+        (run / "journal.jsonl").chmod(0o666)  # the run's own files stay writable to whoever runs the test
+        (run / "checkpoint.json").write_text(json.dumps({"phase": "done", "views": [], "iteration": 0}))
+        (run / "results").mkdir()
+        with read_only(run / "results"), pytest.raises(ConfigError) as err:
+            rebuild_report(run)
+        assert f"cannot write {run / 'results'}: permission denied" in str(err.value)
+        assert err.value.exit_code == 2
 
 
 def test_a_truncated_cloud_is_refused(tmp_path: Path) -> None:

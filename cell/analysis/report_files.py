@@ -5,8 +5,10 @@ Every file of a report is first written to a hidden temporary file beside its ta
 only when all of them are written are they renamed into place, ``report.json`` last (it is what readers
 look for first). An error raised while writing leaves the previous report as it was (or no report) and no
 partial file; a process killed while writing leaves the same, plus hidden ``.NAME.*.partial`` files that
-the next report removes. A folder that cannot be written (read-only, full disk, missing
-permission) is one :class:`ConfigError` naming the path.
+the next report removes. A folder that cannot take the files (a full disk, a read-only file system, no
+permission) is a :class:`cell.errors.StorageError` naming it and the file (:mod:`cell.storage`): a run
+under the controller pauses on it and is resumed once there is room; a command ends with one line. The
+commands refuse such a folder before any work (:func:`cell.storage.require_writable`, exit code 2).
 
 PLY: binary little-endian, vertex ``x y z`` double (mm, part frame), ``deviation`` float (mm, + outside the
 material), then optional fields (``isolated`` uchar: an out-of-tolerance point set aside as an isolated
@@ -16,6 +18,7 @@ every field as a scalar field.
 
 from __future__ import annotations
 
+import errno
 import os
 import secrets
 from collections.abc import Callable, Mapping
@@ -24,7 +27,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.errors import ConfigError
+from cell.errors import ConfigError, StorageError
+from cell.storage import is_storage_error, storage_error
 
 Writer = Callable[[Path], None]
 
@@ -96,14 +100,12 @@ def write_csv(path: Path, points_mm: NDArray, deviation_mm: NDArray) -> None:
     )
 
 
-def _unwritable(exc: OSError, out_dir: Path, name: str | None) -> ConfigError:
-    why = exc.strerror or str(exc)
-    what = f"the report file {name}" if name else "the report"
-    return ConfigError(
-        f"cannot write {what} here ({why}); nothing of the new report was kept: make the folder writable "
-        "or free some space, or choose another folder",
-        path=str(out_dir),
-    )
+def _unwritable(exc: OSError, out_dir: Path, name: str | None) -> StorageError:
+    """The StorageError (:mod:`cell.storage`) of a write into ``out_dir`` that failed for want of space or
+    permission, naming the report file it was writing (not its temporary name)."""
+    target = str(out_dir / name) if name else str(out_dir)
+    named = OSError(exc.errno or errno.ENOSPC, exc.strerror or os.strerror(errno.ENOSPC), target)
+    return storage_error(named, out_dir)
 
 
 def _fsync(path: Path) -> None:
@@ -142,7 +144,9 @@ def write_file_set(out_dir: Path, writers: Mapping[str, Writer], remove: tuple[s
             os.replace(staged_tmp, out_dir / done)
         _fsync(out_dir)
     except OSError as exc:
-        raise _unwritable(exc, out_dir, name) from exc
+        if is_storage_error(exc, out_dir):
+            raise _unwritable(exc, out_dir, name) from exc
+        raise
     finally:
         for tmp in temps:
             tmp.unlink(missing_ok=True)
