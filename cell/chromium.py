@@ -40,6 +40,9 @@ FLAGS = (
     "--disable-component-update",
     "--disable-sync",
     "--hide-scrollbars",
+    # WebGL (the report's 3D view) in software: without a GPU Chromium falls back to SwiftShader on its own,
+    # a fallback it has deprecated; only the cell's own local pages are opened
+    "--enable-unsafe-swiftshader",
     "--remote-debugging-pipe",
 )
 
