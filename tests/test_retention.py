@@ -18,7 +18,7 @@ from cell.config import load_cell_config
 from cell.errors import ConfigError
 from cell.inspection_run import REPO
 from cell.retention import DAY_S, RetentionConfig, prune
-from cell.runs import RunFolder, _process_start
+from cell.runs import RunFolder, process_start
 
 NOW = 1_800_000_000.0  # a fixed "now" (UNIX time): ages are exact
 
@@ -159,7 +159,7 @@ def test_a_run_in_use_is_skipped(tmp_path):
         lock = {
             "pid": holder.pid,
             "host": socket.gethostname(),
-            "start": _process_start(holder.pid),
+            "start": process_start(holder.pid),
             "command": "x",
         }
         (run / "run.lock").write_text(json.dumps(lock))
