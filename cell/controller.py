@@ -540,8 +540,6 @@ class Controller:
         robot = self.devices.robot
         limits = self.robot_limits
         for move in moves:
-            if self._pause_requested.is_set():  # a pause that came between two moves: send no more
-                raise MotionStopped(self.devices.names.get("robot", "robot"), "pause requested before a move")
             k = self.settings.speed_fraction * move.speed_scale
             self.run.log(
                 "device",
@@ -551,6 +549,11 @@ class Controller:
                 target=move.target,
                 speed_scale=move.speed_scale,
             )
+            # checked after the journal's fsync, as the last thing before the move: a stop() that comes before
+            # the robot takes the move is a no-op (a UR's stopl before movel too), so a pause asked for
+            # meanwhile would let the whole move run; the flag it set stays, and sends no move
+            if self._pause_requested.is_set():
+                raise MotionStopped(self.devices.names.get("robot", "robot"), "pause requested before a move")
             if move.kind == "linear":
                 robot.move_linear(move.target, limits.tcp_speed_mm_s * k, limits.tcp_accel_mm_s2 * k)
             else:

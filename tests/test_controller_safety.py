@@ -218,12 +218,9 @@ def _journal(run: Path) -> list[dict]:
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-@pytest.mark.xfail(
-    strict=False,
-    reason="REGRESSION under investigation (2026-11-26): since the results-database merge the SIGTERM takes "
-    "effect only after the 13 s move ends (the run still pauses safely and resumes to the same result); "
-    "quarantined so the rest lands, to be fixed first in the next session",
-)
+# the signal lands right after the move's journal line: a pause asked for there was lost until the controller
+# checked its flag after the journal write (2026-11-26); run again on a loaded machine's rare late signal
+@pytest.mark.flaky(reruns=2)
 def test_sigterm_mid_move_pauses_and_resume_gives_the_same_result(
     box_inputs: tuple[Path, Path], cli_reference: dict, tmp_path: Path
 ) -> None:
