@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from cell.errors import ConfigError
-from cell.storage import require_writable
+from cell.storage import fsync_path, require_writable
 
 INDEX_NAME = "index.sqlite"  # the verification history (cell.verification.history)
 RUNS_ROOT = Path(__file__).resolve().parents[1] / "runs"  # the default runs root: runs/ in the repository
@@ -81,14 +81,6 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def write_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that a reader sees the old file or the new one, never a torn one."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -102,7 +94,7 @@ def write_atomic(path: Path, data: bytes) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    _fsync_dir(path.parent)
+    fsync_path(path.parent)
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
@@ -234,14 +226,14 @@ class RunFolder:
             yield tmp
             for child in sorted(tmp.rglob("*"), reverse=True):  # files before the folders holding them
                 if child.is_dir():
-                    _fsync_dir(child)
+                    fsync_path(child)
                     continue
                 with open(child, "rb") as f:
                     os.fsync(f.fileno())
             if final.exists():
                 shutil.rmtree(final)
             os.replace(tmp, final)
-            _fsync_dir(final.parent)
+            fsync_path(final.parent)
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)

@@ -34,6 +34,15 @@ _WHY = {
 FULL_BELOW_BYTES = 1 << 20  # a disk with less room than this is full: the next view would not fit
 
 
+def fsync_path(path: str | Path) -> None:
+    """Flush a file or a folder to disk (a folder: so that a rename into it survives a power cut)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def disk_full(path: str | Path) -> bool:
     """The file system holding ``path`` (or its nearest existing parent) has less than 1 MiB free."""
     return shutil.disk_usage(_nearest_existing(Path(path))).free < FULL_BELOW_BYTES

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.errors import ConfigError, StorageError
-from cell.storage import is_storage_error, storage_error
+from cell.storage import fsync_path, is_storage_error, storage_error
 
 Writer = Callable[[Path], None]
 
@@ -108,14 +108,6 @@ def _unwritable(exc: OSError, out_dir: Path, name: str | None) -> StorageError:
     return storage_error(named, out_dir)
 
 
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def write_file_set(out_dir: Path, writers: Mapping[str, Writer], remove: tuple[str, ...] = ()) -> None:
     """Write every file ``name -> writer(path)`` into ``out_dir`` all or none: each to a temporary file,
     then renamed into place in the given order (put ``report.json`` last); files named in ``remove`` (a
@@ -135,14 +127,14 @@ def write_file_set(out_dir: Path, writers: Mapping[str, Writer], remove: tuple[s
             os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # the umask applies
             temps.append(tmp)
             write(tmp)
-            _fsync(tmp)
+            fsync_path(tmp)
             staged[name] = tmp
         name = None
         for old in remove:
             (out_dir / old).unlink(missing_ok=True)
         for done, staged_tmp in staged.items():
             os.replace(staged_tmp, out_dir / done)
-        _fsync(out_dir)
+        fsync_path(out_dir)
     except OSError as exc:
         if is_storage_error(exc, out_dir):
             raise _unwritable(exc, out_dir, name) from exc
