@@ -4,7 +4,6 @@ end, status), the copied recipe and cell config, and results/report.json (verdic
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -14,6 +13,7 @@ from typing import Any
 import yaml
 
 from cell.errors import ConfigError
+from cell.run_record import sha256_file
 from cell.runs import RunFolder
 
 PENDING_NAME = "results-pending.json"  # in a run folder: its results are not in the database yet
@@ -102,9 +102,7 @@ def read_run(run_dir: Path) -> RunRecord:
         "cell": str(_yaml(inputs / str(manifest.get("cell", "cell.yaml"))).get("name") or ""),
         "folder": str(run_dir),
         "recipe": Path(str(sources.get("recipe") or part)).stem,
-        "recipe_sha256": hashlib.sha256(recipe_file.read_bytes()).hexdigest()
-        if recipe_file.is_file()
-        else None,
+        "recipe_sha256": sha256_file(recipe_file),
         "part": part,
         "serial": identity.get("serial"),
         "operator": identity.get("operator"),
