@@ -4,8 +4,8 @@ States (``transitions`` HierarchicalGraphMachine, ``auto_transitions=False`` so 
 bypasses a guard, ``queued=True``, exceptions routed to :meth:`Controller._on_exception`)::
 
     idle -> connecting -> homing -> planning -> scanning(moving -> capturing ... -> decoding)
-         -> evaluating -> replanning -> scanning ... -> registering -> reporting -> done
-    any active state -> paused (operator), faulted (unrecoverable), aborted
+         -> evaluating -> replanning -> scanning ... -> registering -> reporting -> rendering -> done
+    any active state -> paused (operator), faulted (unrecoverable), aborted (not once the verdict is out)
     idle -> resuming -> connecting -> homing -> the phase the checkpoint records
 
 Motion is only commanded while the robot is in a normal mode and the projector is ready: every trigger after
@@ -15,7 +15,15 @@ The controller never imports a driver: it receives a :class:`cell.devices.Device
 plan, capture, decode, evaluate, register and report: :class:`Job`); the projector's start-up and blanking
 are its own hooks. After each completed view the view folder exists whole (see :mod:`cell.runs`); the
 checkpoint (:class:`cell.run_data.Checkpoint`) records the plan and the phase, so a killed run resumes.
-Decoding of view k runs in a worker thread while the robot moves to view k+1 (pipelining).
+
+Pipelining: a view's work (the job's ``decode``: decoding, triangulation and the view's own analysis, all
+written into its folder) runs in one worker thread, fed one view at a time, while the robot moves to the next
+view; the view counts as done once its folder exists whole (the durable result). A failure there surfaces in
+the main thread as that view's error (:class:`cell.errors.ViewProcessingError` for a bug), never lost. After
+the last view only that view's work and the whole-cloud steps remain. ``reporting`` publishes the verdict
+(the job's ``report``: report.json, a ``verdict`` journal line, the checkpoint's summary); ``rendering`` then
+writes the rest of the report (the job's ``render``: pictures, page, 3D view), so the verdict never waits for
+it.
 """
 
 from __future__ import annotations
@@ -44,6 +52,7 @@ from cell.errors import (
     MotionStopped,
     PlanningError,
     StorageError,
+    ViewProcessingError,
 )
 from cell.planning.motion import Move
 from cell.run_data import Checkpoint, Evaluation, Phase, View
@@ -59,8 +68,11 @@ ACTIVE = [
     "replanning",
     "registering",
     "reporting",
+    "rendering",
     "resuming",
 ]
+# the verdict is published when rendering starts: it stands, the run can pause there but not be aborted
+ABORTABLE = [s for s in ACTIVE if s != "rendering"]
 STATES: list[Any] = [
     "idle",
     "connecting",
@@ -71,6 +83,7 @@ STATES: list[Any] = [
     "replanning",
     "registering",
     "reporting",
+    "rendering",
     "done",
     "paused",
     "faulted",
@@ -105,6 +118,7 @@ def _transitions() -> list[dict[str, Any]]:
         {"trigger": "homed", "source": "homing", "dest": "evaluating", "conditions": "phase_is_scanning"},
         {"trigger": "homed", "source": "homing", "dest": "registering", "conditions": "phase_is_registering"},
         {"trigger": "homed", "source": "homing", "dest": "reporting", "conditions": "phase_is_reporting"},
+        {"trigger": "homed", "source": "homing", "dest": "rendering", "conditions": "phase_is_rendering"},
         {"trigger": "planned", "source": "planning", "dest": "scanning_moving"},
         {"trigger": "arrived", "source": "scanning_moving", "dest": "scanning_capturing"},
         {
@@ -126,11 +140,13 @@ def _transitions() -> list[dict[str, Any]]:
         },
         {"trigger": "replanned", "source": "replanning", "dest": "registering"},
         {"trigger": "registered", "source": "registering", "dest": "reporting"},
+        {"trigger": "reported", "source": "reporting", "dest": "rendering", "conditions": "has_page"},
         {"trigger": "reported", "source": "reporting", "dest": "done"},
+        {"trigger": "rendered", "source": "rendering", "dest": "done"},
         {"trigger": "pause", "source": ACTIVE, "dest": "paused"},
         {"trigger": "fault", "source": "*", "dest": "faulted"},
-        # a finished run's verdict stands and an aborted run stays aborted: neither can be aborted (again)
-        {"trigger": "abort", "source": ["idle", *ACTIVE, "paused", "faulted"], "dest": "aborted"},
+        # a published verdict stands and an aborted run stays aborted: neither can be aborted (again)
+        {"trigger": "abort", "source": ["idle", *ABORTABLE, "paused", "faulted"], "dest": "aborted"},
     ]
 
 
@@ -167,7 +183,9 @@ class Job(Protocol):
         ...
 
     def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
-        """Error map and report files in ``run.results_dir``; returns the report's key figures."""
+        """Error map and report files in ``run.results_dir``; returns the report's key figures (with its
+        ``verdict`` when the job judges a part). A job with a ``render(run)`` step writes here only what the
+        verdict needs; ``render`` writes the rest afterwards (its page), returning what it wrote."""
         ...
 
 
@@ -233,6 +251,7 @@ class Controller:
         def replanned(self) -> bool: ...
         def registered(self) -> bool: ...
         def reported(self) -> bool: ...
+        def rendered(self) -> bool: ...
         def pause(self) -> bool: ...
         def fault(self) -> bool: ...
         def abort(self) -> bool: ...
@@ -315,6 +334,13 @@ class Controller:
 
     def phase_is_reporting(self) -> bool:
         return self.checkpoint.phase is Phase.REPORTING
+
+    def phase_is_rendering(self) -> bool:
+        return self.checkpoint.phase is Phase.RENDERING
+
+    def has_page(self) -> bool:
+        """Whether the job writes its report's page after the verdict (a ``render`` step)."""
+        return callable(getattr(self.job, "render", None))
 
     # ------------------------------------------------------------------ bookkeeping
     def _log(self, event: str, **fields: Any) -> None:
@@ -588,13 +614,20 @@ class Controller:
         return summary
 
     def _collect(self, *, block: bool) -> None:
-        """Record finished decodes in the journal; re-raise a decode's error here, in the main thread."""
+        """Record finished view work in the journal; re-raise a view's error here, in the main thread: the
+        cell's own errors as they are (a full disk pauses), anything else as that view's
+        :class:`ViewProcessingError` (the run faults naming the view)."""
         for index in sorted(self._pending):
             future = self._pending[index]
             if not block and not future.done():
                 continue
-            summary = future.result()
             del self._pending[index]
+            try:
+                summary = future.result()
+            except (CellError, OSError):
+                raise
+            except Exception as exc:
+                raise ViewProcessingError(index, exc) from exc
             self.run.log("view", view=index, summary=summary)
 
     def _drain_decodes(self) -> None:
@@ -604,7 +637,7 @@ class Controller:
             try:
                 summary = self._pending[index].result()
             except Exception as exc:  # recorded here; the view is redone on resume
-                self._log("error", kind="decode", view=index, error=repr(exc))
+                self._log("error", kind="view", view=index, error=repr(exc))
             else:
                 self._log("view", view=index, summary=summary)
         self._pending.clear()
@@ -661,10 +694,20 @@ class Controller:
     def _do_reporting(self) -> None:
         registration = self._registration or self.checkpoint.registration or {}
         summary = self.job.report(self.run, registration)
-        self.run.log("report", **summary)
-        self.checkpoint.phase, self.checkpoint.summary = Phase.DONE, summary
+        # the verdict is out: journalled, and in the checkpoint (what `cell inspect` exits with and what the
+        # station reads), before the rest of the report is written
+        self.run.log("verdict" if "verdict" in summary else "report", **summary)
+        self.checkpoint.summary = summary
+        self.checkpoint.phase = Phase.RENDERING if self.has_page() else Phase.DONE
         self._save()
         self.reported()
+
+    def _do_rendering(self) -> None:
+        written = self.job.render(self.run)  # type: ignore[attr-defined]  # guarded by has_page
+        self.run.log("report_written", **written)
+        self.checkpoint.phase = Phase.DONE
+        self._save()
+        self.rendered()
 
 
 class _StoppedRun:
@@ -691,11 +734,18 @@ def stopped_state(run: RunFolder) -> str:
 
 def abort_stopped(run: RunFolder, reason: str) -> str:
     """Abort a run that no process executes (the caller holds its lock) through the state machine's ``abort``
-    trigger, from :func:`stopped_state`; the machine refuses a finished or an already aborted run
-    (ConfigError). Journals the new state with ``reason``; returns it."""
+    trigger, from :func:`stopped_state`; the machine refuses a finished or an already aborted run, and a run
+    whose verdict is published is refused too (ConfigError). Journals the new state with ``reason``; returns
+    it."""
     from transitions import MachineError
     from transitions.extensions import HierarchicalMachine
 
+    if Checkpoint.from_json(run.load_checkpoint()).phase is Phase.RENDERING:
+        raise ConfigError(
+            "the run's verdict is published and stands; nothing to abort (`cell resume` writes the rest of "
+            "its report)",
+            path=str(run.path),
+        )
     model: Any = _StoppedRun(run, reason)
     state = stopped_state(run)
     HierarchicalMachine(

@@ -33,9 +33,9 @@ from cell.analysis.judge import judge
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
 from cell.analysis.merge import cut_unregistered, merge_views, voxel_subsample_index
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
-from cell.analysis.report import write_report
-from cell.analysis.report_files import read_ply_points, write_file_set, write_ply
-from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
+from cell.analysis.report import ReportInput, write_page, write_verdict
+from cell.analysis.report_files import read_ply_points
+from cell.analysis.view_refinement import ViewRefinement, estimate_normals, refine_views
 from cell.calibration import (
     active_gamma_lut,
     active_hand_eye,
@@ -53,6 +53,7 @@ from cell.controller import Controller, ControllerSettings, RobotLimits
 from cell.devices import DeviceBundle
 from cell.errors import DeviceFault
 from cell.geometry import invert, transform_points, transform_vectors
+from cell.inspection_views import REGIONS_FILE, ViewResult, ViewStore, save_planes, save_regions
 from cell.planning.coverage import coverage_fraction, covered_by_points
 from cell.planning.feedback import Evaluation as FeedbackEvaluation
 from cell.planning.feedback import FeedbackPlanner, evaluate, select_new
@@ -71,7 +72,7 @@ from cell.sensing.patterns import PatternSet, measuring_patterns
 from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
 from cell.sensing.triangulate import normalized_coords
-from cell.view_files import load_eval_points, load_view_points, save_raw_stack, save_view_points
+from cell.view_files import ViewPoints, save_raw_stack, save_view_points
 
 # which decode reasons become which defect map of chapter 3 (IS: shadow, IR: glare)
 DEFECT_REASONS = {"shadow": Reason.DARK, "glare": Reason.SATURATED, "low_contrast": Reason.LOW_CONTRAST}
@@ -101,6 +102,7 @@ class Captured:
     T_B_T: NDArray[np.float64]  # the flange pose the cell believes (cell.calibration.believed_flange)
     joints: NDArray[np.float64]
     camera: str
+    index: int | None = None  # the view's index in the plan: its decode is kept in the job's view store
 
 
 @dataclass
@@ -142,8 +144,11 @@ class LambertianInspection:
         self.geometry_source = calibration_source(cfg)
         self._plan: Plan | None = None
         self._aligner: Aligner | None = None
+        self.views = ViewStore()  # the completed views, each decoded or read once (cell.inspection_views)
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
-        self._planes: dict[int, LocalPlanes] = {}  # each view's local planes, kept between evaluations
+        self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
+        self._cloud: tuple[dict[str, Any], NDArray[np.float64]] | None = None  # registration -> points in {P}
+        self._judged: tuple[ReportInput, dict[str, Any], bool] | None = None  # report input, doc, csv
         self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
         self._nominal_rays = RayCaster(nominal_W.vertices, nominal_W.faces, what="nominal mesh")
 
@@ -201,7 +206,7 @@ class LambertianInspection:
             status = devices.projector.status()
             why = ", ".join(status.errors) or str(status)
             raise DeviceFault(devices.projector.name, f"not ready after the pattern stack: {why}")
-        return Captured(images, T_B_T, joints, devices.camera.name)
+        return Captured(images, T_B_T, joints, devices.camera.name, index)
 
     def decode(self, view: View, captured: Captured, out_dir: Path) -> dict[str, Any]:
         cam = self.cfg.sensor.camera
@@ -238,13 +243,18 @@ class LambertianInspection:
         part = crop.part
         points_W, quality = points_W[part], quality[part]
         sub = voxel_subsample_index(points_W, self.settings.eval_voxel_mm)
-        save_view_points(out_dir, points_W, quality, oblique_kept[part], sub)
+        stored = save_view_points(out_dir, points_W, quality, oblique_kept[part], sub)
+        # the view's own analysis, here in the decode worker while the robot moves on: the local planes of its
+        # evaluation subset (what the multi-view refinement matches against), saved with the view
+        eval_W = stored[sub]
+        planes = estimate_normals(eval_W)
+        save_planes(out_dir, planes)
         if self.cfg.retention.writes_raw_images:
             proj = self.cfg.sensor.projector
             save_raw_stack(out_dir, stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
         cv2.imwrite(str(out_dir / "reasons.png"), cloud.reasons)
         regions = self._defects(T_W_C, cloud.reasons)
-        _save_regions(out_dir / "defects.npz", regions)
+        save_regions(out_dir / REGIONS_FILE, regions)
         summary = {
             "T_W_C": T_W_C.tolist(),
             "T_B_T": captured.T_B_T.tolist(),
@@ -258,6 +268,12 @@ class LambertianInspection:
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
         }
         write_json_atomic(out_dir / "view.json", summary)
+        if captured.index is not None:  # kept as the folder holds it: a resumed run reads the same numbers
+            points = ViewPoints(stored, quality, oblique_kept[part])
+            meta = json.loads(json.dumps(summary))
+            result = ViewResult(captured.index, points, eval_W, planes, regions, meta)
+            _ = result.eval_tree  # built here, in the worker, not on the way to the verdict
+            self.views.add(result)
         return summary
 
     def _defects(self, T_W_C: NDArray[np.float64], reasons: NDArray[np.uint8]) -> list[DefectRegion]:
@@ -278,26 +294,22 @@ class LambertianInspection:
     # ------------------------------------------------------------------ feedback
     def refinement(self, run: RunFolder) -> tuple[list[int], ViewRefinement]:
         """The completed views' pose corrections against each other (cell.analysis.view_refinement), from
-        their evaluation points, under the views' pose prior (:func:`view_pose_prior`: the kinematic
-        calibration's, else the robot config's); recomputed when views were added (deterministic, so a resumed
-        run gets the same)."""
-        done = tuple(run.completed_views())
+        their evaluation points and local planes (each view's, computed once by its decode), under the views'
+        pose prior (:func:`view_pose_prior`: the kinematic calibration's, else the robot config's);
+        recomputed when views were added (deterministic, so a resumed run gets the same)."""
+        views = self.views.completed(run)
+        done = tuple(v.index for v in views)
         if self._refinement is None or self._refinement[0] != done:
-            points = [load_eval_points(run.view_dir(i)) for i in done]
-            for i, p in zip(done, points, strict=True):
-                if i not in self._planes:
-                    self._planes[i] = estimate_normals(p)
-            meta = [json.loads((run.view_dir(i) / "view.json").read_text()) for i in done]
-            cameras = [np.asarray(m["T_W_C"])[:3, 3] for m in meta]
-            joints = [np.asarray(m["joints_rad"]) for m in meta if "joints_rad" in m]
-            sigma, source = view_pose_prior(self.cfg, joints if len(joints) == len(meta) else None)
+            joints = [np.asarray(v.summary["joints_rad"]) for v in views if "joints_rad" in v.summary]
+            sigma, source = view_pose_prior(self.cfg, joints if len(joints) == len(views) else None)
             found = refine_views(
-                points,
+                [v.eval_W for v in views],
                 sigma[:, 0],
                 sigma[:, 1],
                 seed=len(done),
-                planes=[self._planes[i] for i in done],
-                cameras=cameras,
+                planes=[v.planes for v in views],
+                cameras=[v.camera_W for v in views],
+                trees=[v.eval_tree if len(v.eval_W) else None for v in views],
             )
             prior = {
                 "prior": source,
@@ -305,7 +317,22 @@ class LambertianInspection:
                 "prior_sigma_deg": np.round(np.rad2deg(sigma[:, 1]), 5).tolist(),
             }
             self._refinement = (done, found, prior)
+            self._moved.clear()
         return list(self._refinement[0]), self._refinement[1]
+
+    def _moved_eval(
+        self, run: RunFolder, T_W_align: NDArray[np.float64] | None = None
+    ) -> dict[int, NDArray[np.float64]]:
+        """The completed views' evaluation points moved by their refinement (and then by ``T_W_align``, the
+        alignment's correction in {W}, when given), by view index; kept while the refinement holds."""
+        done, found = self.refinement(run)
+        key = b"" if T_W_align is None else np.asarray(T_W_align, dtype=np.float64).tobytes()
+        if key not in self._moved:
+            self._moved[key] = {
+                i: transform_points(T if T_W_align is None else T_W_align @ T, self.views.get(run, i).eval_W)
+                for i, T in zip(done, found.T, strict=True)
+            }
+        return self._moved[key]
 
     def _measured(
         self, run: RunFolder, T_W_align: NDArray[np.float64] | None = None
@@ -314,18 +341,17 @@ class LambertianInspection:
         refinement (and by ``T_W_align``, the alignment's correction in {W}, when given), with its deviations
         from the nominal measured there."""
         done, found = self.refinement(run)
+        if not done:
+            return {}
+        moved = self._moved_eval(run, T_W_align)
+        points = [moved[i] for i in done]
+        deviation = signed_distance(self.nominal, np.vstack(points)).deviation_mm  # one call: all cores
+        ends = np.cumsum([len(p) for p in points])
         out = {}
-        for i, T_fix in zip(done, found.T, strict=True):
-            d = run.view_dir(i)
-            meta = json.loads((d / "view.json").read_text())
+        for i, T_fix, dev in zip(done, found.T, np.split(deviation, ends[:-1]), strict=True):
+            view = self.views.get(run, i)
             T = T_fix if T_W_align is None else T_W_align @ T_fix
-            points = transform_points(T, load_eval_points(d))
-            out[i] = MeasuredView(
-                T @ np.asarray(meta["T_W_C"]),
-                points,
-                _load_regions(d / "defects.npz"),
-                deviation_mm=signed_distance(self.nominal, points).deviation_mm,
-            )
+            out[i] = MeasuredView(T @ view.T_W_C, moved[i], view.regions, deviation_mm=dev)
         return out
 
     def _evaluation_alignment(self, run: RunFolder) -> tuple[NDArray[np.float64] | None, str]:
@@ -334,11 +360,11 @@ class LambertianInspection:
         judged on the aligned points, so a part off its fixture shows no false holes."""
         if self.recipe.alignment.method == "kinematic":
             return None, "kinematic"
-        measured = self._measured(run)
-        if not measured:
+        moved = self._moved_eval(run)
+        if not moved:
             return None, "no points yet"
         T_P_W = invert(self.T_W_P)
-        points_P = transform_points(T_P_W, np.vstack([m.points_W for m in measured.values()]))
+        points_P = transform_points(T_P_W, np.vstack(list(moved.values())))
         try:
             found = self.aligner.align(points_P)
         except AlignmentError as exc:
@@ -402,21 +428,22 @@ class LambertianInspection:
         already being in {W} through robot pose and hand-eye), refined against each other, merged on a voxel
         grid weighted by quality (a view the refinement could not register gives only the surface no
         registered view measured: :func:`cut_unregistered`), then moved by the recipe's alignment
-        (cell.analysis.alignment). An alignment the measurement does
-        not allow leaves the kinematic cloud and makes the verdict incomplete (``alignment.error``)."""
+        (cell.analysis.alignment). An alignment the measurement does not allow leaves the kinematic cloud and
+        makes the verdict incomplete (``alignment.error``). The registered cloud stays in memory for
+        :meth:`report` (it is stored as results/cloud.ply with the report's page; a resumed run registers
+        again, deterministically, to the same points)."""
         T_P_W = invert(self.T_W_P)
         done, refined = self.refinement(run)
+        stored = [self.views.get(run, i) for i in done]
         points, weights = [], []
-        for i, T_fix in zip(done, refined.T, strict=True):
-            view = load_view_points(run.view_dir(i))
-            measured = ~view.oblique  # the sensor's points, without those lit too obliquely
-            points.append(transform_points(T_P_W @ T_fix, view.points_W[measured]))
-            weights.append(np.square(view.quality[measured]).astype(np.float64) + 1e-6)
+        for view, T_fix in zip(stored, refined.T, strict=True):
+            measured = ~view.points.oblique  # the sensor's points, without those lit too obliquely
+            points.append(transform_points(T_P_W @ T_fix, view.points.points_W[measured]))
+            weights.append(np.square(view.points.quality[measured]).astype(np.float64) + 1e-6)
         if not points or not sum(len(p) for p in points):
             return {"n_points": 0, "views": len(points)}
-        eval_points = [load_eval_points(run.view_dir(i)) for i in done]
         refinement = {
-            **refined.to_json(eval_points),
+            **refined.to_json([v.eval_W for v in stored]),
             "unregistered_views": [done[k] for k in refined.unregistered],
             **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
         }
@@ -432,8 +459,7 @@ class LambertianInspection:
             alignment = found.to_json()
         except AlignmentError as exc:
             points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
-        write_file_set(run.results_dir, {"cloud.ply": lambda path: write_ply(path, points_P)})
-        return {
+        registration = {
             "n_points": int(len(points_P)),
             "n_points_views": n_points_views,
             "views": len(points),
@@ -443,14 +469,30 @@ class LambertianInspection:
             "refinement": refinement,
             "alignment": alignment,
         }
+        self._cloud = (registration, points_P)
+        return registration
+
+    def _registered_points(self, run: RunFolder, registration: dict[str, Any]) -> NDArray[np.float64]:
+        """The registered cloud in {P} (mm): this process's registration, else results/cloud.ply (a run
+        reported before, or registered by an older version), else registered again from the views."""
+        if self._cloud is not None:
+            return self._cloud[1]
+        legacy = run.results_dir / "points_P.npy"  # a run registered before the cloud was stored once
+        if legacy.is_file():
+            return np.asarray(np.load(legacy), dtype=np.float64)
+        if (run.results_dir / "cloud.ply").is_file():
+            return read_ply_points(run.results_dir / "cloud.ply")
+        self.register(run, Checkpoint.from_json(run.load_checkpoint()).views)
+        assert self._cloud is not None  # a registration without points never reaches the report
+        return self._cloud[1]
 
     def inspectable_coverage(self, run: RunFolder, T_P_cloud: NDArray[np.float64] | None = None) -> Coverage:
         """Coverage of the inspectable nominal surface (what the planner can see: not the underside on the
         table) at the recipe's point density, from the measured views moved by the alignment ``T_P_cloud``."""
         plan, st = self.plan_model, self.recipe.plan
         s = plan.surface
-        measured = self._measured(run)
-        pts = np.vstack([m.points_W for m in measured.values()]) if measured else np.zeros((0, 3))
+        moved = self._moved_eval(run)
+        pts = np.vstack(list(moved.values())) if moved else np.zeros((0, 3))
         if T_P_cloud is not None:
             pts = transform_points(self.T_W_P @ T_P_cloud @ invert(self.T_W_P), pts)
         covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
@@ -467,11 +509,36 @@ class LambertianInspection:
         )
 
     def report(self, run: RunFolder, registration: dict[str, Any], csv: bool = False) -> dict[str, Any]:
-        """Judge the registered cloud (results/cloud.ply as :meth:`register` wrote it, or as an earlier
-        report rewrote it: the same points in the same order) and write the report into results/, with
-        deviations.csv when ``csv``. The report replaces the cloud.ply by one with the deviation field."""
-        legacy = run.results_dir / "points_P.npy"  # a run registered before the cloud was stored once
-        pts_P = np.load(legacy) if legacy.is_file() else read_ply_points(run.results_dir / "cloud.ply")
+        """Judge the registered cloud and publish the verdict: results/report.json, before anything else is
+        written (:meth:`render` writes the page, the cloud and, when ``csv``, deviations.csv). Returns the
+        verdict and the key figures."""
+        inp = self._report_input(run, registration)
+        doc = write_verdict(run.results_dir, inp, pictures=self.settings.pictures)
+        self._judged = (inp, doc, csv)
+        return {
+            "verdict": doc.get("verdict"),
+            "n_points": doc.get("n_points"),
+            "coverage": doc.get("coverage"),
+            "deviation": doc.get("deviation"),
+        }
+
+    def render(self, run: RunFolder) -> dict[str, Any]:
+        """The report after its verdict: results/cloud.ply (every point with its deviation), report.html (its
+        pictures and 3D view), deviations.csv when :meth:`report` was asked for it. A resumed run judges the
+        cloud again (the same points, so the same page) and keeps the verdict report.json holds."""
+        if self._judged is None:
+            checkpoint = Checkpoint.from_json(run.load_checkpoint())
+            inp = self._report_input(run, checkpoint.registration or {})
+            doc = json.loads((run.results_dir / "report.json").read_text())
+            self._judged = (inp, doc, False)
+        inp, doc, csv = self._judged
+        written = write_page(run.results_dir, doc, inp, pictures=self.settings.pictures, csv=csv)
+        (run.results_dir / "points_P.npy").unlink(missing_ok=True)  # cloud.ply now holds the same points
+        return {"files": written}
+
+    def _report_input(self, run: RunFolder, registration: dict[str, Any]) -> ReportInput:
+        """The judged registered cloud (:func:`cell.analysis.judge.judge`) with the run's context."""
+        pts_P = self._registered_points(run, registration)
         nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
         tol = self.recipe.tolerance
         checkpoint = Checkpoint.from_json(run.load_checkpoint())
@@ -481,10 +548,8 @@ class LambertianInspection:
                 registration.get("refinement", {}).get("unregistered_points_dropped", 0)
             )
         }
-        for i in run.completed_views():
-            for reason, n in (
-                json.loads((run.view_dir(i) / "view.json").read_text()).get("excluded", {}).items()
-            ):
+        for view in self.views.completed(run):
+            for reason, n in view.summary.get("excluded", {}).items():
                 excluded[f"{reason}_points"] = excluded.get(f"{reason}_points", 0) + int(n)
         alignment = registration.get("alignment") or {"method": "kinematic"}
         T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
@@ -499,7 +564,7 @@ class LambertianInspection:
                 f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
             )
         plan = plan_feedback(self.plan_model, self.recipe)  # what no reachable viewpoint sees, for the reader
-        inp = judge(
+        return judge(
             NominalMesh.from_trimesh(nominal_P),
             pts_P,
             Tolerance(tol.lower, tol.upper),
@@ -526,34 +591,6 @@ class LambertianInspection:
                 "run": run_record(run, self.cfg.name),
             },
         )
-        doc = write_report(run.results_dir, inp, pictures=self.settings.pictures, csv=csv)
-        legacy.unlink(missing_ok=True)  # cloud.ply now holds the same points
-        return {
-            "verdict": doc.get("verdict"),
-            "n_points": doc.get("n_points"),
-            "coverage": doc.get("coverage"),
-            "deviation": doc.get("deviation"),
-        }
-
-
-def _save_regions(path: Path, regions: list[DefectRegion]) -> None:
-    arrays: dict[str, Any] = {
-        "reasons": np.array([r.reason for r in regions], dtype="U16"),
-        "pixels": np.array([r.pixels for r in regions], dtype=np.int64),
-    }
-    for k, r in enumerate(regions):
-        arrays[f"boundary_{k}"] = r.boundary_W
-        arrays[f"points_{k}"] = r.points_W
-    with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
-
-
-def _load_regions(path: Path) -> list[DefectRegion]:
-    with np.load(path) as data:
-        return [
-            DefectRegion(str(reason), data[f"boundary_{k}"], data[f"points_{k}"], int(px))
-            for k, (reason, px) in enumerate(zip(data["reasons"], data["pixels"]))
-        ]
 
 
 def inspection_controller(

@@ -88,20 +88,38 @@ def merge_views(
     if not ok.any():
         raise ConfigError("merge_views: no finite points with a positive weight in any view")
     source = np.full(len(p), -1, np.int64)
-    p, w, view = p[ok], w[ok], view[ok]
-    _, inv = np.unique(voxel_keys(p, voxel_mm), return_inverse=True)
-    m = int(inv.max()) + 1
+    if not ok.all():
+        p, w, view = p[ok], w[ok], view[ok]
+    inv, n_views = _voxels(voxel_keys(p, voxel_mm), view)
+    m = len(n_views)
     wsum = np.bincount(inv, weights=w, minlength=m)
     mean = (
         np.column_stack([np.bincount(inv, weights=w * p[:, k], minlength=m) for k in range(3)])
         / wsum[:, None]
     )
     count = np.bincount(inv, minlength=m)
-    n_views = np.bincount(np.unique(inv * len(pts) + view) // len(pts), minlength=m)
     source[ok] = inv
     return MergedCloud(
         points_mm=mean, weight=np.asarray(wsum, dtype=np.float64), count=count, n_views=n_views, source=source
     )
+
+
+def _voxels(keys: NDArray[np.int64], view: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Each point's voxel number (voxels numbered by ascending key, as ``np.unique`` numbers them) and each
+    voxel's count of distinct views, from one stable sort of the keys: within a voxel the points keep their
+    input order, which is view by view, so a view starts where the view number changes."""
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    starts = np.empty(len(keys), dtype=bool)
+    starts[:1] = True
+    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=starts[1:])
+    number = np.cumsum(starts) - 1
+    inv = np.empty(len(keys), dtype=np.int64)
+    inv[order] = number
+    sorted_view = view[order]
+    new_view = starts.copy()
+    new_view[1:] |= sorted_view[1:] != sorted_view[:-1]
+    return inv, np.bincount(number[new_view], minlength=int(number[-1]) + 1 if len(number) else 0)
 
 
 def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm: float) -> NDArray[np.bool_]:
@@ -111,9 +129,13 @@ def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm
     registered views measured the same surface, its points would sit beside theirs, a voxel apart, as a
     false deviation."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not len(p):
+        return np.zeros(0, dtype=bool)
+    lo, hi = p.min(0) - radius_mm, p.max(0) + radius_mm  # only points in this box can be that close
     rest = [np.asarray(o, dtype=np.float64).reshape(-1, 3) for o in others]
+    rest = [o[np.all((o >= lo) & (o <= hi), axis=1)] for o in rest if len(o)]
     rest = [o for o in rest if len(o)]
-    if not len(p) or not rest:
+    if not rest:
         return np.zeros(len(p), dtype=bool)
     d, _ = cKDTree(np.vstack(rest)).query(p, distance_upper_bound=radius_mm)
     return np.isfinite(d)

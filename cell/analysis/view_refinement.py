@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from cell.geometry import Pose, incidence_cos, make_pose, transform_points
+from cell.geometry import Pose, incidence_cos, make_pose, transform_points, transform_vectors
 
 Array = NDArray[np.float64]
 SAME_NORMAL_COS = float(np.cos(np.deg2rad(20.0)))  # across an edge or the other skin of a sheet: no match
@@ -140,6 +140,7 @@ def refine_views(
     seed: int = 0,
     planes: list[LocalPlanes] | None = None,
     cameras: list[Array] | None = None,
+    trees: list[cKDTree | None] | None = None,
 ) -> ViewRefinement:
     """Corrections for ``views`` (points in {W}, mm; one array per view) under the prior (``sigma_t_mm``,
     ``sigma_r_rad``: 1-sigma translation and rotation of a view's pose, one for all or one per view) with
@@ -149,7 +150,9 @@ def refine_views(
     view's camera centre ({W}, mm): a point seen at incidence theta is noisier by 1/cos(theta) (and biased by
     what the sensor's model misses, which grows with it), so pairs are weighted by their incidence and pairs
     beyond ``MAX_INCIDENCE_DEG`` for either view are not used: a view that overlaps the others only at
-    grazing incidence is held by the prior, not slid along by its least reliable points."""
+    grazing incidence is held by the prior, not slid along by its least reliable points. ``trees``: KD-trees
+    of the views as given (built here when None); matches are looked up with the query points moved into the
+    other view's own frame, so no tree is rebuilt when a correction moves a view."""
     n_views = len(views)
     T = [np.eye(4) for _ in range(n_views)]
     if n_views < 2:
@@ -167,13 +170,12 @@ def refine_views(
     rms: list[float] = []
     overlaps = [0] * n_views
     last_gaps: list[Array] = []
+    own = trees if trees is not None else [cKDTree(v) if len(v) else None for v in views]
     for radius in radii_mm:
         moved = [transform_points(Ti, v) for Ti, v in zip(T, views, strict=True)]
-        moved_n = [(Ti[:3, :3] @ lp.normal.T).T for Ti, lp in zip(T, normals, strict=True)]
-        moved_c = [transform_points(Ti, lp.centroid) for Ti, lp in zip(T, normals, strict=True)]
         eyes = None if cameras is None else [transform_points(Ti, e) for Ti, e in zip(T, cameras)]
-        trees = [cKDTree(m) if len(m) else None for m in moved]
         boxes = [(m.min(0), m.max(0)) if len(m) else (np.zeros(3), np.zeros(3)) for m in moved]
+        to_own = [np.linalg.inv(Ti) for Ti in T]
         H = np.zeros((6 * n_views, 6 * n_views))
         g = np.zeros(6 * n_views)
         gaps_all: list[Array] = []
@@ -182,19 +184,21 @@ def refine_views(
         used = np.zeros(n_views)  # pairs (incidence-weighted) that hold each view, as source or target
         for i in range(n_views):
             for j in range(n_views):
-                tree = trees[j]
+                tree = own[j]
                 if i == j or tree is None or not len(moved[i]):
                     continue
                 if not _boxes_overlap(boxes[i], boxes[j], radius):
                     continue
                 src = _candidates(moved[i], normals[i].ok, boxes[j], radius, rng)
-                d, nearest = tree.query(moved[i][src], distance_upper_bound=radius)
+                query = transform_points(to_own[j], moved[i][src])  # into view j's own frame
+                d, nearest = tree.query(query, distance_upper_bound=radius)
                 hit = np.isfinite(d)
                 src, k = src[hit], np.asarray(nearest)[hit]
                 if len(src) == 0:
                     continue
-                nj = moved_n[j][k]
-                facing = np.abs(np.einsum("ij,ij->i", moved_n[i][src], nj)) > SAME_NORMAL_COS
+                nj = transform_vectors(T[j], normals[j].normal[k])
+                ni = transform_vectors(T[i], normals[i].normal[src])
+                facing = np.abs(np.einsum("ij,ij->i", ni, nj)) > SAME_NORMAL_COS
                 good = normals[j].ok[k] & facing
                 src, k, nj = src[good], k[good], nj[good]
                 if len(src) < MIN_PAIRS:
@@ -202,7 +206,7 @@ def refine_views(
                 if len(src) > MAX_PAIRS_PER_OVERLAP:
                     pick = rng.choice(len(src), MAX_PAIRS_PER_OVERLAP, replace=False)
                     src, k, nj = src[pick], k[pick], nj[pick]
-                p, q = moved[i][src], moved_c[j][k]
+                p, q = moved[i][src], transform_points(T[j], normals[j].centroid[k])
                 r = np.einsum("ij,ij->i", p - q, nj)
                 scale = 1.4826 * np.median(np.abs(r - np.median(r)))
                 inlier = np.abs(r - np.median(r)) <= max(3 * scale, 2 * noise_mm)
