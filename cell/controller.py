@@ -153,7 +153,9 @@ def _transitions() -> list[dict[str, Any]]:
 class Job(Protocol):
     """What a job does at each step; the controller sequences it and owns motion, retries and checkpoints.
 
-    The controller moves the robot to each view's ``T_B_T``; the rest of a :class:`View` is the job's.
+    The controller moves the robot to each view's ``T_B_T``; the rest of a :class:`View` is the job's. A job
+    whose ``register`` may run in the controller's worker beside ``evaluate`` (each locks what they share)
+    says so with ``register_while_evaluating = True``.
     """
 
     part_name: str
@@ -285,6 +287,7 @@ class Controller:
         self._pause_requested = threading.Event()
         self._executor: ThreadPoolExecutor | None = None
         self._pending: dict[int, Future[dict[str, Any]]] = {}
+        self._ahead: Future[dict[str, Any]] | None = None  # the registration, started while evaluating
         self._registration: dict[str, Any] | None = None
         self._attempts = 0
         self._storage_failed = False  # the run folder refused a write: the run is pausing for it
@@ -632,7 +635,9 @@ class Controller:
 
     def _drain_decodes(self) -> None:
         """Wait for every decode before a pause or fault: finished views are journalled, failed ones logged
-        (their folders do not exist, so a resume measures them again)."""
+        (their folders do not exist, so a resume measures them again); a registration started ahead is
+        dropped (a resume registers again)."""
+        self._drop_ahead()
         for index in sorted(self._pending):
             try:
                 summary = self._pending[index].result()
@@ -648,8 +653,31 @@ class Controller:
         self._save()
         self.decoded()
 
+    def _register_ahead(self) -> None:
+        """Start the registration in the worker while this thread evaluates (when pipelining and the job says
+        its ``register`` may run beside ``evaluate``: ``register_while_evaluating``): both need the views'
+        refinement, then each goes its own way, on its own core. ``registering`` takes the result when the
+        evaluation qualifies the views; a replan or a pause drops it."""
+        if self._ahead is not None or not self.settings.pipelining:
+            return
+        if not getattr(self.job, "register_while_evaluating", False):
+            return
+        assert self._executor is not None
+        self._ahead = self._executor.submit(self.job.register, self.run, list(self.checkpoint.views))
+
+    def _drop_ahead(self) -> None:
+        """Wait for a registration started ahead and forget it (its error too: journalled, not raised)."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is None:
+            return
+        try:
+            ahead.result()
+        except Exception as exc:
+            self._log("error", kind="registration ahead", error=repr(exc), used=False)
+
     def _do_evaluating(self) -> None:
         cp = self.checkpoint
+        self._register_ahead()
         evaluation = self.job.evaluate(self.run, cp.views, cp.iteration)
         self.run.log("evaluation", **evaluation.to_json())
         spent = len(cp.views) >= self.settings.view_budget
@@ -671,6 +699,7 @@ class Controller:
             self.needs_views()
 
     def _do_replanning(self) -> None:
+        self._drop_ahead()  # more views: the registration is made again when they are measured
         cp = self.checkpoint
         assert cp.evaluation is not None  # saved with the replanning phase
         room = self.settings.view_budget - len(cp.views)
@@ -683,7 +712,11 @@ class Controller:
         self.replanned()
 
     def _do_registering(self) -> None:
-        self._registration = self.job.register(self.run, self.checkpoint.views)
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None:  # started while evaluating (a resumed run registers here)
+            self._registration = ahead.result()
+        else:
+            self._registration = self.job.register(self.run, self.checkpoint.views)
         self.run.log("registration", **self._registration)
         if not self._registration.get("n_points", 0):
             raise CellError("registration produced no points: nothing to report")

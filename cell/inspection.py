@@ -17,6 +17,8 @@ which.
 from __future__ import annotations
 
 import json
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,7 +30,7 @@ from numpy.typing import NDArray
 
 from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.crop import PartCrop
-from cell.analysis.errormap import NominalMesh, signed_distance
+from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.judge import judge
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
 from cell.analysis.merge import cut_unregistered, merge_views, voxel_subsample_index
@@ -54,7 +56,7 @@ from cell.devices import DeviceBundle
 from cell.errors import DeviceFault
 from cell.geometry import invert, transform_points, transform_vectors
 from cell.inspection_views import REGIONS_FILE, ViewResult, ViewStore, save_planes, save_regions
-from cell.planning.coverage import coverage_fraction, covered_by_points
+from cell.planning.coverage import coverage_fraction, covered_by_views
 from cell.planning.feedback import Evaluation as FeedbackEvaluation
 from cell.planning.feedback import FeedbackPlanner, evaluate, select_new
 from cell.planning.kinematics import UR5E
@@ -72,7 +74,7 @@ from cell.sensing.patterns import PatternSet, measuring_patterns
 from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
 from cell.sensing.triangulate import normalized_coords
-from cell.view_files import ViewPoints, save_raw_stack, save_view_points
+from cell.view_files import ViewPoints, save_raw_stack, save_view_points, stored_points
 
 # which decode reasons become which defect map of chapter 3 (IS: shadow, IR: glare)
 DEFECT_REASONS = {"shadow": Reason.DARK, "glare": Reason.SATURATED, "low_contrast": Reason.LOW_CONTRAST}
@@ -106,6 +108,17 @@ class Captured:
 
 
 @dataclass
+class RegisteredCloud:
+    """The registered cloud in {P} (mm) and what judging it needs that the evaluation does not change: its
+    signed deviations from the nominal and the coverage at its alignment (None: computed when judged)."""
+
+    registration: dict[str, Any]
+    points_P: NDArray[np.float64]
+    error_map: ErrorMap | None = None
+    coverage: Coverage | None = None
+
+
+@dataclass
 class FeedbackRound:
     """The feedback loop's evaluation with what it was computed from, kept for the replan that follows."""
 
@@ -117,6 +130,8 @@ class FeedbackRound:
 
 class LambertianInspection:
     """The job the controller runs for a recipe on a structured-light cell."""
+
+    register_while_evaluating = True  # register() may run in the controller's worker beside evaluate()
 
     def __init__(
         self,
@@ -144,10 +159,13 @@ class LambertianInspection:
         self.geometry_source = calibration_source(cfg)
         self._plan: Plan | None = None
         self._aligner: Aligner | None = None
+        self._nominal_P: NominalMesh | None = None
         self.views = ViewStore()  # the completed views, each decoded or read once (cell.inspection_views)
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
-        self._cloud: tuple[dict[str, Any], NDArray[np.float64]] | None = None  # registration -> points in {P}
+        self._cloud: RegisteredCloud | None = None  # the registration's cloud, judged ahead of the report
+        # the controller may register (in its worker) while it evaluates (here): what both use is made once
+        self._lock = threading.RLock()
         self._judged: tuple[ReportInput, dict[str, Any], bool] | None = None  # report input, doc, csv
         self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
         self._nominal_rays = RayCaster(nominal_W.vertices, nominal_W.faces, what="nominal mesh")
@@ -156,11 +174,12 @@ class LambertianInspection:
     @property
     def plan_model(self) -> Plan:
         """The f0 plan (recomputed deterministically after a resume: it also holds the surface samples)."""
-        if self._plan is None:
-            self._plan = plan_initial(
-                self.nominal_W, self.cfg, self.recipe.plan, self.recipe.exclude_from_coverage
-            )
-        return self._plan
+        with self._lock:
+            if self._plan is None:
+                self._plan = plan_initial(
+                    self.nominal_W, self.cfg, self.recipe.plan, self.recipe.exclude_from_coverage
+                )
+            return self._plan
 
     @staticmethod
     def _view(vp: Viewpoint, iteration: int) -> View:
@@ -209,6 +228,9 @@ class LambertianInspection:
         return Captured(images, T_B_T, joints, devices.camera.name, index)
 
     def decode(self, view: View, captured: Captured, out_dir: Path) -> dict[str, Any]:
+        """Decode, triangulate and filter one view and write its folder ``out_dir`` (points, planes, holes,
+        raw images while the retention keeps them); the files are written by a thread beside the compute
+        (zlib and PNG encoding release the GIL), all before this returns."""
         cam = self.cfg.sensor.camera
         stack = check_stack(
             captured.images,
@@ -217,6 +239,27 @@ class LambertianInspection:
             cam.bit_depth,
             source=f"camera '{captured.camera}'",
         )
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="view-files") as files:
+            writes = []
+            if self.cfg.retention.writes_raw_images:
+                proj = self.cfg.sensor.projector
+                raw = (out_dir, stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
+                writes.append(files.submit(save_raw_stack, *raw))
+            summary = self._decode(captured, stack, out_dir, files, writes)
+            for written in writes:
+                written.result()  # a write that failed fails the view
+        write_json_atomic(out_dir / "view.json", summary)  # last: the folder is whole once it is there
+        return summary
+
+    def _decode(
+        self,
+        captured: Captured,
+        stack: NDArray[Any],
+        out_dir: Path,
+        files: ThreadPoolExecutor,
+        writes: list[Future[Any]],
+    ) -> dict[str, Any]:
+        cam = self.cfg.sensor.camera
         decoded = decode(stack, self.patterns, cam.bit_depth)
         cloud = self.triangulator.triangulate(decoded)
         T_W_C = self.T_W_B @ captured.T_B_T @ self.T_T_C
@@ -241,20 +284,18 @@ class LambertianInspection:
         deviation = signed_distance(self.nominal, points_W).deviation_mm
         crop = PartCrop(0.0, self.settings.table_margin_mm, self.settings.crop_mm).split(points_W, deviation)
         part = crop.part
-        points_W, quality = points_W[part], quality[part]
+        points_W, quality, oblique_kept = points_W[part], quality[part], oblique_kept[part]
         sub = voxel_subsample_index(points_W, self.settings.eval_voxel_mm)
-        stored = save_view_points(out_dir, points_W, quality, oblique_kept[part], sub)
+        writes.append(files.submit(save_view_points, out_dir, points_W, quality, oblique_kept, sub))
+        stored = stored_points(points_W)  # what the file holds and a resumed run reads
         # the view's own analysis, here in the decode worker while the robot moves on: the local planes of its
         # evaluation subset (what the multi-view refinement matches against), saved with the view
         eval_W = stored[sub]
         planes = estimate_normals(eval_W)
-        save_planes(out_dir, planes)
-        if self.cfg.retention.writes_raw_images:
-            proj = self.cfg.sensor.projector
-            save_raw_stack(out_dir, stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
-        cv2.imwrite(str(out_dir / "reasons.png"), cloud.reasons)
+        writes.append(files.submit(save_planes, out_dir, planes))
+        writes.append(files.submit(cv2.imwrite, str(out_dir / "reasons.png"), cloud.reasons))
         regions = self._defects(T_W_C, cloud.reasons)
-        save_regions(out_dir / REGIONS_FILE, regions)
+        writes.append(files.submit(save_regions, out_dir / REGIONS_FILE, regions))
         summary = {
             "T_W_C": T_W_C.tolist(),
             "T_B_T": captured.T_B_T.tolist(),
@@ -263,15 +304,15 @@ class LambertianInspection:
             "decoded": int(valid.sum()),
             "link_filtered": int((valid & ~kept.keep).sum()),
             "rim_filtered": int((valid & kept.keep & edges).sum()),
-            "oblique_filtered": int(oblique_kept[part].sum()),
+            "oblique_filtered": int(oblique_kept.sum()),
             "excluded": crop.counts(),
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
         }
-        write_json_atomic(out_dir / "view.json", summary)
         if captured.index is not None:  # kept as the folder holds it: a resumed run reads the same numbers
-            points = ViewPoints(stored, quality, oblique_kept[part])
             meta = json.loads(json.dumps(summary))
-            result = ViewResult(captured.index, points, eval_W, planes, regions, meta)
+            result = ViewResult(
+                captured.index, ViewPoints(stored, quality, oblique_kept), eval_W, planes, regions, meta
+            )
             _ = result.eval_tree  # built here, in the worker, not on the way to the verdict
             self.views.add(result)
         return summary
@@ -297,6 +338,10 @@ class LambertianInspection:
         their evaluation points and local planes (each view's, computed once by its decode), under the views'
         pose prior (:func:`view_pose_prior`: the kinematic calibration's, else the robot config's);
         recomputed when views were added (deterministic, so a resumed run gets the same)."""
+        with self._lock:
+            return self._refine(run)
+
+    def _refine(self, run: RunFolder) -> tuple[list[int], ViewRefinement]:
         views = self.views.completed(run)
         done = tuple(v.index for v in views)
         if self._refinement is None or self._refinement[0] != done:
@@ -371,11 +416,21 @@ class LambertianInspection:
             return None, f"kinematic until the alignment can be made: {exc}"
         return self.T_W_P @ found.T @ T_P_W, self.recipe.alignment.method
 
+    def _covered(self, run: RunFolder, T_W_align: NDArray[np.float64] | None) -> NDArray[np.bool_]:
+        """Which of the plan's surface samples the completed views' evaluation points cover, the views moved
+        by their refinement and then by ``T_W_align`` ({W}), counted in each view's own KD-tree."""
+        done, found = self.refinement(run)
+        A = np.eye(4) if T_W_align is None else T_W_align
+        st, surface = self.plan_model.sensor.settings, self.plan_model.surface
+        views = [(self.views.get(run, i).eval_tree, A @ T) for i, T in zip(done, found.T, strict=True)]
+        return covered_by_views(surface, views, st.point_density_per_mm2, st.coverage_radius_mm)
+
     def _feedback_round(self, run: RunFolder) -> FeedbackRound:
         T_W_align, how = self._evaluation_alignment(run)
         measured = self._measured(run, T_W_align)
         fb = FeedbackPlanner(self.plan_model)
-        ev = evaluate(fb, list(measured.values()), first_new=1, ia_before=np.zeros((0, 3)))
+        covered = self._covered(run, T_W_align)
+        ev = evaluate(fb, list(measured.values()), first_new=1, ia_before=np.zeros((0, 3)), covered=covered)
         return FeedbackRound(fb, ev, measured, how)
 
     def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:
@@ -418,10 +473,11 @@ class LambertianInspection:
     @property
     def aligner(self) -> Aligner:
         """The recipe's alignment against the nominal in the part frame (datums resolved on first use)."""
-        if self._aligner is None:
-            nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
-            self._aligner = Aligner(self.recipe.alignment, nominal_P)
-        return self._aligner
+        with self._lock:
+            if self._aligner is None:
+                nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
+                self._aligner = Aligner(self.recipe.alignment, nominal_P)
+            return self._aligner
 
     def register(self, run: RunFolder, views: list[View]) -> dict[str, Any]:
         """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
@@ -430,8 +486,9 @@ class LambertianInspection:
         registered view measured: :func:`cut_unregistered`), then moved by the recipe's alignment
         (cell.analysis.alignment). An alignment the measurement does not allow leaves the kinematic cloud and
         makes the verdict incomplete (``alignment.error``). The registered cloud stays in memory for
-        :meth:`report` (it is stored as results/cloud.ply with the report's page; a resumed run registers
-        again, deterministically, to the same points)."""
+        :meth:`report` with its error map and coverage, computed here (the controller registers while it
+        evaluates, so they are ready when the evaluation is); it is stored as results/cloud.ply with the
+        report's page, and a resumed run registers again, deterministically, to the same points."""
         T_P_W = invert(self.T_W_P)
         done, refined = self.refinement(run)
         stored = [self.views.get(run, i) for i in done]
@@ -469,33 +526,47 @@ class LambertianInspection:
             "refinement": refinement,
             "alignment": alignment,
         }
-        self._cloud = (registration, points_P)
+        T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
+        error_map = signed_distance(self.nominal_P, points_P)
+        self._cloud = RegisteredCloud(
+            registration, points_P, error_map, self.inspectable_coverage(run, T_align)
+        )
         return registration
 
-    def _registered_points(self, run: RunFolder, registration: dict[str, Any]) -> NDArray[np.float64]:
-        """The registered cloud in {P} (mm): this process's registration, else results/cloud.ply (a run
-        reported before, or registered by an older version), else registered again from the views."""
+    @property
+    def nominal_P(self) -> NominalMesh:
+        """The nominal in the part frame, as the error map needs it (built once)."""
+        with self._lock:
+            if self._nominal_P is None:
+                self._nominal_P = NominalMesh.from_trimesh(
+                    self.nominal_W.copy().apply_transform(invert(self.T_W_P))
+                )
+            return self._nominal_P
+
+    def _registered(self, run: RunFolder) -> RegisteredCloud:
+        """The registered cloud: this process's registration, else results/cloud.ply (a run reported before,
+        or registered by an older version), else registered again from the views."""
         if self._cloud is not None:
-            return self._cloud[1]
+            return self._cloud
         legacy = run.results_dir / "points_P.npy"  # a run registered before the cloud was stored once
+        registration = Checkpoint.from_json(run.load_checkpoint()).registration or {}
         if legacy.is_file():
-            return np.asarray(np.load(legacy), dtype=np.float64)
+            return RegisteredCloud(registration, np.asarray(np.load(legacy), dtype=np.float64))
         if (run.results_dir / "cloud.ply").is_file():
-            return read_ply_points(run.results_dir / "cloud.ply")
+            return RegisteredCloud(registration, read_ply_points(run.results_dir / "cloud.ply"))
         self.register(run, Checkpoint.from_json(run.load_checkpoint()).views)
         assert self._cloud is not None  # a registration without points never reaches the report
-        return self._cloud[1]
+        return self._cloud
 
     def inspectable_coverage(self, run: RunFolder, T_P_cloud: NDArray[np.float64] | None = None) -> Coverage:
         """Coverage of the inspectable nominal surface (what the planner can see: not the underside on the
         table) at the recipe's point density, from the measured views moved by the alignment ``T_P_cloud``."""
         plan, st = self.plan_model, self.recipe.plan
         s = plan.surface
-        moved = self._moved_eval(run)
-        pts = np.vstack(list(moved.values())) if moved else np.zeros((0, 3))
-        if T_P_cloud is not None:
-            pts = transform_points(self.T_W_P @ T_P_cloud @ invert(self.T_W_P), pts)
-        covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
+        done, found = self.refinement(run)
+        A = np.eye(4) if T_P_cloud is None else self.T_W_P @ T_P_cloud @ invert(self.T_W_P)
+        views = [(self.views.get(run, i).eval_tree, A @ T) for i, T in zip(done, found.T, strict=True)]
+        covered = covered_by_views(s, views, st.point_density_per_mm2, st.coverage_radius_mm)
         ins = s.inspectable
         return Coverage(
             fraction=coverage_fraction(s, covered),
@@ -538,8 +609,8 @@ class LambertianInspection:
 
     def _report_input(self, run: RunFolder, registration: dict[str, Any]) -> ReportInput:
         """The judged registered cloud (:func:`cell.analysis.judge.judge`) with the run's context."""
-        pts_P = self._registered_points(run, registration)
-        nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
+        cloud = self._registered(run)
+        pts_P = cloud.points_P
         tol = self.recipe.tolerance
         checkpoint = Checkpoint.from_json(run.load_checkpoint())
         evaluation = checkpoint.evaluation.to_json() if checkpoint.evaluation is not None else {}
@@ -565,14 +636,14 @@ class LambertianInspection:
             )
         plan = plan_feedback(self.plan_model, self.recipe)  # what no reachable viewpoint sees, for the reader
         return judge(
-            NominalMesh.from_trimesh(nominal_P),
+            self.nominal_P,
             pts_P,
             Tolerance(tol.lower, tol.upper),
             n_points_input=int(registration.get("n_points_views", len(pts_P))),
             regions=[region_from_config(spec) for spec in self.recipe.regions],
             min_defect_points=self.settings.min_defect_points,
             excluded=excluded,
-            coverage=self.inspectable_coverage(run, T_align),
+            coverage=cloud.coverage or self.inspectable_coverage(run, T_align),
             min_coverage=self.recipe.min_coverage,
             warnings=[*alignment.get("warnings", []), *plan.warnings],
             incomplete_reasons=reasons,
@@ -590,6 +661,7 @@ class LambertianInspection:
                 "geometry_source": self.geometry_source,
                 "run": run_record(run, self.cfg.name),
             },
+            error_map=cloud.error_map,
         )
 
 

@@ -59,13 +59,9 @@ def save_view_points(
     """Write ``out_dir/points.npz`` (format 2) and return the points as they are stored (rounded to
     :data:`STEP_MM`), which is what every later step reads back. ``eval_index``: ascending indices of the
     evaluation subset."""
-    p = np.asarray(points_W, dtype=np.float64).reshape(-1, 3)
-    q = np.round(p / STEP_MM)
-    if len(q) and not np.abs(q).max() < _LIMIT:
-        raise ValueError(f"view points beyond {_LIMIT * STEP_MM / 1000:.0f} m from the world origin")
-    steps = q.astype(np.int64)
+    steps = _steps(points_W)
     delta = np.diff(steps, axis=0, prepend=np.zeros((1, 3), np.int64)).astype(np.int32)
-    mask = np.zeros(len(p), dtype=bool)
+    mask = np.zeros(len(steps), dtype=bool)
     mask[np.asarray(eval_index, dtype=np.int64)] = True
     with open(out_dir / POINTS_FILE, "wb") as f:
         np.savez_compressed(
@@ -78,6 +74,20 @@ def save_view_points(
             eval=mask,
         )
     return _from_steps(delta, STEP_MM)
+
+
+def stored_points(points_W: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The points as :func:`save_view_points` stores them (and every reader reads them back), without
+    writing them."""
+    return np.asarray(_steps(points_W) * STEP_MM, dtype=np.float64)
+
+
+def _steps(points_W: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Each coordinate in storage steps (int64)."""
+    q = np.round(np.asarray(points_W, dtype=np.float64).reshape(-1, 3) / STEP_MM)
+    if len(q) and not np.abs(q).max() < _LIMIT:
+        raise ValueError(f"view points beyond {_LIMIT * STEP_MM / 1000:.0f} m from the world origin")
+    return q.astype(np.int64)
 
 
 def _from_steps(delta: NDArray[np.int32], step_mm: float) -> NDArray[np.float64]:

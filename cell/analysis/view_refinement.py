@@ -90,7 +90,7 @@ def estimate_normals(points: Array, k: int = 20) -> LocalPlanes:
     n = len(points)
     if n < k:
         return LocalPlanes(points.copy(), np.zeros((n, 3)), np.zeros(n, dtype=bool))
-    _, idx = cKDTree(points).query(points, k=k)
+    _, idx = cKDTree(points).query(points, k=k, workers=-1)
     centroid = points[idx].mean(axis=1)
     nb = points[idx] - centroid[:, None, :]
     cov = np.einsum("nki,nkj->nij", nb, nb) / k
