@@ -357,7 +357,8 @@ class Controller:
                 raise
 
     def _journal_state(self) -> None:
-        self._log("state", state=self.state, message=self.message)
+        # cpu_s: this process's CPU seconds so far, so a shared machine's phases can be read in CPU time too
+        self._log("state", state=self.state, message=self.message, cpu_s=round(time.process_time(), 3))
         if self.on_progress:
             self.on_progress(self)
 

@@ -1,0 +1,97 @@
+# ruff: noqa: F811  (the fixtures recipe_path and reference come from tests/test_controller.py)
+"""The work beside the robot (cell/controller.py's worker) and the verdict before the report's page, on the
+small box cell: a view whose background work fails faults the run naming that view and loses nothing else;
+the verdict is published (report.json, the journal's verdict line, the checkpoint's summary) before the page
+is written, stands against an abort, and a run paused between the two resumes to the uninterrupted result.
+
+Truth: the uninterrupted reference run of tests/test_controller.py and the run folder's own files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from cell.controller import abort_stopped
+from cell.errors import ConfigError
+from cell.run_data import Phase
+from cell.runs import RunFolder
+from tests.same_result import assert_same_result
+from tests.test_controller import make_controller, recipe_path, reference, result_of  # noqa: F401
+
+
+def test_a_failing_view_faults_the_run_naming_it_and_a_resume_measures_it(
+    recipe_path: Path, tmp_path: Path, reference: dict
+) -> None:
+    run_dir = tmp_path / "run"
+    ctl, _ = make_controller(recipe_path, run_dir)
+    decode = ctl.job.decode
+
+    def decode_failing_at_view_2(view, captured, out_dir):  # a bug in the view's own work, in the worker
+        if captured.index == 2:
+            raise ValueError("injected failure")
+        return decode(view, captured, out_dir)
+
+    ctl.job.decode = decode_failing_at_view_2
+    assert ctl.execute() == "faulted"
+    assert ctl.message.startswith("view 2: its processing failed (ValueError: injected failure)")
+    journal = ctl.run.journal()
+    errors = [e for e in journal if e["event"] == "error" and e["kind"] == "ViewProcessingError"]
+    assert len(errors) == 1 and "view 2" in errors[0]["error"]
+    done = set(ctl.run.completed_views())
+    assert {0, 1} <= done and 2 not in done  # the failed view is not counted as measured
+    assert not (run_dir / "results" / "report.json").exists()
+    ctl2, _ = make_controller(recipe_path, run_dir)
+    assert ctl2.execute(resume=True) == "done", ctl2.message
+    assert done < set(ctl2.run.completed_views())
+    assert_same_result(result_of(run_dir), reference["result"], "a view failed, then resumed")
+
+
+def test_the_verdict_is_published_before_the_page_and_stands(
+    recipe_path: Path, tmp_path: Path, reference: dict
+) -> None:
+    """A pause asked for right after the verdict: the run pauses in ``rendering`` with report.json and the
+    verdict line written and no page; it cannot be aborted, and `resume` writes the page, same result."""
+    run_dir = tmp_path / "run"
+    ctl, _ = make_controller(recipe_path, run_dir)
+    report = ctl.job.report
+
+    def report_then_pause(run, registration):
+        summary = report(run, registration)
+        ctl.request_pause("test, right after the verdict")
+        return summary
+
+    ctl.job.report = report_then_pause
+    assert ctl.execute() == "paused", ctl.message
+    run = RunFolder.open(run_dir)
+    journal = run.journal()
+    states = [e["state"] for e in journal if e["event"] == "state"]
+    assert states[-3:] == ["reporting", "rendering", "paused"]
+    verdict = [e for e in journal if e["event"] == "verdict"]
+    assert len(verdict) == 1 and verdict[0]["verdict"] == reference["result"]["verdict"]
+    assert not [e for e in journal if e["event"] == "report_written"]
+    results = sorted(p.name for p in (run_dir / "results").iterdir())
+    assert results == ["report.json"]  # the verdict alone: no page, no cloud yet
+    checkpoint = run.load_checkpoint()
+    assert (
+        checkpoint["phase"] == Phase.RENDERING and checkpoint["summary"]["verdict"] == verdict[0]["verdict"]
+    )
+    doc = json.loads((run_dir / "results" / "report.json").read_text())
+    assert doc["verdict"] == verdict[0]["verdict"] and doc["n_points"] == verdict[0]["n_points"]
+    with pytest.raises(ConfigError, match="verdict is published and stands"):
+        abort_stopped(run, "by the test")
+    ctl2, _ = make_controller(recipe_path, run_dir)
+    assert ctl2.execute(resume=True) == "done", ctl2.message
+    journal = run.journal()
+    assert [e["event"] for e in journal if e["event"] in ("verdict", "report_written")] == [
+        "verdict",
+        "report_written",
+    ]
+    assert sorted(p.name for p in (run_dir / "results").iterdir()) == [
+        "cloud.ply",
+        "report.html",
+        "report.json",
+    ]
+    assert json.loads((run_dir / "results" / "report.json").read_text()) == doc  # the verdict as published
+    assert_same_result(result_of(run_dir), reference["result"], "paused between verdict and page")
