@@ -310,9 +310,9 @@ class LambertianInspection:
         }
         if captured.index is not None:  # kept as the folder holds it: a resumed run reads the same numbers
             meta = json.loads(json.dumps(summary))
-            result = ViewResult(
-                captured.index, ViewPoints(stored, quality, oblique_kept), eval_W, planes, regions, meta
-            )
+            folder = RunFolder(out_dir.parent.parent).view_dir(captured.index)  # where out_dir is renamed to
+            points = ViewPoints(stored, quality, oblique_kept)
+            result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder)
             _ = result.eval_tree  # built here, in the worker, not on the way to the verdict
             self.views.add(result)
         return summary
@@ -494,9 +494,10 @@ class LambertianInspection:
         stored = [self.views.get(run, i) for i in done]
         points, weights = [], []
         for view, T_fix in zip(stored, refined.T, strict=True):
-            measured = ~view.points.oblique  # the sensor's points, without those lit too obliquely
-            points.append(transform_points(T_P_W @ T_fix, view.points.points_W[measured]))
-            weights.append(np.square(view.points.quality[measured]).astype(np.float64) + 1e-6)
+            held = view.points()
+            measured = ~held.oblique  # the sensor's points, without those lit too obliquely
+            points.append(transform_points(T_P_W @ T_fix, held.points_W[measured]))
+            weights.append(np.square(held.quality[measured]).astype(np.float64) + 1e-6)
         if not points or not sum(len(p) for p in points):
             return {"n_points": 0, "views": len(points)}
         refinement = {

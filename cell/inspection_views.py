@@ -35,20 +35,40 @@ from cell.view_files import ViewPoints, load_eval_points, load_view_points
 
 PLANES_FILE = "planes.npz"  # the evaluation subset's local planes (float64 centroids and normals, bool ok)
 REGIONS_FILE = "defects.npz"
+# the views' full point sets kept in memory at most (the 1024x768 cell's dozen views take ~0.12 GB, a 5 MP
+# camera's ~0.9 GB); beyond it the oldest views' points are dropped and read from their folders when needed
+POINTS_IN_MEMORY_BYTES = 1_000_000_000
 
 
 @dataclass
 class ViewResult:
     """One completed view (all in {W}, mm, at the pose the kinematic chain gave it): the stored points with
-    their per-point arrays in pixel order, the evaluation subset (one point per ``eval_voxel_mm`` voxel) and
-    its local planes, the camera pose and the hole regions, and the view's ``view.json`` summary."""
+    their per-point arrays in pixel order (:meth:`points`; held in memory while the store's budget allows),
+    the evaluation subset (one point per ``eval_voxel_mm`` voxel) and its local planes, the camera pose and
+    the hole regions, and the view's ``view.json`` summary."""
 
     index: int
-    points: ViewPoints
+    held: ViewPoints | None  # the full points while held in memory, else read from ``folder``
     eval_W: NDArray[np.float64]
     planes: LocalPlanes
     regions: list[DefectRegion]
     summary: dict[str, Any]
+    folder: Path | None = None  # where the view is stored (None: while it is being written)
+
+    def points(self) -> ViewPoints:
+        """The full points with their per-point arrays: held, or read from the view's folder."""
+        held = self.held
+        if held is not None:
+            return held
+        assert self.folder is not None  # a view is dropped from memory only once stored
+        return load_view_points(self.folder)
+
+    @property
+    def held_bytes(self) -> int:
+        held = self.held
+        if held is None:
+            return 0
+        return int(held.points_W.nbytes + held.quality.nbytes + held.oblique.nbytes)
 
     @property
     def T_W_C(self) -> NDArray[np.float64]:
@@ -119,6 +139,7 @@ def load_view_result(view_dir: Path, index: int) -> ViewResult:
         load_planes(view_dir, eval_W),
         load_regions(view_dir / REGIONS_FILE),
         json.loads((view_dir / "view.json").read_text()),
+        view_dir,
     )
 
 
@@ -126,10 +147,11 @@ class ViewStore:
     """The completed views of the run a job works on, each read once: :meth:`add` from the decode worker
     (the view as it is being written), :meth:`get` reads a view not added (a run resumed by a new process)."""
 
-    def __init__(self) -> None:
+    def __init__(self, points_budget_bytes: int = POINTS_IN_MEMORY_BYTES) -> None:
         self._views: dict[int, ViewResult] = {}
         self._run: Path | None = None
         self._lock = threading.Lock()
+        self.points_budget_bytes = points_budget_bytes
 
     def _for(self, run: RunFolder) -> None:
         """Forget the views of another run folder: a job works on one run (the first one it is asked about
@@ -143,6 +165,7 @@ class ViewStore:
         fails pauses the run, and the next process reads the folders)."""
         with self._lock:
             self._views[view.index] = view
+            self._within_budget(keep=view.index)
 
     def get(self, run: RunFolder, index: int) -> ViewResult:
         with self._lock:
@@ -152,7 +175,19 @@ class ViewStore:
             found = load_view_result(run.view_dir(index), index)
             with self._lock:
                 self._views[index] = found
+                self._within_budget(keep=index)
         return found
+
+    def _within_budget(self, keep: int) -> None:
+        """Drop the full points of the views added first until the held ones fit the budget (the newest view
+        stays, whatever its size)."""
+        held = sum(v.held_bytes for v in self._views.values())
+        for index, view in self._views.items():
+            if held <= self.points_budget_bytes:
+                break
+            if index != keep and view.held is not None and view.folder is not None:
+                held -= view.held_bytes
+                view.held = None
 
     def completed(self, run: RunFolder) -> list[ViewResult]:
         """The views of ``run`` whose folders exist whole, in index order."""

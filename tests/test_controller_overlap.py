@@ -11,10 +11,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cell.controller import abort_stopped
 from cell.errors import ConfigError
+from cell.inspection_views import load_view_result
 from cell.run_data import Phase
 from cell.runs import RunFolder
 from tests.same_result import assert_same_result
@@ -65,6 +67,21 @@ def test_the_verdict_is_published_before_the_page_and_stands(
     ctl.job.report = report_then_pause
     assert ctl.execute() == "paused", ctl.message
     run = RunFolder.open(run_dir)
+    # what the decode worker kept in memory is what the folders hold: a resumed run reads the same numbers
+    for i in run.completed_views():
+        kept, read = ctl.job.views.get(run, i), load_view_result(run.view_dir(i), i)
+        assert kept.held is not None and kept.folder == run.view_dir(i)
+        for a, b in [
+            (kept.points().points_W, read.points().points_W),
+            (kept.points().quality, read.points().quality),
+            (kept.points().oblique, read.points().oblique),
+            (kept.eval_W, read.eval_W),
+            (kept.planes.centroid, read.planes.centroid),
+            (kept.planes.normal, read.planes.normal),
+            (kept.planes.ok, read.planes.ok),
+        ]:
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+        assert kept.summary == read.summary and len(kept.regions) == len(read.regions)
     journal = run.journal()
     states = [e["state"] for e in journal if e["event"] == "state"]
     assert states[-3:] == ["reporting", "rendering", "paused"]
