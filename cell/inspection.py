@@ -37,7 +37,13 @@ from cell.analysis.merge import cut_unregistered, merge_views, voxel_subsample_i
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, write_page, write_verdict
 from cell.analysis.report_files import read_ply_points
-from cell.analysis.view_refinement import ViewRefinement, estimate_normals, refine_views
+from cell.analysis.view_refinement import (
+    OverlapCache,
+    ViewRefinement,
+    estimate_normals,
+    prepare_overlaps,
+    refine_views,
+)
 from cell.calibration import (
     active_gamma_lut,
     active_hand_eye,
@@ -161,6 +167,7 @@ class LambertianInspection:
         self._aligner: Aligner | None = None
         self._nominal_P: NominalMesh | None = None
         self.views = ViewStore()  # the completed views, each decoded or read once (cell.inspection_views)
+        self._overlaps = OverlapCache()  # the refinement's matching at the views' kinematic poses, per pair
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
         self._cloud: RegisteredCloud | None = None  # the registration's cloud, judged ahead of the report
@@ -313,9 +320,23 @@ class LambertianInspection:
             folder = RunFolder(out_dir.parent.parent).view_dir(captured.index)  # where out_dir is renamed to
             points = ViewPoints(stored, quality, oblique_kept)
             result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder)
-            _ = result.eval_tree  # built here, in the worker, not on the way to the verdict
+            self._first_overlaps(RunFolder(out_dir.parent.parent), result)
             self.views.add(result)
         return summary
+
+    def _first_overlaps(self, run: RunFolder, new: ViewResult) -> None:
+        """The refinement's first matching of a new view with every view measured before it (both ways, at
+        their kinematic poses): what the refinement after the last view would otherwise begin with."""
+        views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
+        prepare_overlaps(
+            self._overlaps,
+            [v.eval_W for v in views],
+            [v.planes for v in views],
+            [v.camera_W for v in views],
+            [v.eval_tree if len(v.eval_W) else None for v in views],
+            [v.index for v in views],
+            new=len(views) - 1,
+        )
 
     def _defects(self, T_W_C: NDArray[np.float64], reasons: NDArray[np.uint8]) -> list[DefectRegion]:
         """Hole regions per reason, located on the nominal surface by casting their pixels' rays on the
@@ -351,10 +372,11 @@ class LambertianInspection:
                 [v.eval_W for v in views],
                 sigma[:, 0],
                 sigma[:, 1],
-                seed=len(done),
                 planes=[v.planes for v in views],
                 cameras=[v.camera_W for v in views],
                 trees=[v.eval_tree if len(v.eval_W) else None for v in views],
+                ids=list(done),
+                cache=self._overlaps,
             )
             prior = {
                 "prior": source,
