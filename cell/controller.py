@@ -34,7 +34,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -202,6 +202,8 @@ class ControllerSettings:
     speed_fraction: float = 0.8
     pipelining: bool = True
     grab_timeout_ms: float = 2000.0
+    # captured views waiting for the worker, at most: a capture waits for room (a 5 MP stack holds 0.4 GB)
+    max_views_waiting: int = 1
 
 
 @dataclass(frozen=True)
@@ -593,6 +595,7 @@ class Controller:
         index = self.current_view
         assert index is not None  # set by the move to this view
         view = self.checkpoint.views[index]
+        self._make_room()
         self.run.log("capture", view=index)
         captured = self.job.capture(self.devices, view, index)
         assert self._executor is not None
@@ -604,6 +607,15 @@ class Controller:
             self._collect(block=False)
         self.progress.view_times.append(time.monotonic())
         self.captured()
+
+    def _make_room(self) -> None:
+        """Before a capture: while one view's work runs and ``max_views_waiting`` more wait for the worker,
+        wait for the oldest (the robot is at the view already; its move overlapped the work). The captured
+        images in memory stay bounded when the views' work is slower than the robot and the camera (a
+        loaded computer, a simulated capture); a computer that keeps up never waits here."""
+        while len(self._pending) > self.settings.max_views_waiting:
+            wait([self._pending[min(self._pending)]])
+            self._collect(block=False)
 
     def _decode_view(self, index: int, view: View, captured: Any) -> dict[str, Any]:
         with self.run.writing_view(index) as tmp:

@@ -230,6 +230,7 @@ class LambertianInspection(InspectionResults):
             cam.bit_depth,
             source=f"camera '{captured.camera}'",
         )
+        captured.images = []  # the frames live on in ``stack`` (one copy less: 0.4 GB for a 5 MP stack)
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="view-files") as files:
             writes = []
             if self.cfg.retention.writes_raw_images:

@@ -9,6 +9,7 @@ Truth: the uninterrupted reference run of tests/test_controller.py and the run f
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -112,3 +113,29 @@ def test_the_verdict_is_published_before_the_page_and_stands(
     ]
     assert json.loads((run_dir / "results" / "report.json").read_text()) == doc  # the verdict as published
     assert_same_result(result_of(run_dir), reference["result"], "paused between verdict and page")
+
+
+def test_captures_wait_when_the_views_work_falls_behind(
+    recipe_path: Path, tmp_path: Path, reference: dict
+) -> None:
+    """A view's work slower than the robot and the camera (a loaded computer): a capture waits until at most
+    one captured view waits for the worker, so the images held in memory stay bounded; same result."""
+    ctl, _ = make_controller(recipe_path, tmp_path / "run")
+    decode = ctl.job.decode
+
+    def slow_decode(view, captured, out_dir):
+        time.sleep(0.5)
+        return decode(view, captured, out_dir)
+
+    ctl.job.decode = slow_decode
+    assert ctl.execute() == "done", ctl.message
+    captured, worked, waiting = 0, 0, []
+    for e in ctl.run.journal():
+        if e["event"] == "capture":  # the views captured and not yet worked on, as this one starts
+            waiting.append(captured - worked)
+            captured += 1
+        elif e["event"] == "view":
+            worked += 1
+    in_reference = [e for e in RunFolder.open(reference["run_dir"]).journal() if e["event"] == "capture"]
+    assert max(waiting) <= ctl.settings.max_views_waiting and captured == len(in_reference)
+    assert_same_result(result_of(ctl.run.path), reference["result"], "slow view work")
