@@ -101,7 +101,7 @@ class InspectionSettings:
 class Captured:
     """One view's pattern stack and where the robot was when it was grabbed (capture -> decode)."""
 
-    images: list[NDArray[Any]]
+    images: list[NDArray[Any]] | NDArray[Any]  # the frames, or one (N, H, W) array of them
     T_B_T: NDArray[np.float64]  # the flange pose the cell believes (cell.calibration.believed_flange)
     joints: NDArray[np.float64]
     camera: str
@@ -211,7 +211,10 @@ class LambertianInspection(InspectionResults):
         self.prepare(devices)
         T_B_T = believed_flange(self.cfg, devices.robot)
         joints = np.asarray(devices.robot.joints(), dtype=np.float64)
-        images = capture_stack(devices.camera, devices.projector, self.patterns)
+        frames = capture_stack(devices.camera, devices.projector, self.patterns)
+        # one array now (the list goes), not a copy of it when decoded; a stack the check will refuse stays
+        images = np.stack(frames) if len({(f.shape, f.dtype) for f in frames}) == 1 else frames
+        del frames
         if not devices.projector.ready():  # a lamp that failed mid-stack leaves dark frames: measure again
             status = devices.projector.status()
             why = ", ".join(status.errors) or str(status)
@@ -230,7 +233,7 @@ class LambertianInspection(InspectionResults):
             cam.bit_depth,
             source=f"camera '{captured.camera}'",
         )
-        captured.images = []  # the frames live on in ``stack`` (one copy less: 0.4 GB for a 5 MP stack)
+        captured.images = []  # the frames live on in ``stack`` only (0.4 GB for a 5 MP stack)
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="view-files") as files:
             writes = []
             if self.cfg.retention.writes_raw_images:
