@@ -34,7 +34,7 @@ from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixel
 from cell.analysis.merge import cut_unregistered, merge_views, voxel_subsample_index
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import write_report
-from cell.analysis.report_files import read_ply_points, write_file_set, write_ply
+from cell.analysis.report_files import read_ply_points, stored_points, write_file_set, write_ply
 from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
 from cell.calibration import (
     active_gamma_lut,
@@ -472,6 +472,9 @@ class LambertianInspection:
         deviations.csv when ``csv``. The report replaces the cloud.ply by one with the deviation field."""
         legacy = run.results_dir / "points_P.npy"  # a run registered before the cloud was stored once
         pts_P = np.load(legacy) if legacy.is_file() else read_ply_points(run.results_dir / "cloud.ply")
+        # as cloud.ply stores them (float32): a no-op on a cloud written so; an older float64 cloud is judged
+        # as the report will store it, so the next rebuild gives the same figures
+        pts_P = stored_points(pts_P)
         nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
         tol = self.recipe.tolerance
         checkpoint = Checkpoint.from_json(run.load_checkpoint())

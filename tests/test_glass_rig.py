@@ -76,7 +76,7 @@ def test_cli_reports_the_sag(sag_run):
     raw = (sag_run / "results" / "cloud.ply").read_bytes()
     head, body = raw.split(b"end_header\n")
     assert b"property double nx" in head
-    xyz = [(k, "<f8") for k in ("x", "y", "z")]
+    xyz = [(k, "<f4") for k in ("x", "y", "z")]  # float32 coordinates (docs/storage.md)
     rec = np.frombuffer(body, dtype=[*xyz, ("d", "<f4"), *((k, "<f8") for k in ("nx", "ny", "nz"))])
     assert len(rec) == doc["n_points"]
     x, y, h = rec["x"], rec["y"], 1e-3
