@@ -21,6 +21,7 @@ import pytest
 import trimesh
 
 from cell.analysis import report_files
+from cell.analysis.compare import load_cloud
 from cell.analysis.report import ReportInput, Tolerance, write_report
 from cell.analysis.report_files import read_ply_points, stored_points, write_ply
 from cell.errors import ConfigError, StorageError
@@ -55,7 +56,7 @@ def test_cloud_ply_holds_every_measured_point_once(inp, tmp_path: Path) -> None:
     ply = trimesh.load(tmp_path / "cloud.ply", process=False)  # an independent reader sees the fields
     raw = ply.metadata["_ply_raw"]["vertex"]["data"]
     assert raw.dtype["x"] == np.float32 and raw.dtype["deviation"] == np.float32
-    assert np.array_equal(np.asarray(ply.vertices), points)
+    assert np.array_equal(load_cloud(tmp_path / "cloud.ply"), points)  # what `cell compare` reads of it
     assert np.allclose(raw["deviation"], stored.deviation_mm, atol=1e-6)
     assert np.array_equal(raw["isolated"].astype(bool), stored.isolated)
     assert np.array_equal(points[raw["isolated"] == 0], stored_points(inp.points_mm))  # the judged ones
