@@ -530,7 +530,7 @@ class LambertianInspection:
             },
         )
         doc = write_report(run.results_dir, inp, pictures=self.settings.pictures, csv=csv)
-        legacy.unlink(missing_ok=True)  # cloud.ply now holds the same points
+        legacy.unlink(missing_ok=True)  # cloud.ply now holds its points as judged (float32)
         return {
             "verdict": doc.get("verdict"),
             "n_points": doc.get("n_points"),

@@ -65,6 +65,24 @@ def test_cloud_ply_holds_every_measured_point_once(inp, tmp_path: Path) -> None:
     assert len(data) - data.index(b"end_header\n") - len(b"end_header\n") == 17 * len(points)
 
 
+def test_a_cloud_without_isolated_outliers_has_no_isolated_column(tmp_path: Path) -> None:
+    """An inspection's cloud judged with nothing set aside: no column of zeros (2 MB on the pillar)."""
+    from cell.analysis.errormap import NominalMesh
+    from cell.analysis.judge import judge
+    from tests.synthetic_report import box_mesh
+
+    mesh = box_mesh()
+    pts = trimesh.sample.sample_surface_even(mesh, 3000, seed=4)[0]
+    inp = judge(NominalMesh.from_trimesh(mesh), pts, Tolerance(-0.3, 0.3), min_defect_points=10)
+    assert inp.stored is not None and inp.stored.isolated is not None and not inp.stored.isolated.any()
+    write_report(tmp_path, inp, pictures=False)
+    data = (tmp_path / "cloud.ply").read_bytes()
+    head = data[: data.index(b"end_header\n")].decode()
+    assert "isolated" not in head and "property float deviation" in head
+    assert len(data) - len(head) - len(b"end_header\n") == 16 * len(pts)
+    assert np.array_equal(read_ply_points(tmp_path / "cloud.ply"), stored_points(pts))
+
+
 def test_a_float64_cloud_from_before_reads_as_it_was_stored(tmp_path: Path) -> None:
     """A cloud.ply written with double coordinates (before float32) reads back exactly as stored."""
     pts = np.random.default_rng(3).uniform(-300, 300, (500, 3))

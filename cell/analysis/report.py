@@ -329,7 +329,7 @@ def write_report(out_dir: Path, inp: ReportInput, pictures: bool = True, csv: bo
     page = render(doc, inp, pictures, csv)
     stored = inp.stored or StoredCloud(inp.points_mm, inp.deviation_mm)
     fields = dict(stored.fields)
-    if stored.isolated is not None:
+    if stored.isolated is not None and stored.isolated.any():  # no column: none isolated (2 MB of zeros)
         fields = {"isolated": np.asarray(stored.isolated, bool), **fields}
     writers = {
         "cloud.ply": lambda p: write_ply(p, stored.points_mm, stored.deviation_mm, fields),

@@ -12,12 +12,12 @@ commands refuse such a folder before any work (:func:`cell.storage.require_writa
 
 PLY: binary little-endian, vertex ``x y z`` float (float32, mm, part frame), ``deviation`` float (mm, +
 outside the material), then optional fields (``isolated`` uchar: an out-of-tolerance point set aside as an
-isolated outlier, not judged; the glass normals ``nx ny nz`` double). CloudCompare and MeshLab show every
-field as a scalar field. float32 keeps 24 significant bits: a coordinate is rounded by at most half a step of
-2^-23 of its power of two, 7.6 nm below 256 mm, 15 nm below 512 mm (docs/storage.md), against the sensor's
-20-30 um noise; 16 bytes a point with the deviation instead of 28. Files written before (``x y z`` double)
-read as they are. An inspection judges the cloud as stored (:func:`stored_points`), so a rebuilt report gives
-the same figures.
+isolated outlier, not judged, written when there is one; the glass normals ``nx ny nz`` double). CloudCompare
+and MeshLab show every field as a scalar field. float32 keeps 24 significant bits: a coordinate is rounded by
+at most half a step of 2^-23 of its power of two, 7.6 nm below 256 mm, 15 nm below 512 mm (docs/storage.md),
+against the sensor's 20-30 um noise; 16 bytes a point with the deviation instead of 28. Files written before
+(``x y z`` double) read as they are. An inspection judges the cloud as stored (:func:`stored_points`), so a
+rebuilt report gives the same figures.
 """
 
 from __future__ import annotations
