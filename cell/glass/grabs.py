@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -26,7 +27,7 @@ FORMAT = 1
 PNG_LEVEL = 1  # zlib level, as the inspection's raw images (cell.view_files, docs/storage.md)
 
 
-def _mean(total: NDArray[np.floating] | NDArray[np.integer], frames: int) -> NDArray[np.float32]:
+def _mean(total: NDArray[Any], frames: int) -> NDArray[np.float32]:
     """What grab_mean computes from the float64 sum of ``frames`` grabs."""
     return (np.asarray(total, np.float64) / frames).astype(np.float32)
 
@@ -50,8 +51,10 @@ def save_grab(views_dir: Path, name: str, mean: NDArray[np.float32], frames: int
             np.savez_compressed(fh, mean=mean)
         entry = {"file": path.name, "frames": frames, "stored": "mean (float32, deflate)"}
     manifest_path = views_dir / MANIFEST
-    manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {"format": FORMAT}
-    manifest.setdefault("grabs", {})[name] = entry
+    manifest: dict[str, Any] = {"format": FORMAT, "grabs": {}}
+    if manifest_path.is_file():
+        manifest = json.loads(manifest_path.read_text())
+    manifest["grabs"][name] = entry
     manifest_path.write_text(json.dumps(manifest, indent=2))
     return path
 
