@@ -8,8 +8,8 @@ for bit (``save_grab`` checks it before choosing the PNG). A mean that is not su
 floats) or whose sum exceeds 16 bits (a 12-bit camera averaged over more than 16 frames) is stored as float32
 in a deflated ``<name>.npz``. Runs from before hold ``<name>.npy`` (float32, uncompressed), read as they are.
 
-Measured on the simulated rig's 8-bit cameras averaged over 4 frames (docs/storage.md): 1024 x 768, 3.1 MB a
-camera as .npy, about a third of that as PNG.
+Measured on the simulated rig's 8-bit 1024 x 768 cameras averaged over 4 frames (docs/storage.md): 3.15 MB a
+camera as .npy, 0.70 MB as PNG.
 """
 
 from __future__ import annotations
