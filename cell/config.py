@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
+from cell.defaults import DEFAULT_CELL as DEFAULT_CELL  # re-exported: where the commands' default lived
 from cell.errors import ConfigError
 from cell.geometry import Pose, pose_from_xyz_rpy
 from cell.planning.settings import PlanSettings
@@ -620,6 +621,3 @@ def config_fingerprint(cfg: CellConfig) -> str:
     (``results_db``) and how long raw images are kept (``retention``) measure nothing and are left out too."""
     data = cfg.model_dump(mode="json", exclude={"calibration", "results_db", "retention"})
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
-
-
-DEFAULT_CELL = Path(__file__).resolve().parent.parent / "recipes" / "cells" / "sim.yaml"

@@ -16,7 +16,7 @@ from typing import Any
 
 import typer
 
-from cell.config import DEFAULT_CELL, load_cell_config
+from cell.defaults import DEFAULT_CELL
 
 calibrate_app = typer.Typer(
     help="Calibration routines: per-pixel sensor, camera intrinsics, projector, projector gamma, hand-eye, "
@@ -31,6 +31,18 @@ FromOpt = typer.Option(
     "--from",
     help="capture folder of images taken elsewhere (docs/capture-folders.md); no device is used",
 )
+
+
+def start(routine: str, cell: Path, out: Path, source: Path | None = None) -> None:
+    """The command's first line, before anything heavy is imported: which routine, on what, into where."""
+    what = f"capture folder {source}" if source is not None else f"cell {cell}"
+    typer.echo(f"calibrate {routine}: {what} -> {out}")
+
+
+def _cell_config(cell: Path) -> Any:
+    from cell.config import load_cell_config
+
+    return load_cell_config(cell)
 
 
 def print_result(result: dict[str, Any]) -> None:
@@ -72,11 +84,12 @@ def sensor_cmd(
 ) -> None:
     """Per-pixel calibration: the stage steps the reference board STEPS x STEP_MM toward the sensor
     (dissertation 5.1.1)."""
+    start("sensor", cell, out, source)
     if source is not None:
         return _offline("sensor", source, out, cell, force=force, points=points)
     from cell.calibration.sensor_routines import SensorJob
 
-    cfg = load_cell_config(cell)
+    cfg = _cell_config(cell)
     run(SensorJob(cfg, steps=steps, step_mm=step_mm, points=points, force=force, seed=seed), out, cell, seed)
 
 
@@ -90,11 +103,12 @@ def intrinsics_cmd(
     source: Path | None = FromOpt,
 ) -> None:
     """Camera K and distortion from VIEWS images of a ChArUco board the stage holds (OpenCV)."""
+    start("intrinsics", cell, out, source)
     if source is not None:
         return _offline("intrinsics", source, out, cell, force=force)
     from cell.calibration.sensor_routines import IntrinsicsJob
 
-    run(IntrinsicsJob(load_cell_config(cell), views=views, force=force, seed=seed), out, cell, seed)
+    run(IntrinsicsJob(_cell_config(cell), views=views, force=force, seed=seed), out, cell, seed)
 
 
 @calibrate_app.command("projector")
@@ -110,11 +124,12 @@ def projector_cmd(
     source: Path | None = FromOpt,
 ) -> None:
     """Projector K and T_C_P (Moreno-Taubin local homographies at the ChArUco corners, stereoCalibrate)."""
+    start("projector", cell, out, source)
     if source is not None:
         return _offline("projector", source, out, cell, intrinsics=intrinsics, force=force)
     from cell.calibration.sensor_routines import ProjectorJob
 
-    job = ProjectorJob(load_cell_config(cell), views=views, intrinsics=intrinsics, force=force, seed=seed)
+    job = ProjectorJob(_cell_config(cell), views=views, intrinsics=intrinsics, force=force, seed=seed)
     run(job, out, cell, seed)
 
 
@@ -127,9 +142,10 @@ def gamma_cmd(
     seed: int = 1,
 ) -> None:
     """Projector response: uniform grey levels on the white board; writes the linearising LUT."""
+    start("gamma", cell, out)
     from cell.calibration.sensor_routines import GammaJob
 
-    run(GammaJob(load_cell_config(cell), levels=levels, force=force, seed=seed), out, cell, seed)
+    run(GammaJob(_cell_config(cell), levels=levels, force=force, seed=seed), out, cell, seed)
 
 
 def register(app: typer.Typer) -> None:

@@ -6,26 +6,32 @@ from __future__ import annotations
 
 import sys
 import time
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import typer
-from rich.console import Console
 
-from cell.config import DEFAULT_CELL
+from cell.defaults import DEFAULT_CELL, DEMO_CELL
 from cell.exit_codes import ExitCode, for_run
-from cell.inspection_run import DEMO_CELL
 from cell.runs import RUNS_ROOT
 
 if TYPE_CHECKING:
+    from rich.console import Console
+
     from cell.controller import Controller
     from cell.inspection_run import RunOutcome
 
-console = Console()
+
+@cache
+def _console() -> Console:
+    from rich.console import Console
+
+    return Console()
 
 
 def _say(message: str) -> None:
-    console.print(message, highlight=False, markup=False)
+    _console().print(message, highlight=False, markup=False)
 
 
 def _progress(ctl: Controller) -> None:
@@ -47,6 +53,7 @@ def _finish(outcome: RunOutcome) -> None:
     code. Messages are printed as text, never as markup: they quote file names and device replies."""
     run, state, summary = outcome.run, outcome.state, outcome.summary
     code = for_run(state, summary.get("verdict"))
+    console = _console()
     if state == "done":
         console.print(
             f"verdict: {str(summary.get('verdict')).upper()}  "
@@ -89,6 +96,7 @@ def register(app: typer.Typer) -> None:
         ),
     ) -> None:
         """Run an inspection recipe end to end; Ctrl-C pauses safely (resume with `cell resume DIR`)."""
+        typer.echo(f"inspecting {recipe} on cell {cell} -> {out or 'a new run folder in ' + str(RUNS_ROOT)}")
         from cell.inspection_run import inspect
         from cell.run_data import RunIdentity
 
@@ -109,6 +117,7 @@ def register(app: typer.Typer) -> None:
     @app.command("resume")
     def resume_cmd(run_dir: Path = typer.Argument(..., help="run folder of an interrupted run")) -> None:
         """Finish an interrupted or paused run from its last checkpoint, with the settings it started with."""
+        typer.echo(f"resuming the run in {run_dir}")
         from cell.inspection_run import resume
 
         _finish(resume(run_dir, on_progress=_progress, say=_say))
@@ -120,6 +129,7 @@ def register(app: typer.Typer) -> None:
         csv: bool = typer.Option(False, "--csv", help="also write results/deviations.csv (x,y,z,deviation)"),
     ) -> None:
         """Rebuild a finished run's report from its stored views (docs/report.md)."""
+        typer.echo(f"rebuilding the report of {run_dir}")
         from cell.inspection_run import rebuild_report
 
         _finish(rebuild_report(run_dir, csv=csv, pdf=pdf))
@@ -144,6 +154,7 @@ def register(app: typer.Typer) -> None:
         placement errors the pipeline does not know), calibrated first by `cell calibrate all` (about two
         minutes, reused while the cell file is unchanged); `--cell recipes/cells/sim_ideal.yaml
         --no-calibrate` runs it in the ideal world, whose figures are a noise floor."""
+        typer.echo(f"demo: the pillar on cell {cell} -> a new run folder in {runs}")
         from cell.inspection_run import demo
 
         _finish(demo(runs, cell, calibrate=calibrate, on_progress=_progress, say=_say))
