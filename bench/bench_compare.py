@@ -86,12 +86,14 @@ def run_cloudcompare(nominal: Path, cloud: Path, export_ascii: bool = False) -> 
 
 
 def read_cell_deviation(ply: Path) -> np.ndarray:
+    """The ``deviation`` property of cell's cloud.ply, whatever the other vertex properties' types."""
+    types = {"float": "f4", "double": "f8", "uchar": "u1", "char": "i1", "int": "i4", "uint": "u4"}
     data = ply.read_bytes()
     end = data.index(b"end_header\n") + len(b"end_header\n")
-    n = int(re.search(rb"element vertex (\d+)", data[:end]).group(1))
-    rec = np.frombuffer(
-        data[end:], dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("deviation", "<f4")], count=n
-    )
+    header = data[:end].decode("ascii").splitlines()
+    n = int(re.search(r"element vertex (\d+)", "\n".join(header)).group(1))
+    props = [line.split()[1:] for line in header if line.startswith("property ")]
+    rec = np.frombuffer(data[end:], dtype=[(name, "<" + types[t]) for t, name in props], count=n)
     return rec["deviation"].astype(np.float64)
 
 
@@ -117,7 +119,7 @@ def big_run(folder: Path, nominal: Path, n: int) -> str:
         [
             "/usr/bin/time",
             "-f",
-            "%e %M",
+            "%e %U %S %M",
             *CELL,
             "compare",
             str(nominal),
@@ -132,8 +134,11 @@ def big_run(folder: Path, nominal: Path, n: int) -> str:
     )
     if proc.returncode:
         return f"failed: {proc.stderr[-500:]}"
-    wall, kb = proc.stderr.strip().splitlines()[-1].split()
-    return f"{n} points: {float(wall):.1f} s wall, peak RSS {int(kb) / 1024**2:.2f} GB"
+    wall, user, system, kb = proc.stderr.strip().splitlines()[-1].split()
+    return (
+        f"{n} points: {float(wall):.1f} s wall, CPU (user+sys) {float(user) + float(system):.1f} s, "
+        f"peak RSS {int(kb) / 1024**2:.2f} GB"
+    )
 
 
 def main(n: int = 200_000, rounds: int = 5, big: int = 5_000_000) -> None:

@@ -39,14 +39,15 @@ class PointGrid:
 
 def point_grid(points_mm: NDArray, h_min: float = 0.0, per_cell: float = 4.0) -> PointGrid:
     """Bin ``points_mm`` (N, 3) into cells of about ``per_cell`` points on a surface, at least ``h_min``
-    wide, at most :data:`_MAX_CELLS` cells."""
+    wide, at most 8 N and :data:`_MAX_CELLS` cells."""
     p = np.ascontiguousarray(points_mm, dtype=np.float64).reshape(-1, 3)
     lo, hi = p.min(0), p.max(0)
     span = np.maximum(hi - lo, 1e-9)
     # a cloud of a surface: N points over an area of about the box's largest face
     area = float(np.sort(span)[1:].prod())
     h = max(float(np.sqrt(per_cell * area / max(len(p), 1))), h_min, 1e-9)
-    while np.prod(np.floor(span / h) + 1) > _MAX_CELLS:
+    max_cells = min(_MAX_CELLS, 8 * len(p) + 4096)  # most cells of a surface's box are empty: cap them
+    while np.prod(np.floor(span / h) + 1) > max_cells:
         h *= 1.25
     dims = (np.floor(span / h) + 1).astype(np.int64)
     start, order = _bin(p, lo, h, dims)
@@ -143,7 +144,13 @@ def nearest_other(
     """For the points ``queries`` (indices): the number of points exactly at each (itself included) and the
     distance (mm) to the nearest point elsewhere (inf when there is none)."""
     q = np.ascontiguousarray(queries, dtype=np.int64)
-    n_same, d2 = _nearest_other(grid.points, q, grid.start, grid.order, grid.origin, grid.h, grid.dims)
+    # queries visited cell by cell: neighbouring queries scan the same cells while they are in cache
+    cell = np.clip(np.floor((grid.points[q] - grid.origin) / grid.h).astype(np.int64), 0, grid.dims - 1)
+    by_cell = np.argsort((cell[:, 0] * grid.dims[1] + cell[:, 1]) * grid.dims[2] + cell[:, 2], kind="stable")
+    n_same, d2 = np.empty(len(q), np.int64), np.empty(len(q))
+    n_same[by_cell], d2[by_cell] = _nearest_other(
+        grid.points, q[by_cell], grid.start, grid.order, grid.origin, grid.h, grid.dims
+    )
     return n_same, np.sqrt(d2)
 
 

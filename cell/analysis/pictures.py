@@ -31,6 +31,12 @@ VIEWS = (("top", 90, -90), ("front", 0, -90), ("right", 0, 0), ("iso", 30, -60))
 LIGHT = np.array([-0.45, 0.55, 1.0]) / np.linalg.norm([-0.45, 0.55, 1.0])  # right, up, towards the eye
 
 
+def _dot(v: NDArray, axis: NDArray) -> NDArray:
+    """``v @ axis`` over the last dimension (3) written out: OpenBLAS's threads make a (N, 3) @ (3,) product
+    5-15x dearer in CPU than these three products on a shared machine (0.35 s of the four views' 1.1 s)."""
+    return v[..., 0] * axis[0] + v[..., 1] * axis[1] + v[..., 2] * axis[2]
+
+
 def view_axes(elev_deg: float, azim_deg: float) -> tuple[NDArray, NDArray, NDArray]:
     """Right, up and towards-the-eye unit vectors of a view, in the points' frame."""
     e, a = np.radians(elev_deg), np.radians(azim_deg)
@@ -64,7 +70,7 @@ class ViewFrame:
         """The frame that shows every point, true proportions, centred, ``width_px`` wide and as high as the
         points need (``min_height_px`` .. ``width_px``) plus a ``strip_px`` strip below them."""
         axes = view_axes(elev_deg, azim_deg)
-        uv = points_mm @ np.column_stack(axes[:2])
+        uv = np.column_stack([_dot(points_mm, axes[0]), _dot(points_mm, axes[1])])
         lo, hi = uv.min(0), uv.max(0)
         span_u, span_v = max(float(hi[0] - lo[0]), 1e-9), max(float(hi[1] - lo[1]), 1e-9)
         inner = width_px - 2 * margin_px
@@ -75,14 +81,14 @@ class ViewFrame:
     def project(self, points_mm: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray]:
         """Column, row (pixels) and depth (mm, larger is nearer) of each point."""
         right, up, eye = self.axes
-        u = (points_mm @ right - self.centre_uv[0]) * self.scale_px_per_mm + self.width_px / 2
+        u = (_dot(points_mm, right) - self.centre_uv[0]) * self.scale_px_per_mm + self.width_px / 2
         v = (
-            -(points_mm @ up - self.centre_uv[1]) * self.scale_px_per_mm
+            -(_dot(points_mm, up) - self.centre_uv[1]) * self.scale_px_per_mm
             + (self.height_px - self.strip_px) / 2
         )
         col = np.clip(np.floor(u), 0, self.width_px - 1).astype(np.int64)
         row = np.clip(np.floor(v), 0, self.height_px - 1).astype(np.int64)
-        return col, row, points_mm @ eye
+        return col, row, _dot(points_mm, eye)
 
 
 def _splat(
@@ -119,7 +125,7 @@ def _shade(depth_img: NDArray, scale_px_per_mm: float) -> NDArray:
     g_row, g_col = np.gradient(np.where(ok, smooth, np.nan))
     n = np.dstack([-g_col * scale_px_per_mm, g_row * scale_px_per_mm, np.ones_like(depth_img)])
     n /= np.linalg.norm(n, axis=2, keepdims=True)
-    lam = np.clip(n @ LIGHT, 0.0, 1.0)
+    lam = np.clip(_dot(n, LIGHT), 0.0, 1.0)
     return np.where(np.isfinite(lam), 0.5 + 0.5 * lam, 1.0)
 
 
