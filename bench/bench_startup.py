@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import select
 import shutil
 import signal
 import statistics
@@ -98,8 +99,24 @@ def _cpu_of(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / TICK
 
 
-def run_line(tree: Path, line: Line, scratch: Path) -> tuple[float, float, str]:
-    """Wall and CPU seconds of one run of ``line`` from ``tree``; and the line it printed first."""
+def _first_line(proc: subprocess.Popen, timeout_s: float) -> bytes | None:
+    """The first line the process writes (or all it wrote before it ended), None after ``timeout_s``."""
+    assert proc.stdout is not None
+    fd, got, end = proc.stdout.fileno(), b"", time.monotonic() + timeout_s
+    while b"\n" not in got:
+        ready, _, _ = select.select([fd], [], [], max(0.0, end - time.monotonic()))
+        if not ready:
+            return None
+        chunk = os.read(fd, 4096)
+        if not chunk:
+            break
+        got += chunk
+    return got.split(b"\n")[0]
+
+
+def run_line(tree: Path, line: Line, scratch: Path, timeout_s: float) -> tuple[float, float, str]:
+    """Wall and CPU seconds of one run of ``line`` from ``tree``; and the line it printed first. A first
+    line that takes longer than ``timeout_s`` counts as inf (the process is killed)."""
     args = [str(scratch / a[2:]) if a.startswith("T/") else a for a in line.args]
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(tree), "COLUMNS": "100"}
     t = time.perf_counter()
@@ -119,8 +136,8 @@ def run_line(tree: Path, line: Line, scratch: Path) -> tuple[float, float, str]:
         proc.returncode = 0
         wall = time.perf_counter() - t
         return wall, ru.ru_utime + ru.ru_stime, out.decode(errors="replace").strip().split("\n")[0]
-    first = proc.stdout.readline()
-    wall = time.perf_counter() - t
+    first = _first_line(proc, timeout_s)
+    wall = time.perf_counter() - t if first is not None else float("inf")
     try:
         cpu = _cpu_of(proc.pid)
     except (FileNotFoundError, ProcessLookupError, IndexError):
@@ -131,6 +148,8 @@ def run_line(tree: Path, line: Line, scratch: Path) -> tuple[float, float, str]:
     proc.returncode = 0
     if cpu != cpu:
         cpu = ru.ru_utime + ru.ru_stime
+    if first is None:
+        return wall, float("inf"), f"(no line within {timeout_s:g} s)"
     return wall, cpu, first.decode(errors="replace").strip()
 
 
@@ -156,6 +175,7 @@ def main() -> None:
     ap.add_argument("--base", type=Path, default=None, help="an older tree to compare with")
     ap.add_argument("--only", default="help,usage,first", help="kinds of line: help, usage, first")
     ap.add_argument("--match", default="", help="only command lines containing this text")
+    ap.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for a first line")
     args = ap.parse_args()
     trees = {"now": REPO} | ({"base": args.base} if args.base else {})
     kinds = args.only.split(",")
@@ -170,7 +190,7 @@ def main() -> None:
             for ln in todo:
                 for name, tree in trees.items():
                     reset(scratch)
-                    wall, cpu, first = run_line(tree, ln, scratch)
+                    wall, cpu, first = run_line(tree, ln, scratch, args.timeout)
                     times[(name, ln)].append((wall, cpu))
                     said[(name, ln)] = first
     width = max(len(ln.label()) for ln in todo) + 2
@@ -182,10 +202,11 @@ def main() -> None:
             walls, cpus = zip(*times[(n, ln)], strict=True)
             cols += f"{statistics.median(walls):>24.3f} / {min(walls):.3f}, {statistics.median(cpus):.3f}"
         print(f"{ln.kind:7s}{ln.label():{width}s}{cols}")
-    print("\nfirst line printed (now):")
-    for ln in todo:
-        if ln.kind == "first":
-            print(f"  {ln.label():{width}s}{said[('now', ln)][:110]}")
+    if "first" in kinds:
+        print("\nfirst line printed (now):")
+        for ln in todo:
+            if ln.kind == "first":
+                print(f"  {ln.label():{width}s}{said[('now', ln)][:110]}")
     print(f"load average after {os.getloadavg()}")
 
 

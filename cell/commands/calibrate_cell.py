@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from cell.commands.calibrate import CellOpt, ForceOpt, OutOpt, print_result, run, start
+from cell.commands.calibrate_common import CellOpt, ForceOpt, OutOpt, print_result, run, start
 
 
 def handeye_cmd(

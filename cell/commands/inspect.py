@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import sys
 import time
-from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -17,21 +16,11 @@ from cell.exit_codes import ExitCode, for_run
 from cell.runs import RUNS_ROOT
 
 if TYPE_CHECKING:
-    from rich.console import Console
-
     from cell.controller import Controller
     from cell.inspection_run import RunOutcome
 
 
-@cache
-def _console() -> Console:
-    from rich.console import Console
-
-    return Console()
-
-
-def _say(message: str) -> None:
-    _console().print(message, highlight=False, markup=False)
+_say = typer.echo  # progress and the run's messages, as plain lines
 
 
 def _progress(ctl: Controller) -> None:
@@ -50,24 +39,21 @@ def _progress(ctl: Controller) -> None:
 
 def _finish(outcome: RunOutcome) -> None:
     """The verdict and the report's path of a finished run, else why it stopped; exit with the outcome's
-    code. Messages are printed as text, never as markup: they quote file names and device replies."""
+    code. Messages are printed as text (click's echo, styled on a terminal), never as markup: they quote file
+    names and device replies."""
     run, state, summary = outcome.run, outcome.state, outcome.summary
     code = for_run(state, summary.get("verdict"))
-    console = _console()
     if state == "done":
-        console.print(
-            f"verdict: {str(summary.get('verdict')).upper()}  "
-            f"({summary.get('n_points')} points, coverage {100 * (summary.get('coverage') or 0):.2f} %)",
-            style="bold",
-            markup=False,
-        )
-        console.print(f"report: {run.results_dir / 'report.html'}", markup=False)
+        coverage = 100 * (summary.get("coverage") or 0)
+        verdict = f"verdict: {str(summary.get('verdict')).upper()}  ({summary.get('n_points')} points"
+        typer.secho(f"{verdict}, coverage {coverage:.2f} %)", bold=True)
+        typer.echo(f"report: {run.results_dir / 'report.html'}")
     elif code is ExitCode.PAUSED:
-        console.print(f"paused: {outcome.message}", style="yellow", markup=False)
-        console.print(f"fix the cause, then: cell resume {run.path}", markup=False)
+        typer.secho(f"paused: {outcome.message}", fg="yellow")
+        typer.echo(f"fix the cause, then: cell resume {run.path}")
     else:
-        console.print(f"{state}: {outcome.message}", style="red", markup=False)
-        console.print(f"run folder: {run.path}", markup=False)
+        typer.secho(f"{state}: {outcome.message}", fg="red")
+        typer.echo(f"run folder: {run.path}")
     if code is not ExitCode.PASS:
         sys.exit(int(code))
 

@@ -95,10 +95,14 @@ def history_cmd(
     config: Path = typer.Option(None, "--cell", help="cell config whose results_db to read"),
 ) -> None:
     """Every stored interim check, oldest first: PF, PS, SD, F (um) and the verdict."""
-    from cell.config import load_cell_config
     from cell.verification.history import FIGURES, VerificationHistory
 
-    entries = VerificationHistory(runs, load_cell_config(config) if config else None).entries(cell)
+    cfg = None
+    if config:
+        from cell.config import load_cell_config
+
+        cfg = load_cell_config(config)
+    entries = VerificationHistory(runs, cfg).entries(cell)
     typer.echo(f"{'time':<26}{'kind':<12}{'cell':<24}" + "".join(f"{k:>9}" for k in FIGURES) + "  verdict")
     for e in entries:
         values = "".join(
