@@ -92,10 +92,11 @@ def refine_corners(
 
     Why: the simulated camera samples its pixels' centres and a real one integrates a pixel's area, but both
     see a sharp edge over one or two pixels, and a gradient-based corner then locks toward pixel borders
-    (measured on the simulator's board images: +0.027 px for corners in the first half of a pixel, -0.017 px
-    in the second, 0.056 px RMS without any noise). Smoothing first spreads the edge over enough pixels for
-    the gradients to place it (0.029 px RMS on the same images); a point-symmetric blur does not move the
-    saddle of a chessboard corner. The window stays clear of the ArUco markers: each corner's half window is
+    (measured on the simulator's board images against the true projections: +0.027 px for corners in the
+    first half of a pixel, -0.017 px in the second, 0.056 px RMS without any noise: bench/trace_intrinsics).
+    Smoothing first spreads the edge over enough pixels for the gradients to place it (0.027 px RMS on the
+    same images, 0.032 px with the camera's noise); a point-symmetric blur does not move the saddle of a
+    chessboard corner. The window stays clear of the ArUco markers: each corner's half window is
     at most the marker's margin in the image (from the distance to the nearest other corner, which under
     perspective is the shorter side of a square) less twice the smoothing. Corners the refinement moves more
     than 1 px, or that have no neighbour, are dropped."""
