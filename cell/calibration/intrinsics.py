@@ -104,7 +104,8 @@ def refine_corners(
     if n < 2:
         return view
     pts = view.corners_px
-    nearest = cKDTree(pts).query(pts, k=2)[0][:, 1]
+    distances, _ = cKDTree(pts).query(pts, k=2)
+    nearest = np.asarray(distances, np.float64)[:, 1]  # to the nearest other corner
     margin = nearest * (board.getSquareLength() - board.getMarkerLength()) / (2 * board.getSquareLength())
     half = np.minimum(np.floor(margin - 2 * sigma_px), half_window_px).astype(int)
     grey = cv2.GaussianBlur(np.asarray(image, np.float32), (0, 0), sigma_px)

@@ -116,7 +116,8 @@ def calibrate_projector(
             f"corners, at least {MIN_VIEWS} are needed; is the projector lighting the board?"
         )
     flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
-    K_c, d_c = np.asarray(K_cam, np.float64), np.asarray(dist_cam, np.float64)
+    K_c: NDArray = np.asarray(K_cam, np.float64)
+    d_c: NDArray = np.asarray(dist_cam, np.float64)
     rms, K_p, dist_p, _, _ = cv2.calibrateCamera(obj, img_p, projector_size, None, None, flags=flags)
     if joint:
         stereo = cv2.stereoCalibrate(
