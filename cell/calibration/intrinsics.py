@@ -98,8 +98,9 @@ def refine_corners(
     same images, 0.032 px with the camera's noise); a point-symmetric blur does not move the saddle of a
     chessboard corner. The window stays clear of the ArUco markers: each corner's half window is
     at most the marker's margin in the image (from the distance to the nearest other corner, which under
-    perspective is the shorter side of a square) less twice the smoothing. Corners the refinement moves more
-    than 1 px, or that have no neighbour, are dropped."""
+    perspective is the shorter side of a square) less twice the smoothing, and the smoothing at most a quarter
+    of the view's median margin (small, far or steep boards, binned cameras). A corner whose margin leaves no
+    window of 2 px keeps the detector's position; one the refinement moves more than 1 px is dropped."""
     n = len(view.ids)
     if n < 2:
         return view
@@ -107,16 +108,16 @@ def refine_corners(
     distances, _ = cKDTree(pts).query(pts, k=2)
     nearest = np.asarray(distances, np.float64)[:, 1]  # to the nearest other corner
     margin = nearest * (board.getSquareLength() - board.getMarkerLength()) / (2 * board.getSquareLength())
-    half = np.minimum(np.floor(margin - 2 * sigma_px), half_window_px).astype(int)
-    grey = cv2.GaussianBlur(np.asarray(image, np.float32), (0, 0), sigma_px)
+    sigma = min(sigma_px, float(np.median(margin)) / 4)
+    half = np.minimum(np.floor(margin - 2 * sigma), half_window_px).astype(int)
+    grey = cv2.GaussianBlur(np.asarray(image, np.float32), (0, 0), sigma)
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 100, REFINE_STOP_PX)
     out = pts.copy()
-    keep = half >= 2
-    for w in np.unique(half[keep]):
+    for w in np.unique(half[half >= 2]):
         sel = half == w
         c = pts[sel].astype(np.float32).reshape(-1, 1, 2)
         out[sel] = cv2.cornerSubPix(grey, c, (int(w), int(w)), (-1, -1), crit).reshape(-1, 2)
-    keep &= np.linalg.norm(out - pts, axis=1) <= REFINE_MAX_MOVE_PX
+    keep = np.linalg.norm(out - pts, axis=1) <= REFINE_MAX_MOVE_PX
     return CharucoView(out[keep], view.ids[keep])
 
 
