@@ -24,7 +24,7 @@ from cell.analysis.judge import judge
 from cell.analysis.merge import cut_unregistered, merge_views
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, write_page, write_verdict
-from cell.analysis.report_files import read_ply_points
+from cell.analysis.report_files import read_ply_points, stored_points
 from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
 from cell.geometry import invert, transform_points
@@ -125,6 +125,8 @@ class InspectionResults:
             alignment = found.to_json()
         except AlignmentError as exc:
             points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
+        # judged as cloud.ply stores them (float32), so a rebuilt report gives the same figures
+        points_P = stored_points(points_P)
         registration = {
             "n_points": int(len(points_P)),
             "n_points_views": n_points_views,
@@ -159,10 +161,12 @@ class InspectionResults:
             return self._cloud
         legacy = run.results_dir / "points_P.npy"  # a run registered before the cloud was stored once
         registration = Checkpoint.from_json(run.load_checkpoint()).registration or {}
+        # as cloud.ply stores them (float32): a no-op on a cloud written so; an older float64 cloud is judged
+        # as the report will store it, so the next rebuild gives the same figures
         if legacy.is_file():
-            return RegisteredCloud(registration, np.asarray(np.load(legacy), dtype=np.float64))
-        if (run.results_dir / "cloud.ply").is_file():
-            return RegisteredCloud(registration, read_ply_points(run.results_dir / "cloud.ply"))
+            return RegisteredCloud(registration, stored_points(np.load(legacy)))
+        if (ply := run.results_dir / "cloud.ply").is_file():
+            return RegisteredCloud(registration, stored_points(read_ply_points(ply)))
         self.register(run, Checkpoint.from_json(run.load_checkpoint()).views)
         assert self._cloud is not None  # a registration without points never reaches the report
         return self._cloud
@@ -213,7 +217,7 @@ class InspectionResults:
             self._judged = (inp, doc, False)
         inp, doc, csv = self._judged
         written = write_page(run.results_dir, doc, inp, pictures=self.settings.pictures, csv=csv)
-        (run.results_dir / "points_P.npy").unlink(missing_ok=True)  # cloud.ply now holds the same points
+        (run.results_dir / "points_P.npy").unlink(missing_ok=True)  # cloud.ply now holds its points as judged
         return {"files": written}
 
     def _report_input(self, run: RunFolder, registration: dict[str, Any]) -> ReportInput:

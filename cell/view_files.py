@@ -165,3 +165,20 @@ def load_raw_stack(view_dir: Path) -> NDArray[Any] | None:
         return None
     folder = load_capture_folder(root)
     return folder.stack(folder.poses[0])
+
+
+def raw_frame(view_dir: Path, name: str = "white") -> tuple[Path, int] | None:
+    """The file of frame ``name`` (default the fully lit one) of the view's raw stack, and the camera's bit
+    depth (the file holds the values as the camera gave them: 8-bit files for 8 bits, else 16-bit files), or
+    None when the view keeps no raw images or its stack has no such frame. Reads only ``raw/capture.yaml``."""
+    root = view_dir / RAW_IMAGES
+    try:
+        manifest = yaml.safe_load((root / "capture.yaml").read_text())
+        order = list(manifest["order"])
+        bit_depth = int(manifest["camera"]["bit_depth"])
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError):
+        return None
+    if name not in order:
+        return None
+    path = root / FRAMES / f"{order.index(name):0{len(str(len(order) - 1))}d}_{name}.png"
+    return (path, bit_depth) if path.is_file() else None
