@@ -182,11 +182,12 @@ class PatchPlanner:
 
         def evaluate(direction: Array, label: str) -> tuple[Pose, float, NDArray[np.bool_], str] | None:
             cands = []
+            poses = []
             for r in ROLLS[rolls_ok]:
                 T = sensor.pose(box.centre, direction, float(r), box.axes[:, 0])
-                if sensor.settings.aim == "bisector":
-                    T = sensor.bisector_pose(T, box.centre)
-                ok, why = self.reach.check(T)  # cheaper than the visibility test: filter first
+                poses.append(sensor.bisector_pose(T, box.centre) if sensor.settings.aim == "bisector" else T)
+            # cheaper than the visibility test: filter first (every roll's IK in one batch)
+            for r, T, (ok, why) in zip(ROLLS[rolls_ok], poses, self.reach.check_many(poses), strict=True):
                 if not ok:
                     unreachable.append(why)
                     continue
