@@ -18,9 +18,9 @@ COUNTED = {"postgres": "PostgreSQL server", "chromium": "headless Chromium brows
 LONGEST_FIRST = (
     "test_inspect_e2e.py",  # 120 s CPU (load 11-15): a pillar inspection and the kill-and-resume test
     "test_inspect_alignment.py",  # 97 s CPU (load 10): a pillar inspection, its kinematic report
-    "test_controller_safety.py",  # 74 s CPU (load 5-7; 106 s before the batched planning IK)
+    "test_controller_safety.py",  # 69.5 s CPU (load 11; 106 s before the batched planning IK)
     "test_station_browser.py",  # ~70 s CPU, more wall time: it waits on a browser and a live run
-    "test_controller.py",
+    "test_controller.py",  # 49 s CPU (load 11)
     "test_driver_ur_robot.py",  # real-time moves of the fake controller
     "test_calib_procedures.py",
     "test_glass_rig.py",
