@@ -16,8 +16,9 @@ Motion is asynchronous on the sim clock, like a UR controller's async moveL/move
 :meth:`start_joint` start a checked path at the clock's present time, and the arm's pose is a function of the
 clock from then on. :meth:`wait` advances the clock by one poll period (and sleeps as long in wall time when
 ``robot.options.sim_realtime_factor`` is set, or the environment's ``CELL_SIM_REALTIME_FACTOR``, which wins:
-a harness knob that paces the arm without changing the cell config, so that a signal can arrive mid-move);
-``move_linear`` /
+a harness knob that paces the arm without changing the cell config, so that a signal can arrive mid-move;
+``CELL_SIM_MOTION_LOG`` names a file where each started move appends a JSON line, so that a harness signals
+a process once its arm is in motion, not while the move is still being checked); ``move_linear`` /
 ``move_joint`` are start + wait. :meth:`stop` may be called from a signal handler or another thread while a
 move runs: the arm decelerates from the speed it has at that instant (at the configured maximum acceleration,
 like stopL/stopJ) and the move raises :class:`~cell.errors.MotionStopped`. A watchdog
@@ -28,6 +29,7 @@ polling, as it does when the process dies.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
@@ -238,6 +240,7 @@ class SimRobot:
         self._realtime = float(
             os.environ.get("CELL_SIM_REALTIME_FACTOR", options.get("sim_realtime_factor", 0.0))
         )
+        self._motion_log = os.environ.get("CELL_SIM_MOTION_LOG")  # see the module's docstring
         hz = float(options.get("watchdog_hz", 10.0))
         self.watchdog_period_s: float | None = 1.0 / hz if hz > 0 else None
         self._last_kick = self.clock.now()
@@ -589,6 +592,10 @@ class SimRobot:
             outcome,
             float(a_stop),
         )
+        if self._motion_log:  # the arm is in motion from now: a stop() from here on stops it mid-path
+            line = {"command": entry["command"], "target": entry["target"].tolist(), "start_s": now}
+            with open(self._motion_log, "a", encoding="utf-8") as f:
+                f.write(json.dumps({**line, "duration_s": duration}) + "\n")
         self._update()
 
     def _update(self) -> None:

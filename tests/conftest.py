@@ -16,16 +16,16 @@ COUNTED = {"postgres": "PostgreSQL server", "chromium": "headless Chromium brows
 # files in collection order, so these start first and the short files fill in around them (xdist's default
 # order, most tests first, would start these few-test files last, where one of them may run alone at the end).
 LONGEST_FIRST = (
-    "test_inspect_e2e.py",  # ~190 s CPU: two pillar inspections and the kill-and-resume test
-    "test_controller_safety.py",
+    "test_inspect_e2e.py",  # 120 s CPU (load 11-15): a pillar inspection and the kill-and-resume test
+    "test_inspect_alignment.py",  # 97 s CPU (load 10): a pillar inspection, its kinematic report
+    "test_controller_safety.py",  # 69.5 s CPU (load 11; 106 s before the batched planning IK)
     "test_station_browser.py",  # ~70 s CPU, more wall time: it waits on a browser and a live run
-    "test_inspect_alignment.py",
-    "test_controller.py",
-    "test_feedback_glare.py",
+    "test_controller.py",  # 49 s CPU (load 11)
     "test_driver_ur_robot.py",  # real-time moves of the fake controller
     "test_calib_procedures.py",
     "test_glass_rig.py",
     "test_sync_faults.py",
+    "test_feedback_glare.py",  # 29.5 s CPU (load 10; 83-96 s before the batched planning IK)
     "test_verification_acceptance.py",
     "test_calib_cli.py",
     "test_safety_storage.py",

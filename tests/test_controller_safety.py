@@ -225,6 +225,13 @@ def test_cell_report_rebuilds_from_the_stored_cloud_and_prints(
     assert OPERATOR not in page and "&lt;script&gt;alert(1)&lt;/script&gt;" in page
 
 
+def _motions(log: Path) -> list[dict]:
+    """The moves the simulated arm has started (CELL_SIM_MOTION_LOG), the last line only when complete."""
+    if not log.exists():
+        return []
+    return [json.loads(line) for line in log.read_text().splitlines(keepends=True) if line.endswith("\n")]
+
+
 def _journal(run: Path) -> list[dict]:
     if not (run / "journal.jsonl").exists():
         return []
@@ -233,33 +240,35 @@ def _journal(run: Path) -> list[dict]:
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-# the signal lands right after the move's journal line: a pause asked for there was lost until the controller
-# checked its flag after the journal write (2026-11-26); run again on a loaded machine's rare late signal
-@pytest.mark.flaky(reruns=2)
 def test_sigterm_mid_move_pauses_and_resume_gives_the_same_result(
     box_inputs: tuple[Path, Path], cli_reference: dict, tmp_path: Path
 ) -> None:
     recipe, cell_file = box_inputs
     run = tmp_path / "run"
-    # the arm moves at a quarter of wall-clock speed (a 1 s move lasts 4 s) in this process only: a signal
-    # sent when the journal shows a move arrives mid-move even when a loaded machine delays this poll
+    motions = tmp_path / "motions.jsonl"  # the simulated arm appends a line as each move starts
+    # the arm moves at a quarter of wall-clock speed (a 1 s move lasts 4 s) in this process only, and says
+    # when each move starts (fakes/robot.py): the signal goes once the arm is in motion, however loaded the
+    # machine
     proc = subprocess.Popen(
         [sys.executable, "-m", "cell", "inspect", str(recipe), "--cell", str(cell_file), "--out", str(run)],
         cwd=REPO,
-        env={**os.environ, "CELL_SIM_REALTIME_FACTOR": "0.25"},
+        env={**os.environ, "CELL_SIM_REALTIME_FACTOR": "0.25", "CELL_SIM_MOTION_LOG": str(motions)},
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
     )
     deadline = time.monotonic() + 300
-    try:  # wait for the second view's move to be sent, then terminate the process mid-move
+    try:  # wait for the second view's first move to start, then terminate the process mid-move
         while time.monotonic() < deadline and proc.poll() is None:
-            moves = [e for e in _journal(run) if e["event"] == "device" and e.get("view") is not None]
-            if any(e["view"] >= 1 for e in moves):
+            moves = [e for e in _journal(run) if e["event"] == "device" and (e.get("view") or 0) >= 1]
+            # the journal logs a move before the controller sends it (the arm is not moving yet: a signal
+            # then pauses the run before the move); the arm's own line says it started
+            if moves and any(
+                m["command"] == moves[0]["command"] and np.allclose(m["target"], moves[0]["target"])
+                for m in _motions(motions)
+            ):
                 break
             time.sleep(0.01)
-        # the move is logged just before it is sent and lasts its whole sim time in wall-clock time: a signal
-        # sent now arrives mid-move however loaded the machine is (no fixed sleep to outlast)
         assert proc.poll() is None, "the run ended before it could be terminated"
         os.kill(proc.pid, signal.SIGTERM)
         out, _ = proc.communicate(timeout=120)

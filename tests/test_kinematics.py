@@ -90,6 +90,74 @@ def test_ik_nearest_picks_the_reference_branch_and_unwraps_to_it():
         np.testing.assert_allclose(q, q0, atol=1e-7)
 
 
+def _nearest_in_turn(kin: URKinematics, poses: np.ndarray, q: np.ndarray) -> np.ndarray | str:
+    """What the planner did before ik_follow: ik_nearest pose by pose; the error's text at the first
+    failure."""
+    out = []
+    try:
+        for T in poses:
+            q = kin.ik_nearest(T, q)
+            out.append(q)
+    except PlanningError as exc:
+        return str(exc)
+    return np.array(out)
+
+
+def test_ik_follow_is_ik_nearest_pose_by_pose_to_the_bit():
+    """The batched path IK gives the very joints (and the very error) of ik_nearest called pose by pose, on
+    lines through the workspace, past the wrist singularity, out of reach, into the joint limits and through a
+    pose that is not rigid; the joints are also checked against the poses by FK."""
+    rng = np.random.default_rng(14)
+    narrow = URKinematics(joint_min_rad=(-np.pi,) * 6, joint_max_rad=(np.pi,) * 6)
+    cases = {"ok": 0, "error": 0}
+    for trial in range(28):
+        kin = (UR5E, narrow)[trial % 2]
+        q_a = rng.uniform(-np.pi, np.pi, 6)
+        q_b = q_a + rng.normal(0.0, 0.5, 6)
+        if trial % 4 == 0:
+            q_a[4] = q_b[4] = rng.normal(0.0, 0.01)  # along the wrist singularity (q6 from the reference)
+        T_a, T_b = UR5E.fk(q_a), UR5E.fk(q_b)
+        if trial % 7 == 0:
+            T_b[:3, 3] *= 2.0  # leaves the reach part way
+        n = 20
+        s = np.linspace(0.0, 1.0, n)[:, None]
+        poses = np.tile(np.eye(4), (n, 1, 1))
+        poses[:, :3, :3] = UR5E.fk(q_a + s * (q_b - q_a))[:, :3, :3]
+        poses[:, :3, 3] = T_a[:3, 3] + s * (T_b[:3, 3] - T_a[:3, 3])
+        if trial % 9 == 0:
+            poses[15, 0, 0] = 2.0  # not a rigid transform
+        expected = _nearest_in_turn(kin, poses, q_a)
+        if isinstance(expected, str):
+            cases["error"] += 1
+            with pytest.raises(PlanningError) as err:
+                kin.ik_follow(poses, q_a)
+            assert str(err.value) == expected
+        else:
+            cases["ok"] += 1
+            got = kin.ik_follow(poses, q_a)
+            assert np.array_equal(got, expected)
+            np.testing.assert_allclose(UR5E.fk(got), poses, atol=1e-6)
+    assert min(cases.values()) >= 5, cases
+
+
+def test_reachable_each_is_reachable_pose_by_pose():
+    """The batched reachability answers (and reasons) of reachable() called pose by pose: poses of random
+    joints, some in the wrist singularity, some moved out of reach or onto the base axis, under wide and
+    narrow joint limits."""
+    rng = np.random.default_rng(15)
+    q = rng.uniform(-np.pi, np.pi, (120, 6))
+    q[::5, 4] = rng.normal(0.0, 0.01, 24)  # wrist singular (or nearly)
+    poses = UR5E.fk(q)
+    poses[1::7, :3, 3] *= 2.5  # out of reach
+    poses[2::9, :2, 3] = 0.0  # flange on the base axis
+    narrow = URKinematics(joint_min_rad=(-0.5,) + (-np.pi,) * 5, joint_max_rad=(0.5,) + (np.pi,) * 5)
+    for kin in (UR5E, narrow):
+        expected = [kin.reachable(T) for T in poses]
+        assert kin.reachable_each(poses) == expected
+        reasons = {why.split(":")[0] for ok, why in expected if not ok}
+        assert sum(ok for ok, _ in expected) >= 20 and len(reasons) >= 2, reasons
+
+
 def test_unreachable_poses_are_refused_with_the_reason():
     far = np.eye(4)
     far[:3, 3] = [1500.0, 0, 300]

@@ -100,6 +100,15 @@ def _rot_error(Ra: Array, Rb: Array) -> Array:
     return np.arctan2(s, c)
 
 
+def _jacobian_of_frames(F: Array) -> Array:
+    """Geometric Jacobian in {B} (..., 6, 6) from the link frames (..., 7, 4, 4) of :meth:`fk_frames`."""
+    z = F[..., :6, :3, 2]
+    o = F[..., :6, :3, 3]
+    p = F[..., 6:7, :3, 3]
+    Jv = np.cross(z, p - o)
+    return np.concatenate([np.swapaxes(Jv, -1, -2), np.swapaxes(z, -1, -2)], axis=-2)
+
+
 def wrap_angle(q: ArrayLike) -> Array:
     """Wrap angles (rad) to (-pi, pi]."""
     q = np.asarray(q, dtype=np.float64)
@@ -149,12 +158,7 @@ class URKinematics:
 
     def jacobian(self, q: ArrayLike) -> Array:
         """Geometric Jacobian in {B} (..., 6, 6): rows [v (mm/rad); w], columns joints."""
-        F = self.fk_frames(q)
-        z = F[..., :6, :3, 2]
-        o = F[..., :6, :3, 3]
-        p = F[..., 6:7, :3, 3]
-        Jv = np.cross(z, p - o)
-        return np.concatenate([np.swapaxes(Jv, -1, -2), np.swapaxes(z, -1, -2)], axis=-2)
+        return _jacobian_of_frames(self.fk_frames(q))
 
     # ------------------------------------------------------------------------------------------ inverse
     def ik_all(
@@ -242,13 +246,14 @@ class URKinematics:
 
     def _newton_step(self, q: Array, T_target: Array) -> Array:
         """One damped Gauss-Newton step toward ``T_target`` (batched)."""
-        Tq = self.fk(q)
+        F = self.fk_frames(q)  # the flange pose and the Jacobian from one pass down the arm
+        Tq = F[:, 6]
         dp = T_target[:, :3, 3] - Tq[:, :3, 3]
         Rerr = T_target[:, :3, :3] @ np.swapaxes(Tq[:, :3, :3], -1, -2)
         dw = 0.5 * np.stack(
             [Rerr[:, 2, 1] - Rerr[:, 1, 2], Rerr[:, 0, 2] - Rerr[:, 2, 0], Rerr[:, 1, 0] - Rerr[:, 0, 1]], -1
         )
-        J = self.jacobian(q)
+        J = _jacobian_of_frames(F)
         err = np.concatenate([dp, dw], -1)
         return np.einsum("nij,nj->ni", np.linalg.pinv(J, rcond=1e-10), err)
 
@@ -278,7 +283,18 @@ class URKinematics:
         T = np.asarray(T_B_T, dtype=np.float64)
         check_pose(T)
         q6_default = 0.0 if q_ref is None else float(np.asarray(q_ref)[5])
-        q, valid, singular = self.ik_all(T, q6_default)
+        return self._solutions(T, *self.ik_all(T, q6_default), q_ref, allow_singular)
+
+    def _solutions(
+        self,
+        T: Array,
+        q: Array,
+        valid: NDArray[np.bool_],
+        singular: NDArray[np.bool_],
+        q_ref: ArrayLike | None,
+        allow_singular: bool,
+    ) -> IKSolutions:
+        """:meth:`ik` of one pose ``T`` from its 8 branches ``(q, valid, singular)`` of :meth:`ik_all`."""
         if not valid.any():
             return IKSolutions(np.zeros((0, 6)), self.why_unreachable(T))
         shifted, in_lim = self.shift_into_limits(
@@ -312,10 +328,53 @@ class URKinematics:
             raise PlanningError(f"pose unreachable: {sols.reason}")
         return sols.joints[np.argmin(np.linalg.norm(sols.joints - q_ref, axis=1))]
 
+    def ik_follow(self, T_B_T: ArrayLike, q_start: ArrayLike) -> Array:
+        """Joints (N, 6) rad along a path of (N, 4, 4) flange poses: each pose's solution nearest to the one
+        before it (the first to ``q_start``), exactly what :meth:`ik_nearest` called pose by pose returns,
+        with its PlanningError at the first pose that has none.
+
+        Why: a planned line is checked at ~60 samples, and the closed form of one pose costs about as much
+        as that of 60 (numpy's per-call overhead), so the branches of every sample are solved in one batch;
+        only the choice of branch, which depends on the previous sample's, goes pose by pose. A sample near
+        the wrist singularity, where ``q6`` depends on the previous joints, or one without a solution within
+        the limits, is solved alone by :meth:`ik_nearest` (the same arithmetic, the same error).
+        """
+        poses = np.asarray(T_B_T, dtype=np.float64).reshape(-1, 4, 4)
+        q = np.asarray(q_start, dtype=np.float64)
+        out = np.empty((len(poses), 6))
+        finite = np.all(np.isfinite(poses), axis=(1, 2))
+        q_all, valid, singular = self.ik_all(np.where(finite[:, None, None], poses, np.eye(4)))
+        rigid = _rigid(poses)
+        for i, T in enumerate(poses):
+            if not rigid[i]:
+                check_pose(T)  # its error, at the first such pose (as ik_nearest pose by pose)
+            if valid[i].any() and not singular[i].any():
+                shifted, in_lim = self.shift_into_limits(q_all[i][valid[i]], q)
+                if in_lim.any():
+                    sols = shifted[in_lim]
+                    q = out[i] = sols[np.argmin(np.linalg.norm(sols - q, axis=1))]
+                    continue
+            q = out[i] = self.ik_nearest(T, q)
+        return out
+
     def reachable(self, T_B_T: ArrayLike, q_ref: ArrayLike | None = None) -> tuple[bool, str]:
         """Can the arm stand at ``T_B_T`` away from the wrist singularity? Returns (ok, reason or 'ok')."""
         sols = self.ik(T_B_T, q_ref, allow_singular=False)
         return (True, "ok") if sols.ok else (False, sols.reason or "")
+
+    def reachable_each(self, T_B_T: ArrayLike) -> list[tuple[bool, str]]:
+        """:meth:`reachable` of each of (N, 4, 4) poses, the same answers and reasons, the closed form of all
+        of them in one batch (a viewpoint's rolls are checked together: numpy's per-call overhead, not the
+        arithmetic, is what one pose costs)."""
+        poses = np.asarray(T_B_T, dtype=np.float64).reshape(-1, 4, 4)
+        for T in poses[~_rigid(poses)]:
+            check_pose(T)  # its error
+        q, valid, singular = self.ik_all(poses)
+        out = []
+        for i, T in enumerate(poses):
+            sols = self._solutions(T, q[i], valid[i], singular[i], None, False)
+            out.append((True, "ok") if sols.ok else (False, sols.reason or ""))
+        return out
 
     def reachable_many(self, T_B_T: ArrayLike) -> Array:
         """Vectorised reachability of (N, 4, 4) poses (limits +-2 pi style: any wrapped angle fits)."""
@@ -349,6 +408,18 @@ class URKinematics:
                 f"too close to the shoulder: shoulder-to-wrist distance {elbow.max():.1f} mm < {inner:.1f} mm"
             )
         return "out of reach: no arm configuration attains this position and orientation"
+
+
+def _rigid(T: Array) -> NDArray[np.bool_]:
+    """Which of (N, 4, 4) matrices :func:`check_pose` accepts (its tests, batched)."""
+    finite = np.all(np.isfinite(T), axis=(1, 2))
+    R = np.where(finite[:, None, None], T, 0.0)[:, :3, :3]
+    return (
+        finite
+        & np.all(np.isclose(np.swapaxes(R, 1, 2) @ R, np.eye(3), atol=1e-6), axis=(1, 2))
+        & (np.linalg.det(R) >= 0)
+        & np.all(np.isclose(T[:, 3], [0.0, 0.0, 0.0, 1.0]), axis=1)
+    )
 
 
 def check_pose(T: Array) -> None:

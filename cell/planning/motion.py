@@ -91,24 +91,26 @@ class MotionPlanner:
         ok, why = self.reach.path_clear(samples)
         if not ok:
             return None, why, q_a
-        q, worst, path = q_a, 0.0, [q_a]
-        for T_prev, T in zip(samples[:-1], samples[1:]):
-            try:
-                q_next = self.kin.ik_nearest(T, q)
-            except PlanningError as exc:
-                return None, str(exc), q_a
-            # the sample's duration as the robot times it: translation at the TCP speed, rotation at the
-            # joint speed limit, whichever takes longer (a pure reorientation is not a singularity)
-            turn = float(np.linalg.norm(Rotation.from_matrix(T_prev[:3, :3].T @ T[:3, :3]).as_rotvec()))
-            dt = max(
-                np.linalg.norm(T[:3, 3] - T_prev[:3, 3]) / self.tcp_speed_mm_s,
-                turn / self.joint_speed_limit,
-                1e-6,
-            )
-            worst = max(worst, float(np.abs(q_next - q).max() / dt))
-            q = q_next
-            path.append(q)
-        ok, why = self.reach.arm_clear(np.asarray(path))
+        try:  # each sample's solution nearest to the previous one's (ik_nearest in turn, batched)
+            path = np.concatenate([q_a[None], self.kin.ik_follow(samples[1:], q_a)])
+        except PlanningError as exc:
+            return None, str(exc), q_a
+        # each sample's duration as the robot times it: translation at the TCP speed, rotation at the joint
+        # speed limit, whichever takes longer (a pure reorientation is not a singularity)
+        turns = np.linalg.norm(
+            Rotation.from_matrix(np.swapaxes(samples[:-1, :3, :3], 1, 2) @ samples[1:, :3, :3]).as_rotvec(),
+            axis=1,
+        )
+        dt = np.maximum(
+            np.maximum(
+                np.linalg.norm(samples[1:, :3, 3] - samples[:-1, :3, 3], axis=1) / self.tcp_speed_mm_s,
+                turns / self.joint_speed_limit,
+            ),
+            1e-6,
+        )
+        worst = float(np.max(np.abs(np.diff(path, axis=0)).max(axis=1) / dt, initial=0.0))
+        q = path[-1]
+        ok, why = self.reach.arm_clear(path)
         if not ok:
             return None, why, q_a
         scale = min(1.0, 0.9 * self.joint_speed_limit / worst) if worst > 0 else 1.0

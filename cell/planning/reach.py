@@ -66,6 +66,20 @@ class ReachChecker:
     def check(self, T_W_C: Pose) -> tuple[bool, str]:
         """(ok, reason); reason says which check failed with the numbers."""
         T_B_T = self.target(T_W_C)
+        return self._body_check(T_B_T) or self.kin.reachable(T_B_T)
+
+    def check_many(self, T_W_C: list[Pose]) -> list[tuple[bool, str]]:
+        """:meth:`check` of each pose, the IK of those the body checks pass solved in one batch."""
+        T_B_T = [self.target(T) for T in T_W_C]
+        out = [self._body_check(T) for T in T_B_T]
+        todo = [i for i, r in enumerate(out) if r is None]
+        if todo:
+            for i, r in zip(todo, self.kin.reachable_each(np.stack([T_B_T[i] for i in todo])), strict=True):
+                out[i] = r
+        return [r for r in out if r is not None]
+
+    def _body_check(self, T_B_T: Pose) -> tuple[bool, str] | None:
+        """Why the flange target or the sensor body there fails (envelope, table, part); None if neither."""
         if not self.envelope.contains(T_B_T[:3, 3]):
             return False, f"flange {np.round(T_B_T[:3, 3], 1).tolist()} mm (base) outside the envelope"
         body_W = transform_points(self.T_W_B @ T_B_T, self.body_T)
@@ -75,7 +89,7 @@ class ReachChecker:
         d = self._near(body_W, self.clearance)
         if np.min(d) < self.clearance:
             return False, f"sensor body {np.min(d):.1f} mm from the part, needs {self.clearance:.0f} mm"
-        return self.kin.reachable(T_B_T)
+        return None
 
     def path_clear(self, T_B_T: NDArray[np.float64]) -> tuple[bool, str]:
         """Flange inside the envelope and sensor body clear of table and part at every flange pose of a

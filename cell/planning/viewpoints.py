@@ -180,33 +180,53 @@ class PatchPlanner:
         view = -box.axes[:, 2]
         unreachable: list[str] = []
 
-        def evaluate(direction: Array, label: str) -> tuple[Pose, float, NDArray[np.bool_], str] | None:
-            cands = []
-            for r in ROLLS[rolls_ok]:
-                T = sensor.pose(box.centre, direction, float(r), box.axes[:, 0])
-                if sensor.settings.aim == "bisector":
-                    T = sensor.bisector_pose(T, box.centre)
-                ok, why = self.reach.check(T)  # cheaper than the visibility test: filter first
-                if not ok:
-                    unreachable.append(why)
-                    continue
-                m = sensor.measurable(T, pts, nrm, s.occluder)
-                self.candidates.append(T)
-                cands.append((float(area[m].sum() / total), T, m, f"{label}, roll {np.rad2deg(r):.0f} deg"))
-            if not cands:
-                return None
-            frac, T, m, how = max(cands, key=lambda c: c[0])
-            return T, frac, m, how
+        rolls = ROLLS[rolls_ok]
 
-        best = evaluate(view, "on the box centre line")
+        def evaluate(
+            directions: list[tuple[Array, str]],
+        ) -> list[tuple[Pose, float, NDArray[np.bool_], str] | None]:
+            """The best roll of each direction, the reach of all of them checked in one batch (its IK)."""
+            poses = []
+            for direction, _ in directions:
+                for r in rolls:
+                    T = sensor.pose(box.centre, direction, float(r), box.axes[:, 0])
+                    poses.append(
+                        sensor.bisector_pose(T, box.centre) if sensor.settings.aim == "bisector" else T
+                    )
+            checks = iter(self.reach.check_many(poses))  # cheaper than the visibility test: filter first
+            out: list[tuple[Pose, float, NDArray[np.bool_], str] | None] = []
+            for k, (_, label) in enumerate(directions):
+                cands = []
+                for r, T in zip(rolls, poses[k * len(rolls) : (k + 1) * len(rolls)], strict=True):
+                    ok, why = next(checks)
+                    if not ok:
+                        unreachable.append(why)
+                        continue
+                    m = sensor.measurable(T, pts, nrm, s.occluder)
+                    self.candidates.append(T)
+                    cands.append(
+                        (float(area[m].sum() / total), T, m, f"{label}, roll {np.rad2deg(r):.0f} deg")
+                    )
+                if not cands:
+                    out.append(None)
+                    continue
+                frac, T, m, how = max(cands, key=lambda c: c[0])
+                out.append((T, frac, m, how))
+            return out
+
+        best = evaluate([(view, "on the box centre line")])[0]
         accept = sensor.settings.patch_accept
         if best is None or best[1] < accept:
             # re-pose: tilt the view about the box centre
             for tilt in TILTS:
+                directions = []
                 for az in TILT_AZIMUTHS:
                     axis = np.cos(az) * box.axes[:, 0] + np.sin(az) * box.axes[:, 1]
                     d = np.cos(tilt) * view + np.sin(tilt) * np.cross(axis, view)
-                    got = evaluate(d, f"tilted {np.rad2deg(tilt):.0f} deg (azimuth {np.rad2deg(az):.0f})")
+                    directions.append(
+                        (d, f"tilted {np.rad2deg(tilt):.0f} deg (azimuth {np.rad2deg(az):.0f})")
+                    )
+                for got in evaluate(directions):  # every azimuth of a tilt is tried before judging
                     if got is not None and (best is None or got[1] > best[1]):
                         best = got
                 if best is not None and best[1] >= accept:
