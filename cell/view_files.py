@@ -6,8 +6,10 @@ Format 2 (docs/storage.md), written by :func:`save_view_points` and :func:`save_
   :data:`STEP_MM` (0.1 um), each the difference to the point before (neighbouring pixels lie close, so the
   differences are small numbers that compress to about 2.4 bytes a point against 24 for float64); the points'
   ``quality`` (float32 contrast, exact), ``oblique`` (bool: lit beyond the incidence limit) and ``eval``
-  (bool: the evaluation subset, one point per 0.5 mm voxel). The 0.1 um step rounds a coordinate by at most
-  0.05 um (0.029 um RMS), what float32 itself would do at 500 mm and a thousandth of the sensor's noise.
+  (bool: the evaluation subset, one point per 0.5 mm voxel) and, in folders since issue 17, ``uncertainty``
+  (float32, mm: each point's decode and calibration uncertainty, cell.analysis.uncertainty). The 0.1 um step
+  rounds a coordinate by at most 0.05 um (0.029 um RMS), what float32 itself would do at 500 mm and a
+  thousandth of the sensor's noise.
 - ``raw/`` (optional, by the cell's ``retention:``): the pattern stack as the camera gave it, one lossless
   PNG a frame (8-bit cameras 8-bit files, 10/12-bit cameras 16-bit files), laid out as a capture folder
   (``raw/capture.yaml``, ``raw/frames/NN_<frame>.png``; docs/capture-folders.md), so ``cell scan --from
@@ -47,6 +49,7 @@ class ViewPoints:
     points_W: NDArray[np.float64]
     quality: NDArray[np.float32]
     oblique: NDArray[np.bool_]  # lit beyond sensor.max_projector_incidence_deg: not in the merged cloud
+    uncertainty: NDArray[np.float32] | None = None  # mm, decode and calibration (None: not stored)
 
 
 def save_view_points(
@@ -55,10 +58,11 @@ def save_view_points(
     quality: NDArray[np.floating[Any]],
     oblique: NDArray[np.bool_],
     eval_index: NDArray[np.integer[Any]],
+    uncertainty: NDArray[np.floating[Any]] | None = None,
 ) -> NDArray[np.float64]:
     """Write ``out_dir/points.npz`` (format 2) and return the points as they are stored (rounded to
     :data:`STEP_MM`), which is what every later step reads back. ``eval_index``: ascending indices of the
-    evaluation subset."""
+    evaluation subset; ``uncertainty``: each point's (mm), stored as float32 when given."""
     p = np.asarray(points_W, dtype=np.float64).reshape(-1, 3)
     q = np.round(p / STEP_MM)
     if len(q) and not np.abs(q).max() < _LIMIT:
@@ -67,16 +71,18 @@ def save_view_points(
     delta = np.diff(steps, axis=0, prepend=np.zeros((1, 3), np.int64)).astype(np.int32)
     mask = np.zeros(len(p), dtype=bool)
     mask[np.asarray(eval_index, dtype=np.int64)] = True
+    arrays: dict[str, NDArray[Any]] = {
+        "format": np.asarray(FORMAT, np.int32),
+        "step_mm": np.asarray(STEP_MM, np.float64),
+        "delta": delta,
+        "quality": np.asarray(quality, dtype=np.float32),
+        "oblique": np.asarray(oblique, dtype=bool),
+        "eval": mask,
+    }
+    if uncertainty is not None:
+        arrays["uncertainty"] = np.asarray(uncertainty, dtype=np.float32)
     with open(out_dir / POINTS_FILE, "wb") as f:
-        np.savez_compressed(
-            f,
-            format=np.int32(FORMAT),
-            step_mm=np.float64(STEP_MM),
-            delta=delta,
-            quality=np.asarray(quality, dtype=np.float32),
-            oblique=np.asarray(oblique, dtype=bool),
-            eval=mask,
-        )
+        np.savez_compressed(f, **arrays)  # type: ignore[arg-type]  # mypy maps **arrays onto allow_pickle
     return _from_steps(delta, STEP_MM)
 
 
@@ -90,7 +96,8 @@ def load_view_points(view_dir: Path) -> ViewPoints:
     path = view_dir / POINTS_FILE
     if path.is_file():
         with np.load(path) as z:
-            return ViewPoints(_from_steps(z["delta"], float(z["step_mm"])), z["quality"], z["oblique"])
+            u = z["uncertainty"] if "uncertainty" in z.files else None
+            return ViewPoints(_from_steps(z["delta"], float(z["step_mm"])), z["quality"], z["oblique"], u)
     points = np.load(view_dir / "points_W.npy")
     oblique_file = view_dir / "oblique.npy"
     oblique = np.load(oblique_file) if oblique_file.is_file() else np.zeros(len(points), dtype=bool)
@@ -104,6 +111,15 @@ def load_eval_points(view_dir: Path) -> NDArray[np.float64]:
         with np.load(path) as z:
             return _from_steps(z["delta"], float(z["step_mm"]))[z["eval"]]
     return np.load(view_dir / "points_eval_W.npy")
+
+
+def load_eval_uncertainty(view_dir: Path) -> NDArray[np.float32] | None:
+    """The evaluation subset's uncertainty (mm), or None when the view stored none."""
+    path = view_dir / POINTS_FILE
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        return z["uncertainty"][z["eval"]] if "uncertainty" in z.files else None
 
 
 # --------------------------------------------------------------------------------------------- raw images

@@ -54,6 +54,11 @@ class ViewRefinement:
     rms_after_mm: float
     overlaps: list[int]
     unregistered: list[int] = field(default_factory=list)
+    # what the last solve leaves unknown about the corrections: (6n, 6n) covariance of the linearised
+    # corrections x_i = (omega_i * lever_mm, tau_i) about ``centre_mm`` (None when nothing was solved)
+    covariance: Array | None = None
+    centre_mm: Array | None = None
+    lever_mm: float = 1.0
 
     def correction_mm(self, points: list[Array]) -> list[float]:
         """The largest motion of each view's points under its correction (mm)."""
@@ -253,4 +258,5 @@ def refine_views(
     # the gaps of the last matching moved by the last step (linearised): what the corrections leave
     after = float(np.sqrt(np.mean(np.concatenate(last_gaps) ** 2))) if last_gaps else 0.0
     unregistered = [i for i in range(n_views) if held[i]] if radii_mm else list(range(n_views))
-    return ViewRefinement(T, rms[0], after, overlaps, unregistered)
+    covariance = np.asarray(np.linalg.inv(H), dtype=np.float64) if radii_mm else None
+    return ViewRefinement(T, rms[0], after, overlaps, unregistered, covariance, centre, lever)

@@ -8,6 +8,7 @@ from cell.calibration.active import (
     active_sensor_config,
     active_triangulator,
     believed_flange,
+    calibration_residual_px,
     calibration_source,
     view_pose_prior,
 )
@@ -19,6 +20,7 @@ __all__ = [
     "active_sensor_config",
     "active_triangulator",
     "believed_flange",
+    "calibration_residual_px",
     "calibration_source",
     "view_pose_prior",
 ]

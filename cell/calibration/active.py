@@ -16,6 +16,7 @@ from cell.config import CellConfig, Distortion, PoseConfig, SensorConfig
 from cell.contracts import Robot
 from cell.errors import ConfigError
 from cell.geometry import Pose
+from cell.sensing.error_model import one_pixel_error
 from cell.sensing.triangulate import PinholeTriangulator, Triangulator
 
 NO_CALIBRATION = "config geometry (no calibration)"
@@ -203,3 +204,23 @@ def calibration_source(cfg: CellConfig) -> str:
     if cal.hand_eye is None:
         parts.append("hand_eye: config sensor.T_T_C")
     return "; ".join(parts)
+
+
+def calibration_residual_px(cfg: CellConfig) -> tuple[float, str]:
+    """The active calibration's own residual as a correspondence error (camera px, 1 sigma) and where it comes
+    from, for the per-point uncertainty (cell.analysis.uncertainty): the per-pixel model's median eq 2.7
+    residual (mm) over the one-pixel height error of eq 2.5 at the reference plane, else the projector
+    calibration's stereo reprojection rms, else 0 (the config's nominal geometry: nothing measured it)."""
+    cal = cfg.calibration
+    if cal.sensor is not None:
+        residual = load_metadata(cal.sensor).get("quality", {}).get("median_residual_mm")
+        if residual is not None:
+            s = cfg.sensor
+            baseline = float(np.linalg.norm(s.projector.T_C_P.matrix()[:2, 3]))
+            per_px = float(one_pixel_error(s.standoff_mm / s.camera.fx_px, s.standoff_mm, baseline, 0.0))
+            return float(residual) / per_px, f"per-pixel model {Path(cal.sensor).name}: eq 2.7 residual"
+    if cal.projector is not None:
+        rms = load_metadata(cal.projector).get("figures", {}).get("stereo_rms_px")
+        if rms is not None:
+            return float(rms), f"projector calibration {Path(cal.projector).name}: stereo reprojection rms"
+    return 0.0, NO_CALIBRATION
