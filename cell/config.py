@@ -480,6 +480,19 @@ class AlignmentConfig(Strict):
         return self
 
 
+class GuardBandConfig(Strict):
+    """The guarded decision rule's guard band (ISO 14253-1): U = k u of every point (u: its standard
+    uncertainty, docs/uncertainty.md); a point conforms within the tolerance shrunk by U, does not beyond the
+    tolerance widened by U, and is ambiguous in between."""
+
+    k: float = Field(2.0, ge=1.0, le=4.0, description="coverage factor of the expanded uncertainty U = k u")
+    ambiguous: Literal["fail", "pass", "incomplete"] = Field(
+        "incomplete",
+        description="what ambiguous points make of the verdict: fail (not proven within tolerance), pass "
+        "(not proven out of it) or incomplete (measure again)",
+    )
+
+
 class Recipe(Strict):
     """An inspection recipe: the nominal part and its tolerance; everything else has defaults."""
 
@@ -510,6 +523,12 @@ class Recipe(Strict):
         "region_verdicts); any failing region fails the part, any region measured below min_coverage makes "
         "it incomplete",
     )
+    decision_rule: Literal["simple", "guarded"] = Field(
+        "simple",
+        description="simple: each deviation against its band as if exact; guarded: the band shrunk and "
+        "widened by each point's expanded uncertainty (ISO 14253-1, `guard_band`)",
+    )
+    guard_band: GuardBandConfig = GuardBandConfig()
 
     @field_validator("regions")
     @classmethod

@@ -12,7 +12,8 @@ commands refuse such a folder before any work (:func:`cell.storage.require_writa
 
 PLY: binary little-endian, vertex ``x y z`` double (mm, part frame), ``deviation`` float (mm, + outside the
 material), then optional fields (``isolated`` uchar: an out-of-tolerance point set aside as an isolated
-outlier, not judged; the glass normals ``nx ny nz`` double). CloudCompare and MeshLab show
+outlier, not judged; ``uncertainty`` float: the point's standard uncertainty u, mm, cell.analysis.uncertainty;
+the glass normals ``nx ny nz`` double). CloudCompare and MeshLab show
 every field as a scalar field.
 """
 
@@ -86,6 +87,27 @@ def read_ply_points(path: Path) -> NDArray[np.float64]:
     if len(rec) != n:
         raise ConfigError(f"the PLY file is truncated ({len(rec)} of {n} points)", path=str(path))
     return np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+
+
+def read_ply_field(path: Path, name: str) -> NDArray | None:
+    """The per-point field ``name`` of a PLY written by :func:`write_ply` as stored (e.g. ``uncertainty``,
+    float32 mm), or None when the file has no such field."""
+    with open(path, "rb") as fh:
+        props, n = [], 0
+        while (line := fh.readline()) != b"end_header\n":
+            if not line:
+                raise ConfigError("not a PLY file written by the cell (no end_header)", path=str(path))
+            words = line.decode("ascii").split()
+            if words[:2] == ["element", "vertex"]:
+                n = int(words[2])
+            elif words[:1] == ["property"]:
+                props.append((words[2], {"double": "<f8", "float": "<f4", "uchar": "u1"}[words[1]]))
+        if name not in [p for p, _ in props]:
+            return None
+        rec = np.fromfile(fh, dtype=np.dtype(props), count=n)
+    if len(rec) != n:
+        raise ConfigError(f"the PLY file is truncated ({len(rec)} of {n} points)", path=str(path))
+    return np.asarray(rec[name])
 
 
 def write_csv(path: Path, points_mm: NDArray, deviation_mm: NDArray) -> None:
