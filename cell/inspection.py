@@ -28,13 +28,15 @@ from numpy.typing import NDArray
 
 from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.crop import PartCrop
+from cell.analysis.decision import DecisionRule
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.judge import judge
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
 from cell.analysis.merge import cut_unregistered, merge_views, voxel_subsample_index
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import write_report
-from cell.analysis.report_files import read_ply_points, write_file_set, write_ply
+from cell.analysis.report_files import read_ply_field, read_ply_points, write_file_set, write_ply
+from cell.analysis.uncertainty import TARGET_SHARE_OF_BAND, registered_cloud_uncertainty, view_uncertainty
 from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
 from cell.calibration import (
     active_gamma_lut,
@@ -42,6 +44,7 @@ from cell.calibration import (
     active_sensor_config,
     active_triangulator,
     believed_flange,
+    calibration_residual_px,
     calibration_source,
     view_pose_prior,
 )
@@ -71,7 +74,13 @@ from cell.sensing.patterns import PatternSet, measuring_patterns
 from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
 from cell.sensing.triangulate import normalized_coords
-from cell.view_files import load_eval_points, load_view_points, save_raw_stack, save_view_points
+from cell.view_files import (
+    load_eval_points,
+    load_eval_uncertainty,
+    load_view_points,
+    save_raw_stack,
+    save_view_points,
+)
 
 # which decode reasons become which defect map of chapter 3 (IS: shadow, IR: glare)
 DEFECT_REASONS = {"shadow": Reason.DARK, "glare": Reason.SATURATED, "low_contrast": Reason.LOW_CONTRAST}
@@ -140,6 +149,11 @@ class LambertianInspection:
         # the projector's centre in {C} (mm): the incidence filter needs it only to a degree or so
         self.projector_C = self.sensor.projector.T_C_P.matrix()[:3, 3]
         self.geometry_source = calibration_source(cfg)
+        # the calibration's residual as a correspondence error (px), for the points' uncertainty
+        self.calibration_px, self.calibration_residual = calibration_residual_px(cfg)
+        tol, guard = recipe.tolerance, recipe.guard_band
+        self.decision = DecisionRule(recipe.decision_rule, guard.k, guard.ambiguous)
+        self.u_target_mm = TARGET_SHARE_OF_BAND * (tol.upper - tol.lower)  # the feedback loop's target for U
         self._plan: Plan | None = None
         self._aligner: Aligner | None = None
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
@@ -233,12 +247,17 @@ class LambertianInspection:
         points_W = transform_points(T_W_C, cloud.points_C[keep])
         quality = cloud.contrast[keep].astype(np.float32)
         oblique_kept = oblique[keep]
+        T_C_P, fx = self.sensor.projector.T_C_P.matrix(), self.sensor.camera.fx_px
+        u = view_uncertainty(
+            stack, self.patterns, decoded, cloud, T_C_P, fx, self.calibration_px, cam.bit_depth
+        )
         deviation = signed_distance(self.nominal, points_W).deviation_mm
         crop = PartCrop(0.0, self.settings.table_margin_mm, self.settings.crop_mm).split(points_W, deviation)
         part = crop.part
         points_W, quality = points_W[part], quality[part]
         sub = voxel_subsample_index(points_W, self.settings.eval_voxel_mm)
-        save_view_points(out_dir, points_W, quality, oblique_kept[part], sub)
+        u_points = None if u is None else u.u_mm[keep][part]
+        save_view_points(out_dir, points_W, quality, oblique_kept[part], sub, u_points)
         if self.cfg.retention.writes_raw_images:
             proj = self.cfg.sensor.projector
             save_raw_stack(out_dir, stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
@@ -256,6 +275,7 @@ class LambertianInspection:
             "oblique_filtered": int(oblique_kept[part].sum()),
             "excluded": crop.counts(),
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
+            "uncertainty": None if u is None else u.to_json(),
         }
         write_json_atomic(out_dir / "view.json", summary)
         return summary
@@ -325,6 +345,7 @@ class LambertianInspection:
                 points,
                 _load_regions(d / "defects.npz"),
                 deviation_mm=signed_distance(self.nominal, points).deviation_mm,
+                uncertainty_mm=load_eval_uncertainty(d),
             )
         return out
 
@@ -349,7 +370,7 @@ class LambertianInspection:
         T_W_align, how = self._evaluation_alignment(run)
         measured = self._measured(run, T_W_align)
         fb = FeedbackPlanner(self.plan_model)
-        ev = evaluate(fb, list(measured.values()), first_new=1, ia_before=np.zeros((0, 3)))
+        ev = evaluate(fb, list(measured.values()), 1, np.zeros((0, 3)), self.u_target_mm / self.decision.k)
         return FeedbackRound(fb, ev, measured, how)
 
     def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:
@@ -380,7 +401,7 @@ class LambertianInspection:
         k = evaluation.iteration
         latest = [m for i, m in loop.measured.items() if (views[i].iteration or 0) == k]
         start = len(fb.log)
-        proposed = fb.propose(k, latest, ev.covered, ev.ia)
+        proposed = fb.propose(k, latest, ev.covered, ev.ia, ev.iu)
         new = select_new(fb, proposed, [v.T_W_C for v in views if v.T_W_C is not None])
         for entry in fb.log[start:]:
             run.log(
@@ -406,12 +427,14 @@ class LambertianInspection:
         not allow leaves the kinematic cloud and makes the verdict incomplete (``alignment.error``)."""
         T_P_W = invert(self.T_W_P)
         done, refined = self.refinement(run)
-        points, weights = [], []
+        points, weights, u_decode = [], [], []
         for i, T_fix in zip(done, refined.T, strict=True):
             view = load_view_points(run.view_dir(i))
             measured = ~view.oblique  # the sensor's points, without those lit too obliquely
             points.append(transform_points(T_P_W @ T_fix, view.points_W[measured]))
             weights.append(np.square(view.quality[measured]).astype(np.float64) + 1e-6)
+            u = view.uncertainty  # None in run folders from before issue 17
+            u_decode.append(np.full(len(points[-1]), np.nan) if u is None else u[measured].astype(np.float64))
         if not points or not sum(len(p) for p in points):
             return {"n_points": 0, "views": len(points)}
         eval_points = [load_eval_points(run.view_dir(i)) for i in done]
@@ -422,7 +445,7 @@ class LambertianInspection:
         }
         n_points_views = int(sum(len(p) for p in points))
         refinement["unregistered_points_dropped"] = cut_unregistered(
-            points, weights, refined.unregistered, self.recipe.plan.coverage_radius_mm
+            points, weights, refined.unregistered, self.recipe.plan.coverage_radius_mm, u_decode
         )
         merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
         method = self.recipe.alignment.method
@@ -432,7 +455,24 @@ class LambertianInspection:
             alignment = found.to_json()
         except AlignmentError as exc:
             points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
-        write_file_set(run.results_dir, {"cloud.ply": lambda path: write_ply(path, points_P)})
+        prior = self._refinement[2] if self._refinement else {}
+        sigma_mm, sigma_deg = (
+            prior.get("prior_sigma_mm", [0.0] * len(points)),
+            prior.get("prior_sigma_deg", [0.0] * len(points)),
+        )
+        unc = registered_cloud_uncertainty(
+            merged,
+            weights,
+            u_decode,
+            refined,
+            sigma_mm,
+            np.deg2rad(sigma_deg),
+            self.nominal,
+            self.T_W_P,
+            alignment,
+        )
+        u_ply = {"uncertainty": unc.u_mm.astype(np.float32)}
+        write_file_set(run.results_dir, {"cloud.ply": lambda path: write_ply(path, points_P, fields=u_ply)})
         return {
             "n_points": int(len(points_P)),
             "n_points_views": n_points_views,
@@ -442,6 +482,7 @@ class LambertianInspection:
             f"other; weighted voxel merge; alignment: {method}",
             "refinement": refinement,
             "alignment": alignment,
+            "uncertainty": {**unc.budget(), "calibration": self.calibration_residual},
         }
 
     def inspectable_coverage(self, run: RunFolder, T_P_cloud: NDArray[np.float64] | None = None) -> Coverage:
@@ -472,6 +513,7 @@ class LambertianInspection:
         deviations.csv when ``csv``. The report replaces the cloud.ply by one with the deviation field."""
         legacy = run.results_dir / "points_P.npy"  # a run registered before the cloud was stored once
         pts_P = np.load(legacy) if legacy.is_file() else read_ply_points(run.results_dir / "cloud.ply")
+        u = None if legacy.is_file() else read_ply_field(run.results_dir / "cloud.ply", "uncertainty")
         nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
         tol = self.recipe.tolerance
         checkpoint = Checkpoint.from_json(run.load_checkpoint())
@@ -498,6 +540,12 @@ class LambertianInspection:
                 f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
                 f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
             )
+        decision = self.decision
+        if u is None or not np.isfinite(u).any():
+            u = None
+            if decision.rule == "guarded":  # a run registered before points carried their uncertainty
+                reasons.append("the guarded decision rule needs the points' uncertainty; this run has none")
+                decision = DecisionRule()
         plan = plan_feedback(self.plan_model, self.recipe)  # what no reachable viewpoint sees, for the reader
         inp = judge(
             NominalMesh.from_trimesh(nominal_P),
@@ -513,6 +561,9 @@ class LambertianInspection:
             incomplete_reasons=reasons,
             alignment=alignment,
             calibration=calibration,
+            uncertainty_mm=u,
+            decision=decision,
+            uncertainty=registration.get("uncertainty"),
             metadata={
                 "part": self.part_name,
                 "cad": Path(self.recipe.part.cad).name,
