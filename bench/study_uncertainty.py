@@ -12,7 +12,7 @@ signed distance to it is their measurement error, alignment included):
 * the verdicts of both rules (the stored cloud judged again under each) against the truth (the part is out of
   tolerance when its dent is deeper than the limit): false accepts and false rejects.
 
-    .venv/bin/python bench/study_uncertainty.py --out DIR [--seeds 1-30] [--tolerance 0.1] [--analyse]
+    .venv/bin/python bench/study_uncertainty.py --out DIR [--seeds 1-30] [--tolerance 0.3] [--analyse]
 
 Each seed's calibration and run are kept in DIR and reused, so the study can be stopped and resumed; with
 --analyse only the analysis runs. Prints a JSON summary and writes DIR/study.json (docs/uncertainty.md).
@@ -39,7 +39,7 @@ sys.path.insert(0, str(REPO))
 CELL = REPO / "recipes" / "cells" / "sim_binned_honest.yaml"
 DEPTH_FACTORS = (0.7, 0.85, 0.95, 1.05, 1.15, 1.3)  # dent depth over the limit, in turn by seed
 DENT_CENTRE, DENT_RADIUS = (25.0, 15.0), 12.0
-# 3-2-1 datums on the box (part frame, mm): A on the top (clear of the dent), B on the -y wall, C on the -x wall
+# 3-2-1 datums on the box (part frame, mm): A on the top (clear of the dent), B on the -y wall, C on -x
 DATUMS = [
     {"name": "A1", "point_mm": [-40.0, -30.0, 40.0]},
     {"name": "A2", "point_mm": [-40.0, 30.0, 40.0]},
@@ -79,11 +79,18 @@ def recipe_of(seed: int, folder: Path, tolerance: float) -> tuple[Path, float]:
     depth = DEPTH_FACTORS[(seed - 1) % len(DEPTH_FACTORS)] * tolerance
     nominal = trimesh.creation.box(extents=(120.0, 90.0, 40.0))
     nominal.apply_translation((0.0, 0.0, 20.0))
-    nominal.export(folder / "box.stl")
+    # finer triangles: the datum alignment finds a datum's own surface among the faces near it (a 12-face
+    # box has no face centre within reach of a datum: cell.analysis.alignment._own_surface comes back empty)
+    v, f = trimesh.remesh.subdivide_to_size(nominal.vertices, nominal.faces, max_edge=5.0)
+    trimesh.Trimesh(v, f, process=True).export(folder / "box.stl")
     dented_box(depth).export(folder / f"box_dent_seed{seed}.stl")
     recipe = {
         "name": f"box-seed{seed}",
-        "part": {"cad": "box.stl", "actual": f"box_dent_seed{seed}.stl", "T_W_P": {"xyz_mm": [0.0, -60.0, 0.0]}},
+        "part": {
+            "cad": "box.stl",
+            "actual": f"box_dent_seed{seed}.stl",
+            "T_W_P": {"xyz_mm": [0.0, -60.0, 0.0]},
+        },
         "tolerance": {"lower": -tolerance, "upper": tolerance},
         "min_coverage": 0.6,
         "plan": {"resolution_mm": 1.5, "point_density_per_mm2": 0.2, "view_budget": 10, "max_iterations": 1},
@@ -99,7 +106,9 @@ def recipe_of(seed: int, folder: Path, tolerance: float) -> tuple[Path, float]:
 def cell_cmd(*args: str) -> None:
     """Run ``cell ARGS`` (this checkout), niced; exit codes 0/4/5 (pass, fail, incomplete) are verdicts."""
     cmd = ["nice", "-n", "10", sys.executable, "-m", "cell", *args]
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+    proc = subprocess.run(
+        cmd, cwd=REPO, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)}
+    )
     if proc.returncode not in (0, 4, 5):
         raise SystemExit(f"{' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
 
@@ -212,7 +221,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--seeds", default="1-30", help="a range a-b or a comma list")
-    ap.add_argument("--tolerance", type=float, default=0.1, help="symmetric tolerance, mm")
+    ap.add_argument("--tolerance", type=float, default=0.3, help="symmetric tolerance, mm")
     ap.add_argument("--analyse", action="store_true", help="only analyse the runs already made")
     args = ap.parse_args()
     if "-" in args.seeds:

@@ -455,21 +455,17 @@ class LambertianInspection:
             alignment = found.to_json()
         except AlignmentError as exc:
             points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
-        prior = self._refinement[2] if self._refinement else {}
-        sigma_mm, sigma_deg = (
-            prior.get("prior_sigma_mm", [0.0] * len(points)),
-            prior.get("prior_sigma_deg", [0.0] * len(points)),
-        )
+        prior = self._refinement[2] if self._refinement else {}  # the pose prior the refinement ran under
         unc = registered_cloud_uncertainty(
             merged,
             weights,
             u_decode,
             refined,
-            sigma_mm,
-            np.deg2rad(sigma_deg),
+            prior,
             self.nominal,
             self.T_W_P,
             alignment,
+            self.aligner.datums,
         )
         u_ply = {"uncertainty": unc.u_mm.astype(np.float32)}
         write_file_set(run.results_dir, {"cloud.ply": lambda path: write_ply(path, points_P, fields=u_ply)})

@@ -13,15 +13,17 @@ Every number comes from what the cell itself measured or calibrated, never from 
    reprojection rms of `cell calibrate projector`, or the per-pixel model's eq 2.7 residual) through the same
    one-pixel model; zero on the config's nominal geometry, which a real cell must not trust anyway
    (``requires_calibration``);
-3. **registration** (per view, :func:`pose_uncertainty`): the multi-view refinement's posterior covariance of
-   each view's pose (relative to the other views when the recipe's alignment fixes the whole cloud, absolute
-   under kinematic alignment) along each point's normal;
-4. **merge** (:func:`merged_uncertainty`): the weighted voxel mean of the views; points of one view in a voxel
-   share edges and pose, so their errors add linearly; the views' add in quadrature (they are independent);
-5. **alignment**: the recipe alignment's own 1-sigma displacement (:mod:`cell.analysis.alignment`), common to
-   every point, added last.
+3. **pose** (:func:`pose_uncertainty_of_points`): the views' pose errors as the multi-view refinement
+   leaves them (its posterior covariance; a view it could not register keeps its prior) along each point's
+   normal, less what the recipe's alignment takes out: a datum alignment the rigid motion its datums see
+   (:func:`datum_alignment_map`), kinematic alignment nothing (the chain's whole error stays);
+4. **merge** (:func:`merged_uncertainty`, :func:`view_shares`): the weighted voxel mean of the views; points
+   of one view in a voxel share edges and pose, so their decode errors add linearly, the views' in
+   quadrature; the pose errors through the views' shares of each point;
+5. **alignment**: the recipe alignment's own 1-sigma displacement from the noise of what it measured
+   (:mod:`cell.analysis.alignment`), common to every point, added last.
 
-u = sqrt(merged(decode^2 + calibration^2 + registration^2) + alignment^2); the decision rules use U = k u
+u = sqrt(merged decode^2 + pose^2 + alignment^2); the decision rules use U = k u
 (:mod:`cell.analysis.decision`). docs/uncertainty.md compares u with the simulator's truth.
 """
 
@@ -33,7 +35,9 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
+from cell.analysis.alignment import Datum
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.merge import MergedCloud
 from cell.analysis.view_refinement import ViewRefinement
@@ -113,50 +117,75 @@ def view_uncertainty(
     return ViewUncertainty(u, noise, q, float(calibration_px), g_med)
 
 
-def pose_uncertainty(
-    points_mm: Array,
-    normals: Array,
-    covariance: Array,
-    centre_mm: Array,
-    lever_mm: float,
-) -> Array:
-    """1-sigma displacement (mm) along each point's unit normal of a rigid correction x = (omega * lever,
-    tau) about ``centre_mm`` with the 6x6 ``covariance`` (of
-    :class:`cell.analysis.view_refinement.ViewRefinement`)."""
-    p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
-    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    J = np.column_stack([np.cross(p - np.asarray(centre_mm), n) / lever_mm, n])
-    return np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", J, covariance, J), 0.0))
-
-
-def view_pose_covariances(
+def posterior_covariance(
     covariance: Array | None,
     n_views: int,
     prior_sigma_mm: Sequence[float],
     prior_sigma_rad: Sequence[float],
     lever_mm: float,
     held: Sequence[int],
-) -> tuple[list[Array], Array]:
-    """The views' 6x6 pose covariances after the refinement, split into what is each view's own (its
-    block of the posterior relative to the views' mean: independent from view to view) and what they share
-    (the covariance of the views' mean pose: one error of the whole cloud, which averaging views does not
-    reduce and a measured alignment removes). A view the refinement held at its kinematic pose (``held``)
-    keeps its prior. No refinement (one view): the prior, all of it the view's own."""
+) -> Array:
+    """The (6n, 6n) covariance of the views' pose errors after the refinement (its posterior), with each
+    view the refinement held at its kinematic pose (``held``: the solve pinned it) given its prior back, as
+    every view when there was no refinement (one view). Parameters as the refinement's: x = (omega * lever,
+    tau) per view."""
     prior = [
         np.diag([(r * lever_mm) ** 2] * 3 + [t**2] * 3)
         for t, r in zip(prior_sigma_mm, prior_sigma_rad, strict=True)
     ]
-    if covariance is None:
-        return prior, np.zeros((6, 6))
-    C = np.array(covariance, dtype=np.float64)
-    for v in held:  # the solve pinned it (a huge weight): its pose is what the prior says
+    C = np.zeros((6 * n_views, 6 * n_views)) if covariance is None else np.array(covariance, dtype=np.float64)
+    for v in range(n_views) if covariance is None else held:
         C[6 * v : 6 * v + 6, :] = 0.0
         C[:, 6 * v : 6 * v + 6] = 0.0
         C[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] = prior[v]
-    mean = np.kron(np.full((1, n_views), 1.0 / n_views), np.eye(6))
-    D = np.kron(np.eye(n_views), np.eye(6)) - np.kron(np.ones((n_views, 1)), mean)
-    own = D @ C @ D.T
-    return [own[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] for v in range(n_views)], mean @ C @ mean.T
+    return C
+
+
+def _rows(points: Array, normals: Array, centre_mm: Array, lever_mm: float) -> Array:
+    """(N, 6) rows mapping a correction x = (omega * lever, tau) to each point's motion along its normal."""
+    p, n = np.asarray(points, np.float64).reshape(-1, 3), np.asarray(normals, np.float64).reshape(-1, 3)
+    return np.column_stack([np.cross(p - np.asarray(centre_mm), n) / lever_mm, n])
+
+
+def view_shares(merged: MergedCloud, weights: Sequence[Array]) -> Array:
+    """(M, n) each view's share of the weight of every merged point (rows sum to 1)."""
+    n = len(weights)
+    w = np.concatenate([np.asarray(x, dtype=np.float64).ravel() for x in weights])
+    view = np.repeat(np.arange(n), [len(x) for x in weights])
+    ok = merged.source >= 0
+    flat = np.bincount(merged.source[ok] * n + view[ok], weights=w[ok], minlength=len(merged.points_mm) * n)
+    return flat.reshape(-1, n) / merged.weight[:, None]
+
+
+def datum_alignment_map(
+    datum_points: Array,
+    datum_normals: Array,
+    datum_shares: Array,
+    centre_mm: Array,
+    lever_mm: float,
+) -> Array:
+    """B (6, 6n): the rigid correction a datum alignment (3-2-1 / RPS) makes of the views' pose errors x,
+    x_align = B x. Each datum is measured as the mean offset along its normal of the points near it, which
+    the views measured in the shares ``datum_shares`` (D, n); the alignment is the least-squares rigid motion
+    that zeroes those offsets. Datums in the refinement's frame, unit normals."""
+    A = _rows(datum_points, datum_normals, centre_mm, lever_mm)  # (D, 6)
+    shares = np.asarray(datum_shares, dtype=np.float64)
+    M = (shares[:, :, None] * A[:, None, :]).reshape(len(A), -1)  # (D, 6n)
+    return np.linalg.pinv(A) @ M
+
+
+def pose_uncertainty_of_points(
+    shares: Array, rows: Array, covariance: Array, alignment_map: Array | None
+) -> NDArray[np.float64]:
+    """1-sigma error (mm) along each merged point's normal from the views' pose errors (``covariance``,
+    :func:`posterior_covariance`): the point is the ``shares``-weighted mean of its views' points, each moved
+    by its view's error, less what the alignment takes out (``alignment_map`` B: x_align = B x; None:
+    kinematic alignment, nothing). ``rows`` (M, 6): :func:`_rows` of the merged points."""
+    n = shares.shape[1]
+    L = (shares[:, :, None] * rows[:, None, :]).reshape(len(rows), 6 * n)
+    if alignment_map is not None:
+        L -= rows @ alignment_map
+    return np.sqrt(np.maximum(np.einsum("ij,ij->i", L @ covariance, L), 0.0))
 
 
 def merged_uncertainty(
@@ -197,22 +226,15 @@ def stats(x: NDArray[np.floating]) -> dict[str, float | None]:
     }
 
 
-def budget(components: dict[str, NDArray[np.floating]]) -> dict[str, dict[str, float | None]]:
-    """The report's uncertainty budget: statistics of each component (mm) over the points."""
-    return {name: stats(values) for name, values in components.items()}
-
-
 @dataclass(frozen=True)
 class CloudUncertainty:
-    """u (mm) of every merged point and its parts: ``decode`` (image noise, quantisation, calibration) and
-    ``registration`` (the views' own pose errors), each merged over the views as u is; ``common`` (the
-    views' shared pose error, under kinematic alignment) and ``alignment`` (the recipe alignment's), which
-    every view shares."""
+    """u (mm) of every merged point and its parts: ``decode`` (image noise, quantisation, calibration; merged
+    over the views as u is), ``pose`` (the views' pose errors as the alignment leaves them) and
+    ``alignment`` (the alignment's own, from the noise of what it measured; common to all points)."""
 
     u_mm: NDArray[np.float64]
     decode_mm: NDArray[np.float64]
-    registration_mm: NDArray[np.float64]
-    common_mm: NDArray[np.float64]
+    pose_mm: NDArray[np.float64]
     alignment_mm: float
 
     def budget(self) -> dict[str, Any]:
@@ -220,53 +242,9 @@ class CloudUncertainty:
         return {
             "u_mm": stats(self.u_mm),
             "decode_mm": stats(self.decode_mm),
-            "registration_mm": stats(self.registration_mm),
-            "common_pose_mm": stats(self.common_mm),
+            "pose_mm": stats(self.pose_mm),
             "alignment_mm": round(self.alignment_mm, 5),
         }
-
-
-def cloud_uncertainty(
-    merged: MergedCloud,
-    weights: Sequence[Array],
-    decode_mm: Sequence[Array],
-    pose_covariances: Sequence[Array],
-    centre_mm: Array,
-    lever_mm: float,
-    points_W: Array,
-    normals_W: Array,
-    alignment_mm: float = 0.0,
-    common_covariance: Array | None = None,
-) -> CloudUncertainty:
-    """u of every merged point: each input point's decode uncertainty (``decode_mm``, one array per view, as
-    given to the merge) and its view's own pose uncertainty (``pose_covariances``,
-    :func:`view_pose_covariances`, evaluated at its merged point: ``points_W`` and unit ``normals_W`` (M, 3)
-    in the refinement's frame {W}), merged (:func:`merged_uncertainty`); then what all views share: the
-    pose error of the whole cloud (``common_covariance``; None when an alignment removed it) and the
-    alignment's ``alignment_mm``."""
-    src = merged.source
-    reg: list[Array] = []
-    start = 0
-    for cov, u in zip(pose_covariances, decode_mm, strict=True):
-        s = src[start : start + len(u)]
-        start += len(u)
-        r = np.full(len(u), np.nan)
-        ok = s >= 0
-        r[ok] = pose_uncertainty(points_W[s[ok]], normals_W[s[ok]], cov, centre_mm, lever_mm)
-        reg.append(r)
-    total = [combine(d, r) for d, r in zip(decode_mm, reg, strict=True)]
-    common = (
-        np.zeros(len(points_W))
-        if common_covariance is None
-        else pose_uncertainty(points_W, normals_W, common_covariance, centre_mm, lever_mm)
-    )
-    return CloudUncertainty(
-        u_mm=combine(merged_uncertainty(merged, weights, total), common, alignment_mm),
-        decode_mm=merged_uncertainty(merged, weights, decode_mm),
-        registration_mm=merged_uncertainty(merged, weights, reg),
-        common_mm=common,
-        alignment_mm=float(alignment_mm),
-    )
 
 
 def registered_cloud_uncertainty(
@@ -274,40 +252,50 @@ def registered_cloud_uncertainty(
     weights: Sequence[Array],
     decode_mm: Sequence[Array],
     refinement: ViewRefinement,
-    prior_sigma_mm: Sequence[float],
-    prior_sigma_rad: Sequence[float],
+    prior: dict[str, Any],
     nominal_W: NominalMesh,
     T_W_cloud: Array,
     alignment: dict[str, Any],
+    datums: Sequence[Datum] = (),
 ) -> CloudUncertainty:
-    """:func:`cloud_uncertainty` of an inspection's merged cloud (points in the frame ``T_W_cloud`` maps to
-    {W}) from its views' refinement (:class:`cell.analysis.view_refinement.ViewRefinement`, with the prior it
-    ran under) and the recipe alignment's record (``to_json`` of :class:`cell.analysis.alignment.Alignment`):
-    an alignment that measured the part fixes the cloud as a whole, so only the views' poses relative to each
-    other count, plus its own uncertainty; kinematic alignment leaves the chain's common error in."""
+    """u of every point of an inspection's merged cloud (in the frame ``T_W_cloud`` maps to {W}): each view's
+    decode uncertainty merged (:func:`merged_uncertainty`); the views' pose errors after the refinement
+    (:class:`cell.analysis.view_refinement.ViewRefinement`) under the ``prior`` it ran under (its record:
+    ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal, less what the recipe's
+    alignment removes (its record: ``to_json`` of :class:`cell.analysis.alignment.Alignment`): a datum
+    alignment (the ``datums`` resolved on the nominal, in the cloud's frame) the rigid motion its datums see
+    (:func:`datum_alignment_map`), any other measured alignment the views' mean motion, kinematic alignment
+    nothing; plus the alignment's own uncertainty."""
     n = len(decode_mm)
-    measured = alignment.get("method", "kinematic") != "kinematic" and "error" not in alignment
-    covs, shared = view_pose_covariances(
-        refinement.covariance,
-        n,
-        prior_sigma_mm,
-        prior_sigma_rad,
-        refinement.lever_mm,
-        refinement.unregistered,
-    )
-    points_W = transform_points(np.asarray(T_W_cloud, dtype=np.float64), merged.points_mm)
+    T = np.asarray(T_W_cloud, dtype=np.float64)
+    sigma_mm = prior.get("prior_sigma_mm", [0.0] * n)
+    sigma_rad = np.deg2rad(prior.get("prior_sigma_deg", [0.0] * n))
+    lever, held = refinement.lever_mm, refinement.unregistered
+    C = posterior_covariance(refinement.covariance, n, sigma_mm, sigma_rad, lever, held)
+    points_W = transform_points(T, merged.points_mm)
     normals_W = nominal_W.face_normals[signed_distance(nominal_W, points_W).face]
     centre = refinement.centre_mm if refinement.centre_mm is not None else points_W.mean(axis=0)
-    common = (alignment.get("uncertainty_mm") or {}).get("rms") or 0.0
-    return cloud_uncertainty(
-        merged,
-        weights,
-        decode_mm,
-        covs,
-        centre,
-        refinement.lever_mm,
-        points_W,
-        normals_W,
-        float(common),
-        None if measured else shared,
-    )
+    shares = view_shares(merged, weights)
+    method = alignment.get("method", "kinematic")
+    B: Array | None = None
+    if "error" in alignment or method == "kinematic":
+        B = None
+    elif datums and method in ("datums", "datum_icp"):
+        tree = cKDTree(merged.points_mm)
+        d_shares = []
+        for d in datums:
+            near = tree.query_ball_point(d.point, d.radius_mm)
+            d_shares.append(shares[near].mean(axis=0) if len(near) else np.full(n, 1.0 / n))
+        B = datum_alignment_map(
+            transform_points(T, np.array([d.point for d in datums])),
+            np.array([d.normal for d in datums]) @ T[:3, :3].T,
+            np.array(d_shares),
+            centre,
+            lever,
+        )
+    else:  # best fit, features, weighted: taken as removing the views' mean motion
+        B = np.kron(np.full((1, n), 1.0 / n), np.eye(6))
+    pose = pose_uncertainty_of_points(shares, _rows(points_W, normals_W, centre, lever), C, B)
+    decode = merged_uncertainty(merged, weights, decode_mm)
+    common = float((alignment.get("uncertainty_mm") or {}).get("rms") or 0.0)
+    return CloudUncertainty(combine(decode, pose, common), decode, pose, common)

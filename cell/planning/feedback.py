@@ -272,12 +272,12 @@ class Evaluation:
     covered: NDArray[np.bool_]
     coverage: float
     u_mm2: float  # uncovered inspectable area (holes)
-    v_mm2: float  # area where overlapping views disagree (IA) or the uncertainty misses its target (IU)
+    v_mm2: float  # area where overlapping views disagree (IA)
     q: float
     setpoint: float
     ia: Array
     iu: Array = field(default_factory=lambda: np.zeros((0, 3)))
-    iu_mm2: float = 0.0  # area of IU alone
+    iu_mm2: float = 0.0  # area where the uncertainty misses its target (IU); Q counts IA and IU together
 
     @property
     def qualified(self) -> bool:
@@ -303,8 +303,9 @@ def evaluate(
     u_max_mm: float | None = None,
 ) -> Evaluation:
     """Coverage, hole area u, accuracy map IA (views from ``first_new`` on against earlier ones, added to
-    ``ia_before``) and, given the target ``u_max_mm``, the uncertainty map IU (:func:`uncertainty_map`), the
-    area v of both and Q = |w u + j v| against the set point."""
+    ``ia_before``) and its area v, given the target ``u_max_mm`` the uncertainty map IU
+    (:func:`uncertainty_map`) and its area, and Q = |w u + j v'| against the set point, v' the area of IA and
+    IU together."""
     st, s = fb.st, fb.plan.surface
     pts = np.vstack([v.points_W for v in views]) if views else np.zeros((0, 3))
     covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
@@ -322,10 +323,11 @@ def evaluate(
         ]
     )
     iu = np.zeros((0, 3)) if u_max_mm is None else uncertainty_map(views, u_max_mm)
-    flagged = np.vstack([ia, iu])
-    v_area = float(s.area[fb.samples_near(flagged, 1.0)].sum()) if len(flagged) else 0.0
+    v_area = float(s.area[fb.samples_near(ia, 1.0)].sum()) if len(ia) else 0.0
     iu_area = float(s.area[fb.samples_near(iu, 1.0)].sum()) if len(iu) else 0.0
-    q = cost_q(u, v_area, st.hole_weight)
+    flagged = np.vstack([ia, iu])
+    either = float(s.area[fb.samples_near(flagged, 1.0)].sum()) if len(flagged) else 0.0
+    q = cost_q(u, either, st.hole_weight)  # the distance cost: where views disagree or u misses its target
     return Evaluation(
         covered,
         coverage_fraction(s, covered),
