@@ -1,7 +1,8 @@
-"""The per-point uncertainty model (cell/analysis/uncertainty.py, cell/sensing/noise.py, error_model.py) against
-analytic values and the simulator's truth: the one-pixel model of eq 2.5 (Tables 2.1-2.3) and its first-order
-generalisation against a triangulation, the photon-transfer noise estimate against the simulated camera's
-noise, the quantisation curve against the simulator's projector coordinates, and the merge of views."""
+"""The per-point uncertainty model (cell/analysis/uncertainty.py, cell/sensing/noise.py, error_model.py)
+against analytic values and the simulator's truth: the one-pixel model of eq 2.5 (Tables 2.1-2.3) and its
+first-order generalisation against a triangulation, the photon-transfer noise estimate against the simulated
+camera's noise, the quantisation curve against the simulator's projector coordinates, the merge of views and
+the pose part after an alignment."""
 
 from __future__ import annotations
 
@@ -13,9 +14,10 @@ import trimesh
 
 from cell.analysis.merge import merge_views
 from cell.analysis.uncertainty import (
+    datum_alignment_map,
     merged_uncertainty,
-    pose_uncertainty,
-    view_pose_covariances,
+    pose_uncertainty_of_points,
+    posterior_covariance,
 )
 from cell.geometry import look_at
 from cell.sensing.decode import decode
@@ -190,7 +192,7 @@ def test_quantisation_curve_seen_in_the_points_is_the_decoders_bias(plate_views:
     u = np.stack([d.primary().u for d in decoded]).astype(np.float64)
     codes_per_px = np.abs(np.nanmedian(np.gradient(u, axis=2), axis=0))
     bias_px = (np.nanmean(u, axis=0) - gt.projector_uv[..., 0]) / codes_per_px
-    # the points move opposite to the code along the row (the projector sits on +x): compare magnitudes and shape
+    # the points move opposite to the code (the projector sits on +x): compare the curves' shape and size
     k = np.minimum((phase * 10).astype(int), 9)
     use = valid & np.isfinite(bias_px)
     truth = np.array([np.mean(bias_px[use & (k == b)]) for b in range(10)])
@@ -213,14 +215,32 @@ def test_merged_u_averages_views_and_not_one_views_neighbours() -> None:
     assert merged_uncertainty(one, [np.ones(2)], [np.array([0.03, 0.03])])[0] == pytest.approx(0.03)
 
 
-def test_pose_covariance_splits_into_each_views_own_and_the_shared_part() -> None:
-    """With no data the views' posterior is their prior: of n independent views, the shared part (the mean
-    pose) holds prior / n, each view's own prior (1 - 1/n); a translation along the normal shows 1:1."""
-    n, sigma = 4, 0.2
-    prior = np.diag([1e-12] * 3 + [sigma**2] * 3)
-    C = np.kron(np.eye(n), prior)
-    own, shared = view_pose_covariances(C, n, [sigma] * n, [1e-6] * n, 1.0, [])
-    assert own[0][5, 5] == pytest.approx(sigma**2 * (1 - 1 / n))
-    assert shared[5, 5] == pytest.approx(sigma**2 / n)
-    p, nz = np.array([[10.0, 5.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
-    assert pose_uncertainty(p, nz, shared, np.zeros(3), 1.0)[0] == pytest.approx(sigma / math.sqrt(n), rel=1e-3)
+def test_pose_error_after_a_datum_alignment() -> None:
+    """Two views of a plate seen from above (z) with independent z errors of 0.2 mm: under kinematic
+    alignment every point keeps its view's 0.2 mm; three datums measured by view 0 alone take view 0's error
+    out (its points then have none) and put it, with opposite sign, on view 1's: sqrt(2) * 0.2 mm there."""
+    sigma = 0.2
+    C = np.zeros((12, 12))
+    for v in range(2):
+        C[6 * v + 5, 6 * v + 5] = sigma**2  # z translation only
+    pts = np.array([[-20.0, 0.0, 0.0], [20.0, 0.0, 0.0]])
+    normals = np.array([[0.0, 0.0, 1.0]] * 2)
+    shares = np.array([[1.0, 0.0], [0.0, 1.0]])  # point 0 from view 0, point 1 from view 1
+    rows = np.column_stack([np.cross(pts, normals), normals])
+    assert pose_uncertainty_of_points(shares, rows, C, None) == pytest.approx([sigma, sigma])
+    datums = np.array([[-30.0, -10.0, 0.0], [-30.0, 10.0, 0.0], [-10.0, 0.0, 0.0]])
+    B = datum_alignment_map(
+        datums, np.tile([0.0, 0.0, 1.0], (3, 1)), np.tile([1.0, 0.0], (3, 1)), np.zeros(3), 1.0
+    )
+    assert pose_uncertainty_of_points(shares, rows, C, B) == pytest.approx(
+        [0.0, math.sqrt(2) * sigma], abs=1e-9
+    )
+    # overlaps that fix view 1's z to view 0's: the posterior of their difference shrinks; a view the
+    # refinement held at its kinematic pose keeps its prior
+    info = np.zeros((12, 12))
+    info[5, 5] = info[11, 11] = 1e6
+    info[5, 11] = info[11, 5] = -1e6
+    C = posterior_covariance(info, 2, [sigma, sigma], [1e-3, 1e-3], 1.0, [])
+    assert C[5, 5] + C[11, 11] - 2 * C[5, 11] < 1e-5 and C[5, 5] == pytest.approx(sigma**2 / 2, rel=1e-3)
+    held = posterior_covariance(info, 2, [sigma, sigma], [1e-3, 1e-3], 1.0, [1])
+    assert held[11, 11] == pytest.approx(sigma**2) and held[5, 5] == pytest.approx(sigma**2)

@@ -118,27 +118,31 @@ def view_uncertainty(
 
 
 def posterior_covariance(
-    covariance: Array | None,
+    information: Array | None,
     n_views: int,
     prior_sigma_mm: Sequence[float],
     prior_sigma_rad: Sequence[float],
     lever_mm: float,
     held: Sequence[int],
 ) -> Array:
-    """The (6n, 6n) covariance of the views' pose errors after the refinement (its posterior), with each
-    view the refinement held at its kinematic pose (``held``: the solve pinned it) given its prior back, as
-    every view when there was no refinement (one view). Parameters as the refinement's: x = (omega * lever,
-    tau) per view."""
-    prior = [
-        np.diag([(r * lever_mm) ** 2] * 3 + [t**2] * 3)
-        for t, r in zip(prior_sigma_mm, prior_sigma_rad, strict=True)
-    ]
-    C = np.zeros((6 * n_views, 6 * n_views)) if covariance is None else np.array(covariance, dtype=np.float64)
-    for v in range(n_views) if covariance is None else held:
-        C[6 * v : 6 * v + 6, :] = 0.0
-        C[:, 6 * v : 6 * v + 6] = 0.0
-        C[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] = prior[v]
-    return C
+    """The (6n, 6n) covariance of the views' pose errors after the refinement: its overlaps' ``information``
+    (:attr:`cell.analysis.view_refinement.ViewRefinement.information`) plus the prior (1 sigma per view,
+    translation mm and rotation rad), inverted. A view the refinement held at its kinematic pose (``held``)
+    keeps its prior and informs no other view (its overlaps are left out); no refinement (one view): the
+    prior. Parameters as the refinement's: x = (omega * lever, tau) per view."""
+    prior = np.concatenate(
+        [[(r * lever_mm) ** 2] * 3 + [t**2] * 3 for t, r in zip(prior_sigma_mm, prior_sigma_rad, strict=True)]
+    )
+    H = np.zeros((6 * n_views, 6 * n_views)) if information is None else np.array(information, np.float64)
+    for v in held:  # take its overlaps out: each added +A to both views' diagonal blocks, -A between them
+        sv = slice(6 * v, 6 * v + 6)
+        for i in range(n_views):
+            if i != v:
+                si = slice(6 * i, 6 * i + 6)
+                H[si, si] += H[si, sv]
+        H[sv, :] = 0.0
+        H[:, sv] = 0.0
+    return np.asarray(np.linalg.inv(H + np.diag(1.0 / np.maximum(prior, 1e-18))), dtype=np.float64)
 
 
 def _rows(points: Array, normals: Array, centre_mm: Array, lever_mm: float) -> Array:
@@ -271,7 +275,7 @@ def registered_cloud_uncertainty(
     sigma_mm = prior.get("prior_sigma_mm", [0.0] * n)
     sigma_rad = np.deg2rad(prior.get("prior_sigma_deg", [0.0] * n))
     lever, held = refinement.lever_mm, refinement.unregistered
-    C = posterior_covariance(refinement.covariance, n, sigma_mm, sigma_rad, lever, held)
+    C = posterior_covariance(refinement.information, n, sigma_mm, sigma_rad, lever, held)
     points_W = transform_points(T, merged.points_mm)
     normals_W = nominal_W.face_normals[signed_distance(nominal_W, points_W).face]
     centre = refinement.centre_mm if refinement.centre_mm is not None else points_W.mean(axis=0)

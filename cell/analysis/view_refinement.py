@@ -54,9 +54,11 @@ class ViewRefinement:
     rms_after_mm: float
     overlaps: list[int]
     unregistered: list[int] = field(default_factory=list)
-    # what the last solve leaves unknown about the corrections: (6n, 6n) covariance of the linearised
-    # corrections x_i = (omega_i * lever_mm, tau_i) about ``centre_mm`` (None when nothing was solved)
-    covariance: Array | None = None
+    # what the overlaps of the last solve told about the corrections x_i = (omega_i * lever_mm, tau_i) about
+    # ``centre_mm``: their (6n, 6n) information matrix, without the prior and the pinning of the views held
+    # at their kinematic pose (None when nothing was solved); cell.analysis.uncertainty turns it into the
+    # views' pose covariance under a prior
+    information: Array | None = None
     centre_mm: Array | None = None
     lever_mm: float = 1.0
 
@@ -245,6 +247,7 @@ def refine_views(
         rms.append(float(np.sqrt(np.mean(np.concatenate(gaps_all) ** 2))) if gaps_all else 0.0)
         # a view that too few good pairs hold (it overlaps the others only at grazing incidence, or hardly at
         # all) stays at its kinematic pose: a few biased pairs would slide it where nothing checks it
+        information = H.copy()
         held = used < MIN_VIEW_PAIRS
         for v in np.flatnonzero(held):
             H[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] += np.eye(6) * 1e12
@@ -258,5 +261,6 @@ def refine_views(
     # the gaps of the last matching moved by the last step (linearised): what the corrections leave
     after = float(np.sqrt(np.mean(np.concatenate(last_gaps) ** 2))) if last_gaps else 0.0
     unregistered = [i for i in range(n_views) if held[i]] if radii_mm else list(range(n_views))
-    covariance = np.asarray(np.linalg.inv(H), dtype=np.float64) if radii_mm else None
-    return ViewRefinement(T, rms[0], after, overlaps, unregistered, covariance, centre, lever)
+    return ViewRefinement(
+        T, rms[0], after, overlaps, unregistered, information if radii_mm else None, centre, lever
+    )
