@@ -13,9 +13,12 @@ signed distance to it is their measurement error, alignment included):
   tolerance when its dent is deeper than the limit): false accepts and false rejects.
 
     .venv/bin/python bench/study_uncertainty.py --out DIR [--seeds 1-30] [--tolerance 0.3] [--analyse]
+        [--reregister]
 
 Each seed's calibration and run are kept in DIR and reused, so the study can be stopped and resumed; with
---analyse only the analysis runs. Prints a JSON summary and writes DIR/study.json (docs/uncertainty.md).
+--analyse only the analysis runs; --reregister registers and reports every finished run again with this
+checkout's code (the views, and each point's decode u in them, stay as they were measured). Prints a JSON
+summary and writes DIR/study.json (docs/uncertainty.md).
 """
 
 from __future__ import annotations
@@ -103,14 +106,31 @@ def recipe_of(seed: int, folder: Path, tolerance: float) -> tuple[Path, float]:
     return path, depth
 
 
-def cell_cmd(*args: str) -> None:
-    """Run ``cell ARGS`` (this checkout), niced; exit codes 0/4/5 (pass, fail, incomplete) are verdicts."""
+def cell_cmd(*args: str) -> bool:
+    """Run ``cell ARGS`` (this checkout), niced; exit codes 0/4/5 (pass, fail, incomplete) are verdicts. A
+    failed command is printed and the study goes on with the next seed."""
     cmd = ["nice", "-n", "10", sys.executable, "-m", "cell", *args]
-    proc = subprocess.run(
-        cmd, cwd=REPO, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)}
-    )
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env)
     if proc.returncode not in (0, 4, 5):
-        raise SystemExit(f"{' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
+        print(f"{' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+        return False
+    return True
+
+
+def reregister(run_dir: Path) -> None:
+    """Register and report a finished run again with this checkout's code (views as measured)."""
+    from cell.inspection import LambertianInspection
+    from cell.inspection_run import load_run_inputs, open_inspection_run
+    from cell.mesh import load_mesh
+    from cell.run_data import Checkpoint
+
+    run = open_inspection_run(run_dir)
+    recipe, cfg, _ = load_run_inputs(run)
+    nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
+    job = LambertianInspection(recipe, cfg, nominal_W)
+    job.settings.pictures = False
+    job.report(run, job.register(run, Checkpoint.from_json(run.load_checkpoint()).views))
 
 
 def run_seed(seed: int, out: Path, tolerance: float) -> dict[str, Any]:
@@ -120,8 +140,10 @@ def run_seed(seed: int, out: Path, tolerance: float) -> dict[str, Any]:
     cell = cell_of(seed, folder)
     calibrated = folder / "calibration" / "cell.yaml"
     t0 = time.perf_counter()
-    if not calibrated.is_file():
-        cell_cmd("calibrate", "all", "--cell", str(cell), "--out", str(folder / "calibration"))
+    if not calibrated.is_file() and not cell_cmd(
+        "calibrate", "all", "--cell", str(cell), "--out", str(folder / "calibration")
+    ):
+        return {"seed": seed, "failed": "calibration"}
     t1 = time.perf_counter()
     recipe, depth = recipe_of(seed, folder, tolerance)
     run = folder / "run"
@@ -223,6 +245,7 @@ def main() -> None:
     ap.add_argument("--seeds", default="1-30", help="a range a-b or a comma list")
     ap.add_argument("--tolerance", type=float, default=0.3, help="symmetric tolerance, mm")
     ap.add_argument("--analyse", action="store_true", help="only analyse the runs already made")
+    ap.add_argument("--reregister", action="store_true", help="register and report the runs again first")
     args = ap.parse_args()
     if "-" in args.seeds:
         a, b = (int(x) for x in args.seeds.split("-"))
@@ -235,7 +258,10 @@ def main() -> None:
         for s in seeds:
             timings.append(run_seed(s, args.out, args.tolerance))
             print(json.dumps(timings[-1]), flush=True)
-    done = [s for s in seeds if (args.out / f"seed{s}" / "run" / "results" / "cloud.ply").is_file()]
+    done = [s for s in seeds if (args.out / f"seed{s}" / "run" / "results" / "report.json").is_file()]
+    if args.reregister:
+        for s in done:
+            reregister(args.out / f"seed{s}" / "run")
     results = [analyse_seed(s, args.out, args.tolerance) for s in done]
     u = np.concatenate([r["u"] for r in results])
     e = np.concatenate([r["error"] for r in results])
