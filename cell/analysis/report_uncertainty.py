@@ -57,7 +57,7 @@ def uncertainty_html(doc: dict[str, Any], views: tuple[list[dict[str, Any]], Unc
     dec, unc = doc.get("decision") or {}, doc.get("uncertainty")
     counts = dec.get("counts", {})
     rule = dec.get("rule", "simple")
-    guard = f"; k = {fmt.number(dec.get('k', 2.0))}; ambiguous points: {e(dec.get('ambiguous'))}"
+    guard = f"; k = {dec.get('k', 2.0):g}; ambiguous points: {e(dec.get('ambiguous'))}"
     head = f"<p>Decision rule: <b>{e(RULE_TEXT.get(rule, rule))}</b>{guard if rule == 'guarded' else ''}.</p>"
     classes = (
         "<table><tr><th>class</th><th class='r'>points</th></tr>"
@@ -93,7 +93,7 @@ def uncertainty_html(doc: dict[str, Any], views: tuple[list[dict[str, Any]], Unc
         f"<th class='r'>max</th></tr>{rows}</table>"
     )
     target = (
-        f"<p>U = {fmt.number(unc.get('k'))} u: median {_stat(unc.get('U_mm'), 'median')} mm, p95 "
+        f"<p>U = {unc.get('k', 2.0):g} u: median {_stat(unc.get('U_mm'), 'median')} mm, p95 "
         f"{_stat(unc.get('U_mm'), 'p95')} mm; target U &le; {fmt.number(unc['target_U_mm'])} mm (a "
         f"quarter of the band), missed by {fmt.percent(unc.get('fraction_over_target'))} of the points. "
         f"Calibration residual: {e(budget.get('calibration', DASH))}.</p>"
