@@ -220,6 +220,19 @@ class RobotConfig(Strict):
     calibrated_view_pose_sigma_deg: Annotated[float, Field(gt=0, le=5)] = Field(
         0.05, description="with a kinematic calibration: the least 1-sigma rotation error (as above)"
     )
+    pose_uncertainty_mm: Annotated[float, Field(gt=0, le=20)] = Field(
+        0.08,
+        description="with a kinematic calibration: the 1-sigma translation error of a view's camera pose, at "
+        "the stand-off, that the per-point uncertainty assumes (docs/uncertainty.md). Smaller than the "
+        "refinement's prior floor, which errs on the large side to keep the refinement from sliding views; "
+        "the default is what the honest simulated world showed; on a real cell, set it from its multi-view "
+        "verification",
+    )
+    pose_uncertainty_deg: Annotated[float, Field(gt=0, le=5)] = Field(
+        0.02,
+        description="with a kinematic calibration: the 1-sigma rotation error the per-point uncertainty "
+        "assumes (as above)",
+    )
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific settings")
 
     @model_validator(mode="after")

@@ -46,6 +46,7 @@ from cell.calibration import (
     believed_flange,
     calibration_residual_px,
     calibration_source,
+    pose_uncertainty_prior,
     view_pose_prior,
 )
 from cell.calibration.gamma import apply_lut
@@ -455,7 +456,7 @@ class LambertianInspection:
             alignment = found.to_json()
         except AlignmentError as exc:
             points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
-        prior = self._refinement[2] if self._refinement else {}  # the pose prior the refinement ran under
+        prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
         unc = registered_cloud_uncertainty(
             merged,
             weights,
@@ -478,7 +479,11 @@ class LambertianInspection:
             f"other; weighted voxel merge; alignment: {method}",
             "refinement": refinement,
             "alignment": alignment,
-            "uncertainty": {**unc.budget(), "calibration": self.calibration_residual},
+            "uncertainty": {
+                **unc.budget(),
+                "calibration": self.calibration_residual,
+                "poses": prior.get("prior"),
+            },
         }
 
     def inspectable_coverage(self, run: RunFolder, T_P_cloud: NDArray[np.float64] | None = None) -> Coverage:

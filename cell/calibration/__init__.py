@@ -10,6 +10,7 @@ from cell.calibration.active import (
     believed_flange,
     calibration_residual_px,
     calibration_source,
+    pose_uncertainty_prior,
     view_pose_prior,
 )
 
@@ -22,5 +23,6 @@ __all__ = [
     "believed_flange",
     "calibration_residual_px",
     "calibration_source",
+    "pose_uncertainty_prior",
     "view_pose_prior",
 ]

@@ -4,6 +4,7 @@ section, or the config's nominal geometry when none is set."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -224,3 +225,19 @@ def calibration_residual_px(cfg: CellConfig) -> tuple[float, str]:
         if rms is not None:
             return float(rms), f"projector calibration {Path(cal.projector).name}: stereo reprojection rms"
     return 0.0, NO_CALIBRATION
+
+
+def pose_uncertainty_prior(cfg: CellConfig, refinement_prior: dict[str, Any]) -> dict[str, Any]:
+    """The views' pose prior the per-point uncertainty assumes (cell.analysis.uncertainty): with a kinematic
+    calibration the robot config's ``pose_uncertainty_mm/deg`` for every view (the refinement's prior floor
+    errs on the large side on purpose), else the prior the refinement ran under (``refinement_prior``, its
+    record: ``prior_sigma_mm``, ``prior_sigma_deg`` per view)."""
+    n = len(refinement_prior.get("prior_sigma_mm", []))
+    if cfg.calibration.kinematics is None or not n:
+        return refinement_prior
+    robot = cfg.robot
+    return {
+        "prior": "robot.pose_uncertainty_mm/deg (with the kinematic calibration)",
+        "prior_sigma_mm": [robot.pose_uncertainty_mm] * n,
+        "prior_sigma_deg": [robot.pose_uncertainty_deg] * n,
+    }
