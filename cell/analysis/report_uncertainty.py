@@ -96,7 +96,8 @@ def uncertainty_html(doc: dict[str, Any], views: tuple[list[dict[str, Any]], Unc
         f"<p>U = {unc.get('k', 2.0):g} u: median {_stat(unc.get('U_mm'), 'median')} mm, p95 "
         f"{_stat(unc.get('U_mm'), 'p95')} mm; target U &le; {fmt.number(unc['target_U_mm'])} mm (a "
         f"quarter of the band), missed by {fmt.percent(unc.get('fraction_over_target'))} of the points. "
-        f"Calibration residual: {e(budget.get('calibration', DASH))}.</p>"
+        f"Calibration residual: {e(budget.get('calibration', DASH))}. Views' poses: "
+        f"{e(budget.get('poses') or DASH)}.</p>"
     )
     amb = dec.get("ambiguous_regions") or []
     amb_html = ""

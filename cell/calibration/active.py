@@ -207,11 +207,19 @@ def calibration_source(cfg: CellConfig) -> str:
     return "; ".join(parts)
 
 
+# Of the projector calibration's stereo reprojection rms, the share that measurements inherit as a systematic
+# correspondence error: the rest is the board corners' random detection noise, which the fit averages out (the
+# residual cannot tell them apart). Calibrated in the honest simulated world (docs/uncertainty.md: with the whole
+# rms the points' decode u exceeded their error by a third).
+STEREO_RESIDUAL_SHARE = 0.5
+
+
 def calibration_residual_px(cfg: CellConfig) -> tuple[float, str]:
     """The active calibration's own residual as a correspondence error (camera px, 1 sigma) and where it comes
     from, for the per-point uncertainty (cell.analysis.uncertainty): the per-pixel model's median eq 2.7
     residual (mm) over the one-pixel height error of eq 2.5 at the reference plane, else the projector
-    calibration's stereo reprojection rms, else 0 (the config's nominal geometry: nothing measured it)."""
+    calibration's stereo reprojection rms times :data:`STEREO_RESIDUAL_SHARE`, else 0 (the config's nominal
+    geometry: nothing measured it)."""
     cal = cfg.calibration
     if cal.sensor is not None:
         residual = load_metadata(cal.sensor).get("quality", {}).get("median_residual_mm")
@@ -223,7 +231,10 @@ def calibration_residual_px(cfg: CellConfig) -> tuple[float, str]:
     if cal.projector is not None:
         rms = load_metadata(cal.projector).get("figures", {}).get("stereo_rms_px")
         if rms is not None:
-            return float(rms), f"projector calibration {Path(cal.projector).name}: stereo reprojection rms"
+            return STEREO_RESIDUAL_SHARE * float(rms), (
+                f"projector calibration {Path(cal.projector).name}: {STEREO_RESIDUAL_SHARE:g} x its stereo "
+                "reprojection rms"
+            )
     return 0.0, NO_CALIBRATION
 
 
