@@ -209,8 +209,8 @@ def calibration_source(cfg: CellConfig) -> str:
 
 # Of the projector calibration's stereo reprojection rms, the share that measurements inherit as a systematic
 # correspondence error: the rest is the board corners' random detection noise, which the fit averages out (the
-# residual cannot tell them apart). Calibrated in the honest simulated world (docs/uncertainty.md: with the whole
-# rms the points' decode u exceeded their error by a third).
+# residual cannot tell them apart). Calibrated in the honest simulated world (docs/uncertainty.md: with the
+# whole rms the points' decode u exceeded their error by a third).
 STEREO_RESIDUAL_SHARE = 0.5
 
 
