@@ -65,7 +65,7 @@ def test_views_decode_u_matches_their_error_against_the_truth(box_run: tuple[Pat
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         m = (U >= lo) & (U <= hi)
         ratio = np.sqrt(np.mean(E[m] ** 2)) / np.sqrt(np.mean(U[m] ** 2))
-        assert 0.6 < ratio < 1.6, (lo, hi, ratio)
+        assert 0.8 < ratio < 1.25, (lo, hi, ratio)  # measured 1.08, 0.98, 1.08
 
 
 def test_cloud_and_report_carry_u_and_the_decision(box_run: tuple[Path, trimesh.Trimesh]) -> None:
