@@ -157,6 +157,7 @@ def plate_views() -> dict:
     return {"rig": rig, "ps": ps, "gt": gt, "stacks": stacks, "decoded": decoded}
 
 
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # pixels without a code in some draw: NaN medians
 def test_edge_noise_predicts_the_scatter_of_decoded_codes(plate_views: dict) -> None:
     """The per-pixel spread of the decoded projector coordinate over twelve noise draws, in camera pixels,
     against sigma_x from the stack's own noise: rms ratio within 0.7-1.4."""
@@ -171,9 +172,10 @@ def test_edge_noise_predicts_the_scatter_of_decoded_codes(plate_views: dict) -> 
     sigma = edge_sigma_px(decoded[0], decoded[0].primary(), noise, code.shift_px, code.offset_px)
     use = ok & np.isfinite(sigma)
     ratio = np.sqrt(np.mean(spread_px[use] ** 2)) / np.sqrt(np.mean(sigma[use] ** 2))
-    assert 0.7 < ratio < 1.4, ratio
+    assert 0.85 < ratio < 1.18, ratio  # measured 1.01
 
 
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
 def test_quantisation_curve_seen_in_the_points_is_the_decoders_bias(plate_views: dict) -> None:
     """The sub-code error estimated from the view's own points (no truth) against the decoder's true mean
     error by phase (decoded minus the simulator's projector coordinate, in camera pixels): the same curve."""
@@ -197,8 +199,8 @@ def test_quantisation_curve_seen_in_the_points_is_the_decoders_bias(plate_views:
     use = valid & np.isfinite(bias_px)
     truth = np.array([np.mean(bias_px[use & (k == b)]) for b in range(10)])
     truth -= truth.mean()
-    assert abs(np.corrcoef(truth, q.curve_px)[0, 1]) > 0.9
-    assert q.rms_px == pytest.approx(np.sqrt(np.mean(truth**2)), rel=0.3)
+    assert abs(np.corrcoef(truth, q.curve_px)[0, 1]) > 0.9  # measured 0.98
+    assert q.rms_px == pytest.approx(np.sqrt(np.mean(truth**2)), rel=0.15)  # measured 0.0043 and 0.0043 px
 
 
 # ------------------------------------------------------------------------------------------ merge and pose
