@@ -77,8 +77,7 @@ def uncertainty_html(doc: dict[str, Any], views: tuple[list[dict[str, Any]], Unc
     parts = [
         ("u, total", unc.get("u_mm")),
         ("decode (noise, quantisation, calibration)", budget.get("decode_mm")),
-        ("views' poses (own)", budget.get("registration_mm")),
-        ("views' poses (shared)", budget.get("common_pose_mm")),
+        ("views' poses, after the alignment", budget.get("pose_mm")),
     ]
     rows = "".join(
         f"<tr><td>{label}</td><td class='r'>{_stat(s, 'median')}</td><td class='r'>{_stat(s, 'p95')}</td>"
