@@ -154,3 +154,21 @@ def test_recipe_decision_fields(tmp_path: Path) -> None:
         load_recipe(_recipe(tmp_path, decision_rule="strict"))
     with pytest.raises(ConfigError, match="guard_band.ambiguous"):
         load_recipe(_recipe(tmp_path, decision_rule="guarded", guard_band={"ambiguous": "maybe"}))
+
+
+def test_report_page_shows_the_u_map_the_classes_and_the_ambiguous_areas(tmp_path: Path) -> None:
+    nominal, pts = _plate_points(0.105)
+    inp = judge(
+        nominal,
+        pts,
+        TOL,
+        min_defect_points=10,
+        uncertainty_mm=np.full(len(pts), 0.01),
+        decision=DecisionRule("guarded"),
+        uncertainty={"decode_mm": {"median": 0.01, "p95": 0.01, "max": 0.01}, "pose_mm": None},
+    )
+    doc = write_report(tmp_path, inp, pictures=True)
+    page = (tmp_path / "report.html").read_text()
+    assert "Uncertainty and decision" in page and page.count("view of U") == 4
+    assert "ambiguous-1" in page and "views' poses, after the alignment" in page
+    assert doc["decision"]["counts"] == {"conform": len(pts) - 60, "ambiguous": 60, "nonconform": 0}
