@@ -188,7 +188,10 @@ def analyse_seed(seed: int, out: Path, tolerance: float) -> dict[str, Any]:
         )
         verdicts[rule] = summarise(inp)["verdict"]
     report = json.loads((folder / "run" / "results" / "report.json").read_text())
+    steps = json.loads((folder / "calibration" / "calibration.json").read_text())["steps"]
+    plane = steps.get("validate", {}).get("summary", {}).get("plane", {})
     return {
+        "validation_height_error_mm": plane.get("height_error_mm"),
         "seed": seed,
         "depth_mm": round(depth, 5),
         "out_of_tolerance": bool(depth > tolerance),
@@ -265,6 +268,7 @@ def main() -> None:
     results = [analyse_seed(s, args.out, args.tolerance) for s in done]
     u = np.concatenate([r["u"] for r in results])
     e = np.concatenate([r["error"] for r in results])
+
     summary = {
         "cell": str(CELL.relative_to(REPO)),
         "tolerance_mm": args.tolerance,
@@ -281,6 +285,7 @@ def main() -> None:
             {
                 "seed": r["seed"],
                 "depth_mm": r["depth_mm"],
+                "validation_height_error_mm": r["validation_height_error_mm"],
                 "verdicts": r["verdicts"],
                 "report_verdict": r["report_verdict"],
                 "views": r["views"],
