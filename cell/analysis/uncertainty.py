@@ -101,14 +101,15 @@ def view_uncertainty(
     axis = decoded.primary()
     code = next(c for c in patterns.codes if c.axis == axis.axis)
     valid = cloud.valid
-    points = np.asarray(cloud.points_C, dtype=np.float64)
+    points = cloud.points_C
     normals = measured_normals(points, valid)
     T = np.asarray(T_C_P, dtype=np.float64)
-    g = normal_error_per_pixel(points, normals, T[:3, 3], T[:3, 1], fx_px)
+    g = np.full(valid.shape, np.nan)
+    g[valid] = normal_error_per_pixel(points[valid], normals[valid], T[:3, 3], T[:3, 1], fx_px)
     # where no normal could be measured (thin strips, isolated pixels) the view's typical value stands in
     g_ok = np.isfinite(g) & valid
     g_med = float(np.median(g[g_ok])) if g_ok.any() else float("nan")
-    g = np.where(g_ok, g, g_med)
+    g[valid & ~g_ok] = g_med
     noise = estimate_image_noise(stack, patterns, valid, bit_depth)
     sigma_x = edge_sigma_px(decoded, axis, noise, code.shift_px, code.offset_px)
     q = quantisation(points, normals, valid, g, code_phase(axis, code.shift_px, code.offset_px), sigma_x)
