@@ -25,7 +25,7 @@ demo: $(STAMP)
 	$(PY) -m cell demo
 
 test: $(STAMP) $(ARAVIS_STAMP)
-	$(PY) -m pytest -n 2 --dist loadfile -q
+	$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -q  # files in tests/conftest.py's order
 
 bench: $(STAMP)
 	command -v CloudCompare >/dev/null || (apt-get update && apt-get install -y cloudcompare)  # bench_compare's peer

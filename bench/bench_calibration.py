@@ -17,9 +17,11 @@ import time
 from pathlib import Path
 
 import yaml
+from calibration_sd import predict_model
+from multiview_pose_sd import predict as multiview_sd
 from scipy.spatial.transform import Rotation
 
-from cell.calibration import active_kinematics
+from cell.calibration import active_kinematics, active_sensor_config
 from cell.calibration.handeye import pose_error
 from cell.calibration.routines import calibrate_all
 from cell.calibration.store import load_calibration
@@ -57,16 +59,18 @@ def compare(cell: Path, out: Path) -> dict[str, float]:
     _, proj = load_calibration(out / "projector" / "projector.yaml", "projector")
     _, hand_eye = load_calibration(out / "kinematics" / "handeye.yaml", "hand_eye")
     T_true = true.T_T_C.matrix()
+    calibrated = load_cell_config(out / "cell.yaml")
+    active = active_sensor_config(calibrated).camera  # the lens adjusted with the projector, when it is
     row = {
-        "camera_fx_err_pct": 100 * (intr["K"][0, 0] / true.camera.fx_px - 1),
-        "camera_cx_err_px": float(intr["K"][0, 2] - true.camera.cx_px),
+        "camera_fx_err_pct": 100 * (active.fx_px / true.camera.fx_px - 1),
+        "camera_cx_err_px": float(active.cx_px - true.camera.cx_px),
+        "camera_routine_fx_err_pct": 100 * (intr["K"][0, 0] / true.camera.fx_px - 1),
         "projector_fx_err_pct": 100 * (proj["K"][0, 0] / true.projector.fx_px - 1),
         "projector_config_fx_err_pct": 100 * (cfg.sensor.projector.fx_px / true.projector.fx_px - 1),
     }
     row["T_C_P_err_mm"], row["T_C_P_err_deg"] = pose_error(proj["T_C_P"], true.projector.T_C_P.matrix())
     row["handeye_config_mm"], row["handeye_config_deg"] = pose_error(cfg.sensor.T_T_C.matrix(), T_true)
     row["handeye_mm"], row["handeye_deg"] = pose_error(hand_eye["T_T_C"], T_true)
-    calibrated = load_cell_config(out / "cell.yaml")
     arm = active_kinematics(calibrated)
     if arm is not None:
         fitted = camera_on_last_link(arm.dq[5], UR5E.dh.d[5] + arm.dd[5], hand_eye["T_T_C"])
@@ -78,6 +82,9 @@ def compare(cell: Path, out: Path) -> dict[str, float]:
     row["plane_std_mm"] = validation["plane"]["std_mm"]
     row["plane_height_err_mm"] = validation["plane"]["height_error_mm"]
     row["sphere_radius_err_mm"] = validation["sphere"]["radius_error_mm"]
+    part2 = predict_model(calibrated, world, active_sensor_config(calibrated))
+    row["part2_sd_calibration_um"] = max((v for k, v in part2.items() if k.startswith("SD")), key=abs)
+    row["part3_sd_poses_um"] = max(multiview_sd(out / "cell.yaml").values(), key=abs)
     return row
 
 

@@ -1,7 +1,8 @@
 """`cell compare` against CloudCompare's command-line C2M distance, whole process, side by side.
 
-Run: .venv/bin/python bench/bench_compare.py [n_points] [rounds] [big_points]
-     (CloudCompare: Debian package `cloudcompare`, installed by `make bench`)
+Run: .venv/bin/python bench/bench_compare.py [n_points] [rounds] [big_points] [--base=DIR]
+     (CloudCompare: Debian package `cloudcompare`, installed by `make bench`; DIR: an older tree, e.g.
+     `git archive f94ac49 | tar -x -C /tmp/base`, whose `cell compare` runs in the same rounds)
 
 Inputs (generated, seeded): a 20,480-triangle sphere of radius 50 mm (STL) and N points sampled on it
 with 0.02 mm of normal noise and a 0.5 mm deep dent (binary PLY, float64). Each round runs both tools once,
@@ -33,6 +34,7 @@ REPO = Path(__file__).resolve().parent.parent
 CELL = [sys.executable, "-m", "cell"]
 NO_TABLE = ["--table-z", "none"]  # the sphere stands on no table: every point compared, as by CloudCompare
 CC_ENV = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+VERDICT_CODES = (0, 4, 5)  # pass, fail (the dent is out of tolerance), incomplete: docs/exit-codes.md
 
 
 def write_cloud(path: Path, points: np.ndarray) -> None:
@@ -66,14 +68,16 @@ def child_cpu() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def run_cell(nominal: Path, cloud: Path, out: Path) -> float:
+def run_cell(nominal: Path, cloud: Path, out: Path, tree: Path = REPO) -> float:
     t = time.perf_counter()
-    subprocess.run(
+    proc = subprocess.run(
         [*CELL, "compare", str(nominal), str(cloud), "--out", str(out), *NO_TABLE],
-        check=True,
-        cwd=REPO,
+        cwd=tree,
+        env={**os.environ, "PYTHONPATH": str(tree)},
         capture_output=True,
     )
+    if proc.returncode not in VERDICT_CODES:
+        sys.exit(f"cell compare failed ({proc.returncode}): {proc.stderr.decode()[-1000:]}")
     return time.perf_counter() - t
 
 
@@ -86,12 +90,14 @@ def run_cloudcompare(nominal: Path, cloud: Path, export_ascii: bool = False) -> 
 
 
 def read_cell_deviation(ply: Path) -> np.ndarray:
+    """The ``deviation`` property of cell's cloud.ply, whatever the other vertex properties' types."""
+    types = {"float": "f4", "double": "f8", "uchar": "u1", "char": "i1", "int": "i4", "uint": "u4"}
     data = ply.read_bytes()
     end = data.index(b"end_header\n") + len(b"end_header\n")
-    n = int(re.search(rb"element vertex (\d+)", data[:end]).group(1))
-    rec = np.frombuffer(
-        data[end:], dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("deviation", "<f4")], count=n
-    )
+    header = data[:end].decode("ascii").splitlines()
+    n = int(re.search(r"element vertex (\d+)", "\n".join(header)).group(1))
+    props = [line.split()[1:] for line in header if line.startswith("property ")]
+    rec = np.frombuffer(data[end:], dtype=[(name, "<" + types[t]) for t, name in props], count=n)
     return rec["deviation"].astype(np.float64)
 
 
@@ -117,7 +123,7 @@ def big_run(folder: Path, nominal: Path, n: int) -> str:
         [
             "/usr/bin/time",
             "-f",
-            "%e %M",
+            "%e %U %S %M",
             *CELL,
             "compare",
             str(nominal),
@@ -130,44 +136,55 @@ def big_run(folder: Path, nominal: Path, n: int) -> str:
         capture_output=True,
         text=True,
     )
-    if proc.returncode:
+    if proc.returncode not in VERDICT_CODES:
         return f"failed: {proc.stderr[-500:]}"
-    wall, kb = proc.stderr.strip().splitlines()[-1].split()
-    return f"{n} points: {float(wall):.1f} s wall, peak RSS {int(kb) / 1024**2:.2f} GB"
+    wall, user, system, kb = proc.stderr.strip().splitlines()[-1].split()
+    return (
+        f"{n} points: {float(wall):.1f} s wall, CPU (user+sys) {float(user) + float(system):.1f} s, "
+        f"peak RSS {int(kb) / 1024**2:.2f} GB"
+    )
 
 
-def main(n: int = 200_000, rounds: int = 5, big: int = 5_000_000) -> None:
+def main(n: int = 200_000, rounds: int = 5, big: int = 5_000_000, base: Path | None = None) -> None:
     if shutil.which("CloudCompare") is None:
         sys.exit("CloudCompare not found: apt-get install cloudcompare (make bench does)")
     print(f"nproc {os.cpu_count()}, load average {os.getloadavg()}, {rounds} rounds")
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         nominal, cloud = make_inputs(folder, n)
-        run_cell(nominal, cloud, folder / "warm")  # numba's on-disk cache and the OS file cache
-        cell_t, cc_t, cell_cpu, cc_cpu = [], [], [], []
-        for k in range(rounds):
+        trees = {"cell compare": REPO} | ({f"cell compare ({base})": base} if base else {})
+        for tree in trees.values():  # numba's on-disk cache and the OS file cache
+            run_cell(nominal, cloud, folder / f"warm{len(str(tree))}", tree)
+        wall: dict[str, list[float]] = {name: [] for name in [*trees, "CloudCompare -C2M_DIST"]}
+        cpu: dict[str, list[float]] = {name: [] for name in wall}
+        for k in range(rounds):  # interleaved: every tool sees the same load
+            for name, tree in trees.items():
+                c = child_cpu()
+                wall[name].append(run_cell(nominal, cloud, folder / f"cell{k}{len(name)}", tree))
+                cpu[name].append(child_cpu() - c)
             c = child_cpu()
-            cell_t.append(run_cell(nominal, cloud, folder / f"cell{k}"))
-            cell_cpu.append(child_cpu() - c)
-            c = child_cpu()
-            cc_t.append(run_cloudcompare(nominal, cloud))
-            cc_cpu.append(child_cpu() - c)
+            wall["CloudCompare -C2M_DIST"].append(run_cloudcompare(nominal, cloud))
+            cpu["CloudCompare -C2M_DIST"].append(child_cpu() - c)
         print(f"{n} points vs 20480 triangles, whole process, default outputs:")
-        for name, ts, cpu in (("cell compare", cell_t, cell_cpu), ("CloudCompare -C2M_DIST", cc_t, cc_cpu)):
+        for name in wall:
             print(
-                f"  {name:24s} wall median {statistics.median(ts):6.2f} s  best {min(ts):6.2f} s; "
-                f"CPU (user+sys) median {statistics.median(cpu):5.2f} s"
+                f"  {name:24s} wall median {statistics.median(wall[name]):6.2f} s  best "
+                f"{min(wall[name]):6.2f} s; CPU (user+sys) median {statistics.median(cpu[name]):5.2f} s"
             )
-        print(
-            f"  ratio (median) {statistics.median(cell_t) / statistics.median(cc_t):.2f}x, "
-            f"(best) {min(cell_t) / min(cc_t):.2f}x, "
-            f"(CPU) {statistics.median(cell_cpu) / statistics.median(cc_cpu):.2f}x"
-        )
-        print("agreement: " + agreement(folder, nominal, cloud, folder / "cell0"))
+        cc = "CloudCompare -C2M_DIST"
+        med = {name: (statistics.median(wall[name]), statistics.median(cpu[name])) for name in wall}
+        for name in trees:
+            print(
+                f"  {name}: ratio (median) {med[name][0] / med[cc][0]:.2f}x, "
+                f"(best) {min(wall[name]) / min(wall[cc]):.2f}x, (CPU) {med[name][1] / med[cc][1]:.2f}x"
+            )
+        print("agreement: " + agreement(folder, nominal, cloud, folder / f"cell0{len('cell compare')}"))
         if big:
             print("large cloud: " + big_run(folder, nominal, big))
     print(f"load average after {os.getloadavg()}")
 
 
 if __name__ == "__main__":
-    main(*(int(a) for a in sys.argv[1:]))
+    numbers = [int(a) for a in sys.argv[1:] if not a.startswith("--")]
+    older = [Path(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--base=")]
+    main(*numbers, base=older[0] if older else None)

@@ -1,61 +1,212 @@
-"""Start-up time of the `cell` command: `cell --help`, each command's help and an immediate usage error.
+"""Start-up of the `cell` command: `cell --help`, and for every command its help, a usage error and the first
+line of real work, each as a fresh process, wall and CPU time.
 
-Each command line runs as a fresh process ROUNDS times, interleaved; the median and best wall times are
-printed with the load average. With `--base DIR` (a checkout of an older commit, e.g.
-`git archive f94ac49 | tar -x -C /tmp/base`) the same lines run from that tree too, side by side.
+Every command line runs ROUNDS times, interleaved (all lines once, then again), so that all see the same load;
+the median and best wall time and the median CPU time (user + system) are printed with the load average.
 
-    .venv/bin/python bench/bench_startup.py [--rounds 10] [--base /tmp/base]
+- help: `cell CMD --help` to its end (CPU from the child's rusage);
+- usage: `cell CMD --bogus-option` (one line, exit code 2) to its end;
+- first line: `cell CMD ...` with real inputs in a scratch folder until its first line of output arrives
+  (stdout or stderr, unbuffered); the CPU time is the child's at that moment (/proc/PID/stat, 10 ms ticks),
+  then the process group is killed unless it ended first. Heavy commands (inspect, calibrate, ...) are
+  killed right after their first line: the figure is how long a user waits to see what the command does.
+
+With `--base DIR` (an older tree, e.g. `git archive f94ac49 | tar -x -C /tmp/base`) the same lines run from
+that tree too, side by side. `--only help,usage` limits the kinds; `--match compare` the command lines.
+
+    .venv/bin/python bench/bench_startup.py [--rounds 3] [--base /tmp/base] [--only first] [--match calib]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import select
+import shutil
+import signal
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-LINES = [
-    ["--help"],
-    ["compare", "--help"],
-    ["compare"],  # usage error: missing arguments
-    ["plan", "--help"],
-    ["scan", "--help"],
-    ["glass", "--help"],
-    ["devices", "--help"],
-    ["docs", "--help"],
-    ["sensor", "--help"],
-    ["inspect", "--help"],
-    ["calibrate", "--help"],
+TICK = os.sysconf("SC_CLK_TCK")
+SIM = "recipes/cells/sim_binned.yaml"
+
+# the commands and sub-commands, each with the arguments of one real job (T: the scratch folder)
+JOBS: list[tuple[str, list[str]]] = [
+    ("inspect", ["recipes/pillar.yaml", "--cell", SIM, "--out", "T/inspect"]),
+    ("resume", ["T/inspect"]),
+    ("report", ["T/inspect"]),
+    ("abort", ["T/inspect"]),
+    ("demo", ["--runs", "T/demo", "--cell", SIM, "--no-calibrate"]),
+    ("history", ["--runs", "T/runs"]),
+    ("prune", ["--runs", "T/runs", "--dry-run"]),
+    ("plan", ["recipes/pillar.yaml", "--cell", SIM, "--out", "T/plan"]),
+    ("scan", ["--cell", SIM, "--out", "T/scan"]),
+    ("compare", ["T/nominal.stl", "T/cloud.ply", "--out", "T/compare", "--table-z", "none"]),
+    ("glass", ["recipes/glass/pane.yaml", "--out", "T/glass"]),
+    *[
+        (f"calibrate {r}", ["--cell", SIM, "--out", f"T/cal-{r}"])
+        for r in (
+            "sensor",
+            "intrinsics",
+            "projector",
+            "gamma",
+            "handeye",
+            "kinematics",
+            "latency",
+            "validate",
+        )
+    ],
+    ("calibrate all", ["--cell", SIM, "--out", "T/cal-all"]),
+    ("verify acceptance", ["--cell", SIM, "--out", "T/acceptance"]),
+    ("verify check", ["--cell", SIM, "--runs", "T/runs"]),
+    ("verify history", ["--runs", "T/runs"]),
+    ("sensor error-table", []),
+    ("devices", ["--cell", SIM]),
+    ("docs", ["--out", "T/docs"]),
+    ("station serve", ["--runs", "T/runs", "--port", "18473", "--cell", SIM]),
+    ("station users list", ["--runs", "T/runs"]),
 ]
 
 
-def once(tree: Path, args: list[str]) -> float:
+@dataclass(frozen=True)
+class Line:
+    kind: str  # "help", "usage", "first"
+    args: tuple[str, ...]
+
+    def label(self) -> str:
+        return "cell " + " ".join(a if not a.startswith("T/") else "…/" + a[2:] for a in self.args)
+
+
+def lines() -> list[Line]:
+    out = [Line("help", ("--help",))]
+    for name, job in JOBS:
+        words = tuple(name.split())
+        out.append(Line("help", (*words, "--help")))
+        out.append(Line("usage", (*words, "--bogus-option")))
+        out.append(Line("first", (*words, *job)))
+    return out
+
+
+def _cpu_of(pid: int) -> float:
+    """utime + stime of a live process (s)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / TICK
+
+
+def _first_line(proc: subprocess.Popen, timeout_s: float) -> bytes | None:
+    """The first line the process writes (or all it wrote before it ended), None after ``timeout_s``."""
+    assert proc.stdout is not None
+    fd, got, end = proc.stdout.fileno(), b"", time.monotonic() + timeout_s
+    while b"\n" not in got:
+        ready, _, _ = select.select([fd], [], [], max(0.0, end - time.monotonic()))
+        if not ready:
+            return None
+        chunk = os.read(fd, 4096)
+        if not chunk:
+            break
+        got += chunk
+    return got.split(b"\n")[0]
+
+
+def run_line(tree: Path, line: Line, scratch: Path, timeout_s: float) -> tuple[float, float, str]:
+    """Wall and CPU seconds of one run of ``line`` from ``tree``; and the line it printed first. A first
+    line that takes longer than ``timeout_s`` counts as inf (the process is killed)."""
+    args = [str(scratch / a[2:]) if a.startswith("T/") else a for a in line.args]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(tree), "COLUMNS": "100"}
     t = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "cell", *args], cwd=tree, capture_output=True)
-    return time.perf_counter() - t
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cell", *args],
+        cwd=tree,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    assert proc.stdout is not None
+    if line.kind != "first":
+        out = proc.stdout.read()
+        _, _, ru = os.wait4(proc.pid, 0)
+        proc.returncode = 0
+        wall = time.perf_counter() - t
+        return wall, ru.ru_utime + ru.ru_stime, out.decode(errors="replace").strip().split("\n")[0]
+    first = _first_line(proc, timeout_s)
+    wall = time.perf_counter() - t if first is not None else float("inf")
+    try:
+        cpu = _cpu_of(proc.pid)
+    except (FileNotFoundError, ProcessLookupError, IndexError):
+        cpu = float("nan")  # it ended with that line: use its rusage below
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+    _, _, ru = os.wait4(proc.pid, 0)
+    proc.returncode = 0
+    if cpu != cpu:
+        cpu = ru.ru_utime + ru.ru_stime
+    if first is None:
+        return wall, float("inf"), f"(no line within {timeout_s:g} s)"
+    return wall, cpu, first.decode(errors="replace").strip()
+
+
+def make_compare_inputs(scratch: Path) -> None:
+    """A small nominal and cloud for `cell compare` (bench_compare's sphere, 20k points)."""
+    sys.path.insert(0, str(REPO / "bench"))
+    from bench_compare import make_inputs
+
+    nominal, cloud = make_inputs(scratch, 20_000)
+    shutil.move(cloud, scratch / "cloud.ply")
+
+
+def reset(scratch: Path) -> None:
+    """Empty the output folders of the previous round (commands refuse an --out that holds files)."""
+    for child in scratch.iterdir():
+        if child.is_dir():
+            shutil.rmtree(child, ignore_errors=True)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--rounds", type=int, default=10)
+    ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--base", type=Path, default=None, help="an older tree to compare with")
+    ap.add_argument("--only", default="help,usage,first", help="kinds of line: help, usage, first")
+    ap.add_argument("--match", default="", help="only command lines containing this text")
+    ap.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for a first line")
     args = ap.parse_args()
     trees = {"now": REPO} | ({"base": args.base} if args.base else {})
-    print(f"nproc {os.cpu_count()}, load average {os.getloadavg()}, {args.rounds} rounds")
-    times = {(name, i): [] for name in trees for i in range(len(LINES))}
-    for _ in range(args.rounds):
-        for i, line in enumerate(LINES):
-            for name, tree in trees.items():
-                times[(name, i)].append(once(tree, line))
-    head = "".join(f"{name + ' median/best s':>24s}" for name in trees)
-    print(f"{'command line':26s}{head}")
-    for i, line in enumerate(LINES):
-        cols = "".join(f"{statistics.median(times[(n, i)]):>14.3f} / {min(times[(n, i)]):.3f}" for n in trees)
-        print(f"{'cell ' + ' '.join(line):26s}{cols}")
+    kinds = args.only.split(",")
+    todo = [ln for ln in lines() if ln.kind in kinds and args.match in " ".join(ln.args)]
+    print(f"nproc {os.cpu_count()}, load average {os.getloadavg()}, {args.rounds} rounds, {len(todo)} lines")
+    times: dict[tuple[str, Line], list[tuple[float, float]]] = {(n, ln): [] for n in trees for ln in todo}
+    said: dict[tuple[str, Line], str] = {}
+    with tempfile.TemporaryDirectory(prefix="bench_startup_") as tmp:
+        scratch = Path(tmp)
+        make_compare_inputs(scratch)
+        for _ in range(args.rounds):
+            for ln in todo:
+                for name, tree in trees.items():
+                    reset(scratch)
+                    wall, cpu, first = run_line(tree, ln, scratch, args.timeout)
+                    times[(name, ln)].append((wall, cpu))
+                    said[(name, ln)] = first
+    width = max(len(ln.label()) for ln in todo) + 2
+    head = "".join(f"{name + ': wall median / best, CPU median (s)':>44s}" for name in trees)
+    print(f"{'':7s}{'command line':{width}s}{head}")
+    for ln in todo:
+        cols = ""
+        for n in trees:
+            walls, cpus = zip(*times[(n, ln)], strict=True)
+            cols += f"{statistics.median(walls):>24.3f} / {min(walls):.3f}, {statistics.median(cpus):.3f}"
+        print(f"{ln.kind:7s}{ln.label():{width}s}{cols}")
+    if "first" in kinds:
+        print("\nfirst line printed (now):")
+        for ln in todo:
+            if ln.kind == "first":
+                print(f"  {ln.label():{width}s}{said[('now', ln)][:110]}")
     print(f"load average after {os.getloadavg()}")
 
 

@@ -3,12 +3,18 @@ run's own pattern stacks (docs/storage.md records the figures).
 
     .venv/bin/python bench/bench_storage.py sizes RUN_DIR [RUN_DIR ...]
     .venv/bin/python bench/bench_storage.py codecs RUN_DIR [--views 0,6,9]
+    .venv/bin/python bench/bench_storage.py cloud RUN_DIR
 
 ``codecs`` reads the raw stacks a run kept (views/NNN/raw/, e.g. a failed run under the default retention)
 and encodes each with every candidate: OpenCV's PNG at zlib levels 1-9, WebP lossless (8-bit only),
 multi-page TIFF with deflate, NumPy's deflated .npz; and, when installed (not dependencies of the cell),
 imagecodecs' JPEG-LS and JPEG-XL and zstandard. Sizes are per view; times are the encoding CPU time per view
 (``time.process_time``: the shared machine's load changes wall times more).
+
+``cloud`` shows what storing results/cloud.ply's coordinates as float32 changes: the run's stored cloud is
+judged against its nominal (``inputs/``, the recipe's band, part frame = the nominal's frame) as stored, and
+moved by a random amount within half a float32 step of every coordinate (what a float64 source could have
+held and rounded to the same file); the figures of both are printed with their differences.
 """
 
 from __future__ import annotations
@@ -121,15 +127,53 @@ def codecs(run: Path, views: list[int] | None) -> None:
         print(f"  {name:44s} {n / len(stacks) / 1e6:10.2f} {raw * len(stacks) / n:6.2f} {dt:13.2f}")
 
 
+def cloud(run: Path) -> None:
+    import json
+
+    import trimesh
+    import yaml
+
+    from cell.analysis.errormap import NominalMesh
+    from cell.analysis.judge import judge
+    from cell.analysis.report import Tolerance, summarise
+    from cell.analysis.report_files import read_ply_points, stored_points
+
+    pts = read_ply_points(run / "results" / "cloud.ply")
+    manifest = json.loads((run / "inputs" / "manifest.json").read_text())
+    band = yaml.safe_load((run / "inputs" / manifest["recipe"]).read_text())["tolerance"]
+    nominal = NominalMesh.from_trimesh(trimesh.load(run / "inputs" / manifest["cad"]))
+    half = np.spacing(np.abs(pts).astype(np.float32)).astype(np.float64) / 2
+    moved = pts + np.random.default_rng(0).uniform(-1, 1, pts.shape) * half
+    assert np.array_equal(stored_points(moved), pts)  # both round to the stored file
+    print(
+        f"{len(pts)} points, |coordinate| up to {np.abs(pts).max():.1f} mm: rounded by up to "
+        f"{half.max() * 1e6:.1f} nm"
+    )
+    docs = [
+        summarise(judge(nominal, p, Tolerance(band["lower"], band["upper"]), min_defect_points=10), [])
+        for p in (pts, moved)
+    ]
+    flat = [{**d["deviation"], **d["deviation"]["percentiles_mm"]} for d in docs]
+    for k, a in flat[0].items():
+        if isinstance(a, float):
+            print(f"  {k:10s} {a:+.9f} {flat[1][k]:+.9f} mm  differ by {abs(a - flat[1][k]) * 1e6:.3f} nm")
+    print(
+        f"  verdict {docs[0]['verdict']} / {docs[1]['verdict']}, out of tolerance "
+        f"{docs[0]['n_out_of_tolerance']} / {docs[1]['n_out_of_tolerance']}"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("what", choices=("sizes", "codecs"))
+    ap.add_argument("what", choices=("sizes", "codecs", "cloud"))
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--views", help="codecs: view indices, comma-separated (default: all with raw images)")
     a = ap.parse_args()
     if a.what == "sizes":
         for run in a.runs:
             sizes(run)
+    elif a.what == "cloud":
+        cloud(a.runs[0])
     else:
         codecs(a.runs[0], [int(v) for v in a.views.split(",")] if a.views else None)
 

@@ -167,6 +167,7 @@ def analyse_seed(seed: int, out: Path, tolerance: float) -> dict[str, Any]:
     from cell.analysis.judge import judge
     from cell.analysis.regions import Tolerance
     from cell.analysis.report import summarise
+    from cell.analysis.report_files import decode_uncertainty
 
     folder = out / f"seed{seed}"
     depth = DEPTH_FACTORS[(seed - 1) % len(DEPTH_FACTORS)] * tolerance
@@ -174,7 +175,7 @@ def analyse_seed(seed: int, out: Path, tolerance: float) -> dict[str, Any]:
     actual = NominalMesh.from_trimesh(trimesh.load(folder / f"box_dent_seed{seed}.stl"))
     nominal = NominalMesh.from_trimesh(trimesh.load(folder / "box.stl"))
     judged = cloud["isolated"] == 0 if "isolated" in cloud else np.ones(len(cloud["points"]), bool)
-    pts, u = cloud["points"], cloud["uncertainty"].astype(np.float64)
+    pts, u = cloud["points"], decode_uncertainty(cloud["uncertainty"])
     error = signed_distance(actual, pts).deviation_mm
     verdicts = {}
     for rule in ("simple", "guarded"):

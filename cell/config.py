@@ -18,8 +18,10 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
+from cell.defaults import DEFAULT_CELL as DEFAULT_CELL  # re-exported: where the commands' default lived
 from cell.errors import ConfigError
 from cell.geometry import Pose, pose_from_xyz_rpy
+from cell.limits import tolerance_problem
 from cell.planning.settings import PlanSettings
 from cell.retention import RetentionConfig
 from cell.schema import Fraction, PositiveFloat, Strict, Vec3
@@ -356,20 +358,6 @@ class CellConfig(Strict):
 
 
 # --------------------------------------------------------------------------------------------- recipes
-MAX_TOLERANCE_MM = 50.0  # a band wider than this is not a tolerance
-MIN_TOLERANCE_MM = 0.001  # a limit closer to zero than 1 um (but not zero) is a value in metres
-
-
-def tolerance_problem(*limits_mm: float) -> str | None:
-    """What is implausible about tolerance limits in mm, or None: a limit beyond +-50 mm, or one nearer to
-    zero than 0.001 mm without being zero (-0.0003 is a band of 0.3 mm written in metres). Zero itself is a
-    one-sided band's limit."""
-    for v in limits_mm:
-        if abs(v) > MAX_TOLERANCE_MM:
-            return f"{v:g} mm is not a plausible tolerance (units are mm)"
-        if 0 < abs(v) < MIN_TOLERANCE_MM:
-            return f"{v:g} mm is below 1 um: a tolerance in metres? (units are mm; {v:g} m = {v * 1000:g} mm)"
-    return None
 
 
 class ToleranceConfig(Strict):
@@ -652,6 +640,3 @@ def config_fingerprint(cfg: CellConfig) -> str:
     (``results_db``) and how long raw images are kept (``retention``) measure nothing and are left out too."""
     data = cfg.model_dump(mode="json", exclude={"calibration", "results_db", "retention"})
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
-
-
-DEFAULT_CELL = Path(__file__).resolve().parent.parent / "recipes" / "cells" / "sim.yaml"

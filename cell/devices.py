@@ -12,9 +12,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
-
-import trimesh
+from typing import TYPE_CHECKING, Any
 
 from cell.config import CameraConfig, CellConfig, MaterialConfig
 from cell.contracts import (
@@ -28,6 +26,9 @@ from cell.contracts import (
     TriggerMode,
 )
 from cell.errors import ConfigError
+
+if TYPE_CHECKING:
+    import trimesh
 
 # (device kind, driver name) -> "module:Class". Sim devices are not listed: they share one simulated world
 # and are built together by fakes.sim_cell.build_sim_cell.

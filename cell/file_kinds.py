@@ -74,7 +74,7 @@ FILE_KINDS: tuple[FileKind, ...] = (
     ),
     _kind(
         "region file",
-        "cell.analysis.regions:_RegionFile",
+        "cell.analysis.region_file:RegionFile",
         "regions",
         "",
         "give it to `cell compare --regions`, or copy its entries under a recipe's 'regions:'",

@@ -1,18 +1,28 @@
 """Rigid transforms as 4x4 float64 matrices named ``T_<to>_<from>`` (mm, rad).
 
 ``T_B_T @ p_T`` maps a homogeneous point from the tool frame {T} into the base frame {B}.
-SciPy's Rotation does the rotation algebra; these helpers only fix the cell's conventions.
+SciPy's Rotation does the rotation algebra; these helpers only fix the cell's conventions. It is imported by
+the functions that use it (scipy.spatial costs about 0.4 s of CPU to import): the config schemas import this
+module for their types, and a command that only reads a config should not pay for it.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 Pose = NDArray[np.float64]
+
+
+def _rotation() -> type[Rotation]:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
 
 
 def make_pose(rotation: ArrayLike | None = None, translation_mm: ArrayLike | None = None) -> Pose:
@@ -27,17 +37,17 @@ def make_pose(rotation: ArrayLike | None = None, translation_mm: ArrayLike | Non
 
 def pose_from_xyz_rpy(xyz_mm: ArrayLike, rpy_rad: ArrayLike) -> Pose:
     """Pose from a translation (mm) and fixed-axis roll, pitch, yaw (rad): R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    return make_pose(Rotation.from_euler("xyz", np.asarray(rpy_rad, dtype=np.float64)).as_matrix(), xyz_mm)
+    return make_pose(_rotation().from_euler("xyz", np.asarray(rpy_rad, dtype=np.float64)).as_matrix(), xyz_mm)
 
 
 def pose_from_xyz_rotvec(xyz_mm: ArrayLike, rotvec_rad: ArrayLike) -> Pose:
     """Pose from a translation (mm) and a rotation vector (axis * angle, rad), as UR controllers use."""
-    return make_pose(Rotation.from_rotvec(np.asarray(rotvec_rad, dtype=np.float64)).as_matrix(), xyz_mm)
+    return make_pose(_rotation().from_rotvec(np.asarray(rotvec_rad, dtype=np.float64)).as_matrix(), xyz_mm)
 
 
 def pose_to_xyz_rotvec(T: Pose) -> NDArray[np.float64]:
     """Inverse of :func:`pose_from_xyz_rotvec`: a 6-vector [x, y, z (mm), rx, ry, rz (rad)]."""
-    return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+    return np.concatenate([T[:3, 3], _rotation().from_matrix(T[:3, :3]).as_rotvec()])
 
 
 def invert(T: Pose) -> Pose:
@@ -85,7 +95,7 @@ def look_at(eye_mm: ArrayLike, target_mm: ArrayLike, up: ArrayLike = (0.0, 1.0, 
 def rotation_angle_between(Ta: Pose, Tb: Pose) -> float:
     """Angle (rad) of the relative rotation between two poses."""
     R = Ta[:3, :3].T @ Tb[:3, :3]
-    return float(np.linalg.norm(Rotation.from_matrix(R).as_rotvec()))
+    return float(np.linalg.norm(_rotation().from_matrix(R).as_rotvec()))
 
 
 def incidence_cos(points: ArrayLike, normals: ArrayLike, eye: ArrayLike) -> NDArray[np.float64]:

@@ -35,7 +35,15 @@ from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixel
 from cell.analysis.merge import cut_unregistered, merge_views, voxel_subsample_index
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import write_report
-from cell.analysis.report_files import read_ply_field, read_ply_points, write_file_set, write_ply
+from cell.analysis.report_files import (
+    decode_uncertainty,
+    encode_uncertainty,
+    read_ply_field,
+    read_ply_points,
+    stored_points,
+    write_file_set,
+    write_ply,
+)
 from cell.analysis.uncertainty import TARGET_SHARE_OF_BAND, registered_cloud_uncertainty, view_uncertainty
 from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
 from cell.calibration import (
@@ -468,7 +476,7 @@ class LambertianInspection:
             alignment,
             self.aligner.datums,
         )
-        u_ply = {"uncertainty": unc.u_mm.astype(np.float32)}
+        u_ply = {"uncertainty": encode_uncertainty(unc.u_mm)}
         write_file_set(run.results_dir, {"cloud.ply": lambda path: write_ply(path, points_P, fields=u_ply)})
         return {
             "n_points": int(len(points_P)),
@@ -514,7 +522,11 @@ class LambertianInspection:
         deviations.csv when ``csv``. The report replaces the cloud.ply by one with the deviation field."""
         legacy = run.results_dir / "points_P.npy"  # a run registered before the cloud was stored once
         pts_P = np.load(legacy) if legacy.is_file() else read_ply_points(run.results_dir / "cloud.ply")
-        u = None if legacy.is_file() else read_ply_field(run.results_dir / "cloud.ply", "uncertainty")
+        u_stored = None if legacy.is_file() else read_ply_field(run.results_dir / "cloud.ply", "uncertainty")
+        u = None if u_stored is None else decode_uncertainty(u_stored)
+        # as cloud.ply stores them (float32): a no-op on a cloud written so; an older float64 cloud is judged
+        # as the report will store it, so the next rebuild gives the same figures
+        pts_P = stored_points(pts_P)
         nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
         tol = self.recipe.tolerance
         checkpoint = Checkpoint.from_json(run.load_checkpoint())
@@ -579,7 +591,7 @@ class LambertianInspection:
             },
         )
         doc = write_report(run.results_dir, inp, pictures=self.settings.pictures, csv=csv)
-        legacy.unlink(missing_ok=True)  # cloud.ply now holds the same points
+        legacy.unlink(missing_ok=True)  # cloud.ply now holds its points as judged (float32)
         return {
             "verdict": doc.get("verdict"),
             "n_points": doc.get("n_points"),

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from cell.config import CellConfig, PartConfig, Recipe, load_cell_config, load_recipe, read_yaml, validate
+from cell.defaults import DEMO_CELL as DEMO_CELL  # the honest world: it differs from the config
 from cell.errors import ConfigError
 from cell.run_data import Checkpoint, Phase, RunIdentity
 from cell.runs import (
@@ -37,7 +38,6 @@ if TYPE_CHECKING:
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_RECIPE = REPO / "recipes" / "pillar.yaml"
-DEMO_CELL = REPO / "recipes" / "cells" / "sim.yaml"  # the honest world: it differs from the config
 IDEAL_CELL = REPO / "recipes" / "cells" / "sim_ideal.yaml"  # the world equals the config: a noise floor
 
 Say = Callable[[str], None]

@@ -7,31 +7,142 @@ triangles are removed with a :class:`MeshWarning` (CAD exporters often leave a f
 allowed (sheet-metal CAD is often a surface model) and shows in :func:`mesh_summary`.
 
 Units: millimetres. The mesh is returned in the file's own frame (the part frame {P}).
+
+:func:`load_mesh_arrays` gives the same mesh as arrays, with the same checks, errors and warnings, and reads a
+plain binary STL or triangle PLY without importing trimesh (:mod:`cell.mesh_files`): ``cell compare`` starts
+1 s of CPU sooner. The checks work on arrays, shared by both paths; merging duplicate vertices repeats
+trimesh's rule (positions rounded to 1e-8 mm, first occurrence kept); tests/test_mesh.py compares the two.
 """
 
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import trimesh
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from cell.errors import ConfigError
 
 if TYPE_CHECKING:
+    import trimesh
+
     from cell.config import CellConfig, Recipe
 
 MESH_SUFFIXES = (".stl", ".ply", ".obj")
 STEP_SUFFIXES = (".step", ".stp")
 MIN_EXTENT_MM = 1.0
 MAX_EXTENT_MM = 5000.0
+MERGE_DIGITS = 8  # trimesh's tol.merge (1e-8): vertices equal when their coordinates round alike at 1e-8 mm
 
 
 class MeshWarning(UserWarning):
     """A mesh problem that was repaired on load (e.g. zero-area triangles removed)."""
+
+
+@dataclass(frozen=True)
+class MeshArrays:
+    """A validated triangle mesh (mm) as :func:`load_mesh` would return it: vertices (V, 3) float64, faces
+    (F, 3) int64, and how many zero-area triangles were removed."""
+
+    vertices: NDArray[np.float64]
+    faces: NDArray[np.int64]
+    degenerate_removed: int = 0
+
+
+def _check_file(p: Path, where: str) -> str:
+    """The lower-case suffix of a mesh file that exists and is not empty; ConfigError otherwise."""
+    suffix = p.suffix.lower()
+    if suffix not in MESH_SUFFIXES + STEP_SUFFIXES:
+        raise ConfigError(
+            f"unsupported mesh format '{p.suffix}'; use one of {', '.join(MESH_SUFFIXES + STEP_SUFFIXES)}",
+            path=where,
+        )
+    if not p.is_file():
+        raise ConfigError("file not found; check the path", path=where)
+    if p.stat().st_size == 0:
+        raise ConfigError("file is empty (0 bytes)", path=where)
+    return suffix
+
+
+def load_mesh_arrays(
+    path: str | Path,
+    *,
+    what: str = "part CAD",
+    min_extent_mm: float = MIN_EXTENT_MM,
+    max_extent_mm: float = MAX_EXTENT_MM,
+) -> MeshArrays:
+    """:func:`load_mesh` as arrays: the same checks, errors and warnings; a plain binary STL or triangle PLY
+    is read without trimesh (others go through :func:`load_mesh`)."""
+    from cell.mesh_files import read_plain_mesh
+
+    p = Path(path)
+    where = f"{what} {p}"
+    suffix = _check_file(p, where)
+    plain = read_plain_mesh(p) if suffix in (".stl", ".ply") else None
+    if plain is None:
+        mesh = load_mesh(p, what=what, min_extent_mm=min_extent_mm, max_extent_mm=max_extent_mm)
+        return MeshArrays(
+            np.asarray(mesh.vertices, np.float64),
+            np.asarray(mesh.faces, np.int64),
+            int(mesh.metadata.get("degenerate_removed", 0)),
+        )
+    v, f = plain
+    _check_finite(v, where)
+    v, f = merge_vertices(v, f)
+    _check_edges(f, where)
+    keep = nondegenerate(v, f)
+    n = int((~keep).sum())
+    if n:
+        _degenerate_found(n, len(f), where, stacklevel=3)
+        f = f[keep]
+        used = np.zeros(len(v), bool)
+        used[f] = True
+        v, f = v[used], (np.cumsum(used) - 1)[f]
+    check_extent(np.ptp(v, axis=0), where, min_extent_mm, max_extent_mm)
+    return MeshArrays(v, f, n)
+
+
+def merge_vertices(vertices: ArrayLike, faces: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Vertices equal to :data:`MERGE_DIGITS` digits merged, as ``trimesh.Trimesh.merge_vertices`` merges a
+    mesh of positions only: the referenced vertices in the order of their first occurrence (the first of
+    equal ones kept), unreferenced ones dropped, faces renumbered."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    if len(v) == 0:
+        return v, f
+    referenced = np.zeros(len(v), bool)
+    referenced[f] = True
+    used = np.flatnonzero(referenced)
+    rounded = (v[used] * (10**MERGE_DIGITS)).round().astype(np.int64)
+    # equal rows next to each other, each run in index order (lexsort is stable): its first is the first
+    # occurrence. 10x faster than np.unique(axis=0), which sorts the rows as opaque bytes.
+    order = np.lexsort(rounded.T[::-1])
+    sorted_rows = rounded[order]
+    starts = np.r_[True, (sorted_rows[1:] != sorted_rows[:-1]).any(axis=1)]
+    group = np.cumsum(starts) - 1  # run of each sorted row
+    first = order[starts]  # first occurrence of each run (index into used)
+    rank = np.empty(len(first), np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(first))  # runs in order of first occurrence
+    renumber = np.zeros(len(v), np.int64)
+    renumber[used[order]] = rank[group]
+    return v[used[np.sort(first)]], renumber[f]
+
+
+def nondegenerate(vertices: NDArray[np.float64], faces: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Faces whose 2D oriented box has both sides longer than 1e-8 mm: ``trimesh``'s
+    ``nondegenerate_faces`` (same expressions, same result bit for bit)."""
+    tri = vertices[faces]
+    vectors = tri[:, 1:, :] - tri[:, :2, :]
+    areas = np.sqrt((np.cross(vectors[:, 0], vectors[:, 1]) ** 2).sum(axis=1)) / 2.0
+    box = np.zeros((len(faces), 2), dtype=np.float64)
+    for k, edge in enumerate((tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])):
+        length = (edge**2).sum(axis=1) ** 0.5
+        ok = length > 10.0**-MERGE_DIGITS
+        box[:, k][ok] = (areas[ok] * 2) / length[ok]
+    return np.asarray((box > 10.0**-MERGE_DIGITS).all(axis=1), dtype=bool)
 
 
 def load_mesh(
@@ -45,18 +156,11 @@ def load_mesh(
 
     Duplicate vertices are merged (STL stores none shared) so that edges and manifoldness are meaningful.
     """
+    import trimesh
+
     p = Path(path)
     where = f"{what} {p}"
-    suffix = p.suffix.lower()
-    if suffix not in MESH_SUFFIXES + STEP_SUFFIXES:
-        raise ConfigError(
-            f"unsupported mesh format '{p.suffix}'; use one of {', '.join(MESH_SUFFIXES + STEP_SUFFIXES)}",
-            path=where,
-        )
-    if not p.is_file():
-        raise ConfigError("file not found; check the path", path=where)
-    if p.stat().st_size == 0:
-        raise ConfigError("file is empty (0 bytes)", path=where)
+    suffix = _check_file(p, where)
     if suffix in STEP_SUFFIXES:
         _require_step_support(where)
     try:
@@ -77,16 +181,20 @@ def load_mesh(
         # cascadio converts through glTF, whose unit is the metre: back to millimetres.
         mesh.apply_scale(1000.0)
 
-    bad = ~np.isfinite(mesh.vertices).all(axis=1)
-    if bad.any():
-        raise ConfigError(
-            f"{int(bad.sum())} of {len(mesh.vertices)} vertices have NaN or infinite coordinates", path=where
-        )
+    _check_finite(mesh.vertices, where)
     mesh.merge_vertices()
-    _check_manifold(mesh, where)
+    _check_edges(mesh.faces, where)
     _remove_degenerate(mesh, where)
     check_units(mesh, where, min_extent_mm, max_extent_mm)
     return mesh
+
+
+def _check_finite(vertices: NDArray[np.float64], where: str) -> None:
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise ConfigError(
+            f"{int(bad.sum())} of {len(vertices)} vertices have NaN or infinite coordinates", path=where
+        )
 
 
 def _require_step_support(where: str) -> None:
@@ -107,9 +215,11 @@ def _require_step_support(where: str) -> None:
     mesh_loaders.update({"stp": cascade.load_step, "step": cascade.load_step})  # type: ignore[dict-item]
 
 
-def _check_manifold(mesh: trimesh.Trimesh, where: str) -> None:
+def _check_edges(faces: ArrayLike, where: str) -> None:
     """Refuse edges shared by more than two faces: inside/outside and normals are undefined there."""
-    uses = np.bincount(mesh.edges_unique_inverse, minlength=len(mesh.edges_unique))
+    f = np.asarray(faces, np.int64)
+    a, b = f.ravel(), np.roll(f, -1, axis=1).ravel()  # edges ab, bc, ca of each face
+    _, uses = np.unique(np.minimum(a, b) * (int(f.max()) + 1) + np.maximum(a, b), return_counts=True)
     over = int((uses > 2).sum())
     if over:
         raise ConfigError(
@@ -127,13 +237,19 @@ def _remove_degenerate(mesh: trimesh.Trimesh, where: str) -> None:
     n = int(degenerate.sum())
     if n == 0:
         return
-    if n == len(mesh.faces):
-        raise ConfigError(f"all {n} triangles have zero area; nothing to inspect", path=where)
+    _degenerate_found(n, len(mesh.faces), where)
     mesh.update_faces(~degenerate)
     mesh.remove_unreferenced_vertices()
     mesh.metadata["degenerate_removed"] = n
+
+
+def _degenerate_found(n: int, n_faces: int, where: str, stacklevel: int = 5) -> None:
+    """ConfigError when all ``n_faces`` are degenerate, else the MeshWarning that ``n`` are removed (at the
+    line that loaded the mesh: ``stacklevel`` counts the frames up to it)."""
+    if n == n_faces:
+        raise ConfigError(f"all {n} triangles have zero area; nothing to inspect", path=where)
     warnings.warn(
-        f"{where}: removed {n} zero-area triangle(s) of {n + len(mesh.faces)}", MeshWarning, stacklevel=3
+        f"{where}: removed {n} zero-area triangle(s) of {n_faces}", MeshWarning, stacklevel=stacklevel
     )
 
 
@@ -148,7 +264,17 @@ def check_units(
     A part under ``min_extent_mm`` is most likely written in metres (scale by 1000); one over
     ``max_extent_mm`` in micrometres (scale by 0.001).
     """
-    largest = float(mesh.extents.max())
+    check_extent(mesh.extents, path, min_extent_mm, max_extent_mm)
+
+
+def check_extent(
+    extents_mm: ArrayLike,
+    path: str | Path,
+    min_extent_mm: float = MIN_EXTENT_MM,
+    max_extent_mm: float = MAX_EXTENT_MM,
+) -> None:
+    """:func:`check_units` of a mesh whose bounding box has the sides ``extents_mm``."""
+    largest = float(np.max(extents_mm))
     if min_extent_mm <= largest <= max_extent_mm:
         return
     if largest < min_extent_mm:
@@ -179,6 +305,8 @@ def check_in_volume(
 
     ``T_W_P`` places the part in the world; the identity when omitted.
     """
+    import trimesh
+
     lo, hi = np.asarray(lower_mm, dtype=np.float64), np.asarray(upper_mm, dtype=np.float64)
     vertices = mesh.vertices if T_W_P is None else trimesh.transform_points(mesh.vertices, np.asarray(T_W_P))
     bmin, bmax = vertices.min(axis=0), vertices.max(axis=0)
@@ -218,6 +346,8 @@ def working_volume_W(cfg: CellConfig) -> tuple[np.ndarray, np.ndarray]:
     T_W_B = cfg.robot.T_W_B.matrix()
     lo, hi = np.asarray(cfg.robot.envelope_min_mm), np.asarray(cfg.robot.envelope_max_mm)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    import trimesh
+
     cw = trimesh.transform_points(corners, T_W_B)
     return np.r_[cw.min(axis=0)[:2], -1.0], cw.max(axis=0)
 

@@ -1,8 +1,9 @@
 """What an inspection's report says about its run: who and what (serial, operator, order), when it started,
 and which inputs it ran with (recipe and cell config, by file name and SHA-256 of the copies the run read).
 
-Read from the run folder itself (``inputs/manifest.json``, the copies in ``inputs/``, the journal's first
-entry), so a rebuilt report says the same as the first one. The identity is the one
+Read from the run folder itself (``inputs/manifest.json``, the copies in ``inputs/``, the start the journal
+records: :meth:`cell.runs.RunFolder.started`, which the results database states too), so a rebuilt report
+says the same as the first one. The identity is the one
 :func:`cell.inspection_run.run_identity` reads; it is read here from the manifest directly because the job
 (:mod:`cell.inspection`) must not import the run level above it.
 """
@@ -25,18 +26,6 @@ def sha256_file(path: Path) -> str | None:
         return None
 
 
-def _started_utc(run: RunFolder) -> str | None:
-    """When the run was created: the time of the journal's first entry (ISO 8601, UTC)."""
-    from datetime import UTC, datetime
-
-    try:
-        with open(run.journal_path, encoding="utf-8") as fh:
-            first = json.loads(fh.readline())
-        return datetime.fromtimestamp(float(first["t"]), UTC).isoformat(timespec="seconds")
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-
-
 def run_record(run: RunFolder, cell_name: str | None = None) -> dict[str, Any]:
     """``{folder, started_utc, identity{serial, operator, order}, recipe{file, sha256}, cell{name, file,
     sha256}}`` of an inspection run (an older run without a field gives nulls)."""
@@ -51,7 +40,7 @@ def run_record(run: RunFolder, cell_name: str | None = None) -> dict[str, Any]:
     identity = manifest.get("identity") or {}
     return {
         "folder": run.path.name,
-        "started_utc": _started_utc(run),
+        "started_utc": started.isoformat(timespec="seconds") if (started := run.started()) else None,
         "identity": {k: identity.get(k) for k in ("serial", "operator", "order")},
         "recipe": {
             "file": sources.get("recipe") or recipe,

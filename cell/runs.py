@@ -188,6 +188,32 @@ class RunFolder:
             f.flush()
             os.fsync(f.fileno())
 
+    def started(self) -> datetime | None:
+        """When the run was created (UTC): the time of its journal's ``run_created`` entry (the first line of
+        a run's journal); in a journal without one (a folder from before that entry), its first entry's;
+        without a journal, when ``inputs/manifest.json`` was written; None when there is neither. What the
+        report (:mod:`cell.run_record`) and the results database (:mod:`cell.results.folder`) both state."""
+        first: float | None = None
+        try:
+            with open(self.journal_path, encoding="utf-8") as fh:
+                for line in fh:
+                    try:
+                        entry = json.loads(line)
+                        t = float(entry["t"])
+                    except (ValueError, KeyError, TypeError):
+                        continue  # a torn last line
+                    if entry.get("event") == "run_created":
+                        return datetime.fromtimestamp(t, UTC)
+                    first = t if first is None else first
+        except OSError:
+            pass
+        if first is None:
+            try:
+                first = (self.path / "inputs" / "manifest.json").stat().st_mtime
+            except OSError:
+                return None
+        return datetime.fromtimestamp(first, UTC)
+
     def journal(self) -> list[dict[str, Any]]:
         """All complete journal entries; a torn last line (the process died mid-write) is skipped."""
         if not self.journal_path.exists():

@@ -6,8 +6,11 @@ Format 2 (docs/storage.md), written by :func:`save_view_points` and :func:`save_
   :data:`STEP_MM` (0.1 um), each the difference to the point before (neighbouring pixels lie close, so the
   differences are small numbers that compress to about 2.4 bytes a point against 24 for float64); the points'
   ``quality`` (float32 contrast, exact), ``oblique`` (bool: lit beyond the incidence limit) and ``eval``
-  (bool: the evaluation subset, one point per 0.5 mm voxel) and, in folders since issue 17, ``uncertainty``
-  (float32, mm: each point's decode and calibration uncertainty, cell.analysis.uncertainty). The 0.1 um step
+  (bool: the evaluation subset, one point per 0.5 mm voxel) and, in folders since issue 17,
+  ``uncertainty_log2`` (each point's decode and calibration uncertainty, cell.analysis.uncertainty, as
+  :func:`encode_view_uncertainty` codes it: 1/32 of an octave, rounded by at most 1.1 %, differences in pixel
+  order, about 0.15 bytes a point deflated against 3.2 for float32; folders of this branch before hold
+  ``uncertainty`` float32 mm). The 0.1 um step
   rounds a coordinate by at most 0.05 um (0.029 um RMS), what float32 itself would do at 500 mm and a
   thousandth of the sensor's noise.
 - ``raw/`` (optional, by the cell's ``retention:``): the pattern stack as the camera gave it, one lossless
@@ -80,7 +83,7 @@ def save_view_points(
         "eval": mask,
     }
     if uncertainty is not None:
-        arrays["uncertainty"] = np.asarray(uncertainty, dtype=np.float32)
+        arrays["uncertainty_log2"] = np.diff(encode_view_uncertainty(uncertainty), prepend=0).astype(np.int16)
     with open(out_dir / POINTS_FILE, "wb") as f:
         np.savez_compressed(f, **arrays)  # type: ignore[arg-type]  # mypy maps **arrays onto allow_pickle
     return _from_steps(delta, STEP_MM)
@@ -96,7 +99,7 @@ def load_view_points(view_dir: Path) -> ViewPoints:
     path = view_dir / POINTS_FILE
     if path.is_file():
         with np.load(path) as z:
-            u = z["uncertainty"] if "uncertainty" in z.files else None
+            u = _uncertainty(z)
             return ViewPoints(_from_steps(z["delta"], float(z["step_mm"])), z["quality"], z["oblique"], u)
     points = np.load(view_dir / "points_W.npy")
     oblique_file = view_dir / "oblique.npy"
@@ -119,7 +122,39 @@ def load_eval_uncertainty(view_dir: Path) -> NDArray[np.float32] | None:
     if not path.is_file():
         return None
     with np.load(path) as z:
-        return z["uncertainty"][z["eval"]] if "uncertainty" in z.files else None
+        u = _uncertainty(z)
+        return None if u is None else u[z["eval"]]
+
+
+U_CODES_PER_OCTAVE = 32  # view points' u: 2^(1/64) - 1 = 1.09 % at most from the value computed
+_U_UNIT_MM = 1e-6  # code 0: 1 nm
+_U_UNKNOWN = -1
+
+
+def encode_view_uncertainty(u_mm: NDArray[np.floating[Any]]) -> NDArray[np.int64]:
+    """Each u (mm) as round(32 log2(u / 1 nm)) (0 below 1 nm), -1 where not known: u is a standard
+    uncertainty known to a few percent, and the codes of neighbouring pixels repeat, so they deflate to a
+    twentieth of float32's bytes."""
+    u = np.asarray(u_mm, dtype=np.float64)
+    ok = np.isfinite(u) & (u > 0)
+    codes = np.full(u.shape, _U_UNKNOWN, dtype=np.int64)
+    codes[ok] = np.maximum(np.round(U_CODES_PER_OCTAVE * np.log2(u[ok] / _U_UNIT_MM)), 0)
+    codes[np.isfinite(u) & (u <= 0)] = 0
+    return codes
+
+
+def decode_view_uncertainty(codes: NDArray[np.integer[Any]]) -> NDArray[np.float32]:
+    """u (mm, float32) from :func:`encode_view_uncertainty`'s codes (NaN where not known)."""
+    c = np.asarray(codes, dtype=np.int64)
+    u = (_U_UNIT_MM * np.exp2(c / U_CODES_PER_OCTAVE)).astype(np.float32)
+    u[c == _U_UNKNOWN] = np.nan
+    return u
+
+
+def _uncertainty(z: Any) -> NDArray[np.float32] | None:
+    if "uncertainty_log2" in z.files:
+        return decode_view_uncertainty(np.cumsum(z["uncertainty_log2"].astype(np.int64)))
+    return z["uncertainty"] if "uncertainty" in z.files else None
 
 
 # --------------------------------------------------------------------------------------------- raw images
@@ -171,3 +206,20 @@ def load_raw_stack(view_dir: Path) -> NDArray[Any] | None:
         return None
     folder = load_capture_folder(root)
     return folder.stack(folder.poses[0])
+
+
+def raw_frame(view_dir: Path, name: str = "white") -> tuple[Path, int] | None:
+    """The file of frame ``name`` (default the fully lit one) of the view's raw stack, and the camera's bit
+    depth (the file holds the values as the camera gave them: 8-bit files for 8 bits, else 16-bit files), or
+    None when the view keeps no raw images or its stack has no such frame. Reads only ``raw/capture.yaml``."""
+    root = view_dir / RAW_IMAGES
+    try:
+        manifest = yaml.safe_load((root / "capture.yaml").read_text())
+        order = list(manifest["order"])
+        bit_depth = int(manifest["camera"]["bit_depth"])
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError):
+        return None
+    if name not in order:
+        return None
+    path = root / FRAMES / f"{order.index(name):0{len(str(len(order) - 1))}d}_{name}.png"
+    return (path, bit_depth) if path.is_file() else None

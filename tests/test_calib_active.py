@@ -86,3 +86,47 @@ def test_calibration_for_another_device_is_refused(tmp_path):
         path.write_text(yaml.safe_dump(data))
         with pytest.raises(ConfigError, match=message):
             active_triangulator(load_cell_config(path))
+
+
+def test_the_projector_file_brings_the_camera_lens_it_was_adjusted_with(tmp_path):
+    """cell calibrate projector adjusts both lenses together (cell/calibration/projector.py); its file holds
+    the camera's, which then replaces the intrinsics file's: the transform is consistent with that camera
+    only. A projector file without it (made before) leaves the intrinsics file's camera active."""
+    cfg = load_cell_config(DEFAULT_CELL)
+    cam, proj = cfg.sensor.camera, cfg.sensor.projector
+    K_intr, K_joint = cam.K(), cam.K()
+    K_intr[0, 0] += 3.0
+    K_joint[0, 0] += 1.0
+    devices = {
+        "projector": {"serial": proj.serial, "resolution": [proj.width_px, proj.height_px]},
+        "camera": {"serial": cam.serial, "resolution": [cam.width_px, cam.height_px]},
+    }
+    save_calibration(tmp_path / "intr", "camera_intrinsics", {"K": K_intr, "dist": np.zeros(5)}, {})
+    base = {"K": proj.K(), "dist": np.zeros(5), "T_C_P": proj.T_C_P.matrix()}
+    save_calibration(tmp_path / "old", "projector", base, {})
+    save_calibration(
+        tmp_path / "joint",
+        "projector",
+        {**base, "camera_K": K_joint, "camera_dist": np.full(5, 1e-4)},
+        devices,
+    )
+    devices["camera"]["serial"] = "OTHER-CAMERA"
+    save_calibration(
+        tmp_path / "other", "projector", {**base, "camera_K": K_joint, "camera_dist": np.zeros(5)}, devices
+    )
+    data = yaml.safe_load(DEFAULT_CELL.read_text())
+    path = tmp_path / "cell.yaml"
+
+    def active(projector: str):
+        data["calibration"] = {"intrinsics": "intr.yaml", "projector": projector}
+        path.write_text(yaml.safe_dump(data))
+        c = load_cell_config(path)
+        return active_sensor_config(c), calibration_source(c)
+
+    s, src = active("old.yaml")
+    assert s.camera.fx_px == K_intr[0, 0] and "refined with the projector" not in src
+    s, src = active("joint.yaml")
+    assert s.camera.fx_px == K_joint[0, 0] and s.camera.distortion.k1 == 1e-4
+    assert "camera lens: as refined with the projector" in src
+    with pytest.raises(ConfigError, match="serial 'OTHER-CAMERA'"):
+        active("other.yaml")

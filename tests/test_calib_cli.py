@@ -108,8 +108,10 @@ def test_bad_inputs(tmp_path, small_cell):
 
 
 def test_intrinsics_command_and_force_rule(tmp_path, capsys):
+    # the binned camera in sim.yaml's world: the force rule does not need the full camera's pixels
+    binned = ["--cell", str(DEFAULT_CELL.parent / "sim_binned_honest.yaml")]
     out = tmp_path / "intr"
-    main(["calibrate", "intrinsics", "--out", str(out), "--views", "6"])
+    main(["calibrate", "intrinsics", *binned, "--out", str(out), "--views", "6"])
     report = json.loads((out / "calibration.json").read_text())
     assert report["summary"]["rms_px"] < 0.1
     assert f"intrinsics: {(out / 'intrinsics.yaml').resolve()}" in capsys.readouterr().out  # for the config
@@ -117,11 +119,12 @@ def test_intrinsics_command_and_force_rule(tmp_path, capsys):
     meta = yaml.safe_load(ypath.read_text())
     meta["quality"]["rms_px"] = 0.0  # pretend the file on disk is perfect: a new run is worse
     ypath.write_text(yaml.safe_dump(meta))
-    assert _run(["calibrate", "intrinsics", "--out", str(out), "--views", "6"]) == 1
+    assert _run(["calibrate", "intrinsics", *binned, "--out", str(out), "--views", "6"]) == 1
     assert yaml.safe_load(ypath.read_text())["quality"]["rms_px"] == 0.0  # kept
-    main(["calibrate", "intrinsics", "--out", str(out), "--views", "6", "--force"])
+    main(["calibrate", "intrinsics", *binned, "--out", str(out), "--views", "6", "--force"])
     assert yaml.safe_load(ypath.read_text())["quality"]["rms_px"] > 0.0
-    assert _run(["calibrate", "intrinsics", "--out", str(tmp_path / "few"), "--views", "2"]) == 1  # too few
+    few = ["calibrate", "intrinsics", *binned, "--out", str(tmp_path / "few"), "--views", "2"]
+    assert _run(few) == 1  # too few
 
 
 def test_active_calibration_from_cell_config(tmp_path, small_cell):

@@ -51,12 +51,14 @@ def test_camera_intrinsics_from_charuco(scene):
     cfg, board, tex, ppm, renderer = scene
     cam = cfg.sensor.camera
     rng = np.random.default_rng(0)
+    # 16 views: over 8 sets of 12 poses (bench/trace_intrinsics.py --ideal) the principal point still scatters
+    # by 0.24 px (1 sigma; 0.56 px before the corners' refinement), and this set of 12 landed 0.95 px off
     views = [
         detect_charuco(render_textured_board(renderer, T, tex, ppm, rng), board)
-        for T in board_poses(board, cfg.sensor.standoff_mm, 12, rng)
+        for T in board_poses(board, cfg.sensor.standoff_mm, 16, rng)
     ]
     res = calibrate_intrinsics(views, board, (cam.width_px, cam.height_px))
-    assert res.rms_px < 0.1, res.rms_px  # measured 0.05 px
+    assert res.rms_px < 0.06, res.rms_px  # measured 0.034 px (0.052 px before the corners' refinement)
     K = cam.K()
     assert res.K[0, 0] == pytest.approx(K[0, 0], rel=2e-3) and res.K[1, 1] == pytest.approx(K[1, 1], rel=2e-3)
     assert abs(res.K[0, 2] - K[0, 2]) < 2.0 and abs(res.K[1, 2] - K[1, 2]) < 2.0
@@ -64,7 +66,7 @@ def test_camera_intrinsics_from_charuco(scene):
     true_uv = _distortion_px(K, cam.distortion.as_array(), K, (cam.width_px, cam.height_px))
     est_uv = _distortion_px(res.K, res.dist, K, (cam.width_px, cam.height_px))
     err = np.max(np.linalg.norm(est_uv - true_uv, axis=1))
-    assert err < 1.0, err  # measured 0.59 px at the image corners (beyond the board), of 4.5 px distortion
+    assert err < 1.0, err  # measured 0.72 px at the image corners (beyond the board), of 4.5 px distortion
     assert (
         np.max(
             np.linalg.norm(true_uv - _distortion_px(K, np.zeros(5), K, (cam.width_px, cam.height_px)), axis=1)

@@ -45,7 +45,13 @@ def make_controller(recipe_path: Path, run_dir: Path, **settings) -> tuple[Contr
         if (run_dir / "journal.jsonl").exists()
         else RunFolder.create(run_dir.parent, "box", name=run_dir.name)
     )
-    ctl = inspection_controller(devices, job, run, ControllerSettings(retry_delay_s=0.0, **settings))
+    # the recipe's view budget and feedback iterations, as `cell inspect` sets them (execute_run in
+    # cell/inspection_run.py): once they are spent the run is judged, with no search for views it has no
+    # room for
+    limits = {"view_budget": recipe.plan.view_budget, "max_iterations": recipe.plan.max_iterations + 1}
+    ctl = inspection_controller(
+        devices, job, run, ControllerSettings(retry_delay_s=0.0, **{**limits, **settings})
+    )
     return ctl, devices
 
 

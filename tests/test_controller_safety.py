@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ import pytest
 import yaml
 
 from cell.runs import RunFolder
+from tests import cli_process
 from tests.box_part import small_cell, write_box_recipe
 from tests.browser import require_chromium
 from tests.same_result import assert_same_result, judged_report
@@ -165,6 +167,19 @@ def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return recipe, folder / "cell.yaml"
 
 
+@pytest.fixture(scope="module")
+def cli_forks() -> Iterator[None]:
+    """The server that forks this module's `cell` processes after the first with the CLI already imported
+    (tests/cli_process.py): each is the CLI's entry point in a process of its own, without ~3 s of imports."""
+    with cli_process.server():
+        yield
+
+
+def _forked(log: Path, *args: str) -> subprocess.CompletedProcess:
+    """`cell ARGS` in a forked process (see :func:`cli_forks`), its output in ``log``."""
+    return cli_process.run(list(args), log)
+
+
 OPERATOR = "<script>alert(1)</script>"  # a valid operator name (printable) that must reach the page escaped
 
 
@@ -187,7 +202,7 @@ def cli_reference(cli_reference_run: Path) -> dict:
 
 @pytest.mark.chromium
 def test_cell_report_rebuilds_from_the_stored_cloud_and_prints(
-    cli_reference_run: Path, cli_reference: dict, tmp_path: Path
+    cli_reference_run: Path, cli_reference: dict, cli_forks: None, tmp_path: Path
 ) -> None:
     """`cell report RUN --pdf --csv`: the same result rebuilt from results/cloud.ply (the cloud stored once:
     no other copy of it in results/), the CSV on request, and a PDF of at most three pages that names the
@@ -199,7 +214,7 @@ def test_cell_report_rebuilds_from_the_stored_cloud_and_prints(
     shutil.copytree(cli_reference_run, run)
     results = run / "results"
     assert sorted(p.name for p in results.iterdir()) == ["cloud.ply", "report.html", "report.json"]
-    doc = judged_report(_cell("report", str(run), "--pdf", "--csv"), run)
+    doc = judged_report(_forked(tmp_path / "report.log", "report", str(run), "--pdf", "--csv"), run)
     assert_same_result(doc, cli_reference, "cell report")
     assert doc["metadata"]["run"]["identity"] == {"serial": "SN-7", "operator": OPERATOR, "order": None}
     rows = (results / "deviations.csv").read_text().count("\n") - 1
@@ -275,26 +290,24 @@ def _dead_pid() -> int:
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_stale_lock_is_taken_over_and_a_live_one_refused(
-    box_inputs: tuple[Path, Path], cli_reference: dict, tmp_path: Path
+    box_inputs: tuple[Path, Path], cli_reference: dict, cli_forks: None, tmp_path: Path
 ) -> None:
     """A run paused by SIGTERM is left with the lock of a process that died (as after a SIGKILL or a power
     cut): `cell resume` takes it over and journals it. While a live process holds the lock, `cell resume`
     and `cell inspect --out` on the folder are refused naming its PID and host, and nothing is written."""
     recipe, cell_file = box_inputs
     run = tmp_path / "run"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cell", "inspect", str(recipe), "--cell", str(cell_file), "--out", str(run)],
-        cwd=REPO,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+    proc = cli_process.start(
+        ["inspect", str(recipe), "--cell", str(cell_file), "--out", str(run)], tmp_path / "inspect.log"
     )
     deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and proc.poll() is None:
+    while time.monotonic() < deadline and proc.is_alive():
         if any(e["event"] == "view" for e in _journal(run)):
             break
         time.sleep(0.05)
-    os.kill(proc.pid, signal.SIGKILL)  # no handler runs: the lock stays behind
-    proc.wait(timeout=30)
+    proc.kill()  # SIGKILL: no handler runs, the lock stays behind
+    proc.join(timeout=30)
+    assert proc.exitcode == -signal.SIGKILL
     holder = json.loads((run / "run.lock").read_text())
     assert holder["pid"] == proc.pid
 
@@ -303,11 +316,12 @@ def test_stale_lock_is_taken_over_and_a_live_one_refused(
         live = dict(holder, pid=sleeper.pid, start=None, command="cell resume")
         (run / "run.lock").write_text(json.dumps(live))
         journal_before = (run / "journal.jsonl").read_bytes()
-        refused = _cell("resume", str(run))
+        refused = _forked(tmp_path / "refused-resume.log", "resume", str(run))
         assert refused.returncode == 2
         assert f"PID {sleeper.pid}" in refused.stdout + refused.stderr
         assert holder["host"] in refused.stdout + refused.stderr
-        refused = _cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(run))
+        inspect = ("inspect", str(recipe), "--cell", str(cell_file), "--out", str(run))
+        refused = _forked(tmp_path / "refused-inspect.log", *inspect)
         assert refused.returncode == 2 and f"PID {sleeper.pid}" in refused.stdout + refused.stderr
         assert (run / "journal.jsonl").read_bytes() == journal_before
     finally:
@@ -315,7 +329,7 @@ def test_stale_lock_is_taken_over_and_a_live_one_refused(
         sleeper.wait()
 
     (run / "run.lock").write_text(json.dumps(dict(holder, pid=_dead_pid())))
-    done = _cell("resume", str(run))
+    done = _forked(tmp_path / "resume.log", "resume", str(run))
     judged_report(done, run)
     takeovers = [e for e in _journal(run) if e["event"] == "lock"]
     assert takeovers and takeovers[0]["action"] == "stale lock taken over"

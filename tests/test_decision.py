@@ -17,7 +17,7 @@ from cell.analysis.errormap import NominalMesh
 from cell.analysis.judge import judge
 from cell.analysis.regions import Region, Tolerance
 from cell.analysis.report import summarise, write_report
-from cell.analysis.report_files import read_ply_field, read_ply_points
+from cell.analysis.report_files import decode_uncertainty, encode_uncertainty, read_ply_field, read_ply_points
 from cell.config import load_recipe
 from cell.errors import ConfigError
 
@@ -127,9 +127,11 @@ def test_cloud_ply_carries_u_and_a_rebuilt_report_judges_the_same(tmp_path: Path
     u = np.linspace(0.005, 0.02, len(pts))
     rule = DecisionRule("guarded")
     doc = write_report(tmp_path, judge(nominal, pts, TOL, uncertainty_mm=u, decision=rule), pictures=False)
-    stored = read_ply_field(tmp_path / "cloud.ply", "uncertainty")
-    assert stored is not None and stored.dtype == np.float32
-    assert np.allclose(stored, u, atol=1e-8)
+    codes = read_ply_field(tmp_path / "cloud.ply", "uncertainty")
+    assert codes is not None and codes.dtype == np.uint16  # 2 bytes a point (docs/storage.md)
+    stored = decode_uncertainty(codes)
+    assert np.all(stored >= u - 1e-12) and np.all(stored - u < 1e-4 + 1e-12)  # 0.1 um steps, rounded up
+    assert np.isnan(decode_uncertainty(encode_uncertainty(np.array([np.nan, 1.0]))))[0]
     again = summarise(
         judge(nominal, read_ply_points(tmp_path / "cloud.ply"), TOL, uncertainty_mm=stored, decision=rule)
     )

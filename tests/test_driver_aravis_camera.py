@@ -307,10 +307,9 @@ def test_emulator_killed_mid_sequence_is_a_named_device_error_and_the_sequence_r
         cam.configure(CLEAN)
         before = _grab_many(cam, 3)
         emu.kill()
-        t0 = time.monotonic()
         with pytest.raises(DeviceError) as info:  # the controller pauses on a non-retryable DeviceError
             _grab_many(cam, 3)
-        assert info.value.device == "camera" and time.monotonic() - t0 < 10
+        assert info.value.device == "camera"  # a named device error, not a hang (the test's timeout)
         assert "TriggerSoftware" in str(info.value) or isinstance(info.value, DeviceTimeout)
         emu = Emulator("ARV-KILL").start()  # the operator restarts the camera; `cell resume` reconnects
         cam.close()

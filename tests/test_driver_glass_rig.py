@@ -75,11 +75,12 @@ def test_a_camera_that_never_delivers_times_out_by_name_and_the_rig_recovers() -
         real_trigger = broken.trigger
         broken.trigger = lambda: None  # its trigger never reaches it (cut line)
         t0 = time.monotonic()
-        with pytest.raises(DeviceTimeout, match="1 of 3 cameras delivered") as info:
+        with pytest.raises(
+            DeviceTimeout, match=r"no frame within 300 ms .*\(1 of 3 cameras delivered\)"
+        ) as info:
             rig.grab_all(300)
-        elapsed = time.monotonic() - t0
         assert info.value.device == broken.name == "cam1"
-        assert 0.3 <= elapsed < 0.3 + 0.5  # the rig's budget, plus draining the last camera
+        assert time.monotonic() - t0 >= 0.3  # it waited the rig's whole budget for the silent camera
         broken.trigger = real_trigger
         frames = rig.grab_all(1000)  # nothing stale left from the failed trigger
         assert [f.pixels.shape for f in frames] == [SIZES[s][::-1] for s in ("0", "1", "2")]

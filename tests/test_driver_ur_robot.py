@@ -115,10 +115,11 @@ def test_protective_stop_is_a_device_fault() -> None:
 
 def test_refused_connection_is_fast() -> None:
     robot = URRobot(robot_config(fresh_host()))
-    t0 = time.monotonic()
-    with pytest.raises(DeviceFault, match="connection refused"):
+    with pytest.raises(DeviceFault, match="connection refused") as info:
         robot.connect()
-    assert time.monotonic() - t0 < 1.0
+    assert isinstance(
+        info.value.__cause__, ConnectionRefusedError
+    )  # the first refusal, no wait for a timeout
 
 
 def test_silent_controller_times_out() -> None:
@@ -132,10 +133,8 @@ def test_silent_controller_times_out() -> None:
         listeners.append(s)
     try:
         robot = URRobot(robot_config(host), connect_timeout_s=0.3)
-        t0 = time.monotonic()
-        with pytest.raises(DeviceTimeout, match="30004"):
+        with pytest.raises(DeviceTimeout, match=r"30004 within 0\.3 s"):  # the configured timeout
             robot.connect()
-        assert time.monotonic() - t0 < 1.5
     finally:
         for s in listeners:
             s.close()
@@ -184,9 +183,9 @@ def _silence_mid_session(pipe, host: str) -> None:
 
 def test_script_that_never_starts_is_a_device_fault() -> None:
     with FakeURController(fresh_host(), script_starts=False) as fake:
-        kind, message, elapsed = _run_in_child(_script_never_starts, fake.host)
+        # after ur_rtde's own 5 s wait for runtime_state PLAYING (a hang fails _run_in_child's 25 s poll)
+        kind, message, _ = _run_in_child(_script_never_starts, fake.host)
     assert kind == "DeviceLibraryError" and "control script" in message  # a DeviceFault naming ur_rtde
-    assert elapsed < 8.0  # ur_rtde's own 5 s wait for runtime_state PLAYING
 
 
 def test_stream_silence_mid_session_times_out(fake) -> None:
@@ -199,13 +198,12 @@ def test_stream_silence_mid_session_times_out(fake) -> None:
         fake.silence()
         parent.send("go")
         assert parent.poll(10.0)
-        kind, message, elapsed = parent.recv()
+        kind, message, _ = parent.recv()
     finally:
         proc.join(3.0)
         if proc.is_alive():
             proc.kill()
-    assert kind == "DeviceTimeout" and "RTDE" in message
-    assert elapsed < 1.0  # stale_timeout_s = 0.3 s
+    assert kind == "DeviceTimeout" and "RTDE data stream silent for 0.3 s" in message  # stale_timeout_s
 
 
 def test_dashboard_power_and_brakes(fake) -> None:

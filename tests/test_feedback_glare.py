@@ -20,7 +20,7 @@ from cell.controller import ControllerSettings
 from cell.devices import build_devices
 from cell.inspection import LambertianInspection, inspection_controller
 from cell.runs import RunFolder
-from tests.box_part import small_cell
+from tests.box_part import IN_REACH_MM, small_cell
 
 pytestmark = pytest.mark.slow
 
@@ -37,6 +37,9 @@ def test_glare_holes_are_filled_by_g_kR(tmp_path: Path) -> None:
                 "part": {
                     "cad": "plate.stl",
                     "material": {"albedo": 0.35, "specular": 4.0, "shininess": 400.0},
+                    # where the robot reaches every face: the feedback does not split the faces it cannot
+                    # reach down to their smallest patches
+                    "T_W_P": {"xyz_mm": list(IN_REACH_MM)},
                 },
                 "tolerance": {"lower": -0.3, "upper": 0.3},
                 "min_coverage": 0.5,
@@ -52,13 +55,20 @@ def test_glare_holes_are_filled_by_g_kR(tmp_path: Path) -> None:
         )
     )
     cfg, recipe = small_cell(), load_recipe(recipe_file)
-    nominal = trimesh.load(recipe.part.cad)
+    nominal = trimesh.load(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())  # in {W}
     devices = build_devices(cfg, part_W=nominal, part_material=recipe.part.material, seed=5)
     job = LambertianInspection(recipe, cfg, nominal)
     job.settings.pictures = False
     job.settings.min_cluster_px = 20
     run = RunFolder.create(tmp_path, "plate", name="run")
-    assert inspection_controller(devices, job, run, ControllerSettings(retry_delay_s=0.0)).execute() == "done"
+    # the recipe's view budget and iterations, as `cell inspect` sets them (cell.inspection_run.execute_run):
+    # once the budget is spent the run is judged, with no search for views it has no room for
+    settings = ControllerSettings(
+        retry_delay_s=0.0,
+        view_budget=recipe.plan.view_budget,
+        max_iterations=recipe.plan.max_iterations + 1,
+    )
+    assert inspection_controller(devices, job, run, settings).execute() == "done"
 
     views = json.loads(run.checkpoint_path.read_text())["views"]
     decoded = {i: json.loads((run.view_dir(i) / "view.json").read_text()) for i in run.completed_views()}

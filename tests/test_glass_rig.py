@@ -22,6 +22,7 @@ from cell.cli import app
 from cell.exit_codes import ExitCode
 from cell.glass.calibration import ViewVectorCalibration
 from cell.glass.config import GlassSearchConfig, load_glass_recipe, load_glass_rig
+from cell.glass.grabs import load_grab, save_grab
 from cell.glass.inspect import find_markers, measure
 from cell.glass.job import glass_link_radius_mm, grab_mean
 from cell.glass.markers import detect_dots
@@ -55,7 +56,7 @@ def sag_run(tmp_path_factory):
 def rig_data(sag_run):
     """The run's averaged images and calibrations, the rig config and the nominal CAD surface."""
     cfg = load_glass_rig(RIG)
-    images = [np.load(sag_run / "views" / f"{c.name}.npy") for c in cfg.cameras]
+    images = [load_grab(sag_run / "views", c.name) for c in cfg.cameras]
     cals = [ViewVectorCalibration.load(sag_run / "calibration", c.name) for c in cfg.cameras]
     cad = SmoothSurface(load_mesh(load_glass_recipe(RECIPE).part.cad))
     return cfg, images, cals, cad
@@ -76,7 +77,7 @@ def test_cli_reports_the_sag(sag_run):
     raw = (sag_run / "results" / "cloud.ply").read_bytes()
     head, body = raw.split(b"end_header\n")
     assert b"property double nx" in head
-    xyz = [(k, "<f8") for k in ("x", "y", "z")]
+    xyz = [(k, "<f4") for k in ("x", "y", "z")]  # float32 coordinates (docs/storage.md)
     rec = np.frombuffer(body, dtype=[*xyz, ("d", "<f4"), *((k, "<f8") for k in ("nx", "ny", "nz"))])
     assert len(rec) == doc["n_points"]
     x, y, h = rec["x"], rec["y"], 1e-3
@@ -239,6 +240,27 @@ def second_screen(rig_data):
     screen = rig.screen
     screen2 = rig.move_screen(1)  # move first, then grab
     return screen, (grab_mean(rig, 4), screen2)
+
+
+def test_a_runs_grabs_come_back_bit_for_bit_and_smaller(sag_run, second_screen, tmp_path):
+    """The rig's 8-bit cameras, 4 frames averaged: `cell glass` stores each mean as the 16-bit PNG of the
+    frames' sum (cell/glass/grabs.py) and reads back the very float32 image the measurement read."""
+    assert sorted(p.name for p in (sag_run / "views").iterdir()) == [
+        "cam0.png",
+        "cam1.png",
+        "cam2.png",
+        "cam3.png",
+        "grabs.json",
+    ]
+    images = second_screen[1][0]  # the sagged pane's frames grabbed here
+    for k, image in enumerate(images):
+        assert save_grab(tmp_path, f"cam{k}", image, 4).suffix == ".png"
+        back = load_grab(tmp_path, f"cam{k}")
+        assert back.dtype == np.float32 and np.array_equal(back.view(np.uint32), image.view(np.uint32))
+    png = sum((tmp_path / f"cam{k}.png").stat().st_size for k in range(len(images)))
+    assert png < 0.5 * sum(image.nbytes for image in images)  # against the float32 .npy written before
+    grabs = json.loads((tmp_path / "grabs.json").read_text())["grabs"]
+    assert [g["frames"] for g in grabs.values()] == [4] * len(images)
 
 
 def test_multi_projection_without_cad_normal(rig_data, second_screen):

@@ -114,18 +114,19 @@ def test_good_pillar_off_its_fixture_fails_everywhere_with_kinematic_alignment(
     job = LambertianInspection(recipe, cfg, nominal_W)
     job.settings.pictures = False
     views = (run.load_checkpoint() or {})["views"]
-    job.report(run, job.register(run, views))
+    registration = job.register(run, views)
+    job.report(run, registration)
     kin = json.loads((kin_run / "results" / "report.json").read_text())
     assert kin["verdict"] == "fail" and kin["alignment"]["method"] == "kinematic"
     assert kin["n_out_of_tolerance"] > 0.2 * kin["n_points"]  # measured: 33 %
     ends = [r["centre_mm"][0] for r in kin["regions"]]
     assert min(ends) < -100 and max(ends) > 100  # out of tolerance at both ends, not one defect
 
-    # a recipe that requires calibration cannot judge the part on this uncalibrated cell
+    # a recipe that requires calibration cannot judge the part on this uncalibrated cell (the same job and
+    # registration: registering reads no calibration requirement, the report does)
     recipe.requires_calibration = True
-    job = LambertianInspection(recipe, cfg, nominal_W)
-    job.settings.pictures = False
-    job.report(run, job.register(run, views))
+    assert job.recipe is recipe
+    job.report(run, registration)
     strict = json.loads((kin_run / "results" / "report.json").read_text())
     assert strict["verdict"] == "incomplete"
     assert any("no hand-eye calibration" in r for r in strict["incomplete_reasons"])

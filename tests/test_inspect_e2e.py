@@ -2,17 +2,17 @@
 
 The binned simulated cell (recipes/cells/sim_binned.yaml: the prototype with its camera binned 2x2) keeps a
 full pillar inspection to about half a minute. The kill test uses a small box part for speed, and kills
-resumes too (chains of kills), so that 20 kills cost about four runs, not twenty.
+resumes too (chains of kills), so that 20 kills cost about two runs, not twenty.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from cell.exit_codes import ExitCode
+from tests import cli_process
 from tests.box_part import small_cell, write_box_recipe
 from tests.same_result import assert_same_result, judged_report
 
@@ -101,18 +102,36 @@ def _finished(run: Path) -> bool:
 
 JUDGED = (ExitCode.PASS, ExitCode.FAIL, ExitCode.INCOMPLETE)  # a finished run exits with its verdict
 KILLS = 20
-KILLS_PER_CHAIN = 5
+KILLS_PER_CHAIN = 10
 
 
-@pytest.mark.timeout(900)  # 20 kills in 4 chains of kill, resume, kill... of a ~8 s run, on a shared machine
-def test_killed_runs_resume_to_the_same_result(box_inputs: tuple[Path, Path], tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def cli_forks() -> Iterator[None]:
+    """The forkserver the killed processes are forked from (tests/cli_process.py), for this module's tests."""
+    with cli_process.server():
+        yield
+
+
+def _partial(run: Path, pid: int | None) -> bool:
+    """Whether process ``pid``'s `cell inspect` has made its partial run folder (its inputs being copied)."""
+    return (run.parent / f".{run.name}.partial-{pid}").exists()
+
+
+@pytest.mark.timeout(900)  # 20 kills in 2 chains of kill, resume, kill... of the box run, on a shared machine
+def test_killed_runs_resume_to_the_same_result(
+    box_inputs: tuple[Path, Path], cli_forks: None, tmp_path: Path
+) -> None:
     """SIGKILL (no handler runs) at 20 points spread over the run, then `cell resume` ends with the result of
-    an uninterrupted run. The kills come in 4 chains of 5: each chain starts a `cell inspect`, kills it,
+    an uninterrupted run. The kills come in 2 chains of 10: each chain starts a `cell inspect`, kills it,
     resumes, kills the resume, ... and finally lets a resume finish, whose report is compared with the
-    uninterrupted run's (once per chain). The first two processes of a chain are killed during start-up, by
-    time (imports, inputs copied, the lock taken or being taken: the run folder may not exist yet, or hold a
-    dead process's lock), the other three at journal lengths spread over the reference run's whole journal
-    (the run's own progress, not a wall-clock guess)."""
+    uninterrupted run's (once per chain). The first two processes of a chain are killed during start-up: the
+    first once it has made its partial run folder (inputs being copied, the lock being taken), the second by
+    time (the run folder may not exist yet, or hold a dead process's lock); the other eight at journal
+    lengths spread over the reference run's whole journal (the run's own progress, not a wall-clock guess).
+
+    The uninterrupted run is a `python -m cell` process; the killed ones and the resumes run the same entry
+    point (`cell.cli.main`) in processes forked from one that has imported it (tests/cli_process.py), so the
+    21 of them pay the interpreter's ~3 s of imports once (a kill during the imports would leave nothing)."""
     recipe, cell_file = box_inputs
     ref = cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(tmp_path / "ref"))
     expected = judged_report(ref, tmp_path / "ref")
@@ -123,34 +142,33 @@ def test_killed_runs_resume_to_the_same_result(box_inputs: tuple[Path, Path], tm
     while kills < KILLS:
         assert chain < 2 * KILLS // KILLS_PER_CHAIN, f"only {kills} kills landed before their runs ended"
         run = tmp_path / f"c{chain}"
-        # kill points: two start-up kills (0, by time), then journal lengths spread over the reference run
-        targets = [0, 0, *np.sort(rng.integers(1, n_ref, size=KILLS_PER_CHAIN - 2))]
+        # kill points: two in start-up, then journal lengths spread over the reference run
+        targets = [-1, 0, *np.sort(rng.integers(1, n_ref, size=KILLS_PER_CHAIN - 2))]
         for j, target in enumerate(targets):
             if kills == KILLS or _finished(run):
                 break
             args = ["resume", str(run)] if run.exists() else [*inspect, str(run)]
             context = f"chain {chain} kill {j} ({args[0]}, journal line {target})"
             start = _journal_length(run)
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "cell", *args],
-                cwd=REPO,
-                stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL,
-            )
-            if target == 0:
-                time.sleep(rng.uniform(0.3, 3.0))  # start-up: imports, inputs copied, the lock taken
+            proc = cli_process.start(args, tmp_path / f"c{chain}-{j}.log")
+            if target == -1:  # start-up: its partial run folder made (inputs being copied), a little later
+                while proc.is_alive() and not _partial(run, proc.pid) and not run.exists():
+                    time.sleep(0.002)
+                time.sleep(rng.uniform(0.0, 0.05))
+            elif target == 0:  # start-up: loading inputs, copying them or taking over a dead process's lock
+                time.sleep(rng.uniform(0.0, 0.5))
             else:  # once this process has journalled something and reached the target, a little later
-                while proc.poll() is None and _journal_length(run) < max(target, start + 1):
+                while proc.is_alive() and _journal_length(run) < max(target, start + 1):
                     time.sleep(0.005)
                 time.sleep(rng.uniform(0.0, 0.3))
-            if proc.poll() is None:
-                os.kill(proc.pid, signal.SIGKILL)
+            if proc.is_alive():
+                proc.kill()
                 kills += 1
-            proc.wait(timeout=60)
-            assert proc.returncode in (*JUDGED, -signal.SIGKILL), context
+            proc.join(timeout=60)
+            assert proc.exitcode in (*JUDGED, -signal.SIGKILL), context
         if not _finished(run):
             args = ["resume", str(run)] if run.exists() else [*inspect, str(run)]
-            judged_report(cell(*args), run)
+            judged_report(cli_process.run(args, tmp_path / f"c{chain}-end.log"), run)
         assert_same_result(report(run), expected, f"chain {chain}")
         chain += 1
     assert kills == KILLS

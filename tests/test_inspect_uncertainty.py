@@ -72,7 +72,7 @@ def test_cloud_and_report_carry_u_and_the_decision(box_run: tuple[Path, trimesh.
     run_dir = box_run[0]
     cloud = run_dir / "results" / "cloud.ply"
     u = read_ply_field(cloud, "uncertainty")
-    assert u is not None and u.dtype == np.float32 and len(u) == len(read_ply_points(cloud))
+    assert u is not None and u.dtype == np.uint16 and len(u) == len(read_ply_points(cloud))
     doc = json.loads((run_dir / "results" / "report.json").read_text())
     assert doc["schema_version"] == 7
     assert doc["decision"]["rule"] == "guarded"

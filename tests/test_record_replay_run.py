@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,7 @@ import yaml
 from cell.config import load_recipe
 from cell.inspection import LambertianInspection
 from cell.runs import RunFolder
+from tests import cli_process
 from tests.box_part import small_cell, write_box_recipe
 
 REPO = Path(__file__).resolve().parent.parent
@@ -29,7 +31,18 @@ def cell(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-def test_recorded_inspection_replays_to_the_same_report(tmp_path: Path) -> None:
+@pytest.fixture
+def forked(tmp_path: Path) -> Iterator[Callable[..., subprocess.CompletedProcess]]:
+    """`cell ARGS` in processes forked with the CLI already imported (tests/cli_process.py): the CLI's entry
+    point in a process of its own, without the ~3 s of imports of `python -m cell`."""
+    logs = iter(range(1000))
+    with cli_process.server():
+        yield lambda *args: cli_process.run(list(args), tmp_path / f"cell-{next(logs)}.log", timeout=300)
+
+
+def test_recorded_inspection_replays_to_the_same_report(
+    tmp_path: Path, forked: Callable[..., subprocess.CompletedProcess]
+) -> None:
     recipe = write_box_recipe(tmp_path)
     (tmp_path / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
     fx = tmp_path / "fixtures"
@@ -47,7 +60,7 @@ def test_recorded_inspection_replays_to_the_same_report(tmp_path: Path) -> None:
     replay_cell = yaml.safe_load((fx / "cell.yaml").read_text())
     assert replay_cell["robot"]["driver"] == replay_cell["sensor"]["camera"]["driver"] == "replay"
     assert replay_cell["sensor"]["projector"]["driver"] == "replay"
-    rep = cell("inspect", str(recipe), "--cell", str(fx / "cell.yaml"), "--out", str(tmp_path / "b"))
+    rep = forked("inspect", str(recipe), "--cell", str(fx / "cell.yaml"), "--out", str(tmp_path / "b"))
     assert rep.returncode == 0, rep.stdout + rep.stderr
     recorded, replayed = (json.loads((tmp_path / r / "results" / "report.json").read_text()) for r in "ab")
     for key in ("verdict", "n_points", "deviation", "coverage", "regions"):
@@ -63,7 +76,7 @@ def test_recorded_inspection_replays_to_the_same_report(tmp_path: Path) -> None:
     x, y, z = moved["part"]["T_W_P"]["xyz_mm"]
     moved["part"]["T_W_P"] = {"xyz_mm": [x + 10.0, y, z], "rpy_deg": [0.0, 0.0, 0.0]}
     (tmp_path / "moved.yaml").write_text(yaml.safe_dump(moved))
-    off = cell(
+    off = forked(
         "inspect", str(tmp_path / "moved.yaml"), "--cell", str(fx / "cell.yaml"), "--out", str(tmp_path / "c")
     )
     assert off.returncode == 3 and "paused" in off.stdout
@@ -72,7 +85,7 @@ def test_recorded_inspection_replays_to_the_same_report(tmp_path: Path) -> None:
     assert errors[0]["error"].startswith(f"ur5e: replay {fx / 'robot'}: call ")
     assert "was recorded as move_linear" in errors[0]["error"]
 
-    again = cell(
+    again = forked(
         "inspect",
         str(recipe),
         "--cell",

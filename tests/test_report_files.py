@@ -21,8 +21,9 @@ import pytest
 import trimesh
 
 from cell.analysis import report_files
+from cell.analysis.compare import load_cloud
 from cell.analysis.report import ReportInput, Tolerance, write_report
-from cell.analysis.report_files import read_ply_points, write_ply
+from cell.analysis.report_files import read_ply_points, stored_points, write_ply
 from cell.errors import ConfigError, StorageError
 from cell.inspection_run import rebuild_report
 from tests.synthetic_report import SPIKES, synthetic_input
@@ -48,12 +49,51 @@ def test_cloud_ply_holds_every_measured_point_once(inp, tmp_path: Path) -> None:
     assert stored is not None and stored.isolated is not None
     assert stored.isolated.sum() == SPIKES == inp.excluded["isolated_out_of_tolerance_points"]
     points = read_ply_points(tmp_path / "cloud.ply")
-    assert np.array_equal(points, stored.points_mm)  # exactly, in order: a rebuild judges the same points
+    # in order, each coordinate as float32 keeps it: within half a step of 2^-23 of its power of two
+    assert np.array_equal(points, stored_points(stored.points_mm))
+    half_step = np.exp2(np.floor(np.log2(np.abs(stored.points_mm))) - 24)
+    assert np.all(np.abs(points - stored.points_mm) <= half_step)
     ply = trimesh.load(tmp_path / "cloud.ply", process=False)  # an independent reader sees the fields
     raw = ply.metadata["_ply_raw"]["vertex"]["data"]
+    assert raw.dtype["x"] == np.float32 and raw.dtype["deviation"] == np.float32
+    assert np.array_equal(load_cloud(tmp_path / "cloud.ply"), points)  # what `cell compare` reads of it
     assert np.allclose(raw["deviation"], stored.deviation_mm, atol=1e-6)
     assert np.array_equal(raw["isolated"].astype(bool), stored.isolated)
-    assert np.array_equal(points[raw["isolated"] == 0], inp.points_mm)  # the judged ones
+    assert np.array_equal(points[raw["isolated"] == 0], stored_points(inp.points_mm))  # the judged ones
+    # 12 bytes of coordinates, 4 of deviation and 1 of the isolated flag a point, after the header
+    data = (tmp_path / "cloud.ply").read_bytes()
+    assert len(data) - data.index(b"end_header\n") - len(b"end_header\n") == 17 * len(points)
+
+
+def test_a_cloud_without_isolated_outliers_has_no_isolated_column(tmp_path: Path) -> None:
+    """An inspection's cloud judged with nothing set aside: no column of zeros (2 MB on the pillar)."""
+    from cell.analysis.errormap import NominalMesh
+    from cell.analysis.judge import judge
+    from tests.synthetic_report import box_mesh
+
+    mesh = box_mesh()
+    pts = trimesh.sample.sample_surface_even(mesh, 3000, seed=4)[0]
+    inp = judge(NominalMesh.from_trimesh(mesh), pts, Tolerance(-0.3, 0.3), min_defect_points=10)
+    assert inp.stored is not None and inp.stored.isolated is not None and not inp.stored.isolated.any()
+    write_report(tmp_path, inp, pictures=False)
+    data = (tmp_path / "cloud.ply").read_bytes()
+    head = data[: data.index(b"end_header\n")].decode()
+    assert "isolated" not in head and "property float deviation" in head
+    assert len(data) - len(head) - len(b"end_header\n") == 16 * len(pts)
+    assert np.array_equal(read_ply_points(tmp_path / "cloud.ply"), stored_points(pts))
+
+
+def test_a_float64_cloud_from_before_reads_as_it_was_stored(tmp_path: Path) -> None:
+    """A cloud.ply written with double coordinates (before float32) reads back exactly as stored."""
+    pts = np.random.default_rng(3).uniform(-300, 300, (500, 3))
+    rec = np.empty(len(pts), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("deviation", "<f4")])
+    rec["x"], rec["y"], rec["z"], rec["deviation"] = pts[:, 0], pts[:, 1], pts[:, 2], 0.0
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 500\nproperty double x\nproperty double y\n"
+        "property double z\nproperty float deviation\nend_header\n"
+    )
+    (tmp_path / "old.ply").write_bytes(header.encode() + rec.tobytes())
+    assert np.array_equal(read_ply_points(tmp_path / "old.ply"), pts)
 
 
 def test_csv_on_request_and_gone_with_the_next_report(inp, tmp_path: Path) -> None:

@@ -56,3 +56,29 @@ def test_checkpoint_round_trip_and_reopen(tmp_path: Path) -> None:
         RunFolder.open(tmp_path / "elsewhere")
     with pytest.raises(ConfigError, match="holds files already; choose another --out, or `cell resume`"):
         RunFolder.create(tmp_path, "part", name="r1")
+
+
+def test_the_report_and_the_results_database_state_one_start(tmp_path: Path) -> None:
+    """A run's start is its journal's run_created entry (before it: the first entry; no journal: the
+    manifest's time), and the report's run record and the results database's row say the same time."""
+    import json
+    import os
+    from datetime import UTC, datetime
+
+    from cell.results.folder import read_run
+    from cell.run_record import run_record
+
+    run = RunFolder.create(tmp_path, "part", name="r1")
+    manifest = run.path / "inputs" / "manifest.json"
+    manifest.write_text("{}")
+    os.utime(manifest, (1_600_000_000, 1_600_000_000))
+    assert run.started() == datetime(2020, 9, 13, 12, 26, 40, tzinfo=UTC)  # no journal yet
+    lines = [{"t": 1_700_000_000.25, "event": "state", "state": "idle"}]
+    run.journal_path.write_text("".join(json.dumps(e) + "\n" for e in lines))
+    assert run.started() == datetime(2023, 11, 14, 22, 13, 20, 250000, tzinfo=UTC)  # a folder from before
+    lines.insert(1, {"t": 1_700_000_100.0, "event": "run_created", "part": "part"})
+    run.journal_path.write_text("".join(json.dumps(e) + "\n" for e in lines) + '{"t": 1, "ev')  # torn
+    created = datetime(2023, 11, 14, 22, 15, tzinfo=UTC)
+    assert run.started() == created
+    assert run_record(run)["started_utc"] == "2023-11-14T22:15:00+00:00"
+    assert read_run(run.path).run["started"] == created

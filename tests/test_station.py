@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
 import subprocess
 import sys
 import warnings
@@ -303,3 +305,71 @@ def test_the_live_page_offers_nothing_on_a_run_another_process_runs(
     assert taken["actions"] == {"pause": False, "resume": False, "abort": False}
     assert f"run by another process (PID {holder.pid}, cell resume)" in taken["message"]
     assert not taken["final"]
+
+
+@pytest.mark.parametrize("bit_depth", [8, 12])
+def test_the_live_page_shows_a_small_photo_of_the_last_view(
+    folders: StationSettings, tmp_path: Path, bit_depth: int
+) -> None:
+    """The last view's photo: its fully lit raw frame (the white pattern, stored as the camera gave it),
+    320 px wide, never the full-size image; the part (a bright 200 x 100 px plate on a dark table) where the
+    frame has it; made once (cached); gone with the view's raw images, the map then shown alone."""
+    import cv2
+    import numpy as np
+
+    from cell.sensing.patterns import gcls_patterns
+    from cell.station import thumbnail
+    from cell.view_files import save_raw_stack
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from starlette.testclient import TestClient
+
+    run = RunFolder.create(folders.runs, "box", name="box-SN-5-20260101T000000Z")
+    run.log("run_created", part="box", serial="SN-5", operator="olga")
+    run.log("state", state="scanning_moving", message="")
+    view = run.view_dir(0)
+    view.mkdir()
+    patterns = gcls_patterns(256, 192, 16, 8)
+    full = 2**bit_depth - 1
+    dtype = np.uint8 if bit_depth == 8 else np.uint16
+    rng = np.random.default_rng(1)
+    stack = rng.integers(0, full // 2, (len(patterns.names), 384, 512)).astype(dtype)  # any coded frames
+    white = np.full((384, 512), full // 40, dtype)  # the dark table ...
+    white[100:200, 200:400] = round(0.7 * full)  # ... and the lit plate
+    stack[patterns.names.index("white")] = white
+    save_raw_stack(view, stack, patterns, bit_depth, (256, 192))
+    reasons = np.full((384, 512), 1, np.uint8)  # nothing measured but the plate
+    reasons[100:200, 200:400] = 0
+    cv2.imwrite(str(view / "reasons.png"), reasons)
+
+    thumbnail._photo_jpeg.cache_clear()
+    with TestClient(create_app(folders)) as client:
+        client.post("/signin", data={"name": "olga", "pin": "2468"})
+        page = client.get(f"/run/{run.path.name}").text
+        assert f'src="/run/{run.path.name}/views/0/photo.jpg"' in page and "thumb with-photo" in page
+        got = client.get(f"/run/{run.path.name}/views/0/photo.jpg")
+        assert got.status_code == 200 and got.headers["content-type"] == "image/jpeg"
+        assert len(got.content) < 30_000
+        photo = cv2.imdecode(np.frombuffer(got.content, np.uint8), cv2.IMREAD_UNCHANGED)
+        assert photo.shape == (240, 320)  # 512 x 384 camera: downscaled by 0.625, grey
+        plate, table = photo[66:122, 128:247], np.delete(photo, np.s_[58:130], axis=0)
+        assert plate.min() > 235 and table.max() < 110  # the plate white, the table dark (gamma 2.2)
+        assert client.get(f"/run/{run.path.name}/views/0/photo.jpg").content == got.content
+        assert thumbnail._photo_jpeg.cache_info().hits == 1  # the second came from memory
+        inset = client.get(f"/run/{run.path.name}/views/0/thumbnail.png")
+        assert cv2.imdecode(np.frombuffer(inset.content, np.uint8), cv2.IMREAD_COLOR).shape == (240, 320, 3)
+
+        shutil.rmtree(view / "raw")  # what the retention does to a passed run's views
+        from cell.station.live import snapshot
+
+        snap = snapshot(
+            Supervisor(folders, StationJournal(folders.state_dir / "j.jsonl")),
+            folders.runs,
+            run.path.name,
+            None,
+        )
+        assert snap["photo"] is None and snap["thumbnail"] == f"/run/{run.path.name}/views/0/thumbnail.png"
+        assert client.get(f"/run/{run.path.name}/views/0/photo.jpg").status_code == 404
+        page = client.get(f"/run/{run.path.name}").text
+        assert re.search(r'<img id="photo"[^>]* hidden>', page) and "with-photo" not in page

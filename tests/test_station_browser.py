@@ -165,6 +165,12 @@ def test_an_inspection_started_paused_and_resumed_from_the_page(
     assert re.fullmatch(r"\d+ (min \d\d )?s", page.inner_text("#left"))
     page.wait_for_function("() => document.getElementById('thumb').complete")  # the last view's picture
     assert page.locator("#thumb").evaluate("img => img.naturalWidth") == 320
+    # and its photo (the run keeps its raw images while it measures), the map its inset; never full size
+    page.wait_for_function(
+        "() => { const p = document.getElementById('photo'); return !p.hidden && p.complete }"
+    )
+    assert page.locator("#photo").evaluate("img => [img.naturalWidth, img.naturalHeight]") == [320, 240]
+    assert page.locator("#pictures").evaluate("f => f.classList.contains('with-photo')")
     shot(page, "live", tmp_path)
     page.click("#pause")
     page.wait_for_function("() => document.getElementById('live').dataset.state === 'paused'", timeout=60_000)

@@ -49,7 +49,11 @@ def make_controller(
         if (run_dir / "journal.jsonl").exists()
         else RunFolder.create(run_dir.parent, "box", name=run_dir.name)
     )
-    return inspection_controller(devices, job, run, ControllerSettings(retry_delay_s=0.0)), devices
+    # the recipe's view budget and feedback iterations, as `cell inspect` sets them (cell/inspection_run.py)
+    settings = ControllerSettings(
+        retry_delay_s=0.0, view_budget=recipe.plan.view_budget, max_iterations=recipe.plan.max_iterations + 1
+    )
+    return inspection_controller(devices, job, run, settings), devices
 
 
 @pytest.fixture(scope="module")

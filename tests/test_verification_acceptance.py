@@ -51,11 +51,14 @@ def _run(world, labels, out, monkeypatch):
 
 
 def test_ideal_world_figures_are_a_noise_floor(tmp_path, monkeypatch) -> None:
-    labels = {"ball bar, face diagonal 1", "plane, flat middle"}
+    labels = {"sphere, far top right", "ball bar, face diagonal 1", "plane, flat middle"}
     result, placed = _run("ideal", labels, tmp_path / "v", monkeypatch)
     assert all(np.allclose(cmd, true) for cmd, true in placed)  # ideal: exactly where commanded
-    bar, flat = result.positions
-    assert bar.error is None and flat.error is None
+    ball, bar, flat = result.positions
+    assert ball.error is None and bar.error is None and flat.error is None
+    # the single sphere in a corner of the volume: its size within the noise, PF and PS its own
+    assert ball.artefact == "sphere" and ball.n_points > 1000 and abs(ball.ps_mm[0]) < 0.03
+    assert result.figures_mm["PF"] == ball.pf_mm[0] and result.figures_mm["PS"] == ball.ps_mm[0]
     assert len(bar.pf_mm) == 2 and bar.n_points > 1000 and flat.n_points > 10000
     assert abs(bar.sd_mm) < 0.025
     assert all(abs(v) < 0.05 for v in bar.ps_mm)

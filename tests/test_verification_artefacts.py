@@ -72,7 +72,7 @@ def test_positions_fill_the_measuring_volume() -> None:
     planes = plane_positions(vol, cert.plane.length_mm)
     normals = np.array([p.T_V_A[:3, 2] for p in planes])
     assert (normals[:, 2] < -0.9).all()  # every face looks at the camera
-    assert len(acceptance_positions(cfg, cert)) == 13
+    assert len(acceptance_positions(cfg, cert)) == 23  # 10 sphere, 7 ball bar, 6 plane positions
     with pytest.raises(ConfigError, match="does not fit"):
         ball_bar_positions(vol, 250.0, 20.0)
 

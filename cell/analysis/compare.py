@@ -1,8 +1,12 @@
 """Error map and report of any measured cloud against any nominal mesh (what ``cell compare`` runs).
 
-The nominal goes through :func:`cell.mesh.load_mesh` and its checks (units, manifoldness, zero-area faces);
-the cloud is read from PLY, XYZ or CSV and checked for units against the nominal. Millimetres throughout,
-deviations + outside the material.
+The nominal goes through :func:`cell.mesh.load_mesh_arrays` and its checks (units, manifoldness, zero-area
+faces); the cloud is read from PLY, XYZ or CSV and checked for units against the nominal. Millimetres
+throughout, deviations + outside the material.
+
+A whole ``cell compare`` is measured against CloudCompare (bench/bench_compare.py), so this path imports only
+what it uses: plain binary STL/PLY files are read with numpy (:mod:`cell.mesh_files`, trimesh only for the
+other formats), alignment, regions and coverage import their libraries when asked for.
 """
 
 from __future__ import annotations
@@ -12,12 +16,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trimesh
 
 from cell.analysis.crop import CropMasks, PartCrop
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.errors import ConfigError
-from cell.mesh import load_mesh
+from cell.mesh import load_mesh_arrays
 
 # share of the points off the table that must lie near the nominal surface. Measured on a simulated scan of
 # the good pillar (`cell scan --pose auto`, sim_binned): 1.0 in the right frame; 0.0 moved 20 mm up, 0.05
@@ -34,10 +37,7 @@ def load_cloud(path: Path) -> np.ndarray:
     suffix = path.suffix.lower()
     try:
         if suffix == ".ply":
-            loaded = trimesh.load(path, process=False)
-            if not hasattr(loaded, "vertices"):  # trimesh gives an empty Scene for a PLY without vertices
-                raise ConfigError("the cloud has no points", path=str(path))
-            pts = np.asarray(loaded.vertices, dtype=np.float64)
+            pts = _read_ply_points(path)
         elif suffix in (".xyz", ".txt", ".csv"):
             delim = "," if suffix == ".csv" else None
             with open(path) as fh:
@@ -49,6 +49,21 @@ def load_cloud(path: Path) -> np.ndarray:
     except (ValueError, OSError) as exc:
         raise ConfigError(f"cannot read the cloud: {exc}", path=str(path)) from exc
     return pts.reshape(-1, 3)
+
+
+def _read_ply_points(path: Path) -> np.ndarray:
+    """A PLY's vertex positions (float64): read with numpy when the file is plain binary, else by trimesh."""
+    from cell.mesh_files import read_ply
+
+    plain = read_ply(path, mesh=False)
+    if plain is not None:
+        return plain.vertices
+    import trimesh
+
+    loaded = trimesh.load(path, process=False)
+    if not hasattr(loaded, "vertices"):  # trimesh gives an empty Scene for a PLY without vertices
+        raise ConfigError("the cloud has no points", path=str(path))
+    return np.asarray(loaded.vertices, dtype=np.float64)
 
 
 def _is_numeric_row(line: str, delim: str | None) -> bool:
@@ -74,9 +89,9 @@ def check_units(pts: np.ndarray, nominal: NominalMesh, cloud_path: Path) -> None
 
 
 def parse_tolerance(text: str) -> tuple[float, float]:
-    """'-0.3,0.3' -> (-0.3, 0.3) mm; limits as plausible as a recipe's (:func:`cell.config.tolerance_problem`:
+    """'-0.3,0.3' -> (-0.3, 0.3) mm; limits as plausible as a recipe's (:func:`cell.limits.tolerance_problem`:
     '-0.0003,0.0003' is a band in metres)."""
-    from cell.config import tolerance_problem
+    from cell.limits import tolerance_problem
 
     try:
         lo, hi = (float(x) for x in text.split(","))
@@ -174,9 +189,7 @@ def run_compare(
         load_regions,
         region_from_config,
     )
-    from cell.analysis.registration import datum_align, icp_point_to_plane
     from cell.analysis.report import write_report
-    from cell.geometry import transform_points
 
     lo, hi = parse_tolerance(tolerance)
     if min_coverage is not None and not 0 <= min_coverage <= 1:
@@ -190,17 +203,20 @@ def run_compare(
     region_specs = load_regions(regions) if regions is not None else []
     if align not in ("none", "datums", "bestfit"):
         raise ConfigError(f"--align must be none, datums or bestfit, got '{align}'")
-    mesh = load_mesh(nominal_path, what="nominal mesh")
+    mesh = load_mesh_arrays(nominal_path, what="nominal mesh")
     check_region_faces(region_specs, len(mesh.faces), regions or "", prefix="regions.")
     user_regions = [region_from_config(spec) for spec in region_specs]
     t0 = time.perf_counter()
-    nominal = NominalMesh.from_trimesh(mesh)
+    nominal = NominalMesh.from_arrays(mesh.vertices, mesh.faces)
     crop = PartCrop(parse_table_z(table_z, nominal), background_mm=crop_mm or None)
     raw = load_cloud(cloud_path)
     finite = np.isfinite(raw).all(1)
-    pts = raw[finite]
+    pts = raw if finite.all() else raw[finite]  # a copy only when something goes: 120 MB at 5M points
     check_units(pts, nominal, cloud_path)
     T = np.eye(4)
+    if align != "none":
+        from cell.analysis.registration import datum_align, icp_point_to_plane
+        from cell.geometry import transform_points
     if align == "datums":
         if datums is None:
             raise ConfigError(
@@ -217,6 +233,7 @@ def run_compare(
         pts = transform_points(T, pts)
     em, masks = crop_to_part(nominal, pts, crop, cloud_path)
     keep = masks.part
+    kept = pts if keep.all() else pts[keep]
     warning = "best-fit alignment hides global deviations" if align == "bestfit" else None
     meta: dict[str, Any] = {
         "nominal": str(nominal_path),
@@ -233,7 +250,7 @@ def run_compare(
 
     inp = judge(
         nominal,
-        pts[keep],
+        kept,
         Tolerance(lo, hi),
         n_points_input=len(raw),
         regions=user_regions,
@@ -246,7 +263,7 @@ def run_compare(
         min_coverage=min_coverage,
         warnings=[warning] if warning else [],
         metadata=meta,
-        error_map=em.take(keep),
+        error_map=em if keep.all() else em.take(keep),
     )
     meta["seconds"] = round(time.perf_counter() - t0, 3)  # the comparison, error map included
     return write_report(out, inp, pictures=pictures, csv=csv)

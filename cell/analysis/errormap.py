@@ -16,13 +16,17 @@ over the three clamped edge projections (Ericson, Real-Time Collision Detection 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 from numpy.typing import ArrayLike, NDArray
 
 from cell.analysis._triangle_grid import build_grid, cell_order, signed_closest
 from cell.errors import ConfigError
+from cell.mesh import merge_vertices
+
+if TYPE_CHECKING:
+    import trimesh
 
 _MAX_CELLS = 2_000_000
 
@@ -53,14 +57,21 @@ class NominalMesh:
 
     @classmethod
     def from_trimesh(cls, mesh: trimesh.Trimesh, min_area_mm2: float = 1e-12) -> NominalMesh:
-        """Prepare ``mesh`` (mm). Degenerate (zero-area) faces are excluded and counted; the kept faces are
-        reordered (``source_face`` maps them back to the mesh as given)."""
-        if len(mesh.faces) == 0:
+        """Prepare ``mesh`` (mm): :meth:`from_arrays` of its vertices and faces."""
+        return cls.from_arrays(mesh.vertices, mesh.faces, min_area_mm2)
+
+    @classmethod
+    def from_arrays(cls, vertices: ArrayLike, faces: ArrayLike, min_area_mm2: float = 1e-12) -> NominalMesh:
+        """Prepare the mesh of ``vertices`` (V, 3, mm) and ``faces`` (F, 3). Duplicate vertices are merged
+        (STL triangle soups share none; pseudo-normals need the shared ones). Degenerate (zero-area) faces
+        are excluded and counted; the kept faces are reordered (``source_face`` maps them back to the mesh
+        as given)."""
+        if len(np.asarray(faces).reshape(-1, 3)) == 0:
             raise ConfigError("the nominal mesh has no triangles")
-        mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-        mesh.merge_vertices()  # STL triangle soups share no vertices; pseudo-normals need the shared ones
-        v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
-        f = np.asarray(mesh.faces, dtype=np.int64)
+        v, f = merge_vertices(
+            np.asarray(vertices, np.float64).reshape(-1, 3), np.asarray(faces).reshape(-1, 3)
+        )
+        v = np.ascontiguousarray(v, dtype=np.float64)
         cr = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
         dbl_area = np.linalg.norm(cr, axis=1)
         keep = 0.5 * dbl_area > min_area_mm2

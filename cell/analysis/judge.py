@@ -19,6 +19,7 @@ from cell.analysis.decision import DecisionRule, shrunk
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.regions import Coverage, Region, Tolerance, point_bands
 from cell.analysis.report import ReportInput, StoredCloud, isolated_out_of_tolerance
+from cell.analysis.report_files import encode_uncertainty, stored_uncertainty
 
 
 def judge(
@@ -66,11 +67,11 @@ def judge(
     points, deviation = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3), em.deviation_mm
     counts: dict[str, int] = {**nominal.excluded, **(excluded or {})}
     rule = decision or DecisionRule()
-    # as cloud.ply stores it (float32), so that a report rebuilt from the file judges exactly the same
-    u = None if uncertainty_mm is None else np.asarray(uncertainty_mm, np.float32).astype(np.float64).ravel()
+    # as cloud.ply stores it (0.1 um steps, rounded up): a report rebuilt from the file judges the same
+    u = None if uncertainty_mm is None else stored_uncertainty(np.ravel(uncertainty_mm))
     fields = dict(point_fields or {})
     if u is not None:
-        fields["uncertainty"] = u.astype(np.float32)
+        fields["uncertainty"] = encode_uncertainty(u)
     stored = None
     if min_defect_points > 1 or fields:
         stored = StoredCloud(points, deviation, fields=fields)

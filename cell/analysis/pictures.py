@@ -7,7 +7,8 @@ pixel), coloured by :class:`cell.analysis.colour_scale.BandedScale`, shaded by t
 surface samples that no point covered (``Coverage.covered`` false) are drawn as hatching behind the measured
 points. Out-of-tolerance regions are labelled with their number at their extreme point where that point is
 visible. Why not matplotlib's 3D scatter: it rasterises every marker as a path, seconds for 100k points;
-this takes tens of milliseconds per view.
+this takes tens of milliseconds per view. The image filters are OpenCV's (scipy.ndimage costs 0.4 s of CPU
+to import, a third of a whole ``cell compare``).
 
 Units: mm, deviations + outside the material; views in matplotlib's convention (elevation, azimuth: the eye
 at (cos e cos a, cos e sin a, sin e) looking at the centre).
@@ -28,6 +29,12 @@ from cell.analysis.formatting import count, signed
 
 VIEWS = (("top", 90, -90), ("front", 0, -90), ("right", 0, 0), ("iso", 30, -60))
 LIGHT = np.array([-0.45, 0.55, 1.0]) / np.linalg.norm([-0.45, 0.55, 1.0])  # right, up, towards the eye
+
+
+def _dot(v: NDArray, axis: NDArray) -> NDArray:
+    """``v @ axis`` over the last dimension (3) written out: OpenBLAS's threads make a (N, 3) @ (3,) product
+    5-15x dearer in CPU than these three products on a shared machine (0.35 s of the four views' 1.1 s)."""
+    return v[..., 0] * axis[0] + v[..., 1] * axis[1] + v[..., 2] * axis[2]
 
 
 def view_axes(elev_deg: float, azim_deg: float) -> tuple[NDArray, NDArray, NDArray]:
@@ -63,7 +70,7 @@ class ViewFrame:
         """The frame that shows every point, true proportions, centred, ``width_px`` wide and as high as the
         points need (``min_height_px`` .. ``width_px``) plus a ``strip_px`` strip below them."""
         axes = view_axes(elev_deg, azim_deg)
-        uv = points_mm @ np.column_stack(axes[:2])
+        uv = np.column_stack([_dot(points_mm, axes[0]), _dot(points_mm, axes[1])])
         lo, hi = uv.min(0), uv.max(0)
         span_u, span_v = max(float(hi[0] - lo[0]), 1e-9), max(float(hi[1] - lo[1]), 1e-9)
         inner = width_px - 2 * margin_px
@@ -74,14 +81,14 @@ class ViewFrame:
     def project(self, points_mm: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray]:
         """Column, row (pixels) and depth (mm, larger is nearer) of each point."""
         right, up, eye = self.axes
-        u = (points_mm @ right - self.centre_uv[0]) * self.scale_px_per_mm + self.width_px / 2
+        u = (_dot(points_mm, right) - self.centre_uv[0]) * self.scale_px_per_mm + self.width_px / 2
         v = (
-            -(points_mm @ up - self.centre_uv[1]) * self.scale_px_per_mm
+            -(_dot(points_mm, up) - self.centre_uv[1]) * self.scale_px_per_mm
             + (self.height_px - self.strip_px) / 2
         )
         col = np.clip(np.floor(u), 0, self.width_px - 1).astype(np.int64)
         row = np.clip(np.floor(v), 0, self.height_px - 1).astype(np.int64)
-        return col, row, points_mm @ eye
+        return col, row, _dot(points_mm, eye)
 
 
 def _splat(
@@ -100,30 +107,39 @@ def _splat(
     return r * w + c, depth[src], src
 
 
+def _gaussian(img: NDArray, sigma: float) -> NDArray:
+    """Gaussian smoothing, mirrored at the border (scipy.ndimage.gaussian_filter's, truncated at 4 sigma),
+    by OpenCV: scipy.ndimage costs 0.4 s of CPU to import."""
+    import cv2
+
+    k = 2 * int(4.0 * sigma + 0.5) + 1
+    return cv2.GaussianBlur(img, (k, k), sigma, borderType=cv2.BORDER_REFLECT)
+
+
 def _shade(depth_img: NDArray, scale_px_per_mm: float) -> NDArray:
     """Lambert shading (0.5 .. 1) of a depth image (mm, NaN where empty) from its normals, the depth first
     smoothed over a few pixels (NaN-aware) so that measurement noise does not speckle the picture."""
-    from scipy.ndimage import gaussian_filter
-
     ok = np.isfinite(depth_img)
-    weight = gaussian_filter(ok.astype(np.float64), 1.2)
-    smooth = gaussian_filter(np.where(ok, depth_img, 0.0), 1.2) / np.maximum(weight, 1e-9)
+    weight = _gaussian(ok.astype(np.float64), 1.2)
+    smooth = _gaussian(np.where(ok, depth_img, 0.0), 1.2) / np.maximum(weight, 1e-9)
     g_row, g_col = np.gradient(np.where(ok, smooth, np.nan))
     n = np.dstack([-g_col * scale_px_per_mm, g_row * scale_px_per_mm, np.ones_like(depth_img)])
     n /= np.linalg.norm(n, axis=2, keepdims=True)
-    lam = np.clip(n @ LIGHT, 0.0, 1.0)
+    lam = np.clip(_dot(n, LIGHT), 0.0, 1.0)
     return np.where(np.isfinite(lam), 0.5 + 0.5 * lam, 1.0)
 
 
 def _zbuffer(pix: NDArray, depth: NDArray, n_pixels: int) -> tuple[NDArray[np.int64], NDArray]:
-    """Per pixel (flat) the index of the nearest entry drawn there (-1: none) and its depth (NaN: none)."""
-    winner = np.full(n_pixels, -1, np.int64)
-    depth_img = np.full(n_pixels, np.nan)
-    if len(pix):
-        order = np.lexsort((-depth, pix))  # by pixel, nearest first
-        first = order[np.r_[True, pix[order][1:] != pix[order][:-1]]]
-        winner[pix[first]], depth_img[pix[first]] = first, depth[first]
-    return winner, depth_img
+    """Per pixel (flat) the index of the nearest entry drawn there (-1: none; of equally near ones the first)
+    and its depth (NaN: none). Two unbuffered ufunc passes: 20x faster than sorting the entries by pixel."""
+    nearest = np.full(n_pixels, -np.inf)
+    np.maximum.at(nearest, pix, depth)
+    at_front = np.flatnonzero(depth == nearest[pix])
+    winner = np.full(n_pixels, len(pix), np.int64)
+    np.minimum.at(winner, pix[at_front], at_front)
+    drawn = winner < len(pix)
+    winner[~drawn] = -1
+    return winner, np.where(drawn, nearest, np.nan)
 
 
 def render_view(
@@ -172,23 +188,35 @@ def render_view(
 def _drop_seen_through(depth_img: NDArray, window_px: int, thickness_mm: float) -> None:
     """Empty the pixels that show a point far behind the surface around them: seen through a hole between
     the nearer surface's points, they belong to a face the nearer one hides (a sparse cloud's back side)."""
-    from scipy.ndimage import maximum_filter
+    import cv2
 
-    nearest = maximum_filter(np.where(np.isfinite(depth_img), depth_img, -np.inf), size=window_px)
+    # the nearest depth within the window (scipy.ndimage.maximum_filter's answer: its mirrored border only
+    # repeats pixels inside the window)
+    nearest = cv2.dilate(
+        np.where(np.isfinite(depth_img), depth_img, -np.inf), np.ones((window_px, window_px), np.uint8)
+    )
     depth_img[depth_img < nearest - thickness_mm] = np.nan
 
 
 def _fill_holes(img: NDArray[np.uint8], depth_img: NDArray, max_px: int) -> None:
-    """Empty pixels within ``max_px`` of a drawn one take the nearest drawn pixel's colour and depth."""
-    from scipy.ndimage import distance_transform_edt
+    """Empty pixels within ``max_px`` of a drawn one take the nearest drawn pixel's colour and depth.
+    OpenCV's distance transform with the nearest drawn pixel's label (its 5x5 mask: distances within 2 %
+    of the Euclidean one) instead of scipy.ndimage's exact one, which costs 0.4 s of CPU to import."""
+    import cv2
 
     empty = ~np.isfinite(depth_img)
     if empty.all() or not empty.any():
         return
-    dist, (ri, ci) = distance_transform_edt(empty, return_indices=True)
-    fill = empty & (dist <= max_px)
-    img[fill] = img[ri[fill], ci[fill]]
-    depth_img[fill] = depth_img[ri[fill], ci[fill]]
+    dist, label = cv2.distanceTransformWithLabels(
+        empty.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    drawn = np.flatnonzero(~empty)
+    source = np.zeros(int(label.max()) + 1, np.int64)
+    source[label.ravel()[drawn]] = drawn  # each drawn pixel carries a label of its own
+    fill = np.flatnonzero(empty & (dist <= max_px))
+    src = source[label.ravel()[fill]]
+    img.reshape(-1, img.shape[-1])[fill] = img.reshape(-1, img.shape[-1])[src]
+    depth_img.reshape(-1)[fill] = depth_img.reshape(-1)[src]
 
 
 def _font(size: int) -> Any:
@@ -263,10 +291,12 @@ def draw_triad(img: NDArray[np.uint8], frame: ViewFrame) -> NDArray[np.uint8]:
 
 
 def png_base64(img: NDArray[np.uint8]) -> str:
+    """The image as base64 PNG. zlib level 1: a third of level 6's time (0.1 s instead of 0.3 s for the four
+    views of a 200k-point cloud) for about a tenth more bytes."""
     from PIL import Image
 
     buf = io.BytesIO()
-    Image.fromarray(img).save(buf, format="PNG", optimize=False, compress_level=6)
+    Image.fromarray(img).save(buf, format="PNG", optimize=False, compress_level=1)
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
@@ -319,10 +349,11 @@ def point_spacing_mm(points_mm: NDArray, sample: int = 4000) -> float:
     """Median distance from a point to its nearest other point (mm), from a random sample of points."""
     if len(points_mm) < 2:
         return 0.0
-    from scipy.spatial import cKDTree
+    from cell.analysis._point_grid import nearest_other, point_grid
 
     pick = np.random.default_rng(0).choice(len(points_mm), min(sample, len(points_mm)), replace=False)
-    d = np.asarray(cKDTree(points_mm).query(points_mm[pick], k=2)[0])[:, 1]
+    n_same, d = nearest_other(point_grid(points_mm), pick)
+    d = np.where(n_same == 1, d, 0.0)  # a copy of the point is its nearest other one (left out below)
     return float(np.median(d[d > 0])) if (d > 0).any() else 0.0
 
 

@@ -17,17 +17,18 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import trimesh
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
-from cell.analysis.errormap import NominalMesh
-from cell.config import RegionConfig, read_yaml, validate
 from cell.errors import ConfigError
-from cell.schema import Strict
+
+if (
+    TYPE_CHECKING
+):  # the config schemas (pydantic), trimesh and scipy load where used: `cell compare` starts fast
+    from cell.analysis.errormap import NominalMesh
+    from cell.config import RegionConfig
 
 
 @dataclass(frozen=True)
@@ -101,12 +102,6 @@ def point_bands(
     return PointBands(lower, upper)
 
 
-class _RegionFile(Strict):
-    """A region file (``cell compare --regions``): a recipe's ``regions:`` alone."""
-
-    regions: list[RegionConfig]
-
-
 def region_from_config(spec: RegionConfig) -> Region:
     """The analysis region of a recipe's or region file's entry."""
     return Region(
@@ -144,7 +139,10 @@ def load_regions(path: Path) -> list[RegionConfig]:
     """Region specs from YAML (``regions: [{name, faces | box_mm, tolerance_mm}]``), in the schema of a
     recipe's ``regions``: :class:`cell.config.RegionConfig`; errors name the file and field as a recipe's
     do."""
-    return list(validate(_RegionFile, read_yaml(path), path).regions)
+    from cell.analysis.region_file import RegionFile
+    from cell.config import read_yaml, validate
+
+    return list(validate(RegionFile, read_yaml(path), path).regions)
 
 
 @dataclass(frozen=True)
@@ -197,6 +195,9 @@ def coverage(
     if not radius_mm > 0:
         raise ConfigError(f"coverage radius must be > 0 mm, got {radius_mm}")
     min_count = 1 if density_per_mm2 is None else max(1, math.ceil(density_per_mm2 * math.pi * radius_mm**2))
+    import trimesh
+    from scipy.spatial import cKDTree
+
     mesh = trimesh.Trimesh(nominal.vertices, nominal.faces, process=False)
     area = float(mesh.area)
     if n_samples is None:  # about 4 samples per radius-disc, within [2e3, 2e5]

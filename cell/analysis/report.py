@@ -1,9 +1,10 @@
 """The inspection report of an error map: report.json, report.html, cloud.ply (``deviation``), deviations.csv.
 
 The schema of report.json is documented in docs/report-schema.md, the page in docs/report.md. Deviations in
-mm, + outside the material. Out-of-tolerance points are grouped into regions by a radius graph (cKDTree
-pairs + connected components). The files are written as one set (:mod:`cell.analysis.report_files`): a
-failed or killed report leaves the previous one whole, or none.
+mm, + outside the material. Out-of-tolerance points are grouped into regions by a radius graph (the groups
+of :func:`cell.analysis._point_grid.radius_groups`, as cKDTree pairs + connected components would make
+them). The files are written as one set (:mod:`cell.analysis.report_files`): a failed or killed report
+leaves the previous one whole, or none.
 """
 
 from __future__ import annotations
@@ -18,9 +19,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 import cell
 from cell.analysis.colour_scale import BandedScale
@@ -117,13 +115,12 @@ def _default_link_radius(points_mm: NDArray) -> float:
     whole cloud (a thinned cloud would overstate the spacing), duplicates (zero distances) left out."""
     if len(points_mm) < 2:
         return 0.0
-    # an unbalanced tree builds several times faster on millions of points; queries stay exact
-    tree = cKDTree(points_mm, balanced_tree=False, compact_nodes=False)
-    sample = points_mm[
-        np.random.default_rng(0).choice(len(points_mm), min(len(points_mm), 20000), replace=False)
-    ]
-    d = tree.query(sample, k=8)[0]
-    d = np.where(d > 0, d, np.inf).min(axis=1)  # nearest other point, duplicates and self left out
+    from cell.analysis._point_grid import nearest_other, point_grid
+
+    sample = np.random.default_rng(0).choice(len(points_mm), min(len(points_mm), 20000), replace=False)
+    n_same, d = nearest_other(point_grid(points_mm), sample)
+    # the nearest point elsewhere, as a k-d tree's 8 nearest give it: none when they are all copies
+    d = np.where(n_same < 8, d, np.inf)
     d = d[np.isfinite(d)]
     return 3.0 * float(np.median(d)) if len(d) else 0.0
 
@@ -147,12 +144,10 @@ def point_clusters(
     bad = np.flatnonzero(mask)
     if len(bad) == 0:
         return bad, np.zeros(0, dtype=np.int64)
+    from cell.analysis._point_grid import radius_groups
+
     radius = _default_link_radius(points_mm) if link_radius_mm is None else link_radius_mm
-    pts = points_mm[bad]
-    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(bad), len(bad)))
-    _, lab = connected_components(graph, directed=False)
-    return bad, lab.astype(np.int64)
+    return bad, radius_groups(points_mm[bad], radius)
 
 
 def isolated_out_of_tolerance(
@@ -430,7 +425,7 @@ def write_report(out_dir: Path, inp: ReportInput, pictures: bool = True, csv: bo
     page = render(doc, inp, pictures, csv)
     stored = inp.stored or StoredCloud(inp.points_mm, inp.deviation_mm)
     fields = dict(stored.fields)
-    if stored.isolated is not None:
+    if stored.isolated is not None and stored.isolated.any():  # no column: none isolated (2 MB of zeros)
         fields = {"isolated": np.asarray(stored.isolated, bool), **fields}
     writers = {
         "cloud.ply": lambda p: write_ply(p, stored.points_mm, stored.deviation_mm, fields),

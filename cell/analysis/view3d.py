@@ -1,10 +1,13 @@
 """The report's interactive 3D deviation view: a plotly figure of a decimated cloud, embedded offline.
 
-The figure (built and validated with plotly's ``graph_objects``) holds at most ``max_points`` measured points,
-every out-of-tolerance one among them while they are fewer than half of that, coordinates and deviations as
-float32 (plotly's base64 typed arrays); the nominal surface that was not measured (grey), and the
-out-of-tolerance regions as numbered flags matching the report's table. Colours come from
-:class:`cell.analysis.colour_scale.BandedScale` as a plotly colour scale with hard steps at the limits.
+The figure holds at most ``max_points`` measured points, every out-of-tolerance one among them while they are
+fewer than half of that, coordinates and deviations as float32 (plotly's base64 typed arrays); the nominal
+surface that was not measured (grey), and the out-of-tolerance regions as numbered flags matching the report's
+table. Colours come from :class:`cell.analysis.colour_scale.BandedScale` as a plotly colour scale with hard
+steps at the limits. It is written as the dict plotly's ``graph_objects`` would make of it (with plotly's
+default template) and encoded as plotly encodes it: importing and running ``graph_objects``' validators costs
+0.2-0.4 s of CPU per report. tests/test_report_page.py has plotly validate the dict and checks that plotly's
+own figure of it is the same JSON.
 
 plotly.js comes from the plotly wheel (``plotly.offline.get_plotlyjs``, 4.8 MB) and is embedded in the
 report gzip-compressed and base64-encoded (2.0 MB); the page inflates it with the browser's
@@ -18,7 +21,11 @@ from __future__ import annotations
 
 import base64
 import gzip
+import hashlib
+import json
+import os
 from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,10 +41,36 @@ READY = "!document.getElementById('view3d') || document.getElementById('view3d')
 
 @lru_cache(maxsize=1)
 def plotly_js_gzip_base64() -> str:
-    """plotly.js from the installed plotly wheel, gzip-compressed (deterministic: no time stamp), base64."""
+    """plotly.js from the installed plotly wheel, gzip-compressed (deterministic: no time stamp), base64.
+
+    Compressing 4.8 MB at level 9 costs 0.3 s of CPU, a sixth of a whole ``cell compare``: the result is kept
+    in the user's cache folder (:func:`_cache_dir`), named by the script's SHA-256, and read from there while
+    the script is the same; a cache that cannot be read or written is only slower."""
     from plotly.offline import get_plotlyjs
 
-    return base64.b64encode(gzip.compress(get_plotlyjs().encode("utf-8"), 9, mtime=0)).decode("ascii")
+    script = get_plotlyjs().encode("utf-8")
+    cached = _cache_dir() / f"plotly-{hashlib.sha256(script).hexdigest()[:20]}.js.gz.b64"
+    try:
+        return cached.read_text(encoding="ascii")
+    except (OSError, UnicodeDecodeError):
+        pass
+    packed = base64.b64encode(gzip.compress(script, 9, mtime=0)).decode("ascii")
+    try:
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        part = cached.with_name(f"{cached.name}.{os.getpid()}.part")
+        part.write_text(packed, encoding="ascii")
+        os.replace(part, cached)  # whole or absent, however many reports run at once
+    except OSError:
+        pass
+    return packed
+
+
+def _cache_dir() -> Path:
+    """Where derived files are kept between runs: $CELL_CACHE_DIR, else $XDG_CACHE_HOME/inspection-cell,
+    else ~/.cache/inspection-cell."""
+    if os.environ.get("CELL_CACHE_DIR"):
+        return Path(os.environ["CELL_CACHE_DIR"])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "inspection-cell"
 
 
 def decimate(n_points: int, keep: NDArray[np.bool_], max_points: int, seed: int = 0) -> NDArray[np.int64]:
@@ -55,9 +88,23 @@ def decimate(n_points: int, keep: NDArray[np.bool_], max_points: int, seed: int 
     return np.sort(np.concatenate([kept, pick]))
 
 
-def _xyz(points: NDArray) -> dict[str, NDArray[np.float32]]:
+def _typed(values: NDArray) -> dict[str, str]:
+    """A float32 array as plotly's base64 typed array (little-endian bytes)."""
+    data = np.ascontiguousarray(values, dtype="<f4").tobytes()
+    return {"dtype": "f4", "bdata": base64.b64encode(data).decode("ascii")}
+
+
+def _xyz(points: NDArray) -> dict[str, dict[str, str]]:
     p = np.asarray(points, np.float32)
-    return {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2]}
+    return {"x": _typed(p[:, 0]), "y": _typed(p[:, 1]), "z": _typed(p[:, 2])}
+
+
+@lru_cache(maxsize=1)
+def _template() -> dict[str, Any]:
+    """plotly's default template ("plotly"), from the plotly wheel's JSON as graph_objects applies it."""
+    from importlib.resources import files
+
+    return dict(json.loads((files("plotly") / "package_data" / "templates" / "plotly.json").read_text()))
 
 
 def figure(
@@ -71,18 +118,17 @@ def figure(
     max_points: int = 60_000,
 ) -> dict[str, Any]:
     """The plotly figure as a dict (``data``, ``layout``). ``labels``: (number, point, hover text)."""
-    import plotly.graph_objects as go
-
     sel = decimate(len(points_mm), keep, max_points)
     c0, c1 = scale.range_mm
     ticks = sorted({c0, scale.lower_mm, scale.reference_mm, scale.upper_mm, c1})
-    measured = go.Scatter3d(
+    measured = dict(
+        type="scatter3d",
         **_xyz(points_mm[sel]),
         mode="markers",
         name=f"measured ({len(sel):,} of {len(points_mm):,} points shown)".replace(",", "\u202f"),
         marker={
             "size": MARKER_PX,
-            "color": np.asarray(deviation_mm[sel], np.float32),
+            "color": _typed(deviation_mm[sel]),
             "colorscale": scale.plotly_colorscale(),
             "cmin": c0,
             "cmax": c1,
@@ -100,7 +146,8 @@ def figure(
     data: list[Any] = [measured]
     if unmeasured_mm is not None and len(unmeasured_mm):
         data.append(
-            go.Scatter3d(
+            dict(
+                type="scatter3d",
                 **_xyz(unmeasured_mm),
                 mode="markers",
                 name="not measured (nominal surface)",
@@ -111,7 +158,8 @@ def figure(
     callouts = []
     if labels:
         data.append(
-            go.Scatter3d(
+            dict(
+                type="scatter3d",
                 **_xyz(np.array([p for _, p, _ in labels], np.float64)),
                 mode="markers",
                 name="out-of-tolerance regions",
@@ -142,7 +190,7 @@ def figure(
             for t, p, _ in labels
         ]
     axis = {"showbackground": False, "gridcolor": "#ddd", "zerolinecolor": "#bbb", "ticksuffix": ""}
-    layout = go.Layout(
+    layout = dict(
         height=560,
         margin={"l": 0, "r": 0, "t": 0, "b": 0},
         paper_bgcolor="white",
@@ -155,15 +203,16 @@ def figure(
             "camera": {"eye": {"x": 1.25, "y": -1.9, "z": 1.25}},
             "annotations": callouts,
         },
+        template=_template(),
     )
-    return go.Figure(data=data, layout=layout).to_plotly_json()
+    return {"data": data, "layout": layout}
 
 
 def figure_json(fig: dict[str, Any]) -> str:
-    """The figure as JSON that is safe inside a ``<script type="application/json">`` element."""
-    from plotly.io.json import to_json_plotly
-
-    return to_json_plotly(fig).replace("</", "<\\/")
+    """The figure as JSON that is safe inside a ``<script type="application/json">`` element: compact, with
+    ``<``, ``>`` and ``/`` escaped as plotly's ``to_json`` escapes them."""
+    text = json.dumps(fig, separators=(",", ":"))
+    return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("/", "\\u002f")
 
 
 LOADER = """<script>

@@ -75,7 +75,10 @@ def active_sensor_config(cfg: CellConfig) -> SensorConfig:
     """``cfg.sensor`` with the calibrated values put in (a copy; ``cfg`` is not changed):
 
     * ``calibration.intrinsics`` (cell calibrate intrinsics): camera fx, fy, cx, cy and distortion;
-    * ``calibration.projector`` (cell calibrate projector): projector fx, fy, cx, cy, distortion and T_C_P;
+    * ``calibration.projector`` (cell calibrate projector): projector fx, fy, cx, cy, distortion and T_C_P,
+      and the camera lens refined with them (``camera_K``, ``camera_dist``) when the file holds it: the
+      transform is consistent only with that camera (cell.calibration.projector), so it replaces the
+      intrinsics file's;
     * ``calibration.hand_eye`` (cell calibrate handeye): T_T_C.
 
     Each file must be of the right kind and made for the configured device (resolution, serial)."""
@@ -94,6 +97,10 @@ def active_sensor_config(cfg: CellConfig) -> SensorConfig:
         if "dist" in a:
             update_p["distortion"] = _lens(a["dist"])
         proj = proj.model_copy(update=update_p)
+        if "camera_K" in a:  # the camera lens the pair was adjusted with
+            _check_device(meta, "camera", cal.projector, cam.serial, (cam.width_px, cam.height_px))
+            update_c = {**_pinhole_update(a["camera_K"]), "distortion": _lens(a["camera_dist"])}
+            cam = cam.model_copy(update=update_c)
     update: dict = {"camera": cam, "projector": proj}
     if cal.hand_eye is not None:
         update["T_T_C"] = _pose_config(active_hand_eye(cfg))
@@ -199,7 +206,12 @@ def calibration_source(cfg: CellConfig) -> str:
     if not parts:
         return NO_CALIBRATION
     if cal.sensor is None:
+        refined = cal.projector is not None and "camera_K" in load_calibration(cal.projector, "projector")[1]
+        if refined:
+            parts.append("camera lens: as refined with the projector")
         missing = [f for f in ("intrinsics", "projector") if getattr(cal, f) is None]
+        if refined and "intrinsics" in missing:
+            missing.remove("intrinsics")
         if missing:
             parts.append(f"{' and '.join(missing)}: config geometry")
     if cal.hand_eye is None:

@@ -56,9 +56,9 @@ def projector_from_folder(
     half_window: int = 15,
 ) -> OfflineProjector:
     """Moreno-Taubin projector calibration: per pose the board corners and the decoded projector coordinates
-    (both directions), local homographies at the corners, then calibrateCamera for the projector and
-    stereoCalibrate with the camera intrinsics fixed. Without ``K_cam`` the camera is calibrated on the same
-    board views first."""
+    (both directions), local homographies at the corners, then calibrateCamera for the projector and one
+    bundle adjustment of camera and projector (cell.calibration.projector.calibrate_projector). Without
+    ``K_cam`` the camera is calibrated on the same board views first."""
     if set(a.axis for a in folder.patterns.codes) != {"columns", "rows"}:
         raise ConfigError(
             "projector calibration needs both stripe directions: set code.direction to 'both'",
@@ -208,11 +208,12 @@ def save_offline_projector(
     p = res.projector
     meta = {
         "projector": _device(folder.manifest.projector),
+        "camera": _device(folder.manifest.camera),
         "source": str(folder.root.resolve()),
         "figures": projector_figures(res),
         "quality": {"rms_px": p.stereo_rms_px},
     }
-    arrays = {"K": p.K, "dist": p.dist, "T_C_P": p.T_C_P}
+    arrays = {"K": p.K, "dist": p.dist, "T_C_P": p.T_C_P, "camera_K": p.K_cam, "camera_dist": p.dist_cam}
     return save_calibration(path, "projector", arrays, meta, "quality.rms_px", force, made_for=made_for)
 
 

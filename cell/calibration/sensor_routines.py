@@ -99,8 +99,10 @@ class IntrinsicsJob(CalibrationJob):
 # --------------------------------------------------------------------------------------------- projector
 class ProjectorJob(IntrinsicsJob):
     """Projector K and T_C_P (Moreno-Taubin): GCPS in both directions on the ChArUco board, a local homography
-    per corner, calibrateCamera for the projector and stereoCalibrate with the camera fixed. The camera is the
-    cell's active one (calibration.intrinsics) unless ``intrinsics`` names a file."""
+    per corner, calibrateCamera for the projector, then one bundle adjustment of camera and projector
+    (stereoCalibrate, cell.calibration.projector). The camera it starts from is the cell's active one
+    (calibration.intrinsics) unless ``intrinsics`` names a file; the file holds the camera lens refined with
+    the projector (``camera_K``, ``camera_dist``), which the active calibration then uses."""
 
     kind, file_stem = "projector", "projector"
 
@@ -146,13 +148,22 @@ class ProjectorJob(IntrinsicsJob):
             "K": res.K.tolist(),
             "dist": res.dist.tolist(),
             "T_C_P": res.T_C_P.tolist(),
+            "camera_K": res.K_cam.tolist(),
+            "camera_dist": res.dist_cam.tolist(),
         }
         path = save_calibration(
             run.path / self.file_stem,
             self.kind,
-            {"K": res.K, "dist": res.dist, "T_C_P": res.T_C_P},
+            {
+                "K": res.K,
+                "dist": res.dist,
+                "T_C_P": res.T_C_P,
+                "camera_K": res.K_cam,
+                "camera_dist": res.dist_cam,
+            },
             {
                 "projector": {"serial": proj.serial, "resolution": [proj.width_px, proj.height_px]},
+                "camera": {"serial": cam.serial, "resolution": [cam.width_px, cam.height_px]},
                 "figures": figs,
                 "quality": {"rms_px": res.stereo_rms_px},
             },

@@ -16,6 +16,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Mark a paused or interrupted run aborted (it can no longer be resumed; its files stay). A running
         run is refused: pause it first (Ctrl-C)."""
+        typer.echo(f"aborting the run in {run_dir}")
         from cell.inspection_run import abort_run
 
         typer.echo(f"{abort_run(run_dir, reason)}: {run_dir}")

@@ -4,59 +4,32 @@ folder (cell.calibration.offline). Each writes a run folder ``--out`` (journal, 
 ``calibration.json`` or ``validation.json``) and prints the lines to put into the cell config; it never edits
 the config itself. Running a command again on an unfinished ``--out`` resumes it.
 
-This module holds the group, the sensor routines (sensor, intrinsics, projector, gamma) and what the other
-modules of the group share; cell/commands/calibrate_cell.py adds handeye, kinematics, validate and all,
-cell/commands/latency.py adds latency."""
+This module holds the group and the sensor routines (sensor, intrinsics, projector, gamma);
+cell/commands/calibrate_cell.py adds handeye, kinematics, validate and all, cell/commands/latency.py adds
+latency; cell/commands/calibrate_common.py holds what they share."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
-from typing import Any
 
 import typer
 
-from cell.config import DEFAULT_CELL, load_cell_config
+from cell.commands.calibrate_common import (
+    CellOpt,
+    ForceOpt,
+    FromOpt,
+    OutOpt,
+    cell_config,
+    offline,
+    run,
+    start,
+)
 
 calibrate_app = typer.Typer(
     help="Calibration routines: per-pixel sensor, camera intrinsics, projector, projector gamma, hand-eye, "
     "validation, all of them in a row.",
     no_args_is_help=True,
 )
-CellOpt = typer.Option(DEFAULT_CELL, "--cell", help="cell config YAML")
-OutOpt = typer.Option(..., "--out", help="run folder to write (an unfinished one is resumed)")
-ForceOpt = typer.Option(False, "--force", help="replace a better existing calibration")
-FromOpt = typer.Option(
-    None,
-    "--from",
-    help="capture folder of images taken elsewhere (docs/capture-folders.md); no device is used",
-)
-
-
-def print_result(result: dict[str, Any]) -> None:
-    """A routine's figures, and the cell config lines that use its calibration file (if a field takes it)."""
-    from cell.calibration.store import config_lines
-
-    typer.echo(json.dumps(result.get("summary", result), indent=2, default=str))
-    lines = config_lines(result.get("kind", ""), result.get("file", ""))
-    if lines:
-        typer.echo(
-            "\nTo use it, put this into the cell config (paths may be made relative to the cell file):\n"
-            + lines
-        )
-
-
-def run(job: Any, out: Path, cell: Path, seed: int) -> None:
-    """Run the routine ``job`` into ``out`` (cell.calibration.routines.run_routine) and print its result."""
-    from cell.calibration.routines import run_routine
-
-    print_result(run_routine(job, out, cell, seed=seed))
-
-
-def _offline(routine: str, source: Path, out: Path, cell: Path, **options: Any) -> None:
-    from cell.calibration.offline import calibrate_from_folder
-
-    print_result(calibrate_from_folder(routine, source, out, cell, **options))
 
 
 @calibrate_app.command("sensor")
@@ -72,11 +45,12 @@ def sensor_cmd(
 ) -> None:
     """Per-pixel calibration: the stage steps the reference board STEPS x STEP_MM toward the sensor
     (dissertation 5.1.1)."""
+    start("sensor", cell, out, source)
     if source is not None:
-        return _offline("sensor", source, out, cell, force=force, points=points)
+        return offline("sensor", source, out, cell, force=force, points=points)
     from cell.calibration.sensor_routines import SensorJob
 
-    cfg = load_cell_config(cell)
+    cfg = cell_config(cell)
     run(SensorJob(cfg, steps=steps, step_mm=step_mm, points=points, force=force, seed=seed), out, cell, seed)
 
 
@@ -90,11 +64,12 @@ def intrinsics_cmd(
     source: Path | None = FromOpt,
 ) -> None:
     """Camera K and distortion from VIEWS images of a ChArUco board the stage holds (OpenCV)."""
+    start("intrinsics", cell, out, source)
     if source is not None:
-        return _offline("intrinsics", source, out, cell, force=force)
+        return offline("intrinsics", source, out, cell, force=force)
     from cell.calibration.sensor_routines import IntrinsicsJob
 
-    run(IntrinsicsJob(load_cell_config(cell), views=views, force=force, seed=seed), out, cell, seed)
+    run(IntrinsicsJob(cell_config(cell), views=views, force=force, seed=seed), out, cell, seed)
 
 
 @calibrate_app.command("projector")
@@ -110,11 +85,12 @@ def projector_cmd(
     source: Path | None = FromOpt,
 ) -> None:
     """Projector K and T_C_P (Moreno-Taubin local homographies at the ChArUco corners, stereoCalibrate)."""
+    start("projector", cell, out, source)
     if source is not None:
-        return _offline("projector", source, out, cell, intrinsics=intrinsics, force=force)
+        return offline("projector", source, out, cell, intrinsics=intrinsics, force=force)
     from cell.calibration.sensor_routines import ProjectorJob
 
-    job = ProjectorJob(load_cell_config(cell), views=views, intrinsics=intrinsics, force=force, seed=seed)
+    job = ProjectorJob(cell_config(cell), views=views, intrinsics=intrinsics, force=force, seed=seed)
     run(job, out, cell, seed)
 
 
@@ -127,9 +103,10 @@ def gamma_cmd(
     seed: int = 1,
 ) -> None:
     """Projector response: uniform grey levels on the white board; writes the linearising LUT."""
+    start("gamma", cell, out)
     from cell.calibration.sensor_routines import GammaJob
 
-    run(GammaJob(load_cell_config(cell), levels=levels, force=force, seed=seed), out, cell, seed)
+    run(GammaJob(cell_config(cell), levels=levels, force=force, seed=seed), out, cell, seed)
 
 
 def register(app: typer.Typer) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from cell.commands.calibrate import CellOpt, ForceOpt, OutOpt, print_result, run
+from cell.commands.calibrate_common import CellOpt, ForceOpt, OutOpt, print_result, run, start
 
 
 def handeye_cmd(
@@ -24,6 +24,7 @@ def handeye_cmd(
 ) -> None:
     """Hand-eye T_T_C: ICP of gauge scans against its CAD from the mounting drawing, or AX = XB from board
     poses."""
+    start("handeye", cell, out)
     from cell.calibration.routines import handeye_job
     from cell.config import load_cell_config
 
@@ -39,6 +40,7 @@ def kinematics_cmd(
 ) -> None:
     """The robot's link-length and joint-zero errors with the hand-eye, from board views (writes
     OUT/kinematics.yaml and the hand-eye found with it, OUT/handeye.yaml; set both in the cell config)."""
+    start("kinematics", cell, out)
     from cell.calibration.handeye_routines import KinematicsJob
     from cell.config import load_cell_config
 
@@ -63,6 +65,7 @@ def validate_cmd(
     on the stage, measured with the cell's active calibration (or CALIBRATION): plane height error and
     residual, the flat test (Table 5.1), sphere radius error and residual, slot depths against the gauge's
     certificate (Fig 5.4)."""
+    start("validate", cell, out)
     from cell.calibration.routines import run_validation
 
     result = run_validation(
@@ -86,6 +89,7 @@ def all_cmd(
 ) -> None:
     """Intrinsics, projector, robot kinematics with the hand-eye (board poses), optionally the per-pixel
     sensor, then validation; writes OUT/cell.yaml that uses them."""
+    start("all", cell, out)
     from cell.calibration.routines import calibrate_all
 
     cell_out, summary = calibrate_all(cell, out, sensor=sensor, seed=seed, say=typer.echo)

@@ -42,6 +42,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report. Exits
         0 on pass, 4 on fail, 5 when incomplete (docs/exit-codes.md)."""
+        typer.echo(f"comparing {cloud} with {nominal} -> {out}")
         from cell.analysis.compare import run_compare
         from cell.exit_codes import ExitCode, for_verdict
         from cell.runs import require_empty_output

@@ -13,10 +13,13 @@ def register(app: typer.Typer) -> None:
         cell: Path = typer.Option(None, "--cell", help="cell config YAML (default: recipes/cells/sim.yaml)"),
     ) -> None:
         """Connect each configured device and print its status; exit 1 naming the first device that fails."""
+        from cell.defaults import DEFAULT_CELL
+
+        typer.echo(f"connecting the devices of {cell or DEFAULT_CELL}")
         from rich.console import Console
         from rich.table import Table
 
-        from cell.config import DEFAULT_CELL, load_cell_config
+        from cell.config import load_cell_config
         from cell.devices import check_devices
         from cell.errors import DeviceError
 

@@ -28,6 +28,7 @@ def glass_cmd(
 ) -> None:
     """Measure a glass pane: view vectors, marker search, multi-camera feedback, error map and report. Exits
     0 on pass, 4 on fail, 5 when incomplete (docs/exit-codes.md)."""
+    typer.echo(f"glass inspection of {recipe} on {cell or 'its rig'} -> {out}")
     from rich.console import Console
 
     from cell.exit_codes import ExitCode, for_verdict

@@ -49,11 +49,15 @@ def register(app: typer.Typer) -> None:
         The runs come from the results database (results.sqlite in the runs root, or the cell config's
         results_db). Runs the database missed while it was down are recorded first.
         """
-        from cell.config import load_cell_config
         from cell.results import open_results
         from cell.results.text import history_lines, spc_lines
 
-        store = open_results(load_cell_config(cell) if cell else None, runs)
+        cfg = None
+        if cell:
+            from cell.config import load_cell_config
+
+            cfg = load_cell_config(cell)
+        store = open_results(cfg, runs)
         if rebuild:
             n = store.rebuild(say=typer.echo)
             typer.echo(f"rebuilt {store.where} from {n} run folders in {runs}")

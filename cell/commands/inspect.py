@@ -10,22 +10,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import typer
-from rich.console import Console
 
-from cell.config import DEFAULT_CELL
+from cell.defaults import DEFAULT_CELL, DEMO_CELL
 from cell.exit_codes import ExitCode, for_run
-from cell.inspection_run import DEMO_CELL
 from cell.runs import RUNS_ROOT
 
 if TYPE_CHECKING:
     from cell.controller import Controller
     from cell.inspection_run import RunOutcome
 
-console = Console()
 
-
-def _say(message: str) -> None:
-    console.print(message, highlight=False, markup=False)
+_say = typer.echo  # progress and the run's messages, as plain lines
 
 
 def _progress(ctl: Controller) -> None:
@@ -44,23 +39,21 @@ def _progress(ctl: Controller) -> None:
 
 def _finish(outcome: RunOutcome) -> None:
     """The verdict and the report's path of a finished run, else why it stopped; exit with the outcome's
-    code. Messages are printed as text, never as markup: they quote file names and device replies."""
+    code. Messages are printed as text (click's echo, styled on a terminal), never as markup: they quote file
+    names and device replies."""
     run, state, summary = outcome.run, outcome.state, outcome.summary
     code = for_run(state, summary.get("verdict"))
     if state == "done":
-        console.print(
-            f"verdict: {str(summary.get('verdict')).upper()}  "
-            f"({summary.get('n_points')} points, coverage {100 * (summary.get('coverage') or 0):.2f} %)",
-            style="bold",
-            markup=False,
-        )
-        console.print(f"report: {run.results_dir / 'report.html'}", markup=False)
+        coverage = 100 * (summary.get("coverage") or 0)
+        verdict = f"verdict: {str(summary.get('verdict')).upper()}  ({summary.get('n_points')} points"
+        typer.secho(f"{verdict}, coverage {coverage:.2f} %)", bold=True)
+        typer.echo(f"report: {run.results_dir / 'report.html'}")
     elif code is ExitCode.PAUSED:
-        console.print(f"paused: {outcome.message}", style="yellow", markup=False)
-        console.print(f"fix the cause, then: cell resume {run.path}", markup=False)
+        typer.secho(f"paused: {outcome.message}", fg="yellow")
+        typer.echo(f"fix the cause, then: cell resume {run.path}")
     else:
-        console.print(f"{state}: {outcome.message}", style="red", markup=False)
-        console.print(f"run folder: {run.path}", markup=False)
+        typer.secho(f"{state}: {outcome.message}", fg="red")
+        typer.echo(f"run folder: {run.path}")
     if code is not ExitCode.PASS:
         sys.exit(int(code))
 
@@ -89,6 +82,7 @@ def register(app: typer.Typer) -> None:
         ),
     ) -> None:
         """Run an inspection recipe end to end; Ctrl-C pauses safely (resume with `cell resume DIR`)."""
+        typer.echo(f"inspecting {recipe} on cell {cell} -> {out or 'a new run folder in ' + str(RUNS_ROOT)}")
         from cell.inspection_run import inspect
         from cell.run_data import RunIdentity
 
@@ -109,6 +103,7 @@ def register(app: typer.Typer) -> None:
     @app.command("resume")
     def resume_cmd(run_dir: Path = typer.Argument(..., help="run folder of an interrupted run")) -> None:
         """Finish an interrupted or paused run from its last checkpoint, with the settings it started with."""
+        typer.echo(f"resuming the run in {run_dir}")
         from cell.inspection_run import resume
 
         _finish(resume(run_dir, on_progress=_progress, say=_say))
@@ -120,6 +115,7 @@ def register(app: typer.Typer) -> None:
         csv: bool = typer.Option(False, "--csv", help="also write results/deviations.csv (x,y,z,deviation)"),
     ) -> None:
         """Rebuild a finished run's report from its stored views (docs/report.md)."""
+        typer.echo(f"rebuilding the report of {run_dir}")
         from cell.inspection_run import rebuild_report
 
         _finish(rebuild_report(run_dir, csv=csv, pdf=pdf))
@@ -144,6 +140,7 @@ def register(app: typer.Typer) -> None:
         placement errors the pipeline does not know), calibrated first by `cell calibrate all` (about two
         minutes, reused while the cell file is unchanged); `--cell recipes/cells/sim_ideal.yaml
         --no-calibrate` runs it in the ideal world, whose figures are a noise floor."""
+        typer.echo(f"demo: the pillar on cell {cell} -> a new run folder in {runs}")
         from cell.inspection_run import demo
 
         _finish(demo(runs, cell, calibrate=calibrate, on_progress=_progress, say=_say))

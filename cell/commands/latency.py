@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from cell.config import DEFAULT_CELL
+from cell.defaults import DEFAULT_CELL
 
 
 def latency_cmd(
@@ -21,6 +21,7 @@ def latency_cmd(
 ) -> None:
     """Display latency: show black then white, trigger the camera at growing delays after the present stamp;
     the sensor must look at a matte surface the projector lights (the robot is not moved)."""
+    typer.echo(f"calibrate latency: cell {cell} -> {out}")
     from cell.calibration.latency import calibrate_latency
     from cell.calibration.store import config_lines
     from cell.config import load_cell_config

@@ -18,7 +18,10 @@ def plan_cmd(
     cycle-time limit of the tour (motion + capture). Warns when the predicted coverage is below the recipe's
     min_coverage and names the surfaces that no reachable viewpoint sees (with their CAD faces, for the
     recipe's exclude_from_coverage)."""
-    from cell.config import DEFAULT_CELL, load_cell_config, load_recipe
+    from cell.defaults import DEFAULT_CELL
+
+    typer.echo(f"planning the views of {recipe} on cell {cell or DEFAULT_CELL} -> {out}")
+    from cell.config import load_cell_config, load_recipe
     from cell.errors import PlanningError
     from cell.planning.cycle_time import cycle_time, inspection_frames
     from cell.planning.planner import plan_recipe, write_plan

@@ -27,6 +27,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Remove the raw view images of finished inspection runs older than the retention policy keeps them
         (results, inputs, journal and decoded views are always kept; running or unfinished runs untouched)."""
+        typer.echo(f"{'dry run: ' if dry_run else ''}pruning the raw view images of the runs in {runs}")
         from rich.console import Console
 
         from cell.retention import prune

@@ -51,8 +51,11 @@ def scan_cmd(
     ),
 ) -> None:
     """Scan MESH from one pose; write cloud.ply (world mm), masks.png and scan.json to OUT."""
-    from cell.config import DEFAULT_CELL
+    from cell.defaults import DEFAULT_CELL
     from cell.runs import require_empty_output
+
+    what = f"the capture folder {source}" if source is not None else f"{part or 'the empty table'}"
+    typer.echo(f"scanning {what} on cell {cell or DEFAULT_CELL} -> {out}")
 
     require_empty_output(out)
     if source is not None:  # images captured elsewhere, measured with the cell's active calibration

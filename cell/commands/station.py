@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from cell.config import DEFAULT_CELL
+from cell.defaults import DEFAULT_CELL
 from cell.runs import RUNS_ROOT
 
 station_app = typer.Typer(
@@ -44,6 +44,8 @@ def serve_cmd(
     ),
 ) -> None:
     """Serve the station (start, live, verdict, runs, SPC pages) until Ctrl-C; runs it started go on."""
+    scheme = "https" if tls_cert else "http"
+    typer.echo(f"cell station on {scheme}://{host}:{port}/ (runs in {runs.resolve()}); Ctrl-C stops it")
     from cell.station.server import serve
     from cell.station.settings import StationSettings
 
@@ -59,8 +61,6 @@ def serve_cmd(
         tls_cert=tls_cert,
         tls_key=tls_key,
     )
-    scheme = "https" if tls_cert else "http"
-    typer.echo(f"cell station on {scheme}://{host}:{port}/ (runs in {settings.runs}); Ctrl-C stops it")
     serve(settings)
 
 

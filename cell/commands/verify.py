@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import typer
 
+from cell.defaults import DEFAULT_CELL
 from cell.runs import RUNS_ROOT
 
 if TYPE_CHECKING:
@@ -37,6 +38,7 @@ def acceptance_cmd(
     controller (pause with Ctrl-C, run again to resume); writes report.html and verification.json to OUT and
     prints PF, PS, SD and F against their MPEs. Exit code 0 whatever the verdict (the report holds it); an
     acceptance test is a record in its folder, not part of the shift history `cell verify check` keeps."""
+    typer.echo(f"VDI/VDE 2634 part {part} acceptance test of cell {cell or DEFAULT_CELL} -> {out}")
     from cell.verification.job import acceptance_test
 
     result = acceptance_test(cell, certificate, out, part, on_progress=_progress())
@@ -74,6 +76,7 @@ def check_cmd(
 ) -> None:
     """The interim check for the start of a shift: one ball-bar and one plane position. Its figures join the
     verification history in RUNS; warns when a figure drifts toward its MPE, exits 1 when one exceeds it."""
+    typer.echo(f"interim check of cell {cell or DEFAULT_CELL} -> the history in {runs}")
     from cell.verification.job import interim_check
 
     result, folder, warnings = interim_check(cell, certificate, runs, on_progress=_progress())
@@ -92,10 +95,14 @@ def history_cmd(
     config: Path = typer.Option(None, "--cell", help="cell config whose results_db to read"),
 ) -> None:
     """Every stored interim check, oldest first: PF, PS, SD, F (um) and the verdict."""
-    from cell.config import load_cell_config
     from cell.verification.history import FIGURES, VerificationHistory
 
-    entries = VerificationHistory(runs, load_cell_config(config) if config else None).entries(cell)
+    cfg = None
+    if config:
+        from cell.config import load_cell_config
+
+        cfg = load_cell_config(config)
+    entries = VerificationHistory(runs, cfg).entries(cell)
     typer.echo(f"{'time':<26}{'kind':<12}{'cell':<24}" + "".join(f"{k:>9}" for k in FIGURES) + "  verdict")
     for e in entries:
         values = "".join(

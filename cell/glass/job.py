@@ -1,12 +1,12 @@
 """One glass inspection end to end on a rig: calibrate (or load) the view vectors, grab, measure, error map
 and report into a run folder. The rig is injected (the ``cell glass`` command builds the simulated one).
 
-Run folder (cell/runs.py layout): ``inputs/`` copies of recipe, rig config and meshes; ``views/<camera>.npy``
-the averaged frame of each camera; ``calibration/`` the view-vector calibrations used (when computed in
-this run); ``results/`` the report files of the lambertian inspection (report.json/html, cloud.ply with
-``deviation``) for the accepted points in the part frame, their measured normals in cloud.ply too (``nx ny
-nz``), and ``glass_points.npz`` with every measured point (world frame, accepted or not) and its rejection
-figures.
+Run folder (cell/runs.py layout): ``inputs/`` copies of recipe, rig config and meshes; ``views/`` the averaged
+frame of each camera, stored losslessly (:mod:`cell.glass.grabs`: ``<camera>.png``, ``grabs.json``);
+``calibration/`` the view-vector calibrations used (when computed in this run); ``results/`` the report files
+of the lambertian inspection (report.json/html, cloud.ply with ``deviation``) for the accepted points in the
+part frame, their measured normals in cloud.ply too (``nx ny nz``), and ``glass_points.npz`` with every
+measured point (world frame, accepted or not) and its rejection figures.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from cell.errors import CalibrationError, ConfigError
 from cell.geometry import invert, transform_points
 from cell.glass.calibration import ViewVectorCalibration, calibrate_view_vectors
 from cell.glass.config import GlassRecipe, GlassRigConfig
+from cell.glass.grabs import save_grab
 from cell.glass.inspect import GlassMeasurement, measure
 from cell.glass.surface import SmoothSurface
 from cell.runs import RunFolder
@@ -171,11 +172,11 @@ def run_glass_inspection(
     finally:
         rig.close()
     for cam, img in zip(cfg.cameras, images):
-        np.save(run.path / "views" / f"{cam.name}.npy", img)
+        save_grab(run.path / "views", cam.name, img, frames)
     run.log("grabbed", cameras=len(images), frames=frames)
     if second is not None:
         for cam, img in zip(cfg.cameras, second[0]):
-            np.save(run.path / "views" / f"{cam.name}.screen2.npy", img)
+            save_grab(run.path / "views", f"{cam.name}.screen2", img, frames)
     m = measure(images, cals, SmoothSurface(nominal_W), screen, recipe.search, second=second)
     run.log("measured", points=len(m.points), accepted=int(m.accepted.sum()))
     return _report(

@@ -94,9 +94,6 @@ def read_run(run_dir: Path) -> RunRecord:
     identity = manifest.get("identity") or {}
     report = _json(run.results_dir / "report.json") or {}
     status, finished = _status(run, journal)
-    started = (
-        _time(float(created["t"])) if "t" in created else _time((inputs / "manifest.json").stat().st_mtime)
-    )
     tolerance = report.get("tolerance") or {}
     row = {
         "cell": str(_yaml(inputs / str(manifest.get("cell", "cell.yaml"))).get("name") or ""),
@@ -107,7 +104,7 @@ def read_run(run_dir: Path) -> RunRecord:
         "serial": identity.get("serial"),
         "operator": identity.get("operator"),
         "production_order": identity.get("order"),
-        "started": started,
+        "started": run.started(),  # the report's start too (cell.run_record)
         "finished": finished,
         "status": status,
         "verdict": report.get("verdict"),

@@ -111,6 +111,7 @@ def create_app(settings: StationSettings) -> Starlette:
         Route("/run/{name}/events", pages_run.events),
         Route("/run/{name}/verdict", pages_run.verdict_page),
         Route("/run/{name}/views/{view:int}/thumbnail.png", pages_run.thumbnail),
+        Route("/run/{name}/views/{view:int}/photo.jpg", pages_run.photo),
         Route("/run/{name}/results/{path:path}", pages_run.result_file),
         Route("/run/{name}/{action}", pages_run.run_action, methods=["POST"]),
         Route("/runs", pages_results.runs_page),

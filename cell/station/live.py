@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from cell.runs import LOCK_NAME, RunFolder
+from cell.runs import LOCK_NAME, RAW_IMAGES, RunFolder
 from cell.station.progress import TERMINAL, Progress, Timeline, read_progress
 from cell.station.supervisor import Supervisor
 
@@ -68,6 +68,13 @@ def snapshot(supervisor: Supervisor, runs: Path, name: str, past: list[Timeline]
         "thumbnail": (
             f"/run/{name}/views/{progress.last_view}/thumbnail.png"
             if progress.last_view is not None
+            else None
+        ),
+        # the view's photo while its raw images are kept (the cell's retention; a passed run's go at its end)
+        "photo": (
+            f"/run/{name}/views/{progress.last_view}/photo.jpg"
+            if progress.last_view is not None
+            and (RunFolder(runs / name).view_dir(progress.last_view) / RAW_IMAGES / "capture.yaml").is_file()
             else None
         ),
     }

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlencode
@@ -22,7 +22,7 @@ from cell.station.core import flash, said, station_of
 from cell.station.live import snapshot
 from cell.station.progress import Timeline, history, read_progress
 from cell.station.recipes import find_recipe, list_recipes
-from cell.station.thumbnail import legend_css, view_thumbnail
+from cell.station.thumbnail import legend_css, view_photo, view_thumbnail
 from cell.station.verdict import read_verdict
 
 POLL_S = 0.4  # how often a live page's stream looks at the run folder
@@ -194,15 +194,28 @@ def _region_boxes(run_dir: Path) -> list[tuple[str, list[list[float]]]]:
 
 
 async def thumbnail(request: Request) -> Response:
+    """The view's map of what each camera pixel measured (PNG, 320 px wide)."""
+    return await _view_picture(request, view_thumbnail, "image/png", "picture")
+
+
+async def photo(request: Request) -> Response:
+    """The view's fully lit frame, downscaled (JPEG, 320 px wide); 404 once its raw images are gone."""
+    return await _view_picture(request, view_photo, "image/jpeg", "photo (its raw images are not kept)")
+
+
+async def _view_picture(
+    request: Request, make: Callable[[Path], bytes], media_type: str, what: str
+) -> Response:
     require(request)
     name = _run_name(request)
     view = request.path_params["view"]
     view_dir = station_of(request).settings.runs / name / "views" / f"{view:03d}"
     try:
-        png = await asyncio.to_thread(view_thumbnail, view_dir)
+        data = await asyncio.to_thread(make, view_dir)
     except FileNotFoundError:
-        raise HTTPException(404, f"view {view} of {name} has no picture") from None
-    return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=3600"})
+        raise HTTPException(404, f"view {view} of {name} has no {what}") from None
+    # private: behind the sign-in; an hour: a view's pictures do not change (its photo can only go)
+    return Response(data, media_type=media_type, headers={"Cache-Control": "private, max-age=3600"})
 
 
 async def result_file(request: Request) -> Response:

@@ -2,11 +2,11 @@
 machine, pause and resume, checkpoint after every view, journal, run folder): every view is a sensor pose with
 an artefact placed by the artefact stage; the figures come from the saved view points once all are measured.
 
-Part 2 (one view): the sensor stays at the single-view pose and the stage puts the ball bar and the plane at
-the guideline's positions; points stay in the camera frame {C}, so the figures do not depend on the robot or
-the hand-eye. Part 3 (multi-view): the long ball bar in each direction, four sensor poses per position; the
-points go to the world with the cell's believed flange pose and the active hand-eye, as an inspection merges
-its views, so SD contains the robot's and the hand-eye's errors.
+Part 2 (one view): the sensor stays at the single-view pose and the stage puts the sphere, the ball bar and
+the plane at the guideline's positions; points stay in the camera frame {C}, so the figures do not depend on
+the robot or the hand-eye. Part 3 (multi-view): the long ball bar in each direction, four sensor poses per
+position; the points go to the world with the cell's believed flange pose and the active hand-eye, as an
+inspection merges its views, so SD contains the robot's and the hand-eye's errors.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ from cell.verification.procedure import (
     acceptance_positions,
     evaluate_ball_bar,
     evaluate_plane,
+    evaluate_sphere,
     single_view_pose,
 )
 from cell.verification.report import write_html, write_json
@@ -184,6 +185,8 @@ class VerificationJob(CalibrationJob):
                     T_C_A = invert(d["T_W_C"]) @ T_W_A
                     if v0.data["artefact"] == "plane":
                         r = evaluate_plane(d["points_C"], T_C_A, self.certificate.plane)
+                    elif v0.data["artefact"] == "sphere":
+                        r = evaluate_sphere(d["points_C"], T_C_A, self.certificate.sphere)
                     else:
                         r = evaluate_ball_bar(d["points_C"], T_C_A, self.certificate.ball_bar)
             except FitError as exc:

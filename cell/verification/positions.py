@@ -5,10 +5,12 @@ The measuring volume {V} is the box the sensor measures in from one pose: the ca
 camera's (x right, y down in the image, z away from the camera), so a pose in {V} maps to the world through
 the commanded camera pose: ``T_W_V = T_W_C @ Trans(0, 0, standoff)``.
 
+Sphere (10 positions, PF and PS): the eight corners of the volume, inset so that the whole sphere stays in
+the field and the depth, and two on the optical axis a third of the depth before and behind the middle.
 Ball bar (7 positions): the four space diagonals, two face diagonals (the field's diagonals at mid-depth) and
 one axis-parallel position (along the field's long side). Plane (6 positions): flat at the near, middle and
-far depth, tilted about the field's long axis both ways, and along a field diagonal tilted. Every artefact is
-centred on the volume's centre line; its ends stay inside the field at their depth.
+far depth, tilted about the field's long axis both ways, and along a field diagonal tilted. Every bar and
+plane is centred on the volume's centre line; its ends stay inside the field at their depth.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from cell.geometry import make_pose
 from cell.verification.stage import ArtefactName
 
 PLANE_TILT_DEG = 20.0  # tilt of the tilted plane positions about their long axis
+SPHERE_INSET = 0.85  # the corner spheres' centres at this fraction of the room the field leaves them
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,34 @@ def _frame_with_x(direction: NDArray[np.float64], centre: NDArray[np.float64]) -
     y = np.cross((0.0, 0.0, 1.0), x)
     y = y / np.linalg.norm(y) if np.linalg.norm(y) > 1e-9 else np.array([0.0, 1.0, 0.0])
     return make_pose(np.column_stack([x, y, np.cross(x, y)]), centre)
+
+
+def sphere_positions(vol: Volume, diameter_mm: float) -> list[Position]:
+    """The ten sphere positions: the volume's eight corners (near and far, each corner of the field at that
+    depth, inset by :data:`SPHERE_INSET` of the room left once the sphere's radius is taken off) and two on
+    the optical axis, a third of the depth before and behind the middle."""
+    r = diameter_mm / 2
+    d = vol.depth_mm / 2
+    if r >= min(d, vol.width_mm / 2, vol.height_mm / 2):
+        raise ConfigError(
+            f"a {diameter_mm:g} mm sphere does not fit the {vol.width_mm:.0f} x {vol.height_mm:.0f} x "
+            f"{vol.depth_mm:.0f} mm measuring volume; use a smaller sphere",
+            field="sphere.diameter_mm",
+        )
+    out = []
+    for depth, z in (("near", -SPHERE_INSET * (d - r)), ("far", SPHERE_INSET * (d - r))):
+        hw, hh = vol.half_field_at(z - r)  # the sphere's near side sees the smaller field
+        for name, sx, sy in (
+            ("top left", -1, -1),
+            ("top right", 1, -1),
+            ("bottom right", 1, 1),
+            ("bottom left", -1, 1),
+        ):
+            centre = (sx * SPHERE_INSET * (hw - r), sy * SPHERE_INSET * (hh - r), z)
+            out.append(Position(f"sphere, {depth} {name}", "sphere", make_pose(np.eye(3), centre)))
+    for name, z in (("centre, near third", -d / 3), ("centre, far third", d / 3)):
+        out.append(Position(f"sphere, {name}", "sphere", make_pose(np.eye(3), (0.0, 0.0, z))))
+    return out
 
 
 def ball_bar_positions(vol: Volume, length_mm: float, sphere_diameter_mm: float) -> list[Position]:

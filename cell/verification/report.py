@@ -62,6 +62,12 @@ def write_html(path: Path, result: AcceptanceResult, certificate: Certificate, n
     c = certificate
     arts = [
         (
+            "sphere",
+            c.sphere.serial,
+            f"diameter {c.sphere.diameter_mm:.4f} mm, form {c.sphere.form_mm * 1000:.1f} um",
+            c.sphere,
+        ),
+        (
             "ball bar",
             c.ball_bar.serial,
             f"centre distance {c.ball_bar.centre_distance_mm:.4f} mm, spheres "
@@ -100,7 +106,8 @@ mm (L0 = {v["L0"]:.0f} mm); geometry: {escape(result.geometry_source)}.</p>
 <h2>Artefacts (calibration certificate)</h2>
 <table><tr><th>artefact</th><th>serial</th><th>calibrated values</th><th>laboratory</th><th>date</th>
 <th>U (k=2), um</th></tr>{art_rows}</table>
-<p>PF: range of radial residuals of the least-squares sphere; PS: least-squares diameter minus calibrated;
+<p>PF: range of radial residuals of the least-squares sphere; PS: least-squares diameter minus calibrated
+(both taken on the sphere's positions when the test has them, else on the ball bar's spheres);
 SD: least-squares centre distance minus calibrated; F: range of residuals to the least-squares plane. The
 0.3 % of points with the largest residuals are excluded before the final fit (the guideline's rule).</p>
 </body></html>

@@ -40,10 +40,12 @@ class OperatorStage:
         T = np.asarray(T_W_A, dtype=np.float64)
         axis = T[:3, 0] if artefact != "plane" else T[:3, 2]
         what = "bar axis" if artefact != "plane" else "face normal"
+        along = (
+            "" if artefact == "sphere" else f", {what} along ({axis[0]:+.2f}, {axis[1]:+.2f}, {axis[2]:+.2f})"
+        )
         self._say(
             f"Place the {artefact.replace('_', ' ')} at position '{label}': centre at world "
-            f"({T[0, 3]:.0f}, {T[1, 3]:.0f}, {T[2, 3]:.0f}) mm, {what} along "
-            f"({axis[0]:+.2f}, {axis[1]:+.2f}, {axis[2]:+.2f}); within a few mm and degrees is enough."
+            f"({T[0, 3]:.0f}, {T[1, 3]:.0f}, {T[2, 3]:.0f}) mm{along}; within a few mm and degrees is enough."
         )
         self._ask("Press Enter when it is in place and still. ")
 

@@ -25,11 +25,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
-import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
-from scipy.spatial.transform import Rotation
 
 from cell.config import CellConfig, Distortion, PoseConfig, SensorConfig
 from cell.geometry import Pose, make_pose
@@ -150,6 +148,13 @@ def _deep_update(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]
     return out
 
 
+def _rotation() -> Any:
+    """scipy's Rotation, imported when a world is built (cell.devices.check_world only validates one)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
+
+
 def _unit(rng: np.random.Generator) -> NDArray[np.float64]:
     v = rng.normal(size=3)
     return v / np.linalg.norm(v)
@@ -157,7 +162,7 @@ def _unit(rng: np.random.Generator) -> NDArray[np.float64]:
 
 def rigid_error(spec: RigidError, rng: np.random.Generator) -> Pose:
     """A pose of exactly the spec's size: translation along a random unit vector, rotation about another."""
-    R = Rotation.from_rotvec(_unit(rng) * np.deg2rad(spec.rotation_deg)).as_matrix()
+    R = _rotation().from_rotvec(_unit(rng) * np.deg2rad(spec.rotation_deg)).as_matrix()
     return make_pose(R, _unit(rng) * spec.translation_mm)
 
 
@@ -221,7 +226,7 @@ def build_world(cfg: CellConfig, config: WorldConfig | None = None) -> World:
     s = cfg.sensor
 
     def pose_config(T: Pose) -> PoseConfig:
-        rpy = np.degrees(Rotation.from_matrix(T[:3, :3]).as_euler("xyz"))
+        rpy = np.degrees(_rotation().from_matrix(T[:3, :3]).as_euler("xyz"))
         return PoseConfig(xyz_mm=tuple(T[:3, 3].tolist()), rpy_deg=tuple(rpy.tolist()))
 
     def moved(pose: PoseConfig, spec: RigidError, stream: int) -> PoseConfig:
@@ -253,7 +258,7 @@ def build_world(cfg: CellConfig, config: WorldConfig | None = None) -> World:
     angle = p.uniform(0, 2 * np.pi)
     shift = wc.placement.translation_mm * np.array([np.cos(angle), np.sin(angle), 0.0])
     yaw = np.deg2rad(wc.placement.rotation_deg) * p.choice((-1.0, 1.0))
-    placement = make_pose(Rotation.from_rotvec([0, 0, yaw]).as_matrix(), shift)
+    placement = make_pose(_rotation().from_rotvec([0, 0, yaw]).as_matrix(), shift)
     return World(
         config=wc,
         seed=seed,
@@ -278,40 +283,10 @@ def value_noise(points_mm: NDArray[np.float64], grain_mm: float, seed: int) -> N
     on a cubic lattice of spacing ``grain_mm``, trilinearly interpolated. A function of the position only, so
     every view sees the same surface. Hand-written (a numba kernel): no library offers seeded lattice noise
     on numpy arrays fast enough for a million pixels per view."""
+    from fakes.sim.noise import lattice_noise  # numba: loaded by the renderer, not by a config's check
+
     p = np.ascontiguousarray(points_mm, dtype=np.float64).reshape(-1, 3)
-    return _value_noise(p, 1.0 / grain_mm, np.uint64(seed & 0xFFFFFFFF))
-
-
-@nb.njit(cache=True, inline="always")
-def _lattice_value(ix: np.int64, iy: np.int64, iz: np.int64, seed: np.uint64) -> float:
-    """Uniform value of unit variance at a lattice point (splitmix64-style hash of its coordinates)."""
-    h = seed * np.uint64(0x9E3779B97F4A7C15)
-    h = (h ^ np.uint64(ix)) * np.uint64(0xBF58476D1CE4E5B9)
-    h ^= h >> np.uint64(31)
-    h = (h ^ np.uint64(iy)) * np.uint64(0x94D049BB133111EB)
-    h ^= h >> np.uint64(31)
-    h = (h ^ np.uint64(iz)) * np.uint64(0xD6E8FEB86659FD93)
-    h ^= h >> np.uint64(31)
-    u = float(h >> np.uint64(11)) / 9007199254740992.0  # 2^53
-    return (u - 0.5) * 3.4641016151377544  # sqrt(12): unit variance
-
-
-@nb.njit(cache=True)
-def _value_noise(p: NDArray[np.float64], inv_grain: float, seed: np.uint64) -> NDArray[np.float64]:
-    out = np.empty(len(p))
-    norm = 1.0 / np.sqrt((2.0 / 3.0) ** 3)  # trilinear blending of iid unit values leaves variance (2/3)^3
-    for n in range(len(p)):
-        x, y, z = p[n, 0] * inv_grain, p[n, 1] * inv_grain, p[n, 2] * inv_grain
-        fx, fy, fz = np.floor(x), np.floor(y), np.floor(z)
-        ix, iy, iz = np.int64(fx), np.int64(fy), np.int64(fz)
-        tx, ty, tz = x - fx, y - fy, z - fz
-        acc = 0.0
-        for c in range(8):
-            dx, dy, dz = c & 1, (c >> 1) & 1, (c >> 2) & 1
-            w = (tx if dx else 1.0 - tx) * (ty if dy else 1.0 - ty) * (tz if dz else 1.0 - tz)
-            acc += w * _lattice_value(ix + dx, iy + dy, iz + dz, seed)
-        out[n] = acc * norm
-    return out
+    return lattice_noise(p, 1.0 / grain_mm, np.uint64(seed & 0xFFFFFFFF))
 
 
 def schema_page() -> str:

@@ -46,6 +46,11 @@ function live() {
   const root = document.getElementById("live");
   if (!root) return;
   const set = (id, text) => { const el = document.getElementById(id); if (el) el.textContent = text; };
+  const photo = document.getElementById("photo");
+  photo.addEventListener("error", () => {  // its raw images removed meanwhile: the map alone
+    photo.hidden = true;
+    document.getElementById("pictures").classList.remove("with-photo");
+  });
   const source = new EventSource(root.dataset.events);
   source.addEventListener("progress", (ev) => {
     const s = JSON.parse(ev.data);
@@ -66,6 +71,11 @@ function live() {
       const img = document.getElementById("thumb");
       if (img.getAttribute("src") !== s.thumbnail) img.src = s.thumbnail;
       set("thumbview", s.last_view + 1);
+      // the photo while the view's raw images are kept; else the map alone, full size
+      if (s.photo && photo.getAttribute("src") !== s.photo) photo.src = s.photo;
+      photo.hidden = !s.photo;
+      document.getElementById("pictures").classList.toggle("with-photo", Boolean(s.photo));
+      set("photonote", s.photo ? ": the camera's picture, and (corner) what each pixel measured" : "");
     }
     for (const action of ["pause", "resume", "abort"]) {
       const button = document.getElementById(action);
