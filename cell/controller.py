@@ -4,8 +4,8 @@ States (``transitions`` HierarchicalGraphMachine, ``auto_transitions=False`` so 
 bypasses a guard, ``queued=True``, exceptions routed to :meth:`Controller._on_exception`)::
 
     idle -> connecting -> homing -> planning -> scanning(moving -> capturing ... -> decoding)
-         -> evaluating -> replanning -> scanning ... -> registering -> reporting -> done
-    any active state -> paused (operator), faulted (unrecoverable), aborted
+         -> evaluating -> replanning -> scanning ... -> registering -> reporting -> rendering -> done
+    any active state -> paused (operator), faulted (unrecoverable), aborted (not once the verdict is out)
     idle -> resuming -> connecting -> homing -> the phase the checkpoint records
 
 Motion is only commanded while the robot is in a normal mode and the projector is ready: every trigger after
@@ -15,7 +15,15 @@ The controller never imports a driver: it receives a :class:`cell.devices.Device
 plan, capture, decode, evaluate, register and report: :class:`Job`); the projector's start-up and blanking
 are its own hooks. After each completed view the view folder exists whole (see :mod:`cell.runs`); the
 checkpoint (:class:`cell.run_data.Checkpoint`) records the plan and the phase, so a killed run resumes.
-Decoding of view k runs in a worker thread while the robot moves to view k+1 (pipelining).
+
+Pipelining: a view's work (the job's ``decode``: decoding, triangulation and the view's own analysis, all
+written into its folder) runs in one worker thread, fed one view at a time, while the robot moves to the next
+view; the view counts as done once its folder exists whole (the durable result). A failure there surfaces in
+the main thread as that view's error (:class:`cell.errors.ViewProcessingError` for a bug), never lost. After
+the last view only that view's work and the whole-cloud steps remain. ``reporting`` publishes the verdict
+(the job's ``report``: report.json, a ``verdict`` journal line, the checkpoint's summary); ``rendering`` then
+writes the rest of the report (the job's ``render``: pictures, page, 3D view), so the verdict never waits for
+it.
 """
 
 from __future__ import annotations
@@ -26,7 +34,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -44,6 +52,7 @@ from cell.errors import (
     MotionStopped,
     PlanningError,
     StorageError,
+    ViewProcessingError,
 )
 from cell.planning.motion import Move
 from cell.run_data import Checkpoint, Evaluation, Phase, View
@@ -59,8 +68,11 @@ ACTIVE = [
     "replanning",
     "registering",
     "reporting",
+    "rendering",
     "resuming",
 ]
+# the verdict is published when rendering starts: it stands, the run can pause there but not be aborted
+ABORTABLE = [s for s in ACTIVE if s != "rendering"]
 STATES: list[Any] = [
     "idle",
     "connecting",
@@ -71,6 +83,7 @@ STATES: list[Any] = [
     "replanning",
     "registering",
     "reporting",
+    "rendering",
     "done",
     "paused",
     "faulted",
@@ -105,6 +118,7 @@ def _transitions() -> list[dict[str, Any]]:
         {"trigger": "homed", "source": "homing", "dest": "evaluating", "conditions": "phase_is_scanning"},
         {"trigger": "homed", "source": "homing", "dest": "registering", "conditions": "phase_is_registering"},
         {"trigger": "homed", "source": "homing", "dest": "reporting", "conditions": "phase_is_reporting"},
+        {"trigger": "homed", "source": "homing", "dest": "rendering", "conditions": "phase_is_rendering"},
         {"trigger": "planned", "source": "planning", "dest": "scanning_moving"},
         {"trigger": "arrived", "source": "scanning_moving", "dest": "scanning_capturing"},
         {
@@ -126,18 +140,22 @@ def _transitions() -> list[dict[str, Any]]:
         },
         {"trigger": "replanned", "source": "replanning", "dest": "registering"},
         {"trigger": "registered", "source": "registering", "dest": "reporting"},
+        {"trigger": "reported", "source": "reporting", "dest": "rendering", "conditions": "has_page"},
         {"trigger": "reported", "source": "reporting", "dest": "done"},
+        {"trigger": "rendered", "source": "rendering", "dest": "done"},
         {"trigger": "pause", "source": ACTIVE, "dest": "paused"},
         {"trigger": "fault", "source": "*", "dest": "faulted"},
-        # a finished run's verdict stands and an aborted run stays aborted: neither can be aborted (again)
-        {"trigger": "abort", "source": ["idle", *ACTIVE, "paused", "faulted"], "dest": "aborted"},
+        # a published verdict stands and an aborted run stays aborted: neither can be aborted (again)
+        {"trigger": "abort", "source": ["idle", *ABORTABLE, "paused", "faulted"], "dest": "aborted"},
     ]
 
 
 class Job(Protocol):
     """What a job does at each step; the controller sequences it and owns motion, retries and checkpoints.
 
-    The controller moves the robot to each view's ``T_B_T``; the rest of a :class:`View` is the job's.
+    The controller moves the robot to each view's ``T_B_T``; the rest of a :class:`View` is the job's. A job
+    whose ``register`` may run in the controller's worker beside ``evaluate`` (each locks what they share)
+    says so with ``register_while_evaluating = True``.
     """
 
     part_name: str
@@ -167,7 +185,9 @@ class Job(Protocol):
         ...
 
     def report(self, run: RunFolder, registration: dict[str, Any]) -> dict[str, Any]:
-        """Error map and report files in ``run.results_dir``; returns the report's key figures."""
+        """Error map and report files in ``run.results_dir``; returns the report's key figures (with its
+        ``verdict`` when the job judges a part). A job with a ``render(run)`` step writes here only what the
+        verdict needs; ``render`` writes the rest afterwards (its page), returning what it wrote."""
         ...
 
 
@@ -182,6 +202,8 @@ class ControllerSettings:
     speed_fraction: float = 0.8
     pipelining: bool = True
     grab_timeout_ms: float = 2000.0
+    # captured views waiting for the worker, at most: a capture waits for room (a 5 MP stack holds 0.4 GB)
+    max_views_waiting: int = 1
 
 
 @dataclass(frozen=True)
@@ -233,6 +255,7 @@ class Controller:
         def replanned(self) -> bool: ...
         def registered(self) -> bool: ...
         def reported(self) -> bool: ...
+        def rendered(self) -> bool: ...
         def pause(self) -> bool: ...
         def fault(self) -> bool: ...
         def abort(self) -> bool: ...
@@ -266,6 +289,7 @@ class Controller:
         self._pause_requested = threading.Event()
         self._executor: ThreadPoolExecutor | None = None
         self._pending: dict[int, Future[dict[str, Any]]] = {}
+        self._ahead: Future[dict[str, Any]] | None = None  # the registration, started while evaluating
         self._registration: dict[str, Any] | None = None
         self._attempts = 0
         self._storage_failed = False  # the run folder refused a write: the run is pausing for it
@@ -316,6 +340,13 @@ class Controller:
     def phase_is_reporting(self) -> bool:
         return self.checkpoint.phase is Phase.REPORTING
 
+    def phase_is_rendering(self) -> bool:
+        return self.checkpoint.phase is Phase.RENDERING
+
+    def has_page(self) -> bool:
+        """Whether the job writes its report's page after the verdict (a ``render`` step)."""
+        return callable(getattr(self.job, "render", None))
+
     # ------------------------------------------------------------------ bookkeeping
     def _log(self, event: str, **fields: Any) -> None:
         """Journal an entry. Once the run folder refused a write (a full disk, a read-only file system), an
@@ -328,7 +359,8 @@ class Controller:
                 raise
 
     def _journal_state(self) -> None:
-        self._log("state", state=self.state, message=self.message)
+        # cpu_s: this process's CPU seconds so far, so a shared machine's phases can be read in CPU time too
+        self._log("state", state=self.state, message=self.message, cpu_s=round(time.process_time(), 3))
         if self.on_progress:
             self.on_progress(self)
 
@@ -563,6 +595,7 @@ class Controller:
         index = self.current_view
         assert index is not None  # set by the move to this view
         view = self.checkpoint.views[index]
+        self._make_room()
         self.run.log("capture", view=index)
         captured = self.job.capture(self.devices, view, index)
         assert self._executor is not None
@@ -574,6 +607,15 @@ class Controller:
             self._collect(block=False)
         self.progress.view_times.append(time.monotonic())
         self.captured()
+
+    def _make_room(self) -> None:
+        """Before a capture: while one view's work runs and ``max_views_waiting`` more wait for the worker,
+        wait for the oldest (the robot is at the view already; its move overlapped the work). The captured
+        images in memory stay bounded when the views' work is slower than the robot and the camera (a
+        loaded computer, a simulated capture); a computer that keeps up never waits here."""
+        while len(self._pending) > self.settings.max_views_waiting:
+            wait([self._pending[min(self._pending)]])
+            self._collect(block=False)
 
     def _decode_view(self, index: int, view: View, captured: Any) -> dict[str, Any]:
         with self.run.writing_view(index) as tmp:
@@ -588,23 +630,32 @@ class Controller:
         return summary
 
     def _collect(self, *, block: bool) -> None:
-        """Record finished decodes in the journal; re-raise a decode's error here, in the main thread."""
+        """Record finished view work in the journal; re-raise a view's error here, in the main thread: the
+        cell's own errors as they are (a full disk pauses), anything else as that view's
+        :class:`ViewProcessingError` (the run faults naming the view)."""
         for index in sorted(self._pending):
             future = self._pending[index]
             if not block and not future.done():
                 continue
-            summary = future.result()
             del self._pending[index]
+            try:
+                summary = future.result()
+            except (CellError, OSError):
+                raise
+            except Exception as exc:
+                raise ViewProcessingError(index, exc) from exc
             self.run.log("view", view=index, summary=summary)
 
     def _drain_decodes(self) -> None:
         """Wait for every decode before a pause or fault: finished views are journalled, failed ones logged
-        (their folders do not exist, so a resume measures them again)."""
+        (their folders do not exist, so a resume measures them again); a registration started ahead is
+        dropped (a resume registers again)."""
+        self._drop_ahead()
         for index in sorted(self._pending):
             try:
                 summary = self._pending[index].result()
             except Exception as exc:  # recorded here; the view is redone on resume
-                self._log("error", kind="decode", view=index, error=repr(exc))
+                self._log("error", kind="view", view=index, error=repr(exc))
             else:
                 self._log("view", view=index, summary=summary)
         self._pending.clear()
@@ -615,8 +666,31 @@ class Controller:
         self._save()
         self.decoded()
 
+    def _register_ahead(self) -> None:
+        """Start the registration in the worker while this thread evaluates (when pipelining and the job says
+        its ``register`` may run beside ``evaluate``: ``register_while_evaluating``): both need the views'
+        refinement, then each goes its own way, on its own core. ``registering`` takes the result when the
+        evaluation qualifies the views; a replan or a pause drops it."""
+        if self._ahead is not None or not self.settings.pipelining:
+            return
+        if not getattr(self.job, "register_while_evaluating", False):
+            return
+        assert self._executor is not None
+        self._ahead = self._executor.submit(self.job.register, self.run, list(self.checkpoint.views))
+
+    def _drop_ahead(self) -> None:
+        """Wait for a registration started ahead and forget it (its error too: journalled, not raised)."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is None:
+            return
+        try:
+            ahead.result()
+        except Exception as exc:
+            self._log("error", kind="registration ahead", error=repr(exc), used=False)
+
     def _do_evaluating(self) -> None:
         cp = self.checkpoint
+        self._register_ahead()
         evaluation = self.job.evaluate(self.run, cp.views, cp.iteration)
         self.run.log("evaluation", **evaluation.to_json())
         spent = len(cp.views) >= self.settings.view_budget
@@ -638,6 +712,7 @@ class Controller:
             self.needs_views()
 
     def _do_replanning(self) -> None:
+        self._drop_ahead()  # more views: the registration is made again when they are measured
         cp = self.checkpoint
         assert cp.evaluation is not None  # saved with the replanning phase
         room = self.settings.view_budget - len(cp.views)
@@ -650,7 +725,11 @@ class Controller:
         self.replanned()
 
     def _do_registering(self) -> None:
-        self._registration = self.job.register(self.run, self.checkpoint.views)
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None:  # started while evaluating (a resumed run registers here)
+            self._registration = ahead.result()
+        else:
+            self._registration = self.job.register(self.run, self.checkpoint.views)
         self.run.log("registration", **self._registration)
         if not self._registration.get("n_points", 0):
             raise CellError("registration produced no points: nothing to report")
@@ -661,10 +740,20 @@ class Controller:
     def _do_reporting(self) -> None:
         registration = self._registration or self.checkpoint.registration or {}
         summary = self.job.report(self.run, registration)
-        self.run.log("report", **summary)
-        self.checkpoint.phase, self.checkpoint.summary = Phase.DONE, summary
+        # the verdict is out: journalled, and in the checkpoint (what `cell inspect` exits with and what the
+        # station reads), before the rest of the report is written
+        self.run.log("verdict" if "verdict" in summary else "report", **summary)
+        self.checkpoint.summary = summary
+        self.checkpoint.phase = Phase.RENDERING if self.has_page() else Phase.DONE
         self._save()
         self.reported()
+
+    def _do_rendering(self) -> None:
+        written = self.job.render(self.run)  # type: ignore[attr-defined]  # guarded by has_page
+        self.run.log("report_written", **written)
+        self.checkpoint.phase = Phase.DONE
+        self._save()
+        self.rendered()
 
 
 class _StoppedRun:
@@ -691,11 +780,18 @@ def stopped_state(run: RunFolder) -> str:
 
 def abort_stopped(run: RunFolder, reason: str) -> str:
     """Abort a run that no process executes (the caller holds its lock) through the state machine's ``abort``
-    trigger, from :func:`stopped_state`; the machine refuses a finished or an already aborted run
-    (ConfigError). Journals the new state with ``reason``; returns it."""
+    trigger, from :func:`stopped_state`; the machine refuses a finished or an already aborted run, and a run
+    whose verdict is published is refused too (ConfigError). Journals the new state with ``reason``; returns
+    it."""
     from transitions import MachineError
     from transitions.extensions import HierarchicalMachine
 
+    if Checkpoint.from_json(run.load_checkpoint()).phase is Phase.RENDERING:
+        raise ConfigError(
+            "the run's verdict is published and stands; nothing to abort (`cell resume` writes the rest of "
+            "its report)",
+            path=str(run.path),
+        )
     model: Any = _StoppedRun(run, reason)
     state = stopped_state(run)
     HierarchicalMachine(

@@ -73,6 +73,19 @@ class StorageError(CellError):
         super().__init__(message)
 
 
+class ViewProcessingError(CellError):
+    """A view's background work (its decode and own analysis, run while the robot moves on) failed with an
+    error of no kind the cell handles: the view is not measured, and the run stops, naming the view and the
+    cause, instead of carrying on without it."""
+
+    def __init__(self, view: int, cause: BaseException) -> None:
+        self.view = view
+        super().__init__(
+            f"view {view}: its processing failed ({type(cause).__name__}: {cause}); the view is not counted "
+            "as measured (`cell resume` measures it again once the cause is fixed)"
+        )
+
+
 class CalibrationError(CellError):
     """A calibration routine failed or would be worse than the active calibration."""
 

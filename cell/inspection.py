@@ -17,6 +17,8 @@ which.
 from __future__ import annotations
 
 import json
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,22 +32,17 @@ from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.crop import PartCrop
 from cell.analysis.decision import DecisionRule
 from cell.analysis.errormap import NominalMesh, signed_distance
-from cell.analysis.judge import judge
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
-from cell.analysis.merge import cut_unregistered, merge_views, voxel_subsample_index
-from cell.analysis.regions import Coverage, Tolerance, region_from_config
-from cell.analysis.report import write_report
-from cell.analysis.report_files import (
-    decode_uncertainty,
-    encode_uncertainty,
-    read_ply_field,
-    read_ply_points,
-    stored_points,
-    write_file_set,
-    write_ply,
+from cell.analysis.merge import voxel_subsample_index
+from cell.analysis.report import ReportInput
+from cell.analysis.uncertainty import TARGET_SHARE_OF_BAND, view_uncertainty
+from cell.analysis.view_refinement import (
+    OverlapCache,
+    ViewRefinement,
+    estimate_normals,
+    prepare_overlaps,
+    refine_views,
 )
-from cell.analysis.uncertainty import TARGET_SHARE_OF_BAND, registered_cloud_uncertainty, view_uncertainty
-from cell.analysis.view_refinement import LocalPlanes, ViewRefinement, estimate_normals, refine_views
 from cell.calibration import (
     active_gamma_lut,
     active_hand_eye,
@@ -54,29 +51,27 @@ from cell.calibration import (
     believed_flange,
     calibration_residual_px,
     calibration_source,
-    pose_uncertainty_prior,
     view_pose_prior,
 )
 from cell.calibration.gamma import apply_lut
-from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
 from cell.contracts import CameraSettings, PixelFormat, TriggerMode
 from cell.controller import Controller, ControllerSettings, RobotLimits
 from cell.devices import DeviceBundle
 from cell.errors import DeviceFault
 from cell.geometry import invert, transform_points, transform_vectors
-from cell.planning.coverage import coverage_fraction, covered_by_points
+from cell.inspection_results import InspectionResults, RegisteredCloud
+from cell.inspection_views import REGIONS_FILE, ViewResult, ViewStore, save_planes, save_regions
+from cell.planning.coverage import covered_by_views
 from cell.planning.feedback import Evaluation as FeedbackEvaluation
 from cell.planning.feedback import FeedbackPlanner, evaluate, select_new
 from cell.planning.kinematics import UR5E
 from cell.planning.measured import DefectRegion, MeasuredView, measured_view_from_masks
 from cell.planning.motion import MotionPlanner
 from cell.planning.planner import Plan, plan_initial
-from cell.planning.unseen import plan_feedback
 from cell.planning.viewpoints import Viewpoint
 from cell.raycast import RayCaster
-from cell.run_data import Checkpoint, Evaluation, View
-from cell.run_record import run_record
+from cell.run_data import Evaluation, View
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
 from cell.sensing.patterns import PatternSet, measuring_patterns
@@ -84,11 +79,12 @@ from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
 from cell.sensing.triangulate import normalized_coords
 from cell.view_files import (
-    load_eval_points,
-    load_eval_uncertainty,
-    load_view_points,
+    ViewPoints,
+    decode_view_uncertainty,
+    encode_view_uncertainty,
     save_raw_stack,
     save_view_points,
+    stored_points,
 )
 
 # which decode reasons become which defect map of chapter 3 (IS: shadow, IR: glare)
@@ -115,10 +111,11 @@ class InspectionSettings:
 class Captured:
     """One view's pattern stack and where the robot was when it was grabbed (capture -> decode)."""
 
-    images: list[NDArray[Any]]
+    images: list[NDArray[Any]] | NDArray[Any]  # the frames, or one (N, H, W) array of them
     T_B_T: NDArray[np.float64]  # the flange pose the cell believes (cell.calibration.believed_flange)
     joints: NDArray[np.float64]
     camera: str
+    index: int | None = None  # the view's index in the plan: its decode is kept in the job's view store
 
 
 @dataclass
@@ -131,8 +128,10 @@ class FeedbackRound:
     alignment: str  # how the measured views were aligned for it
 
 
-class LambertianInspection:
+class LambertianInspection(InspectionResults):
     """The job the controller runs for a recipe on a structured-light cell."""
+
+    register_while_evaluating = True  # register() may run in the controller's worker beside evaluate()
 
     def __init__(
         self,
@@ -165,8 +164,15 @@ class LambertianInspection:
         self.u_target_mm = TARGET_SHARE_OF_BAND * (tol.upper - tol.lower)  # the feedback loop's target for U
         self._plan: Plan | None = None
         self._aligner: Aligner | None = None
+        self._nominal_P: NominalMesh | None = None
+        self.views = ViewStore()  # the completed views, each decoded or read once (cell.inspection_views)
+        self._overlaps = OverlapCache()  # the refinement's matching at the views' kinematic poses, per pair
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
-        self._planes: dict[int, LocalPlanes] = {}  # each view's local planes, kept between evaluations
+        self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
+        self._cloud: RegisteredCloud | None = None  # the registration's cloud, judged ahead of the report
+        # the controller may register (in its worker) while it evaluates (here): what both use is made once
+        self._lock = threading.RLock()
+        self._judged: tuple[ReportInput, dict[str, Any], bool] | None = None  # report input, doc, csv
         self.nominal = NominalMesh.from_trimesh(nominal_W)  # world frame, for cropping views to the part
         self._nominal_rays = RayCaster(nominal_W.vertices, nominal_W.faces, what="nominal mesh")
 
@@ -174,11 +180,12 @@ class LambertianInspection:
     @property
     def plan_model(self) -> Plan:
         """The f0 plan (recomputed deterministically after a resume: it also holds the surface samples)."""
-        if self._plan is None:
-            self._plan = plan_initial(
-                self.nominal_W, self.cfg, self.recipe.plan, self.recipe.exclude_from_coverage
-            )
-        return self._plan
+        with self._lock:
+            if self._plan is None:
+                self._plan = plan_initial(
+                    self.nominal_W, self.cfg, self.recipe.plan, self.recipe.exclude_from_coverage
+                )
+            return self._plan
 
     @staticmethod
     def _view(vp: Viewpoint, iteration: int) -> View:
@@ -219,14 +226,20 @@ class LambertianInspection:
         self.prepare(devices)
         T_B_T = believed_flange(self.cfg, devices.robot)
         joints = np.asarray(devices.robot.joints(), dtype=np.float64)
-        images = capture_stack(devices.camera, devices.projector, self.patterns)
+        frames = capture_stack(devices.camera, devices.projector, self.patterns)
+        # one array now (the list goes), not a copy of it when decoded; a stack the check will refuse stays
+        images = np.stack(frames) if len({(f.shape, f.dtype) for f in frames}) == 1 else frames
+        del frames
         if not devices.projector.ready():  # a lamp that failed mid-stack leaves dark frames: measure again
             status = devices.projector.status()
             why = ", ".join(status.errors) or str(status)
             raise DeviceFault(devices.projector.name, f"not ready after the pattern stack: {why}")
-        return Captured(images, T_B_T, joints, devices.camera.name)
+        return Captured(images, T_B_T, joints, devices.camera.name, index)
 
     def decode(self, view: View, captured: Captured, out_dir: Path) -> dict[str, Any]:
+        """Decode, triangulate and filter one view and write its folder ``out_dir`` (points, planes, holes,
+        raw images while the retention keeps them); the files are written by a thread beside the compute
+        (zlib and PNG encoding release the GIL), all before this returns."""
         cam = self.cfg.sensor.camera
         stack = check_stack(
             captured.images,
@@ -235,6 +248,28 @@ class LambertianInspection:
             cam.bit_depth,
             source=f"camera '{captured.camera}'",
         )
+        captured.images = []  # the frames live on in ``stack`` only (0.4 GB for a 5 MP stack)
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="view-files") as files:
+            writes = []
+            if self.cfg.retention.writes_raw_images:
+                proj = self.cfg.sensor.projector
+                raw = (out_dir, stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
+                writes.append(files.submit(save_raw_stack, *raw))
+            summary = self._decode(captured, stack, out_dir, files, writes)
+            for written in writes:
+                written.result()  # a write that failed fails the view
+        write_json_atomic(out_dir / "view.json", summary)  # last: the folder is whole once it is there
+        return summary
+
+    def _decode(
+        self,
+        captured: Captured,
+        stack: NDArray[Any],
+        out_dir: Path,
+        files: ThreadPoolExecutor,
+        writes: list[Future[Any]],
+    ) -> dict[str, Any]:
+        cam = self.cfg.sensor.camera
         decoded = decode(stack, self.patterns, cam.bit_depth)
         cloud = self.triangulator.triangulate(decoded)
         T_W_C = self.T_W_B @ captured.T_B_T @ self.T_T_C
@@ -263,16 +298,20 @@ class LambertianInspection:
         deviation = signed_distance(self.nominal, points_W).deviation_mm
         crop = PartCrop(0.0, self.settings.table_margin_mm, self.settings.crop_mm).split(points_W, deviation)
         part = crop.part
-        points_W, quality = points_W[part], quality[part]
-        sub = voxel_subsample_index(points_W, self.settings.eval_voxel_mm)
+        points_W, quality, oblique_kept = points_W[part], quality[part], oblique_kept[part]
         u_points = None if u is None else u.u_mm[keep][part]
-        save_view_points(out_dir, points_W, quality, oblique_kept[part], sub, u_points)
-        if self.cfg.retention.writes_raw_images:
-            proj = self.cfg.sensor.projector
-            save_raw_stack(out_dir, stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
-        cv2.imwrite(str(out_dir / "reasons.png"), cloud.reasons)
+        sub = voxel_subsample_index(points_W, self.settings.eval_voxel_mm)
+        writes.append(files.submit(save_view_points, out_dir, points_W, quality, oblique_kept, sub, u_points))
+        stored = stored_points(points_W)  # what the file holds and a resumed run reads
+        u_stored = None if u_points is None else decode_view_uncertainty(encode_view_uncertainty(u_points))
+        # the view's own analysis, here in the decode worker while the robot moves on: the local planes of its
+        # evaluation subset (what the multi-view refinement matches against), saved with the view
+        eval_W = stored[sub]
+        planes = estimate_normals(eval_W)
+        writes.append(files.submit(save_planes, out_dir, planes))
+        writes.append(files.submit(cv2.imwrite, str(out_dir / "reasons.png"), cloud.reasons))
         regions = self._defects(T_W_C, cloud.reasons)
-        _save_regions(out_dir / "defects.npz", regions)
+        writes.append(files.submit(save_regions, out_dir / REGIONS_FILE, regions))
         summary = {
             "T_W_C": T_W_C.tolist(),
             "T_B_T": captured.T_B_T.tolist(),
@@ -281,13 +320,34 @@ class LambertianInspection:
             "decoded": int(valid.sum()),
             "link_filtered": int((valid & ~kept.keep).sum()),
             "rim_filtered": int((valid & kept.keep & edges).sum()),
-            "oblique_filtered": int(oblique_kept[part].sum()),
+            "oblique_filtered": int(oblique_kept.sum()),
             "excluded": crop.counts(),
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
             "uncertainty": None if u is None else u.to_json(),
         }
-        write_json_atomic(out_dir / "view.json", summary)
+        if captured.index is not None:  # kept as the folder holds it: a resumed run reads the same numbers
+            meta = json.loads(json.dumps(summary))
+            folder = RunFolder(out_dir.parent.parent).view_dir(captured.index)  # where out_dir is renamed to
+            points = ViewPoints(stored, quality, oblique_kept, u_stored)
+            eval_u = None if u_stored is None else u_stored[sub]
+            result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder, eval_u)
+            self._first_overlaps(RunFolder(out_dir.parent.parent), result)
+            self.views.add(result)
         return summary
+
+    def _first_overlaps(self, run: RunFolder, new: ViewResult) -> None:
+        """The refinement's first matching of a new view with every view measured before it (both ways, at
+        their kinematic poses): what the refinement after the last view would otherwise begin with."""
+        views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
+        prepare_overlaps(
+            self._overlaps,
+            [v.eval_W for v in views],
+            [v.planes for v in views],
+            [v.camera_W for v in views],
+            [v.eval_tree if len(v.eval_W) else None for v in views],
+            [v.index for v in views],
+            new=len(views) - 1,
+        )
 
     def _defects(self, T_W_C: NDArray[np.float64], reasons: NDArray[np.uint8]) -> list[DefectRegion]:
         """Hole regions per reason, located on the nominal surface by casting their pixels' rays on the
@@ -307,26 +367,27 @@ class LambertianInspection:
     # ------------------------------------------------------------------ feedback
     def refinement(self, run: RunFolder) -> tuple[list[int], ViewRefinement]:
         """The completed views' pose corrections against each other (cell.analysis.view_refinement), from
-        their evaluation points, under the views' pose prior (:func:`view_pose_prior`: the kinematic
-        calibration's, else the robot config's); recomputed when views were added (deterministic, so a resumed
-        run gets the same)."""
-        done = tuple(run.completed_views())
+        their evaluation points and local planes (each view's, computed once by its decode), under the views'
+        pose prior (:func:`view_pose_prior`: the kinematic calibration's, else the robot config's);
+        recomputed when views were added (deterministic, so a resumed run gets the same)."""
+        with self._lock:
+            return self._refine(run)
+
+    def _refine(self, run: RunFolder) -> tuple[list[int], ViewRefinement]:
+        views = self.views.completed(run)
+        done = tuple(v.index for v in views)
         if self._refinement is None or self._refinement[0] != done:
-            points = [load_eval_points(run.view_dir(i)) for i in done]
-            for i, p in zip(done, points, strict=True):
-                if i not in self._planes:
-                    self._planes[i] = estimate_normals(p)
-            meta = [json.loads((run.view_dir(i) / "view.json").read_text()) for i in done]
-            cameras = [np.asarray(m["T_W_C"])[:3, 3] for m in meta]
-            joints = [np.asarray(m["joints_rad"]) for m in meta if "joints_rad" in m]
-            sigma, source = view_pose_prior(self.cfg, joints if len(joints) == len(meta) else None)
+            joints = [np.asarray(v.summary["joints_rad"]) for v in views if "joints_rad" in v.summary]
+            sigma, source = view_pose_prior(self.cfg, joints if len(joints) == len(views) else None)
             found = refine_views(
-                points,
+                [v.eval_W for v in views],
                 sigma[:, 0],
                 sigma[:, 1],
-                seed=len(done),
-                planes=[self._planes[i] for i in done],
-                cameras=cameras,
+                planes=[v.planes for v in views],
+                cameras=[v.camera_W for v in views],
+                trees=[v.eval_tree if len(v.eval_W) else None for v in views],
+                ids=list(done),
+                cache=self._overlaps,
             )
             prior = {
                 "prior": source,
@@ -334,7 +395,22 @@ class LambertianInspection:
                 "prior_sigma_deg": np.round(np.rad2deg(sigma[:, 1]), 5).tolist(),
             }
             self._refinement = (done, found, prior)
+            self._moved.clear()
         return list(self._refinement[0]), self._refinement[1]
+
+    def _moved_eval(
+        self, run: RunFolder, T_W_align: NDArray[np.float64] | None = None
+    ) -> dict[int, NDArray[np.float64]]:
+        """The completed views' evaluation points moved by their refinement (and then by ``T_W_align``, the
+        alignment's correction in {W}, when given), by view index; kept while the refinement holds."""
+        done, found = self.refinement(run)
+        key = b"" if T_W_align is None else np.asarray(T_W_align, dtype=np.float64).tobytes()
+        if key not in self._moved:
+            self._moved[key] = {
+                i: transform_points(T if T_W_align is None else T_W_align @ T, self.views.get(run, i).eval_W)
+                for i, T in zip(done, found.T, strict=True)
+            }
+        return self._moved[key]
 
     def _measured(
         self, run: RunFolder, T_W_align: NDArray[np.float64] | None = None
@@ -343,18 +419,18 @@ class LambertianInspection:
         refinement (and by ``T_W_align``, the alignment's correction in {W}, when given), with its deviations
         from the nominal measured there."""
         done, found = self.refinement(run)
+        if not done:
+            return {}
+        moved = self._moved_eval(run, T_W_align)
+        points = [moved[i] for i in done]
+        deviation = signed_distance(self.nominal, np.vstack(points)).deviation_mm  # one call: all cores
+        ends = np.cumsum([len(p) for p in points])
         out = {}
-        for i, T_fix in zip(done, found.T, strict=True):
-            d = run.view_dir(i)
-            meta = json.loads((d / "view.json").read_text())
+        for i, T_fix, dev in zip(done, found.T, np.split(deviation, ends[:-1]), strict=True):
+            view = self.views.get(run, i)
             T = T_fix if T_W_align is None else T_W_align @ T_fix
-            points = transform_points(T, load_eval_points(d))
             out[i] = MeasuredView(
-                T @ np.asarray(meta["T_W_C"]),
-                points,
-                _load_regions(d / "defects.npz"),
-                deviation_mm=signed_distance(self.nominal, points).deviation_mm,
-                uncertainty_mm=load_eval_uncertainty(d),
+                T @ view.T_W_C, moved[i], view.regions, deviation_mm=dev, uncertainty_mm=view.eval_u
             )
         return out
 
@@ -364,22 +440,33 @@ class LambertianInspection:
         judged on the aligned points, so a part off its fixture shows no false holes."""
         if self.recipe.alignment.method == "kinematic":
             return None, "kinematic"
-        measured = self._measured(run)
-        if not measured:
+        moved = self._moved_eval(run)
+        if not moved:
             return None, "no points yet"
         T_P_W = invert(self.T_W_P)
-        points_P = transform_points(T_P_W, np.vstack([m.points_W for m in measured.values()]))
+        points_P = transform_points(T_P_W, np.vstack(list(moved.values())))
         try:
             found = self.aligner.align(points_P)
         except AlignmentError as exc:
             return None, f"kinematic until the alignment can be made: {exc}"
         return self.T_W_P @ found.T @ T_P_W, self.recipe.alignment.method
 
+    def _covered(self, run: RunFolder, T_W_align: NDArray[np.float64] | None) -> NDArray[np.bool_]:
+        """Which of the plan's surface samples the completed views' evaluation points cover, the views moved
+        by their refinement and then by ``T_W_align`` ({W}), counted in each view's own KD-tree."""
+        done, found = self.refinement(run)
+        A = np.eye(4) if T_W_align is None else T_W_align
+        st, surface = self.plan_model.sensor.settings, self.plan_model.surface
+        views = [(self.views.get(run, i).eval_tree, A @ T) for i, T in zip(done, found.T, strict=True)]
+        return covered_by_views(surface, views, st.point_density_per_mm2, st.coverage_radius_mm)
+
     def _feedback_round(self, run: RunFolder) -> FeedbackRound:
         T_W_align, how = self._evaluation_alignment(run)
         measured = self._measured(run, T_W_align)
         fb = FeedbackPlanner(self.plan_model)
-        ev = evaluate(fb, list(measured.values()), 1, np.zeros((0, 3)), self.u_target_mm / self.decision.k)
+        covered = self._covered(run, T_W_align)
+        u_max = self.u_target_mm / self.decision.k
+        ev = evaluate(fb, list(measured.values()), 1, np.zeros((0, 3)), u_max, covered=covered)
         return FeedbackRound(fb, ev, measured, how)
 
     def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:
@@ -417,207 +504,6 @@ class LambertianInspection:
                 "decision", **{"kind": entry.get("event"), **{k: v for k, v in entry.items() if k != "event"}}
             )
         return [self._view(v, k + 1) for v in new]
-
-    # ------------------------------------------------------------------ results
-    @property
-    def aligner(self) -> Aligner:
-        """The recipe's alignment against the nominal in the part frame (datums resolved on first use)."""
-        if self._aligner is None:
-            nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
-            self._aligner = Aligner(self.recipe.alignment, nominal_P)
-        return self._aligner
-
-    def register(self, run: RunFolder, views: list[View]) -> dict[str, Any]:
-        """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
-        already being in {W} through robot pose and hand-eye), refined against each other, merged on a voxel
-        grid weighted by quality (a view the refinement could not register gives only the surface no
-        registered view measured: :func:`cut_unregistered`), then moved by the recipe's alignment
-        (cell.analysis.alignment). An alignment the measurement does
-        not allow leaves the kinematic cloud and makes the verdict incomplete (``alignment.error``)."""
-        T_P_W = invert(self.T_W_P)
-        done, refined = self.refinement(run)
-        points, weights, u_decode = [], [], []
-        for i, T_fix in zip(done, refined.T, strict=True):
-            view = load_view_points(run.view_dir(i))
-            measured = ~view.oblique  # the sensor's points, without those lit too obliquely
-            points.append(transform_points(T_P_W @ T_fix, view.points_W[measured]))
-            weights.append(np.square(view.quality[measured]).astype(np.float64) + 1e-6)
-            u = view.uncertainty  # None in run folders from before issue 17
-            u_decode.append(np.full(len(points[-1]), np.nan) if u is None else u[measured].astype(np.float64))
-        if not points or not sum(len(p) for p in points):
-            return {"n_points": 0, "views": len(points)}
-        eval_points = [load_eval_points(run.view_dir(i)) for i in done]
-        refinement = {
-            **refined.to_json(eval_points),
-            "unregistered_views": [done[k] for k in refined.unregistered],
-            **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
-        }
-        n_points_views = int(sum(len(p) for p in points))
-        refinement["unregistered_points_dropped"] = cut_unregistered(
-            points, weights, refined.unregistered, self.recipe.plan.coverage_radius_mm, u_decode
-        )
-        merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
-        method = self.recipe.alignment.method
-        try:
-            found = self.aligner.align(merged.points_mm)
-            points_P = transform_points(found.T, merged.points_mm)
-            alignment = found.to_json()
-        except AlignmentError as exc:
-            points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
-        prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
-        unc = registered_cloud_uncertainty(
-            merged,
-            weights,
-            u_decode,
-            refined,
-            prior,
-            self.nominal,
-            self.T_W_P,
-            alignment,
-            self.aligner.datums,
-        )
-        u_ply = {"uncertainty": encode_uncertainty(unc.u_mm)}
-        write_file_set(run.results_dir, {"cloud.ply": lambda path: write_ply(path, points_P, fields=u_ply)})
-        return {
-            "n_points": int(len(points_P)),
-            "n_points_views": n_points_views,
-            "views": len(points),
-            "merge_voxel_mm": self.settings.merge_voxel_mm,
-            "method": "kinematic chain (robot pose, hand-eye, part placement); views refined against each "
-            f"other; weighted voxel merge; alignment: {method}",
-            "refinement": refinement,
-            "alignment": alignment,
-            "uncertainty": {
-                **unc.budget(),
-                "calibration": self.calibration_residual,
-                "poses": prior.get("prior"),
-            },
-        }
-
-    def inspectable_coverage(self, run: RunFolder, T_P_cloud: NDArray[np.float64] | None = None) -> Coverage:
-        """Coverage of the inspectable nominal surface (what the planner can see: not the underside on the
-        table) at the recipe's point density, from the measured views moved by the alignment ``T_P_cloud``."""
-        plan, st = self.plan_model, self.recipe.plan
-        s = plan.surface
-        measured = self._measured(run)
-        pts = np.vstack([m.points_W for m in measured.values()]) if measured else np.zeros((0, 3))
-        if T_P_cloud is not None:
-            pts = transform_points(self.T_W_P @ T_P_cloud @ invert(self.T_W_P), pts)
-        covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
-        ins = s.inspectable
-        return Coverage(
-            fraction=coverage_fraction(s, covered),
-            area_mm2=float(s.inspectable_area_mm2),
-            radius_mm=st.coverage_radius_mm,
-            min_count=1,
-            density_per_mm2=st.point_density_per_mm2,
-            samples_mm=transform_points(invert(self.T_W_P), s.points[ins]),
-            sample_face=s.face[ins],
-            covered=covered[ins],
-        )
-
-    def report(self, run: RunFolder, registration: dict[str, Any], csv: bool = False) -> dict[str, Any]:
-        """Judge the registered cloud (results/cloud.ply as :meth:`register` wrote it, or as an earlier
-        report rewrote it: the same points in the same order) and write the report into results/, with
-        deviations.csv when ``csv``. The report replaces the cloud.ply by one with the deviation field."""
-        legacy = run.results_dir / "points_P.npy"  # a run registered before the cloud was stored once
-        pts_P = np.load(legacy) if legacy.is_file() else read_ply_points(run.results_dir / "cloud.ply")
-        u_stored = None if legacy.is_file() else read_ply_field(run.results_dir / "cloud.ply", "uncertainty")
-        u = None if u_stored is None else decode_uncertainty(u_stored)
-        # as cloud.ply stores them (float32): a no-op on a cloud written so; an older float64 cloud is judged
-        # as the report will store it, so the next rebuild gives the same figures
-        pts_P = stored_points(pts_P)
-        nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
-        tol = self.recipe.tolerance
-        checkpoint = Checkpoint.from_json(run.load_checkpoint())
-        evaluation = checkpoint.evaluation.to_json() if checkpoint.evaluation is not None else {}
-        excluded = {
-            "unregistered_view_measured_elsewhere_points": int(
-                registration.get("refinement", {}).get("unregistered_points_dropped", 0)
-            )
-        }
-        for i in run.completed_views():
-            for reason, n in (
-                json.loads((run.view_dir(i) / "view.json").read_text()).get("excluded", {}).items()
-            ):
-                excluded[f"{reason}_points"] = excluded.get(f"{reason}_points", 0) + int(n)
-        alignment = registration.get("alignment") or {"method": "kinematic"}
-        T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
-        calibration = calibration_state(self.cfg, self.recipe.requires_calibration)
-        reasons = list(calibration["incomplete_reasons"])
-        if "error" in alignment:
-            reasons.append(f"alignment ({alignment['method']}) failed: {alignment['error']}")
-        if evaluation.get("v_mm2", 0.0) > evaluation.get("setpoint", float("inf")):
-            reasons.append(
-                f"overlapping views disagree by more than {self.recipe.plan.accuracy_tol_mm} mm over "
-                f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
-                f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
-            )
-        decision = self.decision
-        if u is None or not np.isfinite(u).any():
-            u = None
-            if decision.rule == "guarded":  # a run registered before points carried their uncertainty
-                reasons.append("the guarded decision rule needs the points' uncertainty; this run has none")
-                decision = DecisionRule()
-        plan = plan_feedback(self.plan_model, self.recipe)  # what no reachable viewpoint sees, for the reader
-        inp = judge(
-            NominalMesh.from_trimesh(nominal_P),
-            pts_P,
-            Tolerance(tol.lower, tol.upper),
-            n_points_input=int(registration.get("n_points_views", len(pts_P))),
-            regions=[region_from_config(spec) for spec in self.recipe.regions],
-            min_defect_points=self.settings.min_defect_points,
-            excluded=excluded,
-            coverage=self.inspectable_coverage(run, T_align),
-            min_coverage=self.recipe.min_coverage,
-            warnings=[*alignment.get("warnings", []), *plan.warnings],
-            incomplete_reasons=reasons,
-            alignment=alignment,
-            calibration=calibration,
-            uncertainty_mm=u,
-            decision=decision,
-            uncertainty=registration.get("uncertainty"),
-            metadata={
-                "part": self.part_name,
-                "cad": Path(self.recipe.part.cad).name,
-                "views": [
-                    {"patch": v.patch, "source": v.source, "iteration": v.iteration} for v in checkpoint.views
-                ],
-                "registration": registration,
-                "evaluation": evaluation,
-                "plan": plan.to_json(),  # predicted coverage, min_coverage, unseen_surfaces, warnings
-                "geometry_source": self.geometry_source,
-                "run": run_record(run, self.cfg.name),
-            },
-        )
-        doc = write_report(run.results_dir, inp, pictures=self.settings.pictures, csv=csv)
-        legacy.unlink(missing_ok=True)  # cloud.ply now holds its points as judged (float32)
-        return {
-            "verdict": doc.get("verdict"),
-            "n_points": doc.get("n_points"),
-            "coverage": doc.get("coverage"),
-            "deviation": doc.get("deviation"),
-        }
-
-
-def _save_regions(path: Path, regions: list[DefectRegion]) -> None:
-    arrays: dict[str, Any] = {
-        "reasons": np.array([r.reason for r in regions], dtype="U16"),
-        "pixels": np.array([r.pixels for r in regions], dtype=np.int64),
-    }
-    for k, r in enumerate(regions):
-        arrays[f"boundary_{k}"] = r.boundary_W
-        arrays[f"points_{k}"] = r.points_W
-    with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
-
-
-def _load_regions(path: Path) -> list[DefectRegion]:
-    with np.load(path) as data:
-        return [
-            DefectRegion(str(reason), data[f"boundary_{k}"], data[f"points_{k}"], int(px))
-            for k, (reason, px) in enumerate(zip(data["reasons"], data["pixels"]))
-        ]
 
 
 def inspection_controller(

@@ -334,7 +334,7 @@ def rebuild_report(run_dir: Path, *, csv: bool = False, pdf: bool = False) -> Ru
     also deviations.csv, with ``pdf`` also report.pdf (headless Chromium)."""
     run = open_inspection_run(run_dir)
     checkpoint = Checkpoint.from_json(run.load_checkpoint())
-    if checkpoint.phase not in (Phase.REPORTING, Phase.DONE):
+    if checkpoint.phase not in (Phase.REPORTING, Phase.RENDERING, Phase.DONE):
         raise ConfigError("the run has not reached reporting; `cell resume` it first", path=str(run_dir))
     require_writable(run.results_dir, field=None)  # a read-only or full results folder: refused first
     if pdf:
@@ -346,7 +346,9 @@ def rebuild_report(run_dir: Path, *, csv: bool = False, pdf: bool = False) -> Ru
 
     recipe, cfg, _ = load_run_inputs(run)
     nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
-    summary = LambertianInspection(recipe, cfg, nominal_W).report(run, checkpoint.registration or {}, csv=csv)
+    job = LambertianInspection(recipe, cfg, nominal_W)
+    summary = job.report(run, checkpoint.registration or {}, csv=csv)
+    job.render(run)
     if pdf:
         from cell.analysis.report import print_report_pdf
 

@@ -67,6 +67,7 @@ class Phase(StrEnum):
     REPLANNING = "replanning"
     REGISTERING = "registering"
     REPORTING = "reporting"
+    RENDERING = "rendering"  # the verdict is published; the rest of the report (its page) is being written
     DONE = "done"
 
 

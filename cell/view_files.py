@@ -65,14 +65,11 @@ def save_view_points(
 ) -> NDArray[np.float64]:
     """Write ``out_dir/points.npz`` (format 2) and return the points as they are stored (rounded to
     :data:`STEP_MM`), which is what every later step reads back. ``eval_index``: ascending indices of the
-    evaluation subset; ``uncertainty``: each point's (mm), stored as float32 when given."""
-    p = np.asarray(points_W, dtype=np.float64).reshape(-1, 3)
-    q = np.round(p / STEP_MM)
-    if len(q) and not np.abs(q).max() < _LIMIT:
-        raise ValueError(f"view points beyond {_LIMIT * STEP_MM / 1000:.0f} m from the world origin")
-    steps = q.astype(np.int64)
+    evaluation subset; ``uncertainty``: each point's (mm), stored as log2 codes when given
+    (:func:`encode_view_uncertainty`)."""
+    steps = _steps(points_W)
     delta = np.diff(steps, axis=0, prepend=np.zeros((1, 3), np.int64)).astype(np.int32)
-    mask = np.zeros(len(p), dtype=bool)
+    mask = np.zeros(len(steps), dtype=bool)
     mask[np.asarray(eval_index, dtype=np.int64)] = True
     arrays: dict[str, NDArray[Any]] = {
         "format": np.asarray(FORMAT, np.int32),
@@ -87,6 +84,20 @@ def save_view_points(
     with open(out_dir / POINTS_FILE, "wb") as f:
         np.savez_compressed(f, **arrays)  # type: ignore[arg-type]  # mypy maps **arrays onto allow_pickle
     return _from_steps(delta, STEP_MM)
+
+
+def stored_points(points_W: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The points as :func:`save_view_points` stores them (and every reader reads them back), without
+    writing them."""
+    return np.asarray(_steps(points_W) * STEP_MM, dtype=np.float64)
+
+
+def _steps(points_W: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Each coordinate in storage steps (int64)."""
+    q = np.round(np.asarray(points_W, dtype=np.float64).reshape(-1, 3) / STEP_MM)
+    if len(q) and not np.abs(q).max() < _LIMIT:
+        raise ValueError(f"view points beyond {_LIMIT * STEP_MM / 1000:.0f} m from the world origin")
+    return q.astype(np.int64)
 
 
 def _from_steps(delta: NDArray[np.int32], step_mm: float) -> NDArray[np.float64]:

@@ -307,6 +307,42 @@ def test_the_live_page_offers_nothing_on_a_run_another_process_runs(
     assert not taken["final"]
 
 
+def test_the_verdict_shows_while_the_report_page_is_written(folders: StationSettings, started: Path) -> None:
+    """The controller publishes the verdict (report.json, the checkpoint's summary) before it writes the
+    report's page (state ``rendering``): from then the station shows the verdict, the live page is over for
+    the operator, the verdict page refreshes until the page is there, and no abort is offered (the state
+    machine refuses one)."""
+    with warnings.catch_warnings():  # starlette 1.x announces a move from httpx to httpx2, not yet released
+        warnings.simplefilter("ignore")
+        from starlette.testclient import TestClient
+
+    from cell.station.live import snapshot
+
+    run = RunFolder.open(started)
+    run.log("state", state="rendering", message="")
+    checkpoint = run.load_checkpoint() or {}
+    run.save_checkpoint({**checkpoint, "phase": "rendering", "summary": {"verdict": "fail", "n_points": 7}})
+    report = {"verdict": "fail", "tolerance": {"lower_mm": -0.3, "upper_mm": 0.3}, "regions": []}
+    (run.results_dir / "report.json").write_text(json.dumps(report))
+    progress = read_progress(started)
+    assert progress.verdict == "fail" and progress.words.startswith("Verdict ready")
+    supervisor = Supervisor(folders, StationJournal(folders.state_dir / "journal.jsonl"))
+    snap = snapshot(supervisor, folders.runs, started.name, None)
+    assert snap["final"] and snap["verdict"] == "fail" and not snap["actions"]["abort"]
+    with pytest.raises(ConfigError, match="verdict is published and stands"):
+        abort_run(started, "by olga")
+    with TestClient(create_app(folders)) as client:
+        client.post("/signin", data={"name": "olga", "pin": "2468", "next": "/start"})
+        page = client.get(f"/run/{started.name}/verdict")
+        assert page.status_code == 200 and 'id="word">FAIL<' in page.text
+        assert 'http-equiv="refresh"' in page.text and 'id="writing"' in page.text
+        assert 'id="open-report"' not in page.text  # no page yet
+        run.log("state", state="done", message="")
+        (run.results_dir / "report.html").write_text("<html></html>")
+        done = client.get(f"/run/{started.name}/verdict").text
+        assert 'http-equiv="refresh"' not in done and 'id="open-report"' in done
+
+
 @pytest.mark.parametrize("bit_depth", [8, 12])
 def test_the_live_page_shows_a_small_photo_of_the_last_view(
     folders: StationSettings, tmp_path: Path, bit_depth: int

@@ -198,7 +198,9 @@ def test_an_inspection_started_paused_and_resumed_from_the_page(
     assert "region 'lid' failed" in page.inner_text("#reasons")
     report = json.loads((run / "results" / "report.json").read_text())
     assert value == pytest.approx(report["regions"][0]["extreme_mm"], abs=5e-4)
-    assert page.locator("#report").count() == 1  # the run's own report, embedded
+    # the run's own report, embedded once written: the verdict page shows as soon as the verdict is published
+    # and refreshes until the report's page is there
+    expect(page.locator("#report")).to_have_count(1, timeout=60_000)
     # the database was away: said on the page and in the run's journal; the run is whole all the same
     assert "Not yet in the results database" in page.inner_text("#unsynced")
     shot(page, "verdict", tmp_path)
@@ -258,7 +260,10 @@ def test_a_start_while_running_is_refused_and_a_station_restart_leaves_the_run_a
     station.serve()
     assert station.children() == [child]
     page.wait_for_url("**/verdict", timeout=120_000)  # this one runs to its end: the SPC's second run
-    assert page.inner_text("#word") == "FAIL" and page.locator("#unsynced").count() == 0
+    assert page.inner_text("#word") == "FAIL"
+    # its end (the verdict page refreshes until the report's page is written): recorded in the database
+    expect(page.locator("#report")).to_have_count(1, timeout=60_000)
+    assert page.locator("#unsynced").count() == 0
     assert run.is_dir()
 
 

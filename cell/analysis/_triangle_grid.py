@@ -113,7 +113,7 @@ def _scan_cell(px, py, pz, c, start, items, boxes, tri, best, bf, bv, bw, bfeat,
     return best, bf, bv, bw, bfeat, bedge, bpar
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def signed_closest(points, order, tri, start, items, boxes, origin, h, dims, faces, edge_n, vert_n):
     """For each point (visited in ``order``): signed distance, closest point, closest face and feature.
 
@@ -205,7 +205,7 @@ def signed_closest(points, order, tri, start, items, boxes, origin, h, dims, fac
     return out_dev, out_q, out_f, out_feat
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def cell_order(points, origin, h, dims):
     """Point indices grouped by grid cell (counting sort on the clamped cell key; O(N), unlike argsort)."""
     nx, ny, nz = dims[0], dims[1], dims[2]

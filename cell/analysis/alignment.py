@@ -168,6 +168,31 @@ def _max_motion(T: Pose, pts: NDArray) -> float:
     return float(np.linalg.norm(transform_points(T, pts) - pts, axis=1).max())
 
 
+class _DatumIndex:
+    """The cloud's points near the datums, for the datum regions' look-ups: a KD-tree over the points within
+    ``reach_mm`` (plus its radius) of each datum, not over the whole cloud (millions of points, seconds of
+    tree). A look-up whose datum an alignment step moved farther than ``reach_mm`` builds the whole cloud's
+    tree instead, so the answer never depends on the shortcut. Indices (ascending) are into the cloud."""
+
+    def __init__(self, points: NDArray, datums: list[Datum], reach_mm: float) -> None:
+        self.points, self.datums, self.reach_mm = points, datums, reach_mm
+        near = np.zeros(len(points), dtype=bool)
+        for d in datums:
+            near |= np.einsum("ij,ij->i", points - d.point, points - d.point) <= (d.radius_mm + reach_mm) ** 2
+        self.index = np.flatnonzero(near)
+        self.tree = cKDTree(points[self.index])
+        self.whole: cKDTree | None = None
+
+    def ball(self, k: int, centre: NDArray, radius_mm: float) -> NDArray[np.int64]:
+        """The points within ``radius_mm`` of ``centre``: where datum ``k`` lies in the cloud's frame."""
+        d = self.datums[k]
+        if radius_mm <= d.radius_mm and float(np.linalg.norm(centre - d.point)) <= self.reach_mm:
+            return np.sort(self.index[self.tree.query_ball_point(centre, radius_mm)])
+        if self.whole is None:
+            self.whole = cKDTree(self.points)
+        return np.sort(np.asarray(self.whole.query_ball_point(centre, radius_mm), dtype=np.int64))
+
+
 class Aligner:
     """Alignment of a cloud (mm, {P} by the kinematic chain) to the nominal (mm, {P}) by ``config``."""
 
@@ -180,12 +205,16 @@ class Aligner:
         self.samples = _surface_samples(nominal_mesh_P)
 
     # ------------------------------------------------------------------ per datum
-    def _datum_offsets(self, tree: cKDTree, points: NDArray, T: Pose) -> list[tuple[float, float, int]]:
+    def _index(self, points: NDArray) -> _DatumIndex:
+        """The datum regions' look-up for ``points``, for corrections up to the recipe's limit."""
+        return _DatumIndex(points, self.datums, self.config.max_correction_mm + 1.0)
+
+    def _datum_offsets(self, tree: _DatumIndex, points: NDArray, T: Pose) -> list[tuple[float, float, int]]:
         """(mean deviation, its std, point count) of each datum region with the cloud moved by ``T``."""
         T_inv = np.linalg.inv(T)
         out = []
         for k, d in enumerate(self.datums):
-            idx = tree.query_ball_point(transform_points(T_inv, d.point), d.radius_mm)
+            idx = tree.ball(k, transform_points(T_inv, d.point), d.radius_mm)
             if len(idx) < MIN_DATUM_POINTS:
                 raise AlignmentError(
                     f"datum '{d.name}' not measured: {len(idx)} points within {d.radius_mm} mm of it "
@@ -243,7 +272,7 @@ class Aligner:
             )
         if self.datums:
             try:
-                offsets = self._datum_offsets(cKDTree(points), points, np.eye(4))
+                offsets = self._datum_offsets(self._index(points), points, np.eye(4))
                 result.residuals = self._residuals(offsets, offsets)
             except AlignmentError as exc:
                 result.warnings.append(str(exc))
@@ -255,7 +284,7 @@ class Aligner:
             raise AlignmentError(
                 f"datum alignment needs >= 6 datum points, the recipe has {len(self.datums)}"
             )
-        tree = cKDTree(points)
+        tree = self._index(points)
         P = np.array([d.point for d in self.datums])
         N = np.array([d.normal for d in self.datums])
         centre = P.mean(0)
@@ -285,13 +314,13 @@ class Aligner:
     def datum_icp(self, points: NDArray, start: Alignment | None = None) -> Alignment:
         """Point-to-plane ICP on the points of the datum regions only, from ``start`` (default: datums)."""
         start = start or self.datums_fit(points)
-        tree = cKDTree(points)
+        tree = self._index(points)
         T_inv = np.linalg.inv(start.T)
         idx = sorted(
             {
-                i
-                for d in self.datums
-                for i in tree.query_ball_point(transform_points(T_inv, d.point), d.radius_mm)
+                int(i)
+                for k, d in enumerate(self.datums)
+                for i in tree.ball(k, transform_points(T_inv, d.point), d.radius_mm)
             }
         )
         sub = points[idx]

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from cell.analysis.decision import DecisionRule, shrunk
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.regions import Coverage, Region, Tolerance, point_bands
-from cell.analysis.report import ReportInput, StoredCloud, isolated_out_of_tolerance
+from cell.analysis.report import ReportInput, StoredCloud, default_link_radius, isolated_out_of_tolerance
 from cell.analysis.report_files import encode_uncertainty, stored_uncertainty
 
 
@@ -77,7 +77,9 @@ def judge(
         stored = StoredCloud(points, deviation, fields=fields)
     if min_defect_points > 1:
         bands = shrunk(point_bands(regions, points, faces, tolerance), rule.guard_mm(len(points), u))
-        isolated = isolated_out_of_tolerance(points, deviation, bands, min_defect_points)
+        if link_radius_mm is None and bands.outside(deviation).any():  # found once, for the regions too
+            link_radius_mm = default_link_radius(points)
+        isolated = isolated_out_of_tolerance(points, deviation, bands, min_defect_points, link_radius_mm)
         counts["isolated_out_of_tolerance_points"] = int(isolated.sum())
         if stored is not None:
             stored.isolated = isolated

@@ -97,7 +97,7 @@ def _find(parent, p):
     return p
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _link_labels(z, link):
     """Labels (0 invalid, 1.. per link component in scan order) and component sizes (index 0 unused)."""
     H, W = z.shape
@@ -138,7 +138,7 @@ def _link_labels(z, link):
     return labels, size[:n]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _judge(labels, interior, size, min_px):
     """Keep mask: clusters of >= ``min_px`` with an interior pixel; counts removed as small / as stripes."""
     n = size.shape[0]

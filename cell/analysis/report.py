@@ -4,7 +4,9 @@ The schema of report.json is documented in docs/report-schema.md, the page in do
 mm, + outside the material. Out-of-tolerance points are grouped into regions by a radius graph (the groups
 of :func:`cell.analysis._point_grid.radius_groups`, as cKDTree pairs + connected components would make
 them). The files are written as one set (:mod:`cell.analysis.report_files`): a failed or killed report
-leaves the previous one whole, or none.
+leaves the previous one whole, or none. An inspection publishes its verdict first (:func:`write_verdict`:
+report.json alone) and writes the rest after it (:func:`write_page`: cloud.ply and report.html with its
+pictures and 3D view, seconds of work the verdict does not wait for).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import json
 import subprocess
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 from pathlib import Path
@@ -34,7 +37,16 @@ from cell.analysis.regions import (
     verdict,
 )
 
-__all__ = ["ReportInput", "StoredCloud", "Tolerance", "out_of_tolerance_regions", "summarise", "write_report"]
+__all__ = [
+    "ReportInput",
+    "StoredCloud",
+    "Tolerance",
+    "out_of_tolerance_regions",
+    "summarise",
+    "write_page",
+    "write_report",
+    "write_verdict",
+]
 
 SCHEMA_VERSION = 7
 PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
@@ -110,7 +122,7 @@ class ReportInput:
         return widened(self.bands, self.guard_mm)
 
 
-def _default_link_radius(points_mm: NDArray) -> float:
+def default_link_radius(points_mm: NDArray) -> float:
     """3x the cloud's median nearest-neighbour spacing: queried for a random sample of points against the
     whole cloud (a thinned cloud would overstate the spacing), duplicates (zero distances) left out."""
     if len(points_mm) < 2:
@@ -132,7 +144,7 @@ def out_of_tolerance_clusters(
     link_radius_mm: float | None = None,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Indices of the points outside their band (one for all, or one per point) and their cluster label
-    (points closer than the link radius, by default :func:`_default_link_radius`, share a cluster)."""
+    (points closer than the link radius, by default :func:`default_link_radius`, share a cluster)."""
     return point_clusters(points_mm, band.outside(deviation_mm), link_radius_mm)
 
 
@@ -140,23 +152,27 @@ def point_clusters(
     points_mm: NDArray, mask: NDArray[np.bool_], link_radius_mm: float | None = None
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Indices of the points in ``mask`` and their cluster label (points closer than the link radius, by
-    default :func:`_default_link_radius` of all the points, share a cluster)."""
+    default :func:`default_link_radius` of all the points, share a cluster)."""
     bad = np.flatnonzero(mask)
     if len(bad) == 0:
         return bad, np.zeros(0, dtype=np.int64)
     from cell.analysis._point_grid import radius_groups
 
-    radius = _default_link_radius(points_mm) if link_radius_mm is None else link_radius_mm
+    radius = default_link_radius(points_mm) if link_radius_mm is None else link_radius_mm
     return bad, radius_groups(points_mm[bad], radius)
 
 
 def isolated_out_of_tolerance(
-    points_mm: NDArray, deviation_mm: NDArray, band: Tolerance | PointBands, min_points: int
+    points_mm: NDArray,
+    deviation_mm: NDArray,
+    band: Tolerance | PointBands,
+    min_points: int,
+    link_radius_mm: float | None = None,
 ) -> NDArray[np.bool_]:
     """Mask of out-of-tolerance points in clusters of fewer than ``min_points``: isolated outliers (mixed
     pixels at edges, noise spikes) rather than a surface defect, which covers an area."""
     out = np.zeros(len(deviation_mm), dtype=bool)
-    bad, lab = out_of_tolerance_clusters(points_mm, deviation_mm, band)
+    bad, lab = out_of_tolerance_clusters(points_mm, deviation_mm, band, link_radius_mm)
     if len(bad):
         sizes = np.bincount(lab)
         out[bad[sizes[lab] < min_points]] = True
@@ -417,28 +433,69 @@ def write_report(out_dir: Path, inp: ReportInput, pictures: bool = True, csv: bo
     """Write report.json, report.html, cloud.ply and (``csv``) deviations.csv into ``out_dir`` as one set
     (a deviations.csv of an earlier report goes when ``csv`` is off); return the json doc. A folder that
     cannot be written is a :class:`cell.errors.ConfigError` naming it."""
-    from cell.analysis.pictures import VIEWS
-    from cell.analysis.report_files import write_csv, write_file_set, write_ply
+    from cell.analysis.report_files import write_file_set
 
-    views = [{"name": n, "elev_deg": el, "azim_deg": az} for n, el, az in VIEWS]
-    doc = summarise(inp, views if pictures and len(inp.points_mm) else [])
-    page = render(doc, inp, pictures, csv)
-    stored = inp.stored or StoredCloud(inp.points_mm, inp.deviation_mm)
-    fields = dict(stored.fields)
-    if stored.isolated is not None and stored.isolated.any():  # no column: none isolated (2 MB of zeros)
-        fields = {"isolated": np.asarray(stored.isolated, bool), **fields}
-    writers = {
-        "cloud.ply": lambda p: write_ply(p, stored.points_mm, stored.deviation_mm, fields),
-        **({"deviations.csv": lambda p: write_csv(p, inp.points_mm, inp.deviation_mm)} if csv else {}),
-        "report.html": lambda p: p.write_text(page, encoding="utf-8"),
-        "report.json": lambda p: p.write_text(json.dumps(doc, indent=2), encoding="utf-8"),
-    }
+    doc = summarise(inp, _picture_views(inp, pictures))
+    writers = {**_page_writers(doc, inp, pictures, csv), "report.json": _json_writer(doc)}
     # an earlier report's print or CSV would not match this report: they go (the print is made from
     # report.html afterwards, :func:`print_report_pdf`)
     write_file_set(
         Path(out_dir), writers, remove=("report.pdf",) if csv else ("report.pdf", "deviations.csv")
     )
     return doc
+
+
+def write_verdict(out_dir: Path, inp: ReportInput, pictures: bool = True) -> dict[str, Any]:
+    """The verdict first: report.json alone into ``out_dir`` (an earlier report's page, cloud, print and CSV
+    go: they belong to another verdict); :func:`write_page` writes the rest after it. Returns the doc."""
+    from cell.analysis.report_files import write_file_set
+
+    doc = summarise(inp, _picture_views(inp, pictures))
+    stale = ("report.html", "cloud.ply", "report.pdf", "deviations.csv")
+    write_file_set(Path(out_dir), {"report.json": _json_writer(doc)}, remove=stale)
+    return doc
+
+
+def write_page(
+    out_dir: Path, doc: dict[str, Any], inp: ReportInput, pictures: bool = True, csv: bool = False
+) -> list[str]:
+    """The rest of the report :func:`write_verdict` published ``doc`` of: cloud.ply, report.html and
+    (``csv``) deviations.csv, as one set; returns the names written."""
+    from cell.analysis.report_files import write_file_set
+
+    writers = _page_writers(doc, inp, pictures, csv)
+    write_file_set(Path(out_dir), writers)
+    return list(writers)
+
+
+def _picture_views(inp: ReportInput, pictures: bool) -> list[dict[str, Any]]:
+    from cell.analysis.pictures import VIEWS
+
+    if not (pictures and len(inp.points_mm)):
+        return []
+    return [{"name": n, "elev_deg": el, "azim_deg": az} for n, el, az in VIEWS]
+
+
+def _json_writer(doc: dict[str, Any]) -> Callable[[Path], Any]:
+    return lambda p: p.write_text(json.dumps(doc, indent=2), encoding="utf-8")
+
+
+def _page_writers(
+    doc: dict[str, Any], inp: ReportInput, pictures: bool, csv: bool
+) -> dict[str, Callable[[Path], Any]]:
+    """cloud.ply, deviations.csv (``csv``) and report.html of the report ``doc`` of ``inp``, as writers."""
+    from cell.analysis.report_files import write_csv, write_ply
+
+    page = render(doc, inp, pictures, csv)
+    stored = inp.stored or StoredCloud(inp.points_mm, inp.deviation_mm)
+    fields = dict(stored.fields)
+    if stored.isolated is not None and stored.isolated.any():  # no column: none isolated (2 MB of zeros)
+        fields = {"isolated": np.asarray(stored.isolated, bool), **fields}
+    return {
+        "cloud.ply": lambda p: write_ply(p, stored.points_mm, stored.deviation_mm, fields),
+        **({"deviations.csv": lambda p: write_csv(p, inp.points_mm, inp.deviation_mm)} if csv else {}),
+        "report.html": lambda p: p.write_text(page, encoding="utf-8"),
+    }
 
 
 def print_report_pdf(out_dir: Path) -> Path:

@@ -23,6 +23,8 @@ per view); Open3D's pose graph is not a dependency and does not take a kinematic
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,7 +33,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from cell.geometry import Pose, incidence_cos, make_pose, transform_points
+from cell.geometry import Pose, incidence_cos, invert, make_pose, transform_points, transform_vectors
 
 Array = NDArray[np.float64]
 SAME_NORMAL_COS = float(np.cos(np.deg2rad(20.0)))  # across an edge or the other skin of a sheet: no match
@@ -97,7 +99,7 @@ def estimate_normals(points: Array, k: int = 20) -> LocalPlanes:
     n = len(points)
     if n < k:
         return LocalPlanes(points.copy(), np.zeros((n, 3)), np.zeros(n, dtype=bool))
-    _, idx = cKDTree(points).query(points, k=k)
+    _, idx = cKDTree(points).query(points, k=k, workers=-1)
     centroid = points[idx].mean(axis=1)
     nb = points[idx] - centroid[:, None, :]
     cov = np.einsum("nki,nkj->nij", nb, nb) / k
@@ -115,18 +117,6 @@ def _observable(J: Array, ratio: float = 1e-4) -> Array:
     return Uk @ Uk.T
 
 
-def _candidates(
-    points: Array, ok: NDArray[np.bool_], box: tuple[Array, Array], margin: float, rng: Any
-) -> NDArray[np.int64]:
-    """Indices of the trusted ``points`` inside the other view's bounding ``box`` (grown by ``margin``): where
-    an overlap can be; at most twice the matches an overlap uses, drawn at random."""
-    inside = ok & np.all((points >= box[0] - margin) & (points <= box[1] + margin), axis=1)
-    src = np.flatnonzero(inside)
-    if len(src) > 2 * MAX_PAIRS_PER_OVERLAP:
-        src = rng.choice(src, 2 * MAX_PAIRS_PER_OVERLAP, replace=False)
-    return src
-
-
 def _boxes_overlap(a: tuple[Array, Array], b: tuple[Array, Array], margin: float) -> bool:
     """Whether two (min, max) boxes overlap when grown by ``margin``."""
     return bool(np.all(a[0] - margin <= b[1]) and np.all(b[0] - margin <= a[1]))
@@ -138,6 +128,192 @@ def _apply(x: NDArray[np.float64], centre: Array, lever_mm: float) -> Pose:
     return make_pose(R, centre + x[3:] - R @ centre)
 
 
+POOL_SLACK_MM = 1.0  # a view's candidate pool in another's box reaches this far beyond the first radius
+
+
+@dataclass(frozen=True)
+class _Side:
+    """One view as the matching sees it: its points and local planes in its own frame, their KD-tree, its
+    camera centre (or None), bounding box and id (what seeds the random draws of its pairs)."""
+
+    points: Array
+    planes: LocalPlanes
+    tree: cKDTree | None
+    camera: Array | None
+    box: tuple[Array, Array]
+    id: int
+
+
+@dataclass(frozen=True)
+class PairMatch:
+    """One ordered overlap's matched pairs at given poses, all moved: the source points ``p``, the target's
+    local-plane centroids ``q`` and normals ``n``, the point-to-plane gaps ``r`` (mm), incidence weights."""
+
+    p: Array
+    q: Array
+    n: Array
+    r: Array
+    w: Array
+
+
+class OverlapCache:
+    """What the refinement finds between two views at their kinematic poses (no correction yet): each ordered
+    pair's candidate pool (the source's trusted points in the target's box, grown by the first match radius
+    and :data:`POOL_SLACK_MM`, in a random order of the pair's own) and its first matching. Both depend on the
+    two views alone, so they hold while views are added, and a view's decode worker can make them as it
+    arrives (:func:`prepare_overlaps`)."""
+
+    def __init__(self) -> None:
+        self._pools: dict[tuple[int, int, float, int], NDArray[np.int64]] = {}
+        self._first: dict[tuple[Any, ...], PairMatch | None] = {}
+        self._lock = threading.Lock()
+
+    def pool(self, a: _Side, b: _Side, radius_mm: float, seed: int) -> NDArray[np.int64]:
+        key = (a.id, b.id, radius_mm, seed)
+        with self._lock:
+            found = self._pools.get(key)
+        if found is None:
+            lo, hi = b.box[0] - radius_mm - POOL_SLACK_MM, b.box[1] + radius_mm + POOL_SLACK_MM
+            found = np.flatnonzero(a.planes.ok & np.all((a.points >= lo) & (a.points <= hi), axis=1))
+            found = np.random.default_rng([seed, a.id, b.id]).permutation(found)
+            with self._lock:
+                self._pools[key] = found
+        return found
+
+    def first(self, key: tuple[Any, ...]) -> tuple[bool, PairMatch | None]:
+        with self._lock:
+            return (key in self._first), self._first.get(key)
+
+    def keep_first(self, key: tuple[Any, ...], match: PairMatch | None) -> None:
+        with self._lock:
+            self._first[key] = match
+
+
+def _sides(
+    views: list[Array],
+    planes: list[LocalPlanes],
+    cameras: list[Array] | None,
+    trees: list[cKDTree | None] | None,
+    ids: list[int] | None,
+) -> list[_Side]:
+    return [
+        _Side(
+            v,
+            lp,
+            (trees[k] if trees is not None else (cKDTree(v) if len(v) else None)),
+            None if cameras is None else np.asarray(cameras[k], dtype=np.float64),
+            (v.min(0), v.max(0)) if len(v) else (np.zeros(3), np.zeros(3)),
+            k if ids is None else int(ids[k]),
+        )
+        for k, (v, lp) in enumerate(zip(views, planes, strict=True))
+    ]
+
+
+def _match(
+    a: _Side,
+    b: _Side,
+    T_a: Pose,
+    T_b: Pose,
+    box_b: tuple[Array, Array],
+    radius: float,
+    pool: NDArray[np.int64],
+    noise_mm: float,
+) -> PairMatch | None:
+    """The matched pairs of source ``a`` against target ``b`` with the views moved by ``T_a``, ``T_b``:
+    ``a``'s pool points (in the pool's random order) inside ``b``'s moved box ``box_b`` grown by ``radius``
+    are looked up in ``b``'s tree within ``radius`` (the query moved into ``b``'s own frame) and kept where
+    both local planes face alike and ``b``'s is trusted, until :data:`MAX_PAIRS_PER_OVERLAP` are found or
+    twice that many were looked up (a random sample of the overlap either way); robust outliers and grazing
+    pairs are dropped; None when fewer than :data:`MIN_PAIRS` remain."""
+    if b.tree is None or not len(pool):
+        return None
+    to_b = invert(T_b)
+    chunk_size = MAX_PAIRS_PER_OVERLAP // 2
+    ks, ps, ns, looked_up, found = [], [], [], 0, 0
+    for start in range(0, len(pool), chunk_size):  # the pool is in random order: its first points will do
+        src = pool[start : start + chunk_size]
+        cand = transform_points(T_a, a.points[src])
+        inside = np.all((cand >= box_b[0] - radius) & (cand <= box_b[1] + radius), axis=1)
+        src, cand = src[inside], cand[inside]
+        if not len(src):
+            continue
+        looked_up += len(src)
+        d, nearest = b.tree.query(transform_points(to_b, cand), distance_upper_bound=radius)
+        hit = np.isfinite(d)
+        src, k, cand = src[hit], np.asarray(nearest)[hit], cand[hit]
+        nj = transform_vectors(T_b, b.planes.normal[k])
+        ni = transform_vectors(T_a, a.planes.normal[src])
+        good = b.planes.ok[k] & (np.abs(np.einsum("ij,ij->i", ni, nj)) > SAME_NORMAL_COS)
+        ks.append(k[good])
+        ps.append(cand[good])
+        ns.append(nj[good])
+        found += int(good.sum())
+        if found >= MAX_PAIRS_PER_OVERLAP or looked_up >= 2 * MAX_PAIRS_PER_OVERLAP:
+            break
+    if found < MIN_PAIRS:
+        return None
+    k = np.concatenate(ks)[:MAX_PAIRS_PER_OVERLAP]
+    p = np.concatenate(ps)[:MAX_PAIRS_PER_OVERLAP]
+    nj = np.concatenate(ns)[:MAX_PAIRS_PER_OVERLAP]
+    q = transform_points(T_b, b.planes.centroid[k])
+    r = np.einsum("ij,ij->i", p - q, nj)
+    scale = 1.4826 * np.median(np.abs(r - np.median(r)))
+    inlier = np.abs(r - np.median(r)) <= max(3 * scale, 2 * noise_mm)
+    p, q, nj, r = p[inlier], q[inlier], nj[inlier], r[inlier]
+    w_row = np.ones(len(r))
+    if a.camera is not None and b.camera is not None:
+        cos_i = incidence_cos(p, nj, transform_points(T_a, a.camera))
+        cos_j = incidence_cos(q, nj, transform_points(T_b, b.camera))
+        seen = np.minimum(cos_i, cos_j) >= MIN_INCIDENCE_COS
+        p, q, nj, r = p[seen], q[seen], nj[seen], r[seen]
+        w_row = 2.0 / (1.0 / cos_i[seen] ** 2 + 1.0 / cos_j[seen] ** 2)
+    if len(r) < MIN_PAIRS:
+        return None
+    return PairMatch(p, q, nj, r, w_row)
+
+
+def _first_key(a: _Side, b: _Side, radius: float, noise_mm: float, seed: int) -> tuple[Any, ...]:
+    return (a.id, b.id, radius, noise_mm, seed, a.camera is not None and b.camera is not None)
+
+
+def _first_match(
+    a: _Side, b: _Side, radius: float, noise_mm: float, seed: int, cache: OverlapCache
+) -> PairMatch | None:
+    """The pair's matching at the kinematic poses (no correction), from ``cache`` or made and kept there."""
+    key = _first_key(a, b, radius, noise_mm, seed)
+    known, found = cache.first(key)
+    if known:
+        return found
+    eye = np.eye(4)
+    found = _match(a, b, eye, eye, b.box, radius, cache.pool(a, b, radius, seed), noise_mm)
+    cache.keep_first(key, found)
+    return found
+
+
+def prepare_overlaps(
+    cache: OverlapCache,
+    views: list[Array],
+    planes: list[LocalPlanes],
+    cameras: list[Array] | None,
+    trees: list[cKDTree | None],
+    ids: list[int],
+    new: int,
+    noise_mm: float = 0.05,
+    radius_mm: float = 2.0,
+    seed: int = 0,
+) -> None:
+    """Make the first matching (at the kinematic poses, :func:`refine_views`' first radius) of view ``new``
+    (a position in the lists) with every other view, both ways, into ``cache``: what a refinement over these
+    views does first, done as the view arrives."""
+    sides = _sides(views, planes, cameras, trees, ids)
+    for other in range(len(sides)):
+        if other == new:
+            continue
+        for a, b in ((sides[new], sides[other]), (sides[other], sides[new])):
+            if len(a.points) and _boxes_overlap(a.box, b.box, radius_mm):
+                _first_match(a, b, radius_mm, noise_mm, seed, cache)
+
+
 def refine_views(
     views: list[Array],
     sigma_t_mm: float | Array,
@@ -147,25 +323,34 @@ def refine_views(
     seed: int = 0,
     planes: list[LocalPlanes] | None = None,
     cameras: list[Array] | None = None,
+    trees: list[cKDTree | None] | None = None,
+    ids: list[int] | None = None,
+    cache: OverlapCache | None = None,
 ) -> ViewRefinement:
     """Corrections for ``views`` (points in {W}, mm; one array per view) under the prior (``sigma_t_mm``,
     ``sigma_r_rad``: 1-sigma translation and rotation of a view's pose, one for all or one per view) with
-    point gaps of ``noise_mm`` noise,
-    matching within each of ``radii_mm`` in turn (one linearised solve each). ``planes``: the views'
-    local planes (:func:`estimate_normals`) when the caller keeps them between calls. ``cameras``: each
-    view's camera centre ({W}, mm): a point seen at incidence theta is noisier by 1/cos(theta) (and biased by
-    what the sensor's model misses, which grows with it), so pairs are weighted by their incidence and pairs
-    beyond ``MAX_INCIDENCE_DEG`` for either view are not used: a view that overlaps the others only at
-    grazing incidence is held by the prior, not slid along by its least reliable points."""
+    point gaps of ``noise_mm`` noise, matching within each of ``radii_mm`` in turn (one linearised solve
+    each). ``planes``: the views' local planes (:func:`estimate_normals`) when the caller keeps them between
+    calls. ``cameras``: each view's camera centre ({W}, mm): a point seen at incidence theta is noisier by
+    1/cos(theta) (and biased by what the sensor's model misses, which grows with it), so pairs are weighted
+    by their incidence and pairs beyond ``MAX_INCIDENCE_DEG`` for either view are not used: a view that
+    overlaps the others only at grazing incidence is held by the prior, not slid along by its least reliable
+    points. ``trees``: KD-trees of the views as given (built here when None); matches are looked up with the
+    query points moved into the other view's own frame, so no tree is rebuilt when a correction moves a view.
+    Each ordered pair samples its overlap in a random order of its own, seeded by ``seed`` and the two views'
+    ``ids`` (default: their positions), so a pair's matching depends on the two views alone and the pairs
+    are matched on two threads; ``cache`` keeps the pairs' candidate pools and first matching between calls
+    (:class:`OverlapCache`)."""
     n_views = len(views)
     T = [np.eye(4) for _ in range(n_views)]
     if n_views < 2:
         return ViewRefinement(T, 0.0, 0.0, [0] * n_views, list(range(n_views)))
-    rng = np.random.default_rng(seed)
     nonempty = [v for v in views if len(v)]
     centre = np.vstack(nonempty).mean(axis=0) if nonempty else np.zeros(3)
     lever = max(float(np.linalg.norm(np.vstack(nonempty) - centre, axis=1).max()), 1.0) if nonempty else 1.0
     normals = planes if planes is not None else [estimate_normals(v) for v in views]
+    sides = _sides(views, normals, cameras, trees, ids)
+    cache = cache if cache is not None else OverlapCache()
     sigma_r = np.broadcast_to(np.asarray(sigma_r_rad, dtype=np.float64), (n_views,))
     sigma_t = np.broadcast_to(np.asarray(sigma_t_mm, dtype=np.float64), (n_views,))
     # per view: three rotation weights (as mm at the lever arm), three translation weights
@@ -174,54 +359,47 @@ def refine_views(
     rms: list[float] = []
     overlaps = [0] * n_views
     last_gaps: list[Array] = []
-    for radius in radii_mm:
-        moved = [transform_points(Ti, v) for Ti, v in zip(T, views, strict=True)]
-        moved_n = [(Ti[:3, :3] @ lp.normal.T).T for Ti, lp in zip(T, normals, strict=True)]
-        moved_c = [transform_points(Ti, lp.centroid) for Ti, lp in zip(T, normals, strict=True)]
-        eyes = None if cameras is None else [transform_points(Ti, e) for Ti, e in zip(T, cameras)]
-        trees = [cKDTree(m) if len(m) else None for m in moved]
-        boxes = [(m.min(0), m.max(0)) if len(m) else (np.zeros(3), np.zeros(3)) for m in moved]
-        H = np.zeros((6 * n_views, 6 * n_views))
-        g = np.zeros(6 * n_views)
-        gaps_all: list[Array] = []
-        pairs: list[tuple[int, int, Array, Array]] = []
-        overlaps = [0] * n_views
-        used = np.zeros(n_views)  # pairs (incidence-weighted) that hold each view, as source or target
-        for i in range(n_views):
-            for j in range(n_views):
-                tree = trees[j]
-                if i == j or tree is None or not len(moved[i]):
+    held = np.zeros(n_views, dtype=bool)
+    information: Array | None = None
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="refine") as pool:
+        for it, radius in enumerate(radii_mm):
+            boxes = [
+                _moved_box(Ti, side.points) if it else side.box for Ti, side in zip(T, sides, strict=True)
+            ]
+            ordered = [
+                (i, j)
+                for i in range(n_views)
+                for j in range(n_views)
+                if i != j
+                and len(views[i])
+                and sides[j].tree is not None
+                and _boxes_overlap(boxes[i], boxes[j], radius)
+            ]
+
+            def matched(
+                ij: tuple[int, int],
+                it: int = it,
+                radius: float = radius,
+                poses: list[Pose] = T,
+                boxes: list[tuple[Array, Array]] = boxes,
+            ) -> PairMatch | None:
+                i, j = ij
+                a, b = sides[i], sides[j]
+                if it == 0:  # at the kinematic poses: the pair's own business, kept between calls
+                    return _first_match(a, b, radius, noise_mm, seed, cache)
+                pool = cache.pool(a, b, radii_mm[0], seed)
+                return _match(a, b, poses[i], poses[j], boxes[j], radius, pool, noise_mm)
+
+            H = np.zeros((6 * n_views, 6 * n_views))
+            g = np.zeros(6 * n_views)
+            gaps_all: list[Array] = []
+            pairs: list[tuple[int, int, Array, Array]] = []
+            overlaps = [0] * n_views
+            used = np.zeros(n_views)  # pairs (incidence-weighted) that hold each view, as source or target
+            for (i, j), match in zip(ordered, pool.map(matched, ordered), strict=True):
+                if match is None:
                     continue
-                if not _boxes_overlap(boxes[i], boxes[j], radius):
-                    continue
-                src = _candidates(moved[i], normals[i].ok, boxes[j], radius, rng)
-                d, nearest = tree.query(moved[i][src], distance_upper_bound=radius)
-                hit = np.isfinite(d)
-                src, k = src[hit], np.asarray(nearest)[hit]
-                if len(src) == 0:
-                    continue
-                nj = moved_n[j][k]
-                facing = np.abs(np.einsum("ij,ij->i", moved_n[i][src], nj)) > SAME_NORMAL_COS
-                good = normals[j].ok[k] & facing
-                src, k, nj = src[good], k[good], nj[good]
-                if len(src) < MIN_PAIRS:
-                    continue
-                if len(src) > MAX_PAIRS_PER_OVERLAP:
-                    pick = rng.choice(len(src), MAX_PAIRS_PER_OVERLAP, replace=False)
-                    src, k, nj = src[pick], k[pick], nj[pick]
-                p, q = moved[i][src], moved_c[j][k]
-                r = np.einsum("ij,ij->i", p - q, nj)
-                scale = 1.4826 * np.median(np.abs(r - np.median(r)))
-                inlier = np.abs(r - np.median(r)) <= max(3 * scale, 2 * noise_mm)
-                p, q, nj, r = p[inlier], q[inlier], nj[inlier], r[inlier]
-                w_row = np.ones(len(r))
-                if eyes is not None:
-                    cos_i, cos_j = incidence_cos(p, nj, eyes[i]), incidence_cos(q, nj, eyes[j])
-                    seen = np.minimum(cos_i, cos_j) >= MIN_INCIDENCE_COS
-                    p, q, nj, r = p[seen], q[seen], nj[seen], r[seen]
-                    w_row = 2.0 / (1.0 / cos_i[seen] ** 2 + 1.0 / cos_j[seen] ** 2)
-                if len(r) < MIN_PAIRS:
-                    continue
+                p, q, nj, r, w_row = match.p, match.q, match.n, match.r, match.w
                 overlaps[i] += 1
                 gaps_all.append(r)
                 used[i] += w_row.sum()
@@ -244,23 +422,37 @@ def refine_views(
                 g[si] += Wi.T @ r
                 g[sj] -= Wi.T @ r
                 pairs.append((i, j, Ji, r))
-        rms.append(float(np.sqrt(np.mean(np.concatenate(gaps_all) ** 2))) if gaps_all else 0.0)
-        # a view that too few good pairs hold (it overlaps the others only at grazing incidence, or hardly at
-        # all) stays at its kinematic pose: a few biased pairs would slide it where nothing checks it
-        information = H.copy()
-        held = used < MIN_VIEW_PAIRS
-        for v in np.flatnonzero(held):
-            H[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] += np.eye(6) * 1e12
-        # prior on the total correction x + dx: the solve is for the step dx
-        H += np.diag(prior_w)
-        g += prior_w * x.ravel()
-        step = -np.linalg.solve(H, g).reshape(n_views, 6)
-        x += step
-        last_gaps = [r + Ji @ (step[i] - step[j]) for i, j, Ji, r in pairs]
-        T = [_apply(xi, centre, lever) for xi in x]
+            rms.append(float(np.sqrt(np.mean(np.concatenate(gaps_all) ** 2))) if gaps_all else 0.0)
+            # a view that too few good pairs hold (it overlaps the others only at grazing incidence, or hardly
+            # at all) stays at its kinematic pose: a few biased pairs would slide it where nothing checks it
+            information = H.copy()  # the overlaps' alone, for cell.analysis.uncertainty
+            held = used < MIN_VIEW_PAIRS
+            for v in np.flatnonzero(held):
+                H[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] += np.eye(6) * 1e12
+            # prior on the total correction x + dx: the solve is for the step dx
+            H += np.diag(prior_w)
+            g += prior_w * x.ravel()
+            step = -np.linalg.solve(H, g).reshape(n_views, 6)
+            x += step
+            last_gaps = [r + Ji @ (step[i] - step[j]) for i, j, Ji, r in pairs]
+            T = [_apply(xi, centre, lever) for xi in x]
     # the gaps of the last matching moved by the last step (linearised): what the corrections leave
     after = float(np.sqrt(np.mean(np.concatenate(last_gaps) ** 2))) if last_gaps else 0.0
     unregistered = [i for i in range(n_views) if held[i]] if radii_mm else list(range(n_views))
     return ViewRefinement(
-        T, rms[0], after, overlaps, unregistered, information if radii_mm else None, centre, lever
+        T,
+        rms[0] if rms else 0.0,
+        after,
+        overlaps,
+        unregistered,
+        information if radii_mm else None,
+        centre,
+        lever,
     )
+
+
+def _moved_box(T: Pose, points: Array) -> tuple[Array, Array]:
+    if not len(points):
+        return np.zeros(3), np.zeros(3)
+    moved = transform_points(T, points)
+    return moved.min(0), moved.max(0)

@@ -7,11 +7,13 @@ Predicted coverage uses the sensor model instead of measured points.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from cell.geometry import Pose
+from cell.geometry import Pose, invert, transform_points
 from cell.planning.sensor_model import SensorModel
 from cell.planning.surface import PartSurface
 
@@ -25,6 +27,29 @@ def covered_by_points(
     need = max(1, int(np.ceil(0.5 * density_per_mm2 * np.pi * radius_mm**2)))
     counts = cKDTree(measured_W).query_ball_point(surface.points, radius_mm, return_length=True)
     return np.asarray(counts) >= need
+
+
+def covered_by_views(
+    surface: PartSurface,
+    views: Sequence[tuple[cKDTree | None, Pose]],
+    density_per_mm2: float,
+    radius_mm: float,
+) -> NDArray[np.bool_]:
+    """:func:`covered_by_points` of several views' points, each view given as a KD-tree of its points in its
+    own frame and the pose ``T`` that moves them into the world: the samples are moved into each view's frame
+    (a rigid motion keeps distances) and the points near them counted there, so no tree of the moved points is
+    built. The same counts as the union's."""
+    need = max(1, int(np.ceil(0.5 * density_per_mm2 * np.pi * radius_mm**2)))
+    counts = np.zeros(len(surface.points), dtype=np.int64)
+    for tree, T in views:
+        if tree is None or tree.n == 0:
+            continue
+        local = transform_points(invert(T), surface.points)
+        near = np.flatnonzero(
+            np.all((local >= tree.mins - radius_mm) & (local <= tree.maxes + radius_mm), axis=1)
+        )
+        counts[near] += np.asarray(tree.query_ball_point(local[near], radius_mm, return_length=True))
+    return counts >= need
 
 
 def coverage_fraction(surface: PartSurface, covered: NDArray[np.bool_]) -> float:

@@ -33,13 +33,6 @@ def cost_q(hole_area_mm2: float, distance_area_mm2: float, w: float) -> float:
     return float(abs(complex(w * hole_area_mm2, distance_area_mm2)))
 
 
-def _boxes_overlap(a: Array, b: Array, margin: float) -> bool:
-    """Whether the bounding boxes of point sets ``a`` and ``b`` come within ``margin`` (mm) of each other."""
-    return bool(
-        np.all(a.min(axis=0) <= b.max(axis=0) + margin) and np.all(b.min(axis=0) <= a.max(axis=0) + margin)
-    )
-
-
 def accuracy_map(
     views: list[MeasuredView],
     normals_at: Callable[[Array], Array],
@@ -63,17 +56,24 @@ def accuracy_map(
     min_cos = float(np.cos(np.deg2rad(max_incidence_deg)))  # used below 90 deg only
     out = []
     trees = [cKDTree(v.points_W) if len(v.points_W) else None for v in views[:-1]]
+    boxes = [(v.points_W.min(axis=0), v.points_W.max(axis=0)) if len(v.points_W) else None for v in views]
     for j in range(max(1, first_new), len(views)):
         vj = views[j]
         pj = vj.points_W
         if len(pj) == 0:
             continue
         for i in range(j):
-            vi, tree = views[i], trees[i]
+            vi, tree, box, box_j = views[i], trees[i], boxes[i], boxes[j]
             pi = vi.points_W
-            if tree is None or not _boxes_overlap(pi, pj, link_mm):
+            if tree is None or box is None or box_j is None:
                 continue
-            d, k = (np.asarray(a) for a in tree.query(pj, distance_upper_bound=link_mm))
+            if not (np.all(box[0] <= box_j[1] + link_mm) and np.all(box_j[0] <= box[1] + link_mm)):
+                continue
+            # only view j's points in view i's box (grown by the link distance) can have a neighbour there
+            inside = np.flatnonzero(np.all((pj >= box[0] - link_mm) & (pj <= box[1] + link_mm), axis=1))
+            d = np.full(len(pj), np.inf)
+            k = np.full(len(pj), len(pi), dtype=np.int64)
+            d[inside], k[inside] = tree.query(pj[inside], distance_upper_bound=link_mm)
             near = np.isfinite(d)
             if max_incidence_deg < 90.0 and near.any():
                 n_nom = normals_at(pj[near])
@@ -301,14 +301,17 @@ def evaluate(
     first_new: int,
     ia_before: Array,
     u_max_mm: float | None = None,
+    covered: NDArray[np.bool_] | None = None,
 ) -> Evaluation:
     """Coverage, hole area u, accuracy map IA (views from ``first_new`` on against earlier ones, added to
     ``ia_before``) and its area v, given the target ``u_max_mm`` the uncertainty map IU
     (:func:`uncertainty_map`) and its area, and Q = |w u + j v'| against the set point, v' the area of IA and
-    IU together."""
+    IU together. ``covered``: the samples the views' points cover, when the caller counted them already
+    (:func:`covered_by_views`)."""
     st, s = fb.st, fb.plan.surface
-    pts = np.vstack([v.points_W for v in views]) if views else np.zeros((0, 3))
-    covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
+    if covered is None:
+        pts = np.vstack([v.points_W for v in views]) if views else np.zeros((0, 3))
+        covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
     u = float(s.area[s.inspectable & ~covered].sum())
     ia = np.vstack(
         [

@@ -18,7 +18,7 @@ import numpy as np
 _DARK, _SATURATED, _LOW_CONTRAST, _INCONSISTENT, _NO_CODE = 1, 2, 4, 8, 16
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def reference_masks(white, black, top, dark_thr, min_contrast):
     """Modulation white - black (DN), contrast (W-B)/(W+B) (float32) and DARK/SATURATED/LOW_CONTRAST bits."""
     H, W = white.shape
@@ -53,7 +53,7 @@ def _min_nan(a, b):
     return a if a < b else b
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def gcls_axis(
     stack,
     gray_idx,

@@ -58,17 +58,34 @@ def measured_normals(
     return np.where(facing[..., None], -n, n)
 
 
+BAND_ROWS = 256  # image rows per band of the incidence: ~10 float64 (rows, W, 3) temporaries, not full images
+
+
 def projector_incidence_deg(
-    points_C: NDArray[np.floating], valid: NDArray[np.bool_], projector_centre_C: NDArray[np.floating]
+    points_C: NDArray[np.floating],
+    valid: NDArray[np.bool_],
+    projector_centre_C: NDArray[np.floating],
+    half_window_px: int = 2,
 ) -> NDArray[np.float64]:
     """Angle (deg, (H, W)) between each point's measured normal and its ray to the projector's centre
-    (camera frame, mm); NaN where no normal could be measured."""
-    n = measured_normals(points_C, valid)
-    ray = np.asarray(projector_centre_C, dtype=np.float64) - np.asarray(points_C, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        ray /= np.linalg.norm(ray, axis=2, keepdims=True)
-        cos = np.clip(np.sum(n * ray, axis=2), -1.0, 1.0)
-    return np.degrees(np.arccos(cos))
+    (camera frame, mm); NaN where no normal could be measured. Computed in bands of :data:`BAND_ROWS` rows,
+    each with the ``2 * half_window_px`` rows around it that its normals read (a 5 MP image's normals took
+    ten full-image float64 temporaries, 1.2 GB)."""
+    H = np.shape(valid)[0]
+    halo = 2 * half_window_px
+    out = np.empty(np.shape(valid), dtype=np.float64)
+    centre = np.asarray(projector_centre_C, dtype=np.float64)
+    for start in range(0, H, BAND_ROWS):
+        end = min(start + BAND_ROWS, H)
+        lo, hi = max(start - halo, 0), min(end + halo, H)
+        band = np.asarray(points_C[lo:hi], dtype=np.float64)
+        n = measured_normals(band, valid[lo:hi], half_window_px)[start - lo : end - lo]
+        ray = centre - band[start - lo : end - lo]
+        with np.errstate(invalid="ignore"):
+            ray /= np.linalg.norm(ray, axis=2, keepdims=True)
+            cos = np.clip(np.sum(n * ray, axis=2), -1.0, 1.0)
+        out[start:end] = np.degrees(np.arccos(cos))
+    return out
 
 
 def lit_too_obliquely(

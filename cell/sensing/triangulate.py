@@ -130,21 +130,30 @@ class PinholeTriangulator:
     def triangulate(self, decoded: Decoded, iterations: int = 3) -> SensorCloud:
         """One fused compiled pass (:func:`_cloud_kernel.pinhole_cloud`); same arithmetic as :meth:`depth`.
         A projector lens with distortion bends its column planes: the decoded column ``u`` is where the lens
-        put the stripe, so each point is projected back through the lens (cv2.projectPoints) and the column
-        the pinhole plane uses is moved by what the lens added, ``iterations`` times (Newton with the lens's
-        derivative taken as 1: the distortion is a few pixels, the step converges to well under 0.01 px)."""
+        put the stripe, so each point is projected back through the lens (cv2.projectPoints' model,
+        :func:`_cloud_kernel.project_axis`) and the column the pinhole plane uses is moved by what the lens
+        added, ``iterations`` times (Newton with the lens's derivative taken as 1: the distortion is a few
+        pixels, the step converges to well under 0.01 px)."""
         ad = decoded.primary()
         k = 0 if ad.axis == "columns" else 1
         u_plane = ad.u
         pts, reasons = self._pinhole(u_plane, ad.reasons, k)
         if np.any(self.dist_proj):
             T_P_C = np.linalg.inv(self.T_C_P)
+            K = self.K_proj
+            lens = (
+                T_P_C[:3, :3].copy(),
+                T_P_C[:3, 3].copy(),
+                K[0, 0],
+                K[1, 1],
+                K[0, 2],
+                K[1, 2],
+                self.dist_proj,
+            )
+            u_decoded = np.asarray(ad.u, dtype=np.float32)
+            u_plane = u_decoded
             for _ in range(iterations):
-                ok = reasons == 0
-                P = pts[ok].astype(np.float64) @ T_P_C[:3, :3].T + T_P_C[:3, 3]
-                seen, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), self.K_proj, self.dist_proj)
-                u_plane = u_plane.copy()
-                u_plane[ok] += ad.u[ok] - seen.reshape(-1, 2)[:, k].astype(u_plane.dtype)
+                u_plane = _cloud_kernel.lens_step(pts, reasons, u_plane, u_decoded, *lens, k)
                 pts, reasons = self._pinhole(u_plane, ad.reasons, k)
         return SensorCloud(pts, reasons, decoded.contrast, ad.sharpness)
 

@@ -1,7 +1,7 @@
 """What the live page shows of one run, as one JSON-able snapshot: its progress read from the folder, whether
 its process is running here, which of Pause, Resume and Abort the page offers (the server checks again when
 one is pressed; the controller has the last word), and whether the run is over (the page then shows the
-verdict)."""
+verdict, as soon as it is published)."""
 
 from __future__ import annotations
 
@@ -47,11 +47,12 @@ def snapshot(supervisor: Supervisor, runs: Path, name: str, past: list[Timeline]
         "pause": running and state is not None and state not in TERMINAL,
         "resume": free and inspection and state is not None and state not in ("done", "aborted"),
         "abort": inspection
-        and state not in ("done", "aborted", None)
+        and state not in ("done", "rendering", "aborted", None)  # a published verdict stands
         and failed is None
         and elsewhere is None,
     }
-    final = failed is not None or (free and state in ("done", "aborted"))
+    # over for the operator once the verdict is out: the report's page follows while the verdict page shows
+    final = failed is not None or (free and state in ("done", "aborted")) or state == "rendering"
     if elsewhere:
         progress.message = f"{elsewhere}; {progress.message}" if progress.message else elsewhere
     elif not running and state is not None and state not in TERMINAL:

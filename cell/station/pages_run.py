@@ -158,7 +158,7 @@ async def verdict_page(request: Request) -> Response:
     station = station_of(request)
     run_dir = station.settings.runs / name
     progress = read_progress(run_dir)
-    if progress.state not in ("done", "aborted", "faulted"):
+    if progress.state not in ("done", "rendering", "aborted", "faulted"):
         return RedirectResponse(f"/run/{name}", status_code=303)
     verdict = await asyncio.to_thread(read_verdict, run_dir, _region_boxes(run_dir))
     report = run_dir / "results" / "report.html"

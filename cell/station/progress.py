@@ -34,7 +34,8 @@ _WORDS = {
     "evaluating": "Checking what the views cover",
     "replanning": "Planning extra views for what is missing",
     "registering": "Aligning the views to the part",
-    "reporting": "Comparing with the CAD model and writing the report",
+    "reporting": "Comparing with the CAD model",
+    "rendering": "Verdict ready; writing the report's pictures and page",
     "done": "Finished",
     "paused": "Paused",
     "faulted": "Stopped by a fault",
@@ -137,8 +138,9 @@ def read_progress(run_dir: Path, past: list[Timeline] | None = None, now: float 
         p.words = f"Paused by {asked[-1].get('by')}"
         # the station asks as Ctrl-C does (SIGINT), so the controller says Ctrl-C: the words say who asked
         p.message = p.message.removeprefix("pause requested: Ctrl-C").removeprefix("; ")
-    if p.state == "done":
+    if checkpoint.get("phase") in ("rendering", "done"):  # the verdict is published before the report's page
         p.verdict = (checkpoint.get("summary") or {}).get("verdict")
+    if p.state == "done":
         p.elapsed_s = float(states[-1]["t"]) - float(entries[0]["t"])
     if p.state not in TERMINAL:
         started = [float(e["t"]) for e in states if e.get("state") in ("connecting", "resuming")]

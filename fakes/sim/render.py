@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -32,6 +33,8 @@ from fakes.sim.world import value_noise
 # Blur levels (px) of the layered defocus model: each pixel blends the two levels around its own sigma.
 BLUR_LEVELS = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 SHADOW_OFFSET_MM = 0.01  # shadow rays start this far off the surface so they do not hit their own triangle
+CACHE_BYTES = 400_000_000  # poses' geometry kept at most (the newest always): 1024x768 ~50 MB, 5 MP ~0.3 GB
+RAYS_PER_CHUNK = 500_000  # pixel rays a pose's geometry is computed for at a time (memory: ~0.2 GB)
 _OUTSIDE = -1.0e6  # remap coordinate of pixels that see no projector light (falls in the zero border)
 
 
@@ -126,6 +129,13 @@ def standard_normal_image(shape: tuple[int, ...], rng: np.random.Generator) -> N
     return out
 
 
+def _nbytes(view: ViewGeometry) -> int:
+    """The bytes a cached pose's geometry holds (its images and blur weight maps)."""
+    arrays = [v for v in vars(view).values() if isinstance(v, np.ndarray)]
+    blurs = [w for b in (view.projector_blur, view.camera_blur) for w in b.weights if w is not None]
+    return sum(a.nbytes for a in arrays + blurs)
+
+
 class SceneRenderer:
     """Renders camera images of the scene lit by the projector's pattern, for any camera pose T_W_C."""
 
@@ -156,7 +166,8 @@ class SceneRenderer:
 
     # ------------------------------------------------------------------------------------------ geometry
     def view(self, T_W_C: NDArray[np.float64]) -> ViewGeometry:
-        """The pattern-independent geometry of pose T_W_C (cached, least recently used dropped)."""
+        """The pattern-independent geometry of pose T_W_C (cached, least recently used dropped beyond
+        ``cache_size`` poses or :data:`CACHE_BYTES`)."""
         T_W_C = np.asarray(T_W_C, dtype=np.float64)
         key = T_W_C.tobytes()
         if key in self._cache:
@@ -164,15 +175,66 @@ class SceneRenderer:
             return self._cache[key]
         view = self._compute_view(T_W_C)
         self._cache[key] = view
-        if len(self._cache) > self._cache_size:
+        while len(self._cache) > 1 and (
+            len(self._cache) > self._cache_size or sum(map(_nbytes, self._cache.values())) > CACHE_BYTES
+        ):
             self._cache.popitem(last=False)
         return view
 
     def _compute_view(self, T_W_C: NDArray[np.float64]) -> ViewGeometry:
-        cam, proj, scene = self.cam, self.proj, self.scene
+        """The pose's geometry, its rays taken :data:`RAYS_PER_CHUNK` at a time (every per-ray step is the
+        ray's own; a 5 MP camera's whole-image float64 temporaries held 2 GB at once)."""
+        cam = self.cam
         H, W = cam.height_px, cam.width_px
         rays_C = pixel_rays(cam).reshape(-1, 3)
-        dirs_W = transform_vectors(T_W_C, rays_C)
+        n_rays = H * W
+        out: dict[str, NDArray[Any]] = {
+            "distance": np.empty(n_rays, np.float64),
+            "triangle": np.empty(n_rays, np.int32),
+            "hit": np.empty(n_rays, bool),
+            "part": np.empty(n_rays, bool),
+            "lit": np.zeros(n_rays, bool),
+            "in_frustum": np.zeros(n_rays, bool),
+            "map_x": np.full(n_rays, _OUTSIDE, np.float32),
+            "map_y": np.full(n_rays, _OUTSIDE, np.float32),
+            "ambient": np.zeros(n_rays, np.float32),
+            "projector": np.zeros(n_rays, np.float32),
+            "proj_sigma": np.zeros(n_rays, np.float32),
+            "cam_sigma": np.zeros(n_rays, np.float32),
+        }
+        for start in range(0, n_rays, RAYS_PER_CHUNK):
+            self._view_rays(T_W_C, rays_C, start, min(start + RAYS_PER_CHUNK, n_rays), out)
+
+        def image(name: str) -> NDArray:
+            return out[name].reshape(H, W)
+
+        return ViewGeometry(
+            T_W_C=T_W_C.copy(),
+            distance=image("distance"),
+            triangle=image("triangle"),
+            hit=image("hit"),
+            part=image("part"),
+            lit=image("lit"),
+            in_frustum=image("in_frustum"),
+            map_x=image("map_x"),
+            map_y=image("map_y"),
+            ambient_e_per_ms=image("ambient"),
+            projector_e_per_ms=image("projector"),
+            projector_blur=blur_layers(image("proj_sigma")),
+            camera_blur=blur_layers(image("cam_sigma")),
+        )
+
+    def _view_rays(
+        self,
+        T_W_C: NDArray[np.float64],
+        rays_C: NDArray[np.float64],
+        start: int,
+        end: int,
+        out: dict[str, NDArray],
+    ) -> None:
+        """Cast, shade and shadow the pixel rays ``start:end`` of pose T_W_C into the flat images ``out``."""
+        cam, proj, scene = self.cam, self.proj, self.scene
+        dirs_W = transform_vectors(T_W_C, rays_C[start:end])
         eye_W = T_W_C[:3, 3]
         hits = scene.cast(eye_W[None, :], dirs_W)
         hit = hits.hit
@@ -211,31 +273,19 @@ class SceneRenderer:
         falloff = (proj.focus_distance_mm / r) ** 2
         gain = proj.irradiance_e_per_ms * falloff * (alb * np.maximum(cos_i, 0) + spec * cos_a**shin)
 
-        def full(values: NDArray, fill: float, dtype: type) -> NDArray:
-            """Per-hit ``values`` scattered to the (H, W) image, ``fill`` where no ray hit."""
-            out: NDArray = np.full(H * W, fill, dtype=dtype)
-            out[idx] = values
-            return out.reshape(H, W)
-
-        lit = full(lit_sub, False, bool)
-        map_uv = np.where(lit_sub[:, None], uv, _OUTSIDE)
-        proj_sigma = np.where(lit_sub, blur_sigma_px(proj, P_P[:, 2]), 0.0)
-        cam_sigma = blur_sigma_px(cam, distance[idx] * rays_C[idx, 2])
-        return ViewGeometry(
-            T_W_C=T_W_C.copy(),
-            distance=distance.reshape(H, W),
-            triangle=hits.triangle.astype(np.int32).reshape(H, W),
-            hit=hit.reshape(H, W),
-            part=hits.is_part.reshape(H, W),
-            lit=lit,
-            in_frustum=full(in_frustum, False, bool),
-            map_x=full(map_uv[:, 0], _OUTSIDE, np.float32),
-            map_y=full(map_uv[:, 1], _OUTSIDE, np.float32),
-            ambient_e_per_ms=full(self.sim.ambient_e_per_ms * alb, 0.0, np.float32),
-            projector_e_per_ms=full(np.where(lit_sub, gain, 0.0), 0.0, np.float32),
-            projector_blur=blur_layers(full(proj_sigma, 0.0, np.float32)),
-            camera_blur=blur_layers(full(cam_sigma, 0.0, np.float32)),
-        )
+        at = start + idx  # the hit pixels in the flat images
+        out["distance"][start:end] = distance
+        out["triangle"][start:end] = hits.triangle
+        out["hit"][start:end] = hit
+        out["part"][start:end] = hits.is_part
+        out["lit"][at] = lit_sub
+        out["in_frustum"][at] = in_frustum
+        out["map_x"][at] = np.where(lit_sub, uv[:, 0], _OUTSIDE)
+        out["map_y"][at] = np.where(lit_sub, uv[:, 1], _OUTSIDE)
+        out["ambient"][at] = self.sim.ambient_e_per_ms * alb
+        out["projector"][at] = np.where(lit_sub, gain, 0.0)
+        out["proj_sigma"][at] = np.where(lit_sub, blur_sigma_px(proj, P_P[:, 2]), 0.0)
+        out["cam_sigma"][at] = blur_sigma_px(cam, distance[idx] * rays_C[start:end][idx, 2])
 
     def _microstructure(
         self,

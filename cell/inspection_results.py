@@ -1,0 +1,315 @@
+"""The inspection's results, after its views are measured: the registered cloud (all views in the part frame,
+refined against each other, merged, aligned) with its error map and coverage, judged into the verdict, which
+is published first (report.json), and the rest of the report after it (cloud.ply, report.html).
+
+A part of :class:`cell.inspection.LambertianInspection` (its base class): the controller calls ``register``
+(in its worker, beside ``evaluate``), ``report`` and ``render``; ``cell report`` calls the last two again.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+
+from cell.analysis.alignment import Aligner, AlignmentError
+from cell.analysis.decision import DecisionRule
+from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
+from cell.analysis.judge import judge
+from cell.analysis.merge import cut_unregistered, merge_views
+from cell.analysis.regions import Coverage, Tolerance, region_from_config
+from cell.analysis.report import ReportInput, write_page, write_verdict
+from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
+from cell.analysis.uncertainty import registered_cloud_uncertainty
+from cell.calibration import pose_uncertainty_prior
+from cell.calibration_state import calibration_state
+from cell.config import CellConfig, Recipe
+from cell.geometry import invert, transform_points
+from cell.inspection_views import ViewStore
+from cell.planning.coverage import coverage_fraction, covered_by_views
+from cell.planning.unseen import plan_feedback
+from cell.run_data import Checkpoint, View
+from cell.run_record import run_record
+from cell.runs import RunFolder
+
+if TYPE_CHECKING:
+    from cell.analysis.view_refinement import ViewRefinement
+    from cell.inspection import InspectionSettings
+    from cell.planning.planner import Plan
+
+
+@dataclass
+class RegisteredCloud:
+    """The registered cloud in {P} (mm) and what judging it needs that the evaluation does not change: its
+    signed deviations from the nominal and the coverage at its alignment (None: computed when judged)."""
+
+    registration: dict[str, Any]
+    points_P: NDArray[np.float64]
+    error_map: ErrorMap | None = None
+    coverage: Coverage | None = None
+    uncertainty_mm: NDArray[np.float64] | None = None  # each point's u (None: a run from before issue 17)
+
+
+class InspectionResults:
+    """Registration, judging and the report of a :class:`cell.inspection.LambertianInspection` (which sets
+    these attributes and provides the plan and the views' refinement)."""
+
+    recipe: Recipe
+    cfg: CellConfig
+    nominal_W: trimesh.Trimesh
+    T_W_P: NDArray[np.float64]
+    settings: InspectionSettings
+    part_name: str
+    geometry_source: str
+    nominal: NominalMesh  # {W}
+    decision: DecisionRule
+    calibration_residual: str
+    views: ViewStore
+    _lock: threading.RLock
+    _aligner: Aligner | None
+    _nominal_P: NominalMesh | None
+    _cloud: RegisteredCloud | None
+    _judged: tuple[ReportInput, dict[str, Any], bool] | None
+    _refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None
+
+    if TYPE_CHECKING:
+
+        @property
+        def plan_model(self) -> Plan: ...
+
+        def refinement(self, run: RunFolder) -> tuple[list[int], ViewRefinement]: ...
+
+    @property
+    def aligner(self) -> Aligner:
+        """The recipe's alignment against the nominal in the part frame (datums resolved on first use)."""
+        with self._lock:
+            if self._aligner is None:
+                nominal_P = self.nominal_W.copy().apply_transform(invert(self.T_W_P))
+                self._aligner = Aligner(self.recipe.alignment, nominal_P)
+            return self._aligner
+
+    def register(self, run: RunFolder, views: list[View]) -> dict[str, Any]:
+        """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
+        already being in {W} through robot pose and hand-eye), refined against each other, merged on a voxel
+        grid weighted by quality (a view the refinement could not register gives only the surface no
+        registered view measured: :func:`cut_unregistered`), then moved by the recipe's alignment
+        (cell.analysis.alignment). An alignment the measurement does not allow leaves the kinematic cloud and
+        makes the verdict incomplete (``alignment.error``). The registered cloud stays in memory for
+        :meth:`report` with its error map and coverage, computed here (the controller registers while it
+        evaluates, so they are ready when the evaluation is); it is stored as results/cloud.ply with the
+        report's page, and a resumed run registers again, deterministically, to the same points."""
+        T_P_W = invert(self.T_W_P)
+        done, refined = self.refinement(run)
+        stored = [self.views.get(run, i) for i in done]
+        points, weights, u_decode = [], [], []
+        for view, T_fix in zip(stored, refined.T, strict=True):
+            held = view.points()
+            measured = ~held.oblique  # the sensor's points, without those lit too obliquely
+            points.append(transform_points(T_P_W @ T_fix, held.points_W[measured]))
+            weights.append(np.square(held.quality[measured]).astype(np.float64) + 1e-6)
+            u = held.uncertainty  # None in run folders from before issue 17
+            u_decode.append(np.full(len(points[-1]), np.nan) if u is None else u[measured].astype(np.float64))
+        if not points or not sum(len(p) for p in points):
+            return {"n_points": 0, "views": len(points)}
+        refinement = {
+            **refined.to_json([v.eval_W for v in stored]),
+            "unregistered_views": [done[k] for k in refined.unregistered],
+            **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
+        }
+        n_points_views = int(sum(len(p) for p in points))
+        refinement["unregistered_points_dropped"] = cut_unregistered(
+            points, weights, refined.unregistered, self.recipe.plan.coverage_radius_mm, u_decode
+        )
+        merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
+        method = self.recipe.alignment.method
+        try:
+            found = self.aligner.align(merged.points_mm)
+            points_P = transform_points(found.T, merged.points_mm)
+            alignment = found.to_json()
+        except AlignmentError as exc:
+            points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
+        # judged as cloud.ply stores them (float32), so a rebuilt report gives the same figures
+        points_P = stored_points(points_P)
+        prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
+        unc = registered_cloud_uncertainty(
+            merged,
+            weights,
+            u_decode,
+            refined,
+            prior,
+            self.nominal,
+            self.T_W_P,
+            alignment,
+            self.aligner.datums,
+        )
+        registration = {
+            "n_points": int(len(points_P)),
+            "n_points_views": n_points_views,
+            "views": len(points),
+            "merge_voxel_mm": self.settings.merge_voxel_mm,
+            "method": "kinematic chain (robot pose, hand-eye, part placement); views refined against each "
+            f"other; weighted voxel merge; alignment: {method}",
+            "refinement": refinement,
+            "alignment": alignment,
+            "uncertainty": {
+                **unc.budget(),
+                "calibration": self.calibration_residual,
+                "poses": prior.get("prior"),
+            },
+        }
+        T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
+        error_map = signed_distance(self.nominal_P, points_P)
+        self._cloud = RegisteredCloud(
+            registration, points_P, error_map, self.inspectable_coverage(run, T_align), unc.u_mm
+        )
+        return registration
+
+    @property
+    def nominal_P(self) -> NominalMesh:
+        """The nominal in the part frame, as the error map needs it (built once)."""
+        with self._lock:
+            if self._nominal_P is None:
+                self._nominal_P = NominalMesh.from_trimesh(
+                    self.nominal_W.copy().apply_transform(invert(self.T_W_P))
+                )
+            return self._nominal_P
+
+    def _registered(self, run: RunFolder) -> RegisteredCloud:
+        """The registered cloud: this process's registration, else results/cloud.ply (a run reported before,
+        or registered by an older version), else registered again from the views."""
+        if self._cloud is not None:
+            return self._cloud
+        legacy = run.results_dir / "points_P.npy"  # a run registered before the cloud was stored once
+        registration = Checkpoint.from_json(run.load_checkpoint()).registration or {}
+        # as cloud.ply stores them (float32): a no-op on a cloud written so; an older float64 cloud is judged
+        # as the report will store it, so the next rebuild gives the same figures
+        if legacy.is_file():
+            return RegisteredCloud(registration, stored_points(np.load(legacy)))
+        if (ply := run.results_dir / "cloud.ply").is_file():
+            u = read_ply_field(ply, "uncertainty")
+            u_mm = None if u is None else decode_uncertainty(u)
+            return RegisteredCloud(registration, stored_points(read_ply_points(ply)), uncertainty_mm=u_mm)
+        self.register(run, Checkpoint.from_json(run.load_checkpoint()).views)
+        assert self._cloud is not None  # a registration without points never reaches the report
+        return self._cloud
+
+    def inspectable_coverage(self, run: RunFolder, T_P_cloud: NDArray[np.float64] | None = None) -> Coverage:
+        """Coverage of the inspectable nominal surface (what the planner can see: not the underside on the
+        table) at the recipe's point density, from the measured views moved by the alignment ``T_P_cloud``."""
+        plan, st = self.plan_model, self.recipe.plan
+        s = plan.surface
+        done, found = self.refinement(run)
+        A = np.eye(4) if T_P_cloud is None else self.T_W_P @ T_P_cloud @ invert(self.T_W_P)
+        views = [(self.views.get(run, i).eval_tree, A @ T) for i, T in zip(done, found.T, strict=True)]
+        covered = covered_by_views(s, views, st.point_density_per_mm2, st.coverage_radius_mm)
+        ins = s.inspectable
+        return Coverage(
+            fraction=coverage_fraction(s, covered),
+            area_mm2=float(s.inspectable_area_mm2),
+            radius_mm=st.coverage_radius_mm,
+            min_count=1,
+            density_per_mm2=st.point_density_per_mm2,
+            samples_mm=transform_points(invert(self.T_W_P), s.points[ins]),
+            sample_face=s.face[ins],
+            covered=covered[ins],
+        )
+
+    def report(self, run: RunFolder, registration: dict[str, Any], csv: bool = False) -> dict[str, Any]:
+        """Judge the registered cloud and publish the verdict: results/report.json, before anything else is
+        written (:meth:`render` writes the page, the cloud and, when ``csv``, deviations.csv). Returns the
+        verdict and the key figures."""
+        inp = self._report_input(run, registration)
+        doc = write_verdict(run.results_dir, inp, pictures=self.settings.pictures)
+        self._judged = (inp, doc, csv)
+        return {
+            "verdict": doc.get("verdict"),
+            "n_points": doc.get("n_points"),
+            "coverage": doc.get("coverage"),
+            "deviation": doc.get("deviation"),
+        }
+
+    def render(self, run: RunFolder) -> dict[str, Any]:
+        """The report after its verdict: results/cloud.ply (every point with its deviation), report.html (its
+        pictures and 3D view), deviations.csv when :meth:`report` was asked for it. A resumed run judges the
+        cloud again (the same points, so the same page) and keeps the verdict report.json holds."""
+        if self._judged is None:
+            checkpoint = Checkpoint.from_json(run.load_checkpoint())
+            inp = self._report_input(run, checkpoint.registration or {})
+            doc = json.loads((run.results_dir / "report.json").read_text())
+            self._judged = (inp, doc, False)
+        inp, doc, csv = self._judged
+        written = write_page(run.results_dir, doc, inp, pictures=self.settings.pictures, csv=csv)
+        (run.results_dir / "points_P.npy").unlink(missing_ok=True)  # cloud.ply now holds its points as judged
+        return {"files": written}
+
+    def _report_input(self, run: RunFolder, registration: dict[str, Any]) -> ReportInput:
+        """The judged registered cloud (:func:`cell.analysis.judge.judge`) with the run's context."""
+        cloud = self._registered(run)
+        pts_P = cloud.points_P
+        tol = self.recipe.tolerance
+        checkpoint = Checkpoint.from_json(run.load_checkpoint())
+        evaluation = checkpoint.evaluation.to_json() if checkpoint.evaluation is not None else {}
+        excluded = {
+            "unregistered_view_measured_elsewhere_points": int(
+                registration.get("refinement", {}).get("unregistered_points_dropped", 0)
+            )
+        }
+        for view in self.views.completed(run):
+            for reason, n in view.summary.get("excluded", {}).items():
+                excluded[f"{reason}_points"] = excluded.get(f"{reason}_points", 0) + int(n)
+        alignment = registration.get("alignment") or {"method": "kinematic"}
+        T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
+        calibration = calibration_state(self.cfg, self.recipe.requires_calibration)
+        reasons = list(calibration["incomplete_reasons"])
+        if "error" in alignment:
+            reasons.append(f"alignment ({alignment['method']}) failed: {alignment['error']}")
+        if evaluation.get("v_mm2", 0.0) > evaluation.get("setpoint", float("inf")):
+            reasons.append(
+                f"overlapping views disagree by more than {self.recipe.plan.accuracy_tol_mm} mm over "
+                f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
+                f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
+            )
+        decision, u = self.decision, cloud.uncertainty_mm
+        if u is None or not np.isfinite(u).any():
+            u = None
+            if decision.rule == "guarded":  # a run registered before points carried their uncertainty
+                reasons.append("the guarded decision rule needs the points' uncertainty; this run has none")
+                decision = DecisionRule()
+        plan = plan_feedback(self.plan_model, self.recipe)  # what no reachable viewpoint sees, for the reader
+        return judge(
+            self.nominal_P,
+            pts_P,
+            Tolerance(tol.lower, tol.upper),
+            n_points_input=int(registration.get("n_points_views", len(pts_P))),
+            regions=[region_from_config(spec) for spec in self.recipe.regions],
+            min_defect_points=self.settings.min_defect_points,
+            excluded=excluded,
+            coverage=cloud.coverage or self.inspectable_coverage(run, T_align),
+            min_coverage=self.recipe.min_coverage,
+            warnings=[*alignment.get("warnings", []), *plan.warnings],
+            incomplete_reasons=reasons,
+            alignment=alignment,
+            calibration=calibration,
+            uncertainty_mm=u,
+            decision=decision,
+            uncertainty=registration.get("uncertainty"),
+            metadata={
+                "part": self.part_name,
+                "cad": Path(self.recipe.part.cad).name,
+                "views": [
+                    {"patch": v.patch, "source": v.source, "iteration": v.iteration} for v in checkpoint.views
+                ],
+                "registration": registration,
+                "evaluation": evaluation,
+                "plan": plan.to_json(),  # predicted coverage, min_coverage, unseen_surfaces, warnings
+                "geometry_source": self.geometry_source,
+                "run": run_record(run, self.cfg.name),
+            },
+            error_map=cloud.error_map,
+        )

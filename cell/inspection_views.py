@@ -1,0 +1,197 @@
+"""The measured views of an inspection as its whole-cloud steps use them: each view read and analysed once.
+
+The decode worker writes a view's folder whole while the robot moves on (:mod:`cell.controller`); with the
+points it writes the view's own analysis, the local planes of its evaluation subset (``planes.npz``), into the
+same folder, so a view counts as done only once its analysis is durable too. The job keeps every completed
+view in memory (:class:`ViewStore`): what the decode produced, or, after a resume, what the folder holds, read
+once. Both are the same numbers (the points as stored, the planes as saved), so a resumed run computes what an
+uninterrupted one does.
+
+The refinement, the accuracy map and the cut of unregistered views move views by small rigid corrections;
+they query each view's KD-tree in the view's own (kinematic) frame with the query points moved into it (a
+rigid motion keeps distances), so no tree is rebuilt when the poses change (:class:`ViewResult.eval_tree`).
+
+Per-point arrays travel with the points (:class:`cell.view_files.ViewPoints`: quality, oblique and whatever a
+view stores per point), in pixel order, so a new per-point field reaches the merge without a change here.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from cell.analysis.view_refinement import LocalPlanes, estimate_normals
+from cell.planning.measured import DefectRegion
+from cell.runs import RunFolder
+from cell.view_files import ViewPoints, load_eval_points, load_eval_uncertainty, load_view_points
+
+PLANES_FILE = "planes.npz"  # the evaluation subset's local planes (float64 centroids and normals, bool ok)
+REGIONS_FILE = "defects.npz"
+# the views' full point sets kept in memory at most (the 1024x768 cell's dozen views take ~0.12 GB, a 5 MP
+# camera's ~0.9 GB); beyond it the oldest views' points are dropped and read from their folders when needed
+POINTS_IN_MEMORY_BYTES = 1_000_000_000
+
+
+@dataclass
+class ViewResult:
+    """One completed view (all in {W}, mm, at the pose the kinematic chain gave it): the stored points with
+    their per-point arrays in pixel order (:meth:`points`; held in memory while the store's budget allows),
+    the evaluation subset (one point per ``eval_voxel_mm`` voxel) and its local planes, the camera pose and
+    the hole regions, and the view's ``view.json`` summary."""
+
+    index: int
+    held: ViewPoints | None  # the full points while held in memory, else read from ``folder``
+    eval_W: NDArray[np.float64]
+    planes: LocalPlanes
+    regions: list[DefectRegion]
+    summary: dict[str, Any]
+    folder: Path | None = None  # where the view is stored (None: while it is being written)
+    eval_u: NDArray[np.float32] | None = None  # the evaluation subset's decode u (mm; None: not stored)
+
+    def points(self) -> ViewPoints:
+        """The full points with their per-point arrays: held, or read from the view's folder."""
+        held = self.held
+        if held is not None:
+            return held
+        assert self.folder is not None  # a view is dropped from memory only once stored
+        return load_view_points(self.folder)
+
+    @property
+    def held_bytes(self) -> int:
+        held = self.held
+        if held is None:
+            return 0
+        u = 0 if held.uncertainty is None else held.uncertainty.nbytes
+        return int(held.points_W.nbytes + held.quality.nbytes + held.oblique.nbytes + u)
+
+    @property
+    def T_W_C(self) -> NDArray[np.float64]:
+        return np.asarray(self.summary["T_W_C"], dtype=np.float64)
+
+    @property
+    def camera_W(self) -> NDArray[np.float64]:
+        """The camera centre in {W} (mm)."""
+        return self.T_W_C[:3, 3]
+
+    @cached_property
+    def eval_tree(self) -> cKDTree:
+        """KD-tree of the evaluation subset in this view's own frame (query with points moved into it)."""
+        return cKDTree(self.eval_W)
+
+    @cached_property
+    def eval_box(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The evaluation subset's bounding box (min, max) in this view's own frame."""
+        if not len(self.eval_W):
+            return np.zeros(3), np.zeros(3)
+        return self.eval_W.min(0), self.eval_W.max(0)
+
+
+def save_planes(view_dir: Path, planes: LocalPlanes) -> None:
+    """Write the local planes of a view's evaluation subset into its (temporary) folder."""
+    with open(view_dir / PLANES_FILE, "wb") as f:
+        np.savez(f, centroid=planes.centroid, normal=planes.normal, ok=planes.ok)
+
+
+def load_planes(view_dir: Path, eval_W: NDArray[np.float64]) -> LocalPlanes:
+    """The stored local planes of a view; computed from ``eval_W`` for a folder written before they were
+    stored (the folder is left as it is)."""
+    path = view_dir / PLANES_FILE
+    if not path.is_file():
+        return estimate_normals(eval_W)
+    with np.load(path) as z:
+        return LocalPlanes(z["centroid"], z["normal"], z["ok"])
+
+
+def save_regions(path: Path, regions: list[DefectRegion]) -> None:
+    """A view's hole regions (reason, boundary and interior points in {W}, pixel count) as one npz."""
+    arrays: dict[str, Any] = {
+        "reasons": np.array([r.reason for r in regions], dtype="U16"),
+        "pixels": np.array([r.pixels for r in regions], dtype=np.int64),
+    }
+    for k, r in enumerate(regions):
+        arrays[f"boundary_{k}"] = r.boundary_W
+        arrays[f"points_{k}"] = r.points_W
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def load_regions(path: Path) -> list[DefectRegion]:
+    with np.load(path) as data:
+        return [
+            DefectRegion(str(reason), data[f"boundary_{k}"], data[f"points_{k}"], int(px))
+            for k, (reason, px) in enumerate(zip(data["reasons"], data["pixels"], strict=True))
+        ]
+
+
+def load_view_result(view_dir: Path, index: int) -> ViewResult:
+    """A completed view read from its folder (any stored format, :mod:`cell.view_files`)."""
+    eval_W = load_eval_points(view_dir)
+    return ViewResult(
+        index,
+        load_view_points(view_dir),
+        eval_W,
+        load_planes(view_dir, eval_W),
+        load_regions(view_dir / REGIONS_FILE),
+        json.loads((view_dir / "view.json").read_text()),
+        view_dir,
+        load_eval_uncertainty(view_dir),
+    )
+
+
+class ViewStore:
+    """The completed views of the run a job works on, each read once: :meth:`add` from the decode worker
+    (the view as it is being written), :meth:`get` reads a view not added (a run resumed by a new process)."""
+
+    def __init__(self, points_budget_bytes: int = POINTS_IN_MEMORY_BYTES) -> None:
+        self._views: dict[int, ViewResult] = {}
+        self._run: Path | None = None
+        self._lock = threading.Lock()
+        self.points_budget_bytes = points_budget_bytes
+
+    def _for(self, run: RunFolder) -> None:
+        """Forget the views of another run folder: a job works on one run (the first one it is asked about
+        claims the views its decode produced)."""
+        if self._run is not None and self._run != run.path:
+            self._views.clear()
+        self._run = run.path
+
+    def add(self, view: ViewResult) -> None:
+        """Keep a view the decode worker produced (its folder is committed right after; a view whose commit
+        fails pauses the run, and the next process reads the folders)."""
+        with self._lock:
+            self._views[view.index] = view
+            self._within_budget(keep=view.index)
+
+    def get(self, run: RunFolder, index: int) -> ViewResult:
+        with self._lock:
+            self._for(run)
+            found = self._views.get(index)
+        if found is None:
+            found = load_view_result(run.view_dir(index), index)
+            with self._lock:
+                self._views[index] = found
+                self._within_budget(keep=index)
+        return found
+
+    def _within_budget(self, keep: int) -> None:
+        """Drop the full points of the views added first until the held ones fit the budget (the newest view
+        stays, whatever its size)."""
+        held = sum(v.held_bytes for v in self._views.values())
+        for index, view in self._views.items():
+            if held <= self.points_budget_bytes:
+                break
+            if index != keep and view.held is not None and view.folder is not None:
+                held -= view.held_bytes
+                view.held = None
+
+    def completed(self, run: RunFolder) -> list[ViewResult]:
+        """The views of ``run`` whose folders exist whole, in index order."""
+        return [self.get(run, i) for i in run.completed_views()]

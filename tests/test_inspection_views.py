@@ -1,0 +1,62 @@
+"""The inspection's views in memory (cell/inspection_views.py): each read once, the full points held within a
+byte budget (the oldest dropped and read again from the folder, identical), the local planes as stored."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from cell.analysis.view_refinement import estimate_normals
+from cell.inspection_views import PLANES_FILE, ViewResult, ViewStore, save_planes, save_regions
+from cell.runs import RunFolder
+from cell.view_files import ViewPoints, save_view_points
+
+
+def _write_view(run: RunFolder, index: int, rng: np.random.Generator) -> ViewResult:
+    """A view folder as the decode writes it (a noisy plane patch) and the result the decode keeps."""
+    folder = run.view_dir(index)
+    folder.mkdir(parents=True)
+    xy = rng.uniform(0, 40, (3000, 2)) + 30 * index
+    points = np.column_stack([xy, 0.01 * rng.normal(size=len(xy))])
+    quality = rng.uniform(10, 200, len(points)).astype(np.float32)
+    oblique = rng.random(len(points)) < 0.1
+    sub = np.arange(0, len(points), 4)
+    stored = save_view_points(folder, points, quality, oblique, sub)
+    planes = estimate_normals(stored[sub])
+    save_planes(folder, planes)
+    save_regions(folder / "defects.npz", [])
+    summary = {"T_W_C": np.eye(4).tolist(), "points": len(points), "excluded": {"table": index}}
+    (folder / "view.json").write_text(json.dumps(summary))
+    return ViewResult(index, ViewPoints(stored, quality, oblique), stored[sub], planes, [], summary, folder)
+
+
+def test_the_store_holds_full_points_within_its_budget_and_reads_the_rest(tmp_path: Path) -> None:
+    run = RunFolder.create(tmp_path, "plate")
+    rng = np.random.default_rng(4)
+    made = [_write_view(run, i, rng) for i in range(3)]
+    one = made[0].held_bytes
+    store = ViewStore(points_budget_bytes=int(1.5 * one))
+    for view in made[:2]:
+        store.add(view)
+    assert made[0].held is None and made[1].held is not None  # the older one dropped, the newest kept
+    views = store.completed(run)
+    assert [v.index for v in views] == [0, 1, 2]
+    assert views[2] is not made[2] and views[2].held is not None  # read from its folder, once
+    assert store.get(run, 2) is views[2]
+    assert views[1].held is None  # dropped when view 2 came in over the budget
+    for kept, original in zip(views, made, strict=True):
+        back = kept.points()  # from memory or from the folder: the same numbers
+        assert np.array_equal(back.points_W, made[original.index].points().points_W)
+        assert np.array_equal(back.quality, original.points().quality)
+        assert np.array_equal(back.oblique, original.points().oblique)
+        assert np.array_equal(kept.eval_W, original.eval_W)
+        assert np.array_equal(kept.planes.normal, original.planes.normal)
+        assert kept.summary == original.summary
+    # a folder written before the planes were stored: computed from its evaluation points, the same
+    (run.view_dir(2) / PLANES_FILE).unlink()
+    again = ViewStore().get(run, 2)
+    assert np.array_equal(again.planes.normal, made[2].planes.normal)
+    d, _ = again.eval_tree.query(again.eval_W[:5])
+    assert np.all(d == 0)
