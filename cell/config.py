@@ -222,6 +222,19 @@ class RobotConfig(Strict):
     calibrated_view_pose_sigma_deg: Annotated[float, Field(gt=0, le=5)] = Field(
         0.05, description="with a kinematic calibration: the least 1-sigma rotation error (as above)"
     )
+    pose_uncertainty_mm: Annotated[float, Field(gt=0, le=20)] = Field(
+        0.08,
+        description="with a kinematic calibration: the 1-sigma translation error of a view's camera pose, at "
+        "the stand-off, that the per-point uncertainty assumes (docs/uncertainty.md). Smaller than the "
+        "refinement's prior floor, which errs on the large side to keep the refinement from sliding views; "
+        "the default is what the honest simulated world showed; on a real cell, set it from its multi-view "
+        "verification",
+    )
+    pose_uncertainty_deg: Annotated[float, Field(gt=0, le=5)] = Field(
+        0.02,
+        description="with a kinematic calibration: the 1-sigma rotation error the per-point uncertainty "
+        "assumes (as above)",
+    )
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific settings")
 
     @model_validator(mode="after")
@@ -468,6 +481,19 @@ class AlignmentConfig(Strict):
         return self
 
 
+class GuardBandConfig(Strict):
+    """The guarded decision rule's guard band (ISO 14253-1): U = k u of every point (u: its standard
+    uncertainty, docs/uncertainty.md); a point conforms within the tolerance shrunk by U, does not beyond the
+    tolerance widened by U, and is ambiguous in between."""
+
+    k: float = Field(2.0, ge=1.0, le=4.0, description="coverage factor of the expanded uncertainty U = k u")
+    ambiguous: Literal["fail", "pass", "incomplete"] = Field(
+        "incomplete",
+        description="what ambiguous points make of the verdict: fail (not proven within tolerance), pass "
+        "(not proven out of it) or incomplete (measure again)",
+    )
+
+
 class Recipe(Strict):
     """An inspection recipe: the nominal part and its tolerance; everything else has defaults."""
 
@@ -498,6 +524,12 @@ class Recipe(Strict):
         "region_verdicts); any failing region fails the part, any region measured below min_coverage makes "
         "it incomplete",
     )
+    decision_rule: Literal["simple", "guarded"] = Field(
+        "simple",
+        description="simple: each deviation against its band as if exact; guarded: the band shrunk and "
+        "widened by each point's expanded uncertainty (ISO 14253-1, `guard_band`)",
+    )
+    guard_band: GuardBandConfig = GuardBandConfig()
 
     @field_validator("regions")
     @classmethod

@@ -30,10 +30,12 @@ from numpy.typing import NDArray
 
 from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.crop import PartCrop
+from cell.analysis.decision import DecisionRule
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
 from cell.analysis.merge import voxel_subsample_index
 from cell.analysis.report import ReportInput
+from cell.analysis.uncertainty import TARGET_SHARE_OF_BAND, view_uncertainty
 from cell.analysis.view_refinement import (
     OverlapCache,
     ViewRefinement,
@@ -47,6 +49,7 @@ from cell.calibration import (
     active_sensor_config,
     active_triangulator,
     believed_flange,
+    calibration_residual_px,
     calibration_source,
     view_pose_prior,
 )
@@ -75,7 +78,14 @@ from cell.sensing.patterns import PatternSet, measuring_patterns
 from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
 from cell.sensing.triangulate import normalized_coords
-from cell.view_files import ViewPoints, save_raw_stack, save_view_points, stored_points
+from cell.view_files import (
+    ViewPoints,
+    decode_view_uncertainty,
+    encode_view_uncertainty,
+    save_raw_stack,
+    save_view_points,
+    stored_points,
+)
 
 # which decode reasons become which defect map of chapter 3 (IS: shadow, IR: glare)
 DEFECT_REASONS = {"shadow": Reason.DARK, "glare": Reason.SATURATED, "low_contrast": Reason.LOW_CONTRAST}
@@ -147,6 +157,11 @@ class LambertianInspection(InspectionResults):
         # the projector's centre in {C} (mm): the incidence filter needs it only to a degree or so
         self.projector_C = self.sensor.projector.T_C_P.matrix()[:3, 3]
         self.geometry_source = calibration_source(cfg)
+        # the calibration's residual as a correspondence error (px), for the points' uncertainty
+        self.calibration_px, self.calibration_residual = calibration_residual_px(cfg)
+        tol, guard = recipe.tolerance, recipe.guard_band
+        self.decision = DecisionRule(recipe.decision_rule, guard.k, guard.ambiguous)
+        self.u_target_mm = TARGET_SHARE_OF_BAND * (tol.upper - tol.lower)  # the feedback loop's target for U
         self._plan: Plan | None = None
         self._aligner: Aligner | None = None
         self._nominal_P: NominalMesh | None = None
@@ -276,13 +291,19 @@ class LambertianInspection(InspectionResults):
         points_W = transform_points(T_W_C, cloud.points_C[keep])
         quality = cloud.contrast[keep].astype(np.float32)
         oblique_kept = oblique[keep]
+        T_C_P, fx = self.sensor.projector.T_C_P.matrix(), self.sensor.camera.fx_px
+        u = view_uncertainty(
+            stack, self.patterns, decoded, cloud, T_C_P, fx, self.calibration_px, cam.bit_depth
+        )
         deviation = signed_distance(self.nominal, points_W).deviation_mm
         crop = PartCrop(0.0, self.settings.table_margin_mm, self.settings.crop_mm).split(points_W, deviation)
         part = crop.part
         points_W, quality, oblique_kept = points_W[part], quality[part], oblique_kept[part]
+        u_points = None if u is None else u.u_mm[keep][part]
         sub = voxel_subsample_index(points_W, self.settings.eval_voxel_mm)
-        writes.append(files.submit(save_view_points, out_dir, points_W, quality, oblique_kept, sub))
+        writes.append(files.submit(save_view_points, out_dir, points_W, quality, oblique_kept, sub, u_points))
         stored = stored_points(points_W)  # what the file holds and a resumed run reads
+        u_stored = None if u_points is None else decode_view_uncertainty(encode_view_uncertainty(u_points))
         # the view's own analysis, here in the decode worker while the robot moves on: the local planes of its
         # evaluation subset (what the multi-view refinement matches against), saved with the view
         eval_W = stored[sub]
@@ -302,12 +323,14 @@ class LambertianInspection(InspectionResults):
             "oblique_filtered": int(oblique_kept.sum()),
             "excluded": crop.counts(),
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
+            "uncertainty": None if u is None else u.to_json(),
         }
         if captured.index is not None:  # kept as the folder holds it: a resumed run reads the same numbers
             meta = json.loads(json.dumps(summary))
             folder = RunFolder(out_dir.parent.parent).view_dir(captured.index)  # where out_dir is renamed to
-            points = ViewPoints(stored, quality, oblique_kept)
-            result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder)
+            points = ViewPoints(stored, quality, oblique_kept, u_stored)
+            eval_u = None if u_stored is None else u_stored[sub]
+            result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder, eval_u)
             self._first_overlaps(RunFolder(out_dir.parent.parent), result)
             self.views.add(result)
         return summary
@@ -406,7 +429,9 @@ class LambertianInspection(InspectionResults):
         for i, T_fix, dev in zip(done, found.T, np.split(deviation, ends[:-1]), strict=True):
             view = self.views.get(run, i)
             T = T_fix if T_W_align is None else T_W_align @ T_fix
-            out[i] = MeasuredView(T @ view.T_W_C, moved[i], view.regions, deviation_mm=dev)
+            out[i] = MeasuredView(
+                T @ view.T_W_C, moved[i], view.regions, deviation_mm=dev, uncertainty_mm=view.eval_u
+            )
         return out
 
     def _evaluation_alignment(self, run: RunFolder) -> tuple[NDArray[np.float64] | None, str]:
@@ -440,7 +465,8 @@ class LambertianInspection(InspectionResults):
         measured = self._measured(run, T_W_align)
         fb = FeedbackPlanner(self.plan_model)
         covered = self._covered(run, T_W_align)
-        ev = evaluate(fb, list(measured.values()), first_new=1, ia_before=np.zeros((0, 3)), covered=covered)
+        u_max = self.u_target_mm / self.decision.k
+        ev = evaluate(fb, list(measured.values()), 1, np.zeros((0, 3)), u_max, covered=covered)
         return FeedbackRound(fb, ev, measured, how)
 
     def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:
@@ -471,7 +497,7 @@ class LambertianInspection(InspectionResults):
         k = evaluation.iteration
         latest = [m for i, m in loop.measured.items() if (views[i].iteration or 0) == k]
         start = len(fb.log)
-        proposed = fb.propose(k, latest, ev.covered, ev.ia)
+        proposed = fb.propose(k, latest, ev.covered, ev.ia, ev.iu)
         new = select_new(fb, proposed, [v.T_W_C for v in views if v.T_W_C is not None])
         for entry in fb.log[start:]:
             run.log(

@@ -19,12 +19,15 @@ import trimesh
 from numpy.typing import NDArray
 
 from cell.analysis.alignment import Aligner, AlignmentError
+from cell.analysis.decision import DecisionRule
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.judge import judge
 from cell.analysis.merge import cut_unregistered, merge_views
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, write_page, write_verdict
-from cell.analysis.report_files import read_ply_points, stored_points
+from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
+from cell.analysis.uncertainty import registered_cloud_uncertainty
+from cell.calibration import pose_uncertainty_prior
 from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
 from cell.geometry import invert, transform_points
@@ -50,6 +53,7 @@ class RegisteredCloud:
     points_P: NDArray[np.float64]
     error_map: ErrorMap | None = None
     coverage: Coverage | None = None
+    uncertainty_mm: NDArray[np.float64] | None = None  # each point's u (None: a run from before issue 17)
 
 
 class InspectionResults:
@@ -63,6 +67,9 @@ class InspectionResults:
     settings: InspectionSettings
     part_name: str
     geometry_source: str
+    nominal: NominalMesh  # {W}
+    decision: DecisionRule
+    calibration_residual: str
     views: ViewStore
     _lock: threading.RLock
     _aligner: Aligner | None
@@ -100,12 +107,14 @@ class InspectionResults:
         T_P_W = invert(self.T_W_P)
         done, refined = self.refinement(run)
         stored = [self.views.get(run, i) for i in done]
-        points, weights = [], []
+        points, weights, u_decode = [], [], []
         for view, T_fix in zip(stored, refined.T, strict=True):
             held = view.points()
             measured = ~held.oblique  # the sensor's points, without those lit too obliquely
             points.append(transform_points(T_P_W @ T_fix, held.points_W[measured]))
             weights.append(np.square(held.quality[measured]).astype(np.float64) + 1e-6)
+            u = held.uncertainty  # None in run folders from before issue 17
+            u_decode.append(np.full(len(points[-1]), np.nan) if u is None else u[measured].astype(np.float64))
         if not points or not sum(len(p) for p in points):
             return {"n_points": 0, "views": len(points)}
         refinement = {
@@ -115,7 +124,7 @@ class InspectionResults:
         }
         n_points_views = int(sum(len(p) for p in points))
         refinement["unregistered_points_dropped"] = cut_unregistered(
-            points, weights, refined.unregistered, self.recipe.plan.coverage_radius_mm
+            points, weights, refined.unregistered, self.recipe.plan.coverage_radius_mm, u_decode
         )
         merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
         method = self.recipe.alignment.method
@@ -127,6 +136,18 @@ class InspectionResults:
             points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
         # judged as cloud.ply stores them (float32), so a rebuilt report gives the same figures
         points_P = stored_points(points_P)
+        prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
+        unc = registered_cloud_uncertainty(
+            merged,
+            weights,
+            u_decode,
+            refined,
+            prior,
+            self.nominal,
+            self.T_W_P,
+            alignment,
+            self.aligner.datums,
+        )
         registration = {
             "n_points": int(len(points_P)),
             "n_points_views": n_points_views,
@@ -136,11 +157,16 @@ class InspectionResults:
             f"other; weighted voxel merge; alignment: {method}",
             "refinement": refinement,
             "alignment": alignment,
+            "uncertainty": {
+                **unc.budget(),
+                "calibration": self.calibration_residual,
+                "poses": prior.get("prior"),
+            },
         }
         T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
         error_map = signed_distance(self.nominal_P, points_P)
         self._cloud = RegisteredCloud(
-            registration, points_P, error_map, self.inspectable_coverage(run, T_align)
+            registration, points_P, error_map, self.inspectable_coverage(run, T_align), unc.u_mm
         )
         return registration
 
@@ -166,7 +192,9 @@ class InspectionResults:
         if legacy.is_file():
             return RegisteredCloud(registration, stored_points(np.load(legacy)))
         if (ply := run.results_dir / "cloud.ply").is_file():
-            return RegisteredCloud(registration, stored_points(read_ply_points(ply)))
+            u = read_ply_field(ply, "uncertainty")
+            u_mm = None if u is None else decode_uncertainty(u)
+            return RegisteredCloud(registration, stored_points(read_ply_points(ply)), uncertainty_mm=u_mm)
         self.register(run, Checkpoint.from_json(run.load_checkpoint()).views)
         assert self._cloud is not None  # a registration without points never reaches the report
         return self._cloud
@@ -247,6 +275,12 @@ class InspectionResults:
                 f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
                 f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
             )
+        decision, u = self.decision, cloud.uncertainty_mm
+        if u is None or not np.isfinite(u).any():
+            u = None
+            if decision.rule == "guarded":  # a run registered before points carried their uncertainty
+                reasons.append("the guarded decision rule needs the points' uncertainty; this run has none")
+                decision = DecisionRule()
         plan = plan_feedback(self.plan_model, self.recipe)  # what no reachable viewpoint sees, for the reader
         return judge(
             self.nominal_P,
@@ -262,6 +296,9 @@ class InspectionResults:
             incomplete_reasons=reasons,
             alignment=alignment,
             calibration=calibration,
+            uncertainty_mm=u,
+            decision=decision,
+            uncertainty=registration.get("uncertainty"),
             metadata={
                 "part": self.part_name,
                 "cad": Path(self.recipe.part.cad).name,

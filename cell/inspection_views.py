@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from cell.analysis.view_refinement import LocalPlanes, estimate_normals
 from cell.planning.measured import DefectRegion
 from cell.runs import RunFolder
-from cell.view_files import ViewPoints, load_eval_points, load_view_points
+from cell.view_files import ViewPoints, load_eval_points, load_eval_uncertainty, load_view_points
 
 PLANES_FILE = "planes.npz"  # the evaluation subset's local planes (float64 centroids and normals, bool ok)
 REGIONS_FILE = "defects.npz"
@@ -54,6 +54,7 @@ class ViewResult:
     regions: list[DefectRegion]
     summary: dict[str, Any]
     folder: Path | None = None  # where the view is stored (None: while it is being written)
+    eval_u: NDArray[np.float32] | None = None  # the evaluation subset's decode u (mm; None: not stored)
 
     def points(self) -> ViewPoints:
         """The full points with their per-point arrays: held, or read from the view's folder."""
@@ -68,7 +69,8 @@ class ViewResult:
         held = self.held
         if held is None:
             return 0
-        return int(held.points_W.nbytes + held.quality.nbytes + held.oblique.nbytes)
+        u = 0 if held.uncertainty is None else held.uncertainty.nbytes
+        return int(held.points_W.nbytes + held.quality.nbytes + held.oblique.nbytes + u)
 
     @property
     def T_W_C(self) -> NDArray[np.float64]:
@@ -140,6 +142,7 @@ def load_view_result(view_dir: Path, index: int) -> ViewResult:
         load_regions(view_dir / REGIONS_FILE),
         json.loads((view_dir / "view.json").read_text()),
         view_dir,
+        load_eval_uncertainty(view_dir),
     )
 
 

@@ -6,8 +6,13 @@ Format 2 (docs/storage.md), written by :func:`save_view_points` and :func:`save_
   :data:`STEP_MM` (0.1 um), each the difference to the point before (neighbouring pixels lie close, so the
   differences are small numbers that compress to about 2.4 bytes a point against 24 for float64); the points'
   ``quality`` (float32 contrast, exact), ``oblique`` (bool: lit beyond the incidence limit) and ``eval``
-  (bool: the evaluation subset, one point per 0.5 mm voxel). The 0.1 um step rounds a coordinate by at most
-  0.05 um (0.029 um RMS), what float32 itself would do at 500 mm and a thousandth of the sensor's noise.
+  (bool: the evaluation subset, one point per 0.5 mm voxel) and, in folders since issue 17,
+  ``uncertainty_log2`` (each point's decode and calibration uncertainty, cell.analysis.uncertainty, as
+  :func:`encode_view_uncertainty` codes it: 1/32 of an octave, rounded by at most 1.1 %, differences in pixel
+  order, about 0.15 bytes a point deflated against 3.2 for float32; folders of this branch before hold
+  ``uncertainty`` float32 mm). The 0.1 um step
+  rounds a coordinate by at most 0.05 um (0.029 um RMS), what float32 itself would do at 500 mm and a
+  thousandth of the sensor's noise.
 - ``raw/`` (optional, by the cell's ``retention:``): the pattern stack as the camera gave it, one lossless
   PNG a frame (8-bit cameras 8-bit files, 10/12-bit cameras 16-bit files), laid out as a capture folder
   (``raw/capture.yaml``, ``raw/frames/NN_<frame>.png``; docs/capture-folders.md), so ``cell scan --from
@@ -47,6 +52,7 @@ class ViewPoints:
     points_W: NDArray[np.float64]
     quality: NDArray[np.float32]
     oblique: NDArray[np.bool_]  # lit beyond sensor.max_projector_incidence_deg: not in the merged cloud
+    uncertainty: NDArray[np.float32] | None = None  # mm, decode and calibration (None: not stored)
 
 
 def save_view_points(
@@ -55,24 +61,28 @@ def save_view_points(
     quality: NDArray[np.floating[Any]],
     oblique: NDArray[np.bool_],
     eval_index: NDArray[np.integer[Any]],
+    uncertainty: NDArray[np.floating[Any]] | None = None,
 ) -> NDArray[np.float64]:
     """Write ``out_dir/points.npz`` (format 2) and return the points as they are stored (rounded to
     :data:`STEP_MM`), which is what every later step reads back. ``eval_index``: ascending indices of the
-    evaluation subset."""
+    evaluation subset; ``uncertainty``: each point's (mm), stored as log2 codes when given
+    (:func:`encode_view_uncertainty`)."""
     steps = _steps(points_W)
     delta = np.diff(steps, axis=0, prepend=np.zeros((1, 3), np.int64)).astype(np.int32)
     mask = np.zeros(len(steps), dtype=bool)
     mask[np.asarray(eval_index, dtype=np.int64)] = True
+    arrays: dict[str, NDArray[Any]] = {
+        "format": np.asarray(FORMAT, np.int32),
+        "step_mm": np.asarray(STEP_MM, np.float64),
+        "delta": delta,
+        "quality": np.asarray(quality, dtype=np.float32),
+        "oblique": np.asarray(oblique, dtype=bool),
+        "eval": mask,
+    }
+    if uncertainty is not None:
+        arrays["uncertainty_log2"] = np.diff(encode_view_uncertainty(uncertainty), prepend=0).astype(np.int16)
     with open(out_dir / POINTS_FILE, "wb") as f:
-        np.savez_compressed(
-            f,
-            format=np.int32(FORMAT),
-            step_mm=np.float64(STEP_MM),
-            delta=delta,
-            quality=np.asarray(quality, dtype=np.float32),
-            oblique=np.asarray(oblique, dtype=bool),
-            eval=mask,
-        )
+        np.savez_compressed(f, **arrays)  # type: ignore[arg-type]  # mypy maps **arrays onto allow_pickle
     return _from_steps(delta, STEP_MM)
 
 
@@ -100,7 +110,8 @@ def load_view_points(view_dir: Path) -> ViewPoints:
     path = view_dir / POINTS_FILE
     if path.is_file():
         with np.load(path) as z:
-            return ViewPoints(_from_steps(z["delta"], float(z["step_mm"])), z["quality"], z["oblique"])
+            u = _uncertainty(z)
+            return ViewPoints(_from_steps(z["delta"], float(z["step_mm"])), z["quality"], z["oblique"], u)
     points = np.load(view_dir / "points_W.npy")
     oblique_file = view_dir / "oblique.npy"
     oblique = np.load(oblique_file) if oblique_file.is_file() else np.zeros(len(points), dtype=bool)
@@ -114,6 +125,47 @@ def load_eval_points(view_dir: Path) -> NDArray[np.float64]:
         with np.load(path) as z:
             return _from_steps(z["delta"], float(z["step_mm"]))[z["eval"]]
     return np.load(view_dir / "points_eval_W.npy")
+
+
+def load_eval_uncertainty(view_dir: Path) -> NDArray[np.float32] | None:
+    """The evaluation subset's uncertainty (mm), or None when the view stored none."""
+    path = view_dir / POINTS_FILE
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        u = _uncertainty(z)
+        return None if u is None else u[z["eval"]]
+
+
+U_CODES_PER_OCTAVE = 32  # view points' u: 2^(1/64) - 1 = 1.09 % at most from the value computed
+_U_UNIT_MM = 1e-6  # code 0: 1 nm
+_U_UNKNOWN = -1
+
+
+def encode_view_uncertainty(u_mm: NDArray[np.floating[Any]]) -> NDArray[np.int64]:
+    """Each u (mm) as round(32 log2(u / 1 nm)) (0 below 1 nm), -1 where not known: u is a standard
+    uncertainty known to a few percent, and the codes of neighbouring pixels repeat, so they deflate to a
+    twentieth of float32's bytes."""
+    u = np.asarray(u_mm, dtype=np.float64)
+    ok = np.isfinite(u) & (u > 0)
+    codes = np.full(u.shape, _U_UNKNOWN, dtype=np.int64)
+    codes[ok] = np.maximum(np.round(U_CODES_PER_OCTAVE * np.log2(u[ok] / _U_UNIT_MM)), 0)
+    codes[np.isfinite(u) & (u <= 0)] = 0
+    return codes
+
+
+def decode_view_uncertainty(codes: NDArray[np.integer[Any]]) -> NDArray[np.float32]:
+    """u (mm, float32) from :func:`encode_view_uncertainty`'s codes (NaN where not known)."""
+    c = np.asarray(codes, dtype=np.int64)
+    u = (_U_UNIT_MM * np.exp2(c / U_CODES_PER_OCTAVE)).astype(np.float32)
+    u[c == _U_UNKNOWN] = np.nan
+    return u
+
+
+def _uncertainty(z: Any) -> NDArray[np.float32] | None:
+    if "uncertainty_log2" in z.files:
+        return decode_view_uncertainty(np.cumsum(z["uncertainty_log2"].astype(np.int64)))
+    return z["uncertainty"] if "uncertainty" in z.files else None
 
 
 # --------------------------------------------------------------------------------------------- raw images

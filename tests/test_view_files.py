@@ -13,6 +13,7 @@ from cell.sensing.patterns import gcps_patterns, measuring_patterns, sensor_cali
 from cell.view_files import (
     STEP_MM,
     load_eval_points,
+    load_eval_uncertainty,
     load_raw_stack,
     load_view_points,
     save_raw_stack,
@@ -112,3 +113,15 @@ def test_code_spec_names_the_same_patterns(patterns):
         ProjectorSpec(width_px=patterns.width_px, height_px=patterns.height_px)
     )
     assert again.names == patterns.names and np.array_equal(again.frames, patterns.frames)
+
+
+def test_uncertainty_round_trips_within_its_code_step(tmp_path):
+    rng = np.random.default_rng(2)
+    p = _surface_points(100, rng)
+    u = rng.uniform(0.006, 0.3, len(p))
+    u[:3] = [np.nan, 0.0, 1e-9]
+    save_view_points(tmp_path, p, np.ones(len(p)), np.zeros(len(p), bool), [0, 5], uncertainty=u)
+    back = load_view_points(tmp_path).uncertainty
+    assert back is not None and np.isnan(back[0]) and not np.isnan(back[1:]).any()
+    assert np.abs(back[3:] / u[3:] - 1).max() <= 2 ** (1 / 64) - 1 + 1e-6  # 1.09 %
+    assert np.array_equal(load_eval_uncertainty(tmp_path), back[[0, 5]], equal_nan=True)

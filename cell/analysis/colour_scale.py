@@ -140,3 +140,42 @@ class BandedScale:
             f'{_hex(HIGH[0])}"></i>above tolerance</span><span><i class="sw hatch"></i>not measured</span>'
             "</div></div>"
         )
+
+
+U_LOW: RGB = (174, 212, 178)  # U well under the target: pale green
+U_TARGET: RGB = (250, 176, 40)  # U at the target (a quarter of the tolerance band): amber
+U_HIGH: RGB = (140, 50, 0)  # U at twice the target or more: dark brown
+AMBIGUOUS: RGB = (150, 60, 190)  # a point the guarded rule could not decide: purple
+
+
+@dataclass(frozen=True)
+class UncertaintyScale:
+    """Colours of the expanded uncertainty U (mm) against the gauging target (U at most a quarter of the
+    tolerance band): neutral to pale green up to the target, amber at it deepening to brown at twice it; the
+    points the guarded rule left ambiguous in purple, whatever their U."""
+
+    target_mm: float
+
+    def rgb(self, U_mm: ArrayLike, ambiguous: ArrayLike | None = None) -> NDArray[np.uint8]:
+        """(N, 3) uint8 colours of U (non-finite U: as beyond twice the target)."""
+        U = np.atleast_1d(np.asarray(U_mm, dtype=np.float64))
+        t = np.where(np.isfinite(U), U / max(self.target_mm, 1e-12), np.inf)
+        out = _mix(NEUTRAL, U_LOW, np.minimum(t, 1.0))
+        over = t > 1.0
+        out[over] = _mix(U_TARGET, U_HIGH, t[over] - 1.0)
+        if ambiguous is not None:
+            out[np.asarray(ambiguous, dtype=bool)] = AMBIGUOUS
+        return (out + 0.5).astype(np.uint8)
+
+    def legend_html(self, width_px: int = 420) -> str:
+        """A colour bar from 0 to twice the target with the target marked, and the ambiguous swatch."""
+        stops = f"{_hex(NEUTRAL)} 0%, {_hex(U_LOW)} 50%, {_hex(U_TARGET)} 50%, {_hex(U_HIGH)} 100%"
+        t = self.target_mm
+        return (
+            f'<div class="legend" style="width:{width_px}px"><div class="bar" style="background:'
+            f'linear-gradient(to right, {stops})"><span class="tick" style="left:50%"></span>'
+            f'<span class="ticklabel" style="left:50%">{t:.3f}</span></div><div class="ends"><span>0</span>'
+            f"<span>U = k u, mm (target: a quarter of the band)</span><span>&ge;&thinsp;{2 * t:.3f}</span>"
+            f'</div><div class="keys"><span><i class="sw" style="background:{_hex(AMBIGUOUS)}"></i>'
+            "ambiguous (guarded rule)</span></div></div>"
+        )

@@ -15,9 +15,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.analysis.decision import DecisionRule, shrunk
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.regions import Coverage, Region, Tolerance, point_bands
 from cell.analysis.report import ReportInput, StoredCloud, default_link_radius, isolated_out_of_tolerance
+from cell.analysis.report_files import encode_uncertainty, stored_uncertainty
 
 
 def judge(
@@ -39,6 +41,9 @@ def judge(
     metadata: dict[str, Any] | None = None,
     error_map: ErrorMap | None = None,
     point_fields: Mapping[str, NDArray[Any]] | None = None,
+    uncertainty_mm: NDArray[np.floating] | None = None,
+    decision: DecisionRule | None = None,
+    uncertainty: dict[str, Any] | None = None,
 ) -> ReportInput:
     """The report input of ``points_mm`` (N, 3, part frame, finite) against ``nominal`` (same frame).
 
@@ -51,17 +56,27 @@ def judge(
     ``point_fields``: more values per given point for cloud.ply (e.g. normals). cloud.ply stores every given
     point in order, isolated outliers flagged (:class:`StoredCloud`), so a report rebuilt from it judges the
     same points. ``error_map``: the points' signed distances when the caller computed them already (``cell
-    compare`` crops by them), else computed here. The other arguments go to :class:`ReportInput` as they are.
+    compare`` crops by them), else computed here. ``uncertainty_mm``: each given point's standard
+    uncertainty (cell.analysis.uncertainty; stored in cloud.ply as ``uncertainty``); ``decision``: the rule
+    that judges the points with it (default: simple): under the guarded rule the isolated outliers are the
+    small clusters of points that do not conform (ambiguous or out). The other arguments go to
+    :class:`ReportInput` as they are.
     """
     em = signed_distance(nominal, points_mm) if error_map is None else error_map
     faces = nominal.source_face[em.face] if nominal.source_face is not None else em.face
     points, deviation = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3), em.deviation_mm
     counts: dict[str, int] = {**nominal.excluded, **(excluded or {})}
+    rule = decision or DecisionRule()
+    # as cloud.ply stores it (0.1 um steps, rounded up): a report rebuilt from the file judges the same
+    u = None if uncertainty_mm is None else stored_uncertainty(np.ravel(uncertainty_mm))
+    fields = dict(point_fields or {})
+    if u is not None:
+        fields["uncertainty"] = encode_uncertainty(u)
     stored = None
-    if min_defect_points > 1 or point_fields:
-        stored = StoredCloud(points, deviation, fields=dict(point_fields or {}))
+    if min_defect_points > 1 or fields:
+        stored = StoredCloud(points, deviation, fields=fields)
     if min_defect_points > 1:
-        bands = point_bands(regions, points, faces, tolerance)
+        bands = shrunk(point_bands(regions, points, faces, tolerance), rule.guard_mm(len(points), u))
         if link_radius_mm is None and bands.outside(deviation).any():  # found once, for the regions too
             link_radius_mm = default_link_radius(points)
         isolated = isolated_out_of_tolerance(points, deviation, bands, min_defect_points, link_radius_mm)
@@ -70,6 +85,7 @@ def judge(
             stored.isolated = isolated
         kept = ~isolated
         points, deviation, faces = points[kept], deviation[kept], faces[kept]
+        u = None if u is None else u[kept]
     return ReportInput(
         points_mm=points,
         deviation_mm=deviation,
@@ -87,4 +103,7 @@ def judge(
         alignment=alignment,
         calibration=calibration,
         stored=stored,
+        uncertainty_mm=u,
+        decision=rule,
+        uncertainty=uncertainty,
     )

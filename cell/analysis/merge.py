@@ -168,16 +168,19 @@ def cut_unregistered(
     weights: list[NDArray[np.float64]],
     unregistered: Sequence[int],
     radius_mm: float,
+    *per_point: list[NDArray[np.float64]],
 ) -> int:
-    """Cut each unregistered view (index into ``points``/``weights``, changed in place) back to the surface
-    that neither a registered view nor an earlier unregistered one measured (:func:`measured_elsewhere`);
-    returns how many points were cut."""
+    """Cut each unregistered view (index into ``points``/``weights`` and any further ``per_point`` lists of
+    per-point arrays, changed in place) back to the surface that neither a registered view nor an earlier
+    unregistered one measured (:func:`measured_elsewhere`); returns how many points were cut."""
     held = set(unregistered)
     others = [p for m, p in enumerate(points) if m not in held]
     cut = 0
     for k in sorted(held):
         redundant = measured_elsewhere(points[k], others, radius_mm)
         points[k], weights[k] = points[k][~redundant], weights[k][~redundant]
+        for values in per_point:
+            values[k] = values[k][~redundant]
         others.append(points[k])
         cut += int(redundant.sum())
     return cut

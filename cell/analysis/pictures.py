@@ -303,7 +303,7 @@ def png_base64(img: NDArray[np.uint8]) -> str:
 def error_map_views(
     points_mm: NDArray,
     deviation_mm: NDArray,
-    scale: BandedScale,
+    scale: BandedScale | None,
     keep: NDArray[np.bool_],
     *,
     unmeasured_mm: NDArray | None = None,
@@ -311,18 +311,25 @@ def error_map_views(
     labels: list[tuple[str, NDArray]] = (),  # type: ignore[assignment]
     max_points: int = 150_000,
     width_px: int = 520,
+    colours: NDArray[np.uint8] | None = None,
 ) -> list[dict[str, Any]]:
     """The four standard views as base64 PNG: ``{"name", "elev_deg", "azim_deg", "png"}`` each.
 
     Above ``max_points`` a random sample is drawn, but every point in ``keep`` (out of tolerance) stays.
     ``unmeasured_mm``: nominal surface samples no point covered, about ``unmeasured_spacing_mm`` apart;
-    ``labels``: (text, point) flags."""
+    ``labels``: (text, point) flags; ``colours``: (N, 3) the points' colours when not the deviations' on
+    ``scale`` (the uncertainty map)."""
     if len(points_mm) > max_points:
         rest = np.flatnonzero(~keep)
         pick = np.random.default_rng(0).choice(rest, min(len(rest), max_points), replace=False)
         sel = np.sort(np.concatenate([pick, np.flatnonzero(keep)]))
         points_mm, deviation_mm = points_mm[sel], deviation_mm[sel]
-    rgb = scale.rgb(deviation_mm)
+        colours = None if colours is None else colours[sel]
+    if colours is None:
+        if scale is None:
+            raise ValueError("error_map_views needs a colour scale or the points' colours")
+        colours = scale.rgb(deviation_mm)
+    rgb = colours
     unmeasured = unmeasured_mm if unmeasured_mm is not None and len(unmeasured_mm) else None
     everything = points_mm if unmeasured is None else np.vstack([points_mm, unmeasured])
     spacing = point_spacing_mm(points_mm)

@@ -242,16 +242,23 @@ def region_verdicts(
     tol: Tolerance,
     cov: Coverage | None = None,
     min_coverage: float | None = None,
+    guard_mm: NDArray | None = None,
+    ambiguous: str = "incomplete",
 ) -> list[dict[str, Any]]:
-    """Verdict, statistics and coverage of each user region (see docs/report-schema.md)."""
+    """Verdict, statistics and coverage of each user region (see docs/report-schema.md). ``guard_mm``: each
+    point's U under the guarded decision rule (cell.analysis.decision; None or 0: the simple rule): a point
+    beyond the band widened by U is out, one within U of a limit is ambiguous and counts as ``ambiguous``
+    says (fail, pass or incomplete)."""
     out = []
+    guard = np.zeros(len(deviation_mm)) if guard_mm is None else np.asarray(guard_mm, dtype=np.float64)
     for r in regions:
         if r.faces is not None and source_face is None:
             raise ConfigError(f"region '{r.name}' is a face set but the error map carries no closest faces")
         inside = r.contains(points_mm, source_face)
-        d = deviation_mm[inside]
+        d, g = deviation_mm[inside], guard[inside]
         t = r.tolerance or tol
-        n_out = int(t.outside(d).sum())
+        n_out = int(((d < t.lower_mm - g) | (d > t.upper_mm + g)).sum())
+        n_ambiguous = int(((d < t.lower_mm + g) | (d > t.upper_mm - g)).sum()) - n_out
         frac = None
         if cov is not None:
             in_s = (
@@ -267,11 +274,20 @@ def region_verdicts(
                 "tolerance": {"lower_mm": t.lower_mm, "upper_mm": t.upper_mm},
                 "n_points": int(len(d)),
                 "n_out_of_tolerance": n_out,
+                "n_ambiguous": n_ambiguous,
                 "mean_mm": float(d.mean()) if len(d) else None,
                 "min_mm": float(d.min()) if len(d) else None,
                 "max_mm": float(d.max()) if len(d) else None,
                 "coverage": frac,
-                "verdict": verdict(len(d), n_out, frac, min_coverage),
+                "verdict": _region_verdict(len(d), n_out, n_ambiguous, frac, min_coverage, ambiguous),
             }
         )
     return out
+
+
+def _region_verdict(
+    n: int, n_out: int, n_ambiguous: int, frac: float | None, min_coverage: float | None, ambiguous: str
+) -> str:
+    """:func:`verdict` with the ambiguous points counted as ``ambiguous`` says."""
+    v = verdict(n, n_out + (n_ambiguous if ambiguous == "fail" else 0), frac, min_coverage)
+    return "incomplete" if v == "pass" and n_ambiguous and ambiguous == "incomplete" else v

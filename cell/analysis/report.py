@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 import cell
 from cell.analysis.colour_scale import BandedScale
+from cell.analysis.decision import AMBIGUOUS, NONCONFORM, DecisionRule, class_counts, classify, widened
 from cell.analysis.formatting import utc_iso
 from cell.analysis.regions import (
     Coverage,
@@ -47,7 +48,7 @@ __all__ = [
     "write_verdict",
 ]
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
 
 
@@ -93,12 +94,32 @@ class ReportInput:
     )
     calibration: dict[str, Any] | None = None  # the calibration files used (cell.calibration_state)
     stored: StoredCloud | None = None  # what cloud.ply stores when not just the judged points
+    # each point's standard uncertainty u (mm, cell.analysis.uncertainty), None when not known, and the
+    # decision rule that judges the points with it (cell.analysis.decision)
+    uncertainty_mm: NDArray[np.float64] | None = None
+    decision: DecisionRule = field(default_factory=DecisionRule)
+    uncertainty: dict[str, Any] | None = None  # the uncertainty budget for the report (where u came from)
 
     @cached_property
     def bands(self) -> PointBands:
         """The band each point is judged by: the report's, or inside user regions with a band of their own
         that band (:func:`cell.analysis.regions.point_bands`)."""
         return point_bands(self.regions, self.points_mm, self.source_face, self.tolerance)
+
+    @cached_property
+    def guard_mm(self) -> NDArray[np.float64]:
+        """U of every point under the decision rule (0 under the simple rule)."""
+        return self.decision.guard_mm(len(self.deviation_mm), self.uncertainty_mm)
+
+    @cached_property
+    def classes(self) -> NDArray[np.int8]:
+        """Each point's class under the decision rule (cell.analysis.decision)."""
+        return classify(self.deviation_mm, self.bands, self.guard_mm)
+
+    @cached_property
+    def nonconforming_band(self) -> PointBands:
+        """The band beyond which a point does not conform: the tolerance, widened by U (guarded rule)."""
+        return widened(self.bands, self.guard_mm)
 
 
 def default_link_radius(points_mm: NDArray) -> float:
@@ -124,7 +145,15 @@ def out_of_tolerance_clusters(
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Indices of the points outside their band (one for all, or one per point) and their cluster label
     (points closer than the link radius, by default :func:`default_link_radius`, share a cluster)."""
-    bad = np.flatnonzero(band.outside(deviation_mm))
+    return point_clusters(points_mm, band.outside(deviation_mm), link_radius_mm)
+
+
+def point_clusters(
+    points_mm: NDArray, mask: NDArray[np.bool_], link_radius_mm: float | None = None
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Indices of the points in ``mask`` and their cluster label (points closer than the link radius, by
+    default :func:`default_link_radius` of all the points, share a cluster)."""
+    bad = np.flatnonzero(mask)
     if len(bad) == 0:
         return bad, np.zeros(0, dtype=np.int64)
     from cell.analysis._point_grid import radius_groups
@@ -223,8 +252,9 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
     """The report.json document (see docs/report-schema.md)."""
     d = inp.deviation_mm
     tol = inp.tolerance
-    bands = inp.bands
-    inside = ~bands.outside(d)
+    bands = inp.nonconforming_band  # the tolerance itself under the simple rule
+    classes = inp.classes
+    inside = classes != NONCONFORM
     stats: dict[str, Any] = {}
     if len(d):
         stats = {
@@ -240,15 +270,27 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
     cov = inp.coverage
     coverage = cov.fraction if cov is not None else None
     regions = out_of_tolerance_regions(inp.points_mm, d, bands, link_radius_mm=inp.link_radius_mm)
-    user = region_verdicts(inp.regions, inp.points_mm, d, inp.source_face, tol, cov, inp.min_coverage)
-    # Any point outside its band or any failing region fails the part; any unmeasured region makes it
-    # incomplete.
-    overall = verdict(len(d), int((~inside).sum()), coverage, inp.min_coverage)
+    policy = inp.decision.ambiguous
+    user = region_verdicts(
+        inp.regions, inp.points_mm, d, inp.source_face, tol, cov, inp.min_coverage, inp.guard_mm, policy
+    )
+    # Any point outside its band (widened by U under the guarded rule) or any failing region fails the part;
+    # any unmeasured region makes it incomplete; ambiguous points count as the recipe says.
+    n_ambiguous = int((classes == AMBIGUOUS).sum())
+    n_fail = int((~inside).sum()) + (n_ambiguous if policy == "fail" else 0)
+    overall = verdict(len(d), n_fail, coverage, inp.min_coverage)
     region_states = {r["verdict"] for r in user}
     if overall != "no_data" and "fail" in region_states:
         overall = "fail"
     elif overall == "pass" and region_states & {"incomplete", "no_data"}:
         overall = "incomplete"
+    reasons = list(inp.incomplete_reasons)
+    if overall == "pass" and n_ambiguous and policy == "incomplete":
+        overall = "incomplete"
+        reasons.append(
+            f"{n_ambiguous} points lie within their expanded uncertainty U of a tolerance limit (ambiguous "
+            "under the guarded decision rule): the measurement cannot show them in or out of tolerance"
+        )
     if overall in ("pass", "fail") and inp.incomplete_reasons:
         overall = "incomplete"  # a measurement that cannot be trusted neither passes nor fails a part
     return {
@@ -256,7 +298,7 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
         "created_utc": utc_iso(time.time()),
         "software": software(),
         "verdict": overall,
-        "incomplete_reasons": list(inp.incomplete_reasons),
+        "incomplete_reasons": reasons,
         "tolerance": {"lower_mm": tol.lower_mm, "upper_mm": tol.upper_mm},
         "n_points": int(len(d)),
         "n_points_input": int(inp.n_points_input),
@@ -268,12 +310,69 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
         "deviation": stats,
         "regions": regions,
         "region_verdicts": user,
+        "decision": {
+            **inp.decision.to_json(),
+            "counts": class_counts(classes),
+            "ambiguous_regions": ambiguous_regions(inp, link_radius_mm=inp.link_radius_mm),
+        },
+        "uncertainty": uncertainty_summary(inp),
         "excluded": inp.excluded,
         "views": views or [],
         "warnings": list(inp.warnings),
         "alignment": inp.alignment,
         "calibration": inp.calibration,
         "metadata": inp.metadata,
+    }
+
+
+def ambiguous_regions(
+    inp: ReportInput, link_radius_mm: float | None = None, max_regions: int = 20
+) -> list[dict[str, Any]]:
+    """Spatial clusters of the ambiguous points (guarded rule), largest first: centre, the deviation and U
+    where the deviation is largest."""
+    mask = inp.classes == AMBIGUOUS
+    bad, lab = point_clusters(inp.points_mm, mask, link_radius_mm)
+    if not len(bad):
+        return []
+    sizes = np.bincount(lab)
+    out: list[dict[str, Any]] = []
+    for r in np.argsort(-sizes)[:max_regions]:
+        idx = bad[lab == r]
+        ext = int(idx[np.argmax(np.abs(inp.deviation_mm[idx]))])
+        out.append(
+            {
+                "name": f"ambiguous-{len(out) + 1}",
+                "n_points": int(len(idx)),
+                "centre_mm": [round(float(c), 4) for c in inp.points_mm[idx].mean(0)],
+                "extreme_mm": round(float(inp.deviation_mm[ext]), 5),
+                "extreme_at_mm": [round(float(c), 4) for c in inp.points_mm[ext]],
+                "U_mm": round(float(inp.guard_mm[ext]), 5),
+                "kind": "excess" if inp.deviation_mm[ext] > 0 else "dent",
+            }
+        )
+    return out
+
+
+def uncertainty_summary(inp: ReportInput) -> dict[str, Any] | None:
+    """The points' uncertainty for report.json: u and U = k u (median, p95, max, mm), the gauging target
+    (U at most a quarter of the tolerance band) and the share of points beyond it, and the budget of where u
+    came from (:mod:`cell.analysis.uncertainty`); None when the points carry no uncertainty."""
+    if inp.uncertainty_mm is None:
+        return None
+    from cell.analysis.uncertainty import TARGET_SHARE_OF_BAND, stats
+
+    u = np.asarray(inp.uncertainty_mm, dtype=np.float64)
+    k = inp.decision.k
+    tol = inp.tolerance
+    target = TARGET_SHARE_OF_BAND * (tol.upper_mm - tol.lower_mm)
+    finite = np.isfinite(u)
+    return {
+        "k": k,
+        "u_mm": stats(u),
+        "U_mm": stats(k * u),
+        "target_U_mm": round(target, 5),
+        "fraction_over_target": round(float(np.mean(~finite | (k * u > target))), 5) if len(u) else None,
+        "budget": inp.uncertainty or {},
     }
 
 
@@ -301,10 +400,12 @@ def render(doc: dict[str, Any], inp: ReportInput, pictures: bool = True, csv: bo
     """report.html for the report.json document ``doc`` of ``inp``: pictures, 3D view, page (``csv``: it
     says that deviations.csv is beside it)."""
     from cell.analysis.report_html import render_html
+    from cell.analysis.report_uncertainty import uncertainty_html, uncertainty_views
 
     scale = BandedScale(inp.tolerance.lower_mm, inp.tolerance.upper_mm)
     images: list[dict[str, Any]] = []
     hist = view = None
+    u_section = uncertainty_html(doc, uncertainty_views(inp) if pictures else None)
     if pictures and len(inp.points_mm):
         from cell.analysis.pictures import error_map_views, histogram_svg
         from cell.analysis.view3d import figure, view3d_html
@@ -325,7 +426,7 @@ def render(doc: dict[str, Any], inp: ReportInput, pictures: bool = True, csv: bo
         view = view3d_html(
             figure(inp.points_mm, inp.deviation_mm, scale, bad, unmeasured_mm=unmeasured, labels=labels)
         )
-    return render_html(doc, scale, images, hist, view, csv)
+    return render_html(doc, scale, images, hist, view, csv, u_section)
 
 
 def write_report(out_dir: Path, inp: ReportInput, pictures: bool = True, csv: bool = False) -> dict[str, Any]:

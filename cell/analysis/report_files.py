@@ -12,12 +12,14 @@ commands refuse such a folder before any work (:func:`cell.storage.require_writa
 
 PLY: binary little-endian, vertex ``x y z`` float (float32, mm, part frame), ``deviation`` float (mm, +
 outside the material), then optional fields (``isolated`` uchar: an out-of-tolerance point set aside as an
-isolated outlier, not judged, written when there is one; the glass normals ``nx ny nz`` double). CloudCompare
-and MeshLab show every field as a scalar field. float32 keeps 24 significant bits: a coordinate is rounded by
-at most half a step of 2^-23 of its power of two, 7.6 nm below 256 mm, 15 nm below 512 mm (docs/storage.md),
-against the sensor's 20-30 um noise; 16 bytes a point with the deviation instead of 28. Files written before
-(``x y z`` double) read as they are. An inspection judges the cloud as stored (:func:`stored_points`), so a
-rebuilt report gives the same figures.
+isolated outlier, not judged, written when there is one; ``uncertainty`` ushort: the point's standard
+uncertainty u, cell.analysis.uncertainty, in steps of 0.1 um rounded up, 65535 where unknown:
+:func:`encode_uncertainty`; the glass normals ``nx ny nz`` double). CloudCompare and MeshLab
+show every field as a scalar field. float32 keeps 24 significant bits: a coordinate is rounded by at most half
+a step of 2^-23 of its power of two, 7.6 nm below 256 mm, 15 nm below 512 mm (docs/storage.md), against the
+sensor's 20-30 um noise; 16 bytes a point with the deviation instead of 28. Files written before (``x y z``
+double) read as they are. An inspection judges the cloud as stored (:func:`stored_points`), so a rebuilt
+report gives the same figures.
 """
 
 from __future__ import annotations
@@ -36,11 +38,44 @@ from cell.storage import fsync_path, is_storage_error, storage_error
 
 Writer = Callable[[Path], None]
 COORDINATE_DTYPE = np.dtype("<f4")  # x, y, z in cloud.ply
+_PLY_TYPES = {"double": "<f8", "float": "<f4", "uchar": "u1", "ushort": "<u2"}
 
 
 def stored_points(points_mm: NDArray) -> NDArray[np.float64]:
     """The points (N, 3, float64) as :func:`write_ply` stores them: each coordinate rounded to float32."""
     return np.asarray(points_mm).astype(COORDINATE_DTYPE).astype(np.float64)
+
+
+UNCERTAINTY_STEP_MM = 1e-4  # u in cloud.ply: ushort steps of 0.1 um
+_U_UNKNOWN = 65535  # u not known (NaN)
+
+
+def encode_uncertainty(u_mm: NDArray) -> NDArray[np.uint16]:
+    """u (mm) as cloud.ply stores it: ushort steps of 0.1 um, rounded up (a stored u is never smaller than
+    the computed one, so the guarded rule stays on the safe side), at most 6.5534 mm (a U of 13 mm leaves no
+    conformance zone in any band the cell measures); NaN (not known) as 65535. 2 bytes a point instead of 4:
+    PLY has no 16-bit float type that CloudCompare or MeshLab read."""
+    u = np.asarray(u_mm, dtype=np.float64)
+    steps = np.ceil(np.nan_to_num(u, nan=0.0) / UNCERTAINTY_STEP_MM - 1e-6)
+    codes = np.clip(steps, 0, _U_UNKNOWN - 1).astype(np.uint16)
+    codes[~np.isfinite(u)] = _U_UNKNOWN
+    return codes
+
+
+def decode_uncertainty(codes: NDArray) -> NDArray[np.float64]:
+    """u (mm) from cloud.ply's ``uncertainty`` column: ushort steps (:func:`encode_uncertainty`), or float
+    (float32 mm, clouds written by this branch before the ushort column)."""
+    c = np.asarray(codes)
+    if c.dtype.kind == "f":
+        return c.astype(np.float64)
+    u = c.astype(np.float64) * UNCERTAINTY_STEP_MM
+    u[c == _U_UNKNOWN] = np.nan
+    return u
+
+
+def stored_uncertainty(u_mm: NDArray) -> NDArray[np.float64]:
+    """u (mm) as cloud.ply stores it (:func:`encode_uncertainty`): what a rebuilt report reads back."""
+    return decode_uncertainty(encode_uncertainty(u_mm))
 
 
 def write_ply(
@@ -51,7 +86,7 @@ def write_ply(
 ) -> None:
     """A binary PLY of the points (coordinates as float32: :func:`stored_points`), with ``deviation``
     (float) when given and the extra per-point ``fields`` (bool as uchar, float64 as double, others as
-    float)."""
+    float, uint16 as ushort)."""
     columns: list[tuple[str, NDArray, str, str]] = [
         (c, np.asarray(points_mm)[:, k], COORDINATE_DTYPE.str, "float") for k, c in enumerate("xyz")
     ]
@@ -59,9 +94,11 @@ def write_ply(
         columns.append(("deviation", np.asarray(deviation_mm), "<f4", "float"))
     for name, values in (fields or {}).items():
         values = np.asarray(values)
-        kind = {np.dtype(bool): ("u1", "uchar"), np.dtype(np.float64): ("<f8", "double")}.get(
-            values.dtype, ("<f4", "float")
-        )
+        kind = {
+            np.dtype(bool): ("u1", "uchar"),
+            np.dtype(np.uint16): ("<u2", "ushort"),
+            np.dtype(np.float64): ("<f8", "double"),
+        }.get(values.dtype, ("<f4", "float"))
         columns.append((name, values, *kind))
     rec = np.empty(len(points_mm), dtype=[(n, t) for n, _, t, _ in columns])
     for name, values, _, _ in columns:
@@ -93,11 +130,32 @@ def read_ply_points(path: Path) -> NDArray[np.float64]:
             if words[:2] == ["element", "vertex"]:
                 n = int(words[2])
             elif words[:1] == ["property"]:
-                props.append((words[2], {"double": "<f8", "float": "<f4", "uchar": "u1"}[words[1]]))
+                props.append((words[2], _PLY_TYPES[words[1]]))
         rec = np.fromfile(fh, dtype=np.dtype(props), count=n)
     if len(rec) != n:
         raise ConfigError(f"the PLY file is truncated ({len(rec)} of {n} points)", path=str(path))
     return np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+
+
+def read_ply_field(path: Path, name: str) -> NDArray | None:
+    """The per-point field ``name`` of a PLY written by :func:`write_ply` as stored (e.g. ``uncertainty``:
+    :func:`decode_uncertainty` gives mm), or None when the file has no such field."""
+    with open(path, "rb") as fh:
+        props, n = [], 0
+        while (line := fh.readline()) != b"end_header\n":
+            if not line:
+                raise ConfigError("not a PLY file written by the cell (no end_header)", path=str(path))
+            words = line.decode("ascii").split()
+            if words[:2] == ["element", "vertex"]:
+                n = int(words[2])
+            elif words[:1] == ["property"]:
+                props.append((words[2], _PLY_TYPES[words[1]]))
+        if name not in [p for p, _ in props]:
+            return None
+        rec = np.fromfile(fh, dtype=np.dtype(props), count=n)
+    if len(rec) != n:
+        raise ConfigError(f"the PLY file is truncated ({len(rec)} of {n} points)", path=str(path))
+    return np.asarray(rec[name])
 
 
 def write_csv(path: Path, points_mm: NDArray, deviation_mm: NDArray) -> None:

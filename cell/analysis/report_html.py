@@ -230,9 +230,11 @@ def render_html(
     histogram: str | None,
     view3d: str | None,
     csv: bool = False,
+    uncertainty: str = "",
 ) -> str:
     """The whole page from the report.json document and the pictures (already made); ``csv``: a
-    deviations.csv is written beside it."""
+    deviations.csv is written beside it; ``uncertainty``: the uncertainty section
+    (:mod:`cell.analysis.report_uncertainty`)."""
     meta = doc.get("metadata") or {}
     ident = ((meta.get("run") or {}).get("identity")) or {}
     part = meta.get("part") or _name(meta.get("nominal"))
@@ -241,6 +243,7 @@ def render_html(
         str(x) for x in (part, ident.get("serial"), word, fmt.when(doc.get("created_utc"))) if x
     )
     warnings = "".join(f'<p class="warn"><b>Warning:</b> {e(w)}</p>' for w in doc["warnings"])
+    csv_note = ", deviations.csv (the same as text)" if csv else ""
     screen3d = (
         f'<section class="screen-only"><h2>3D deviation map</h2>{view3d}{scale.legend_html(560)}</section>'
         if view3d
@@ -264,10 +267,12 @@ below</span></h2>{_maps_html(images, scale)}</section>
 <section class="callouts-sec"><h2>Beyond tolerance</h2>{callouts_html(doc)}{regions_html(doc)}</section>
 <section class="stats-sec"><h2>Statistics</h2><div class="two">{histogram or ""}{stats_html(doc)}</div>
 </section>
+<section class="unc-sec"><h2>Uncertainty and decision <span class="sub">U = k u, mm, along the
+normal; purple: ambiguous</span></h2>{uncertainty}</section>
 <section class="details"><h2>Alignment</h2>{alignment_html(doc.get("alignment"), doc["warnings"])}
 <h2>Calibration</h2>{calibration_html(doc.get("calibration"), meta.get("geometry_source"))}
 <h2>Measurement</h2>{measurement_html(doc)}
 <p class="files">Files beside this report: report.json (schema version {doc["schema_version"]}, every figure
-above), cloud.ply (every point with its deviation){", deviations.csv (the same as text)" if csv else ""}.</p>
+above), cloud.ply (every point with its deviation and uncertainty){csv_note}.</p>
 </section>
 </body></html>"""

@@ -44,6 +44,7 @@ h3 { font-size: 14px; margin: 14px 0 6px; }
 .views figure { margin: 0; border: 1px solid var(--rule); border-radius: 4px; text-align: center; }
 .views img { width: 100%; height: auto; display: block; }
 .views figcaption { font-size: 12px; color: var(--muted); padding: 2px; }
+.uviews { grid-template-columns: repeat(4, 1fr); }
 .legend { margin: 10px 0 4px; font-size: 12px; }
 .legend .bar { position: relative; height: 16px; border: 1px solid #888; }
 .legend .tick { position: absolute; top: -4px; bottom: -4px; width: 0; border-left: 2px solid #111; }
@@ -88,6 +89,8 @@ tr.excess td:nth-child(3) { color: #b01010; }
   .maps { break-inside: avoid; }
   .views { grid-template-columns: repeat(2, 78mm); justify-content: center; gap: 3mm; }
   .views figcaption { font-size: 9px; padding: 0; }
+  .uviews { grid-template-columns: repeat(4, 40mm); }
+  .unc-sec { break-inside: avoid; }
   .legend { width: 120mm !important; margin: 5px auto 0; font-size: 9px; }
   table { font-size: 9.5px; } th { font-size: 8.5px; } th, td { padding: 1.5px 6px; }
   .callouts-sec { break-before: page; }

@@ -56,6 +56,13 @@ class ViewRefinement:
     rms_after_mm: float
     overlaps: list[int]
     unregistered: list[int] = field(default_factory=list)
+    # what the overlaps of the last solve told about the corrections x_i = (omega_i * lever_mm, tau_i) about
+    # ``centre_mm``: their (6n, 6n) information matrix, without the prior and the pinning of the views held
+    # at their kinematic pose (None when nothing was solved); cell.analysis.uncertainty turns it into the
+    # views' pose covariance under a prior
+    information: Array | None = None
+    centre_mm: Array | None = None
+    lever_mm: float = 1.0
 
     def correction_mm(self, points: list[Array]) -> list[float]:
         """The largest motion of each view's points under its correction (mm)."""
@@ -353,6 +360,7 @@ def refine_views(
     overlaps = [0] * n_views
     last_gaps: list[Array] = []
     held = np.zeros(n_views, dtype=bool)
+    information: Array | None = None
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="refine") as pool:
         for it, radius in enumerate(radii_mm):
             boxes = [
@@ -417,6 +425,7 @@ def refine_views(
             rms.append(float(np.sqrt(np.mean(np.concatenate(gaps_all) ** 2))) if gaps_all else 0.0)
             # a view that too few good pairs hold (it overlaps the others only at grazing incidence, or hardly
             # at all) stays at its kinematic pose: a few biased pairs would slide it where nothing checks it
+            information = H.copy()  # the overlaps' alone, for cell.analysis.uncertainty
             held = used < MIN_VIEW_PAIRS
             for v in np.flatnonzero(held):
                 H[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] += np.eye(6) * 1e12
@@ -430,7 +439,16 @@ def refine_views(
     # the gaps of the last matching moved by the last step (linearised): what the corrections leave
     after = float(np.sqrt(np.mean(np.concatenate(last_gaps) ** 2))) if last_gaps else 0.0
     unregistered = [i for i in range(n_views) if held[i]] if radii_mm else list(range(n_views))
-    return ViewRefinement(T, rms[0] if rms else 0.0, after, overlaps, unregistered)
+    return ViewRefinement(
+        T,
+        rms[0] if rms else 0.0,
+        after,
+        overlaps,
+        unregistered,
+        information if radii_mm else None,
+        centre,
+        lever,
+    )
 
 
 def _moved_box(T: Pose, points: Array) -> tuple[Array, Array]:

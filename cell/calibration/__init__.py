@@ -8,7 +8,9 @@ from cell.calibration.active import (
     active_sensor_config,
     active_triangulator,
     believed_flange,
+    calibration_residual_px,
     calibration_source,
+    pose_uncertainty_prior,
     view_pose_prior,
 )
 
@@ -19,6 +21,8 @@ __all__ = [
     "active_sensor_config",
     "active_triangulator",
     "believed_flange",
+    "calibration_residual_px",
     "calibration_source",
+    "pose_uncertainty_prior",
     "view_pose_prior",
 ]

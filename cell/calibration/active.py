@@ -4,6 +4,7 @@ section, or the config's nominal geometry when none is set."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,6 +17,7 @@ from cell.config import CellConfig, Distortion, PoseConfig, SensorConfig
 from cell.contracts import Robot
 from cell.errors import ConfigError
 from cell.geometry import Pose
+from cell.sensing.error_model import one_pixel_error
 from cell.sensing.triangulate import PinholeTriangulator, Triangulator
 
 NO_CALIBRATION = "config geometry (no calibration)"
@@ -215,3 +217,50 @@ def calibration_source(cfg: CellConfig) -> str:
     if cal.hand_eye is None:
         parts.append("hand_eye: config sensor.T_T_C")
     return "; ".join(parts)
+
+
+# Of the projector calibration's stereo reprojection rms, the share that measurements inherit as a systematic
+# correspondence error: the rest is the board corners' random detection noise, which the fit averages out (the
+# residual cannot tell them apart). Calibrated in the honest simulated world (docs/uncertainty.md: with the
+# whole rms the points' decode u exceeded their error by a third).
+STEREO_RESIDUAL_SHARE = 0.5
+
+
+def calibration_residual_px(cfg: CellConfig) -> tuple[float, str]:
+    """The active calibration's own residual as a correspondence error (camera px, 1 sigma) and where it comes
+    from, for the per-point uncertainty (cell.analysis.uncertainty): the per-pixel model's median eq 2.7
+    residual (mm) over the one-pixel height error of eq 2.5 at the reference plane, else the projector
+    calibration's stereo reprojection rms times :data:`STEREO_RESIDUAL_SHARE`, else 0 (the config's nominal
+    geometry: nothing measured it)."""
+    cal = cfg.calibration
+    if cal.sensor is not None:
+        residual = load_metadata(cal.sensor).get("quality", {}).get("median_residual_mm")
+        if residual is not None:
+            s = cfg.sensor
+            baseline = float(np.linalg.norm(s.projector.T_C_P.matrix()[:2, 3]))
+            per_px = float(one_pixel_error(s.standoff_mm / s.camera.fx_px, s.standoff_mm, baseline, 0.0))
+            return float(residual) / per_px, f"per-pixel model {Path(cal.sensor).name}: eq 2.7 residual"
+    if cal.projector is not None:
+        rms = load_metadata(cal.projector).get("figures", {}).get("stereo_rms_px")
+        if rms is not None:
+            return STEREO_RESIDUAL_SHARE * float(rms), (
+                f"projector calibration {Path(cal.projector).name}: {STEREO_RESIDUAL_SHARE:g} x its stereo "
+                "reprojection rms"
+            )
+    return 0.0, NO_CALIBRATION
+
+
+def pose_uncertainty_prior(cfg: CellConfig, refinement_prior: dict[str, Any]) -> dict[str, Any]:
+    """The views' pose prior the per-point uncertainty assumes (cell.analysis.uncertainty): with a kinematic
+    calibration the robot config's ``pose_uncertainty_mm/deg`` for every view (the refinement's prior floor
+    errs on the large side on purpose), else the prior the refinement ran under (``refinement_prior``, its
+    record: ``prior_sigma_mm``, ``prior_sigma_deg`` per view)."""
+    n = len(refinement_prior.get("prior_sigma_mm", []))
+    if cfg.calibration.kinematics is None or not n:
+        return refinement_prior
+    robot = cfg.robot
+    return {
+        "prior": "robot.pose_uncertainty_mm/deg (with the kinematic calibration)",
+        "prior_sigma_mm": [robot.pose_uncertainty_mm] * n,
+        "prior_sigma_deg": [robot.pose_uncertainty_deg] * n,
+    }

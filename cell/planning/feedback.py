@@ -1,5 +1,6 @@
 """The steps of the closed loop (sections 3.2-3.3): evaluate (shadow map IS, reflection map IR, accuracy map
-IA, cost Q of eq 3.22) and add viewpoints V_k with g_kS (holes and shadows: cluster, box, place) and g_kR
+IA and where the points' uncertainty misses its target, IU; cost Q of eq 3.22) and add viewpoints V_k with
+g_kS (holes and shadows: cluster, box, place) and g_kR
 (glare: rotate the sensor by beta > theta/2 about the spot, eqs 3.24-3.26). The controller runs the loop
 (measure, evaluate, replan until Q is under the set point or the view budget is spent) through the inspection
 job. Every decision is appended to the plan's log with its reason.
@@ -8,7 +9,7 @@ job. Every decision is appended to the plan's log with its reason.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -94,6 +95,27 @@ def accuracy_map(
                 gap = np.abs(np.einsum("ij,ij->i", pj[near] - pi[k[near]], nj))
             out.append(_consistent(pj[near][same], gap[same] > tol_mm))
     return np.vstack(out) if out else np.zeros((0, 3))
+
+
+def uncertainty_map(views: list[MeasuredView], u_max_mm: float, link_mm: float = 0.5) -> Array:
+    """IU: points where the views together measure with a standard uncertainty above ``u_max_mm`` (the
+    accuracy target, U = k u at most a quarter of the tolerance band, over k). Each view's points carry
+    their own u (decode and calibration: what more views can average); where several views measured a spot
+    (within ``link_mm``) their u combine as independent measurements, 1/u^2 = sum 1/u_v^2. Only areas count
+    (:func:`_consistent`): a few uncertain points at a sheet edge are no reason for a view."""
+    carrying = [v for v in views if v.uncertainty_mm is not None and len(v.points_W)]
+    if not carrying:
+        return np.zeros((0, 3))
+    pts = np.vstack([v.points_W for v in carrying])
+    info = np.zeros(len(pts))
+    for v in carrying:
+        u = np.asarray(v.uncertainty_mm, dtype=np.float64)
+        d, k = (np.asarray(a) for a in cKDTree(v.points_W).query(pts, distance_upper_bound=link_mm))
+        near = np.isfinite(d)
+        info[near] += 1.0 / np.square(np.where(np.isfinite(u[k[near]]), u[k[near]], np.inf))
+    with np.errstate(divide="ignore"):
+        u_all = 1.0 / np.sqrt(info)
+    return _consistent(pts, u_all > u_max_mm)
 
 
 def _consistent(
@@ -187,7 +209,12 @@ class FeedbackPlanner:
         return Viewpoint(T, self.plan.patch_planner.reach.target(T), name, "g_kR", frac, meas)
 
     def propose(
-        self, k: int, new_views: list[MeasuredView], covered: NDArray[np.bool_], ia: Array
+        self,
+        k: int,
+        new_views: list[MeasuredView],
+        covered: NDArray[np.bool_],
+        ia: Array,
+        iu: Array | None = None,
     ) -> list[Viewpoint]:
         s = self.plan.surface
         out: list[Viewpoint] = []
@@ -212,20 +239,20 @@ class FeedbackPlanner:
                 }
             )
         out += fill_holes(self.plan.patch_planner, holes, f"S{k}.", "g_kS", self.log)
-        if len(ia):
-            lab = cluster_points(ia, 5.0)
+        why = {
+            "A": f"IA: overlapping views disagree by > {self.st.accuracy_tol_mm} mm; add a redundant view",
+            "U": "IU: U = k u above a quarter of the tolerance band; add a view to average",
+        }
+        for tag, flagged in (("A", ia), ("U", np.zeros((0, 3)) if iu is None else iu)):
+            if not len(flagged):
+                continue
+            lab = cluster_points(flagged, 5.0)
             for c in range(int(lab.max()) + 1):
-                idx = self.samples_near(ia[lab == c], 2.0)
+                idx = self.samples_near(flagged[lab == c], 2.0)
                 if s.area[idx].sum() >= self.st.min_patch_area_mm2:
-                    self.log.append(
-                        {
-                            "event": "accuracy",
-                            "patch": f"A{k}.{c}",
-                            "reason": "IA: overlapping views "
-                            f"disagree by > {self.st.accuracy_tol_mm} mm; add a redundant view",
-                        }
-                    )
-                    out += self.plan.patch_planner.plan(idx, f"A{k}.{c}", "g_kA")
+                    event = "accuracy" if tag == "A" else "uncertainty"
+                    self.log.append({"event": event, "patch": f"{tag}{k}.{c}", "reason": why[tag]})
+                    out += self.plan.patch_planner.plan(idx, f"{tag}{k}.{c}", f"g_k{tag}")
         return out
 
 
@@ -249,6 +276,8 @@ class Evaluation:
     q: float
     setpoint: float
     ia: Array
+    iu: Array = field(default_factory=lambda: np.zeros((0, 3)))
+    iu_mm2: float = 0.0  # area where the uncertainty misses its target (IU); Q counts IA and IU together
 
     @property
     def qualified(self) -> bool:
@@ -260,6 +289,7 @@ class Evaluation:
             "coverage": round(self.coverage, 5),
             "u_mm2": round(self.u_mm2, 1),
             "v_mm2": round(self.v_mm2, 1),
+            "iu_mm2": round(self.iu_mm2, 1),
             "Q": round(self.q, 1),
             "setpoint": round(self.setpoint, 1),
         }
@@ -270,11 +300,14 @@ def evaluate(
     views: list[MeasuredView],
     first_new: int,
     ia_before: Array,
+    u_max_mm: float | None = None,
     covered: NDArray[np.bool_] | None = None,
 ) -> Evaluation:
     """Coverage, hole area u, accuracy map IA (views from ``first_new`` on against earlier ones, added to
-    ``ia_before``), its area v and Q = |w u + j v| against the set point. ``covered``: the samples the views'
-    points cover, when the caller counted them already (:func:`covered_by_views`)."""
+    ``ia_before``) and its area v, given the target ``u_max_mm`` the uncertainty map IU
+    (:func:`uncertainty_map`) and its area, and Q = |w u + j v'| against the set point, v' the area of IA and
+    IU together. ``covered``: the samples the views' points cover, when the caller counted them already
+    (:func:`covered_by_views`)."""
     st, s = fb.st, fb.plan.surface
     if covered is None:
         pts = np.vstack([v.points_W for v in views]) if views else np.zeros((0, 3))
@@ -292,8 +325,12 @@ def evaluate(
             ),
         ]
     )
+    iu = np.zeros((0, 3)) if u_max_mm is None else uncertainty_map(views, u_max_mm)
     v_area = float(s.area[fb.samples_near(ia, 1.0)].sum()) if len(ia) else 0.0
-    q = cost_q(u, v_area, st.hole_weight)
+    iu_area = float(s.area[fb.samples_near(iu, 1.0)].sum()) if len(iu) else 0.0
+    flagged = np.vstack([ia, iu])
+    either = float(s.area[fb.samples_near(flagged, 1.0)].sum()) if len(flagged) else 0.0
+    q = cost_q(u, either, st.hole_weight)  # the distance cost: where views disagree or u misses its target
     return Evaluation(
         covered,
         coverage_fraction(s, covered),
@@ -302,6 +339,8 @@ def evaluate(
         q,
         st.q_setpoint_fraction * s.inspectable_area_mm2,
         ia,
+        iu,
+        iu_area,
     )
 
 

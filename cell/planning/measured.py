@@ -35,14 +35,16 @@ class DefectRegion:
 @dataclass(frozen=True)
 class MeasuredView:
     """A measured view: camera pose, measured points (world mm), their unit normals when the producer knows
-    them (else None), its defect regions, and each point's signed deviation from the nominal (mm) when known:
-    two views that measure the same spot must agree on it, whatever the surface's curvature."""
+    them (else None), its defect regions, each point's signed deviation from the nominal (mm) when known:
+    two views that measure the same spot must agree on it, whatever the surface's curvature; and each
+    point's standard uncertainty (mm, cell.analysis.uncertainty) when known."""
 
     T_W_C: Pose
     points_W: Array
     defects: list[DefectRegion] = field(default_factory=list)
     normals_W: Array | None = None
     deviation_mm: NDArray[np.float64] | None = None
+    uncertainty_mm: NDArray[np.floating] | None = None
 
 
 def defect_regions(

@@ -1,0 +1,306 @@
+"""Per-point standard uncertainty u (mm, along the nominal normal) of a measured cloud (issue 17).
+
+Every number comes from what the cell itself measured or calibrated, never from the simulator's settings:
+
+1. **decode** (per view and pixel, :func:`view_uncertainty`): the one-pixel model of eq 2.5, generalised to
+   the point's surface orientation (:func:`cell.sensing.error_model.normal_error_per_pixel`: mm along the
+   normal per camera pixel of correspondence error; the projector's incidence enters there, the camera's
+   cancels), times the correspondence error in camera pixels: the image noise measured in the view's own
+   pattern/inverse pairs (photon transfer) over each edge's swing (:func:`cell.sensing.noise.edge_sigma_px`),
+   and the sub-code quantisation error measured on the view's own points
+   (:func:`cell.sensing.noise.quantisation`, dissertation Fig 2.4);
+2. **calibration** (per view and pixel): the calibration's own residual in camera pixels (the stereo
+   reprojection rms of `cell calibrate projector`, or the per-pixel model's eq 2.7 residual) through the same
+   one-pixel model; zero on the config's nominal geometry, which a real cell must not trust anyway
+   (``requires_calibration``);
+3. **pose** (:func:`pose_uncertainty_of_points`): the views' pose errors as the multi-view refinement
+   leaves them (its posterior covariance; a view it could not register keeps its prior) along each point's
+   normal, less what the recipe's alignment takes out: a datum alignment the rigid motion its datums see
+   (:func:`datum_alignment_map`), kinematic alignment nothing (the chain's whole error stays);
+4. **merge** (:func:`merged_uncertainty`, :func:`view_shares`): the weighted voxel mean of the views; points
+   of one view in a voxel share edges and pose, so their decode errors add linearly, the views' in
+   quadrature; the pose errors through the views' shares of each point;
+5. **alignment**: the recipe alignment's own 1-sigma displacement from the noise of what it measured
+   (:mod:`cell.analysis.alignment`), common to every point, added last.
+
+u = sqrt(merged decode^2 + pose^2 + alignment^2); the decision rules use U = k u
+(:mod:`cell.analysis.decision`). docs/uncertainty.md compares u with the simulator's truth.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from cell.analysis.alignment import Datum
+from cell.analysis.errormap import NominalMesh, signed_distance
+from cell.analysis.merge import MergedCloud
+from cell.analysis.view_refinement import ViewRefinement
+from cell.geometry import transform_points
+from cell.sensing.decode import Decoded
+from cell.sensing.error_model import normal_error_per_pixel
+from cell.sensing.incidence import measured_normals
+from cell.sensing.noise import (
+    ImageNoise,
+    Quantisation,
+    code_phase,
+    edge_sigma_px,
+    estimate_image_noise,
+    quantisation,
+)
+from cell.sensing.patterns import PatternSet
+from cell.sensing.triangulate import SensorCloud
+
+Array = NDArray[np.float64]
+TARGET_SHARE_OF_BAND = 0.25  # a gauge is fit for a tolerance when U <= a quarter of its band (gauging rule)
+
+
+@dataclass(frozen=True)
+class ViewUncertainty:
+    """One view's per-pixel uncertainty ``u_mm`` (H, W; decode and calibration, along the measured normal;
+    NaN where there is no point) and what it was made of."""
+
+    u_mm: NDArray[np.float32]
+    noise: ImageNoise
+    quantisation: Quantisation
+    calibration_px: float
+    mm_per_px: float  # median of the one-pixel model over the view's points
+
+    def to_json(self) -> dict[str, Any]:
+        ok = np.isfinite(self.u_mm)
+        return {
+            "image_noise": self.noise.to_json(),
+            "quantisation": self.quantisation.to_json(),
+            "calibration_px": round(self.calibration_px, 5),
+            "one_pixel_mm": round(self.mm_per_px, 5),
+            "u_mm": stats(self.u_mm[ok]),
+        }
+
+
+def view_uncertainty(
+    stack: NDArray[Any],
+    patterns: PatternSet,
+    decoded: Decoded,
+    cloud: SensorCloud,
+    T_C_P: Array,
+    fx_px: float,
+    calibration_px: float = 0.0,
+    bit_depth: int = 8,
+) -> ViewUncertainty | None:
+    """The decode and calibration uncertainty of every pixel of one view (:class:`ViewUncertainty`), or None
+    for a code other than GCLS (the edge model is GCLS's). ``T_C_P``: the projector in the camera frame as the
+    triangulation uses it; ``fx_px``: the camera's focal length; ``calibration_px``: the calibration's
+    residual in camera pixels (0: none known)."""
+    if patterns.codec != "gcls":
+        return None
+    axis = decoded.primary()
+    code = next(c for c in patterns.codes if c.axis == axis.axis)
+    valid = cloud.valid
+    points = cloud.points_C
+    normals = measured_normals(points, valid)
+    T = np.asarray(T_C_P, dtype=np.float64)
+    g = np.full(valid.shape, np.nan)
+    g[valid] = normal_error_per_pixel(points[valid], normals[valid], T[:3, 3], T[:3, 1], fx_px)
+    # where no normal could be measured (thin strips, isolated pixels) the view's typical value stands in
+    g_ok = np.isfinite(g) & valid
+    g_med = float(np.median(g[g_ok])) if g_ok.any() else float("nan")
+    g[valid & ~g_ok] = g_med
+    noise = estimate_image_noise(stack, patterns, valid, bit_depth)
+    sigma_x = edge_sigma_px(decoded, axis, noise, code.shift_px, code.offset_px)
+    q = quantisation(points, normals, valid, g, code_phase(axis, code.shift_px, code.offset_px), sigma_x)
+    px = np.sqrt(np.square(sigma_x) + q.total_px**2 + calibration_px**2)
+    u = np.where(valid, g * px, np.nan).astype(np.float32)
+    return ViewUncertainty(u, noise, q, float(calibration_px), g_med)
+
+
+def posterior_covariance(
+    information: Array | None,
+    n_views: int,
+    prior_sigma_mm: Sequence[float],
+    prior_sigma_rad: Sequence[float],
+    lever_mm: float,
+    held: Sequence[int],
+) -> Array:
+    """The (6n, 6n) covariance of the views' pose errors after the refinement: its overlaps' ``information``
+    (:attr:`cell.analysis.view_refinement.ViewRefinement.information`) plus the prior (1 sigma per view,
+    translation mm and rotation rad), inverted. A view the refinement held at its kinematic pose (``held``)
+    keeps its prior and informs no other view (its overlaps are left out); no refinement (one view): the
+    prior. Parameters as the refinement's: x = (omega * lever, tau) per view."""
+    prior = np.concatenate(
+        [[(r * lever_mm) ** 2] * 3 + [t**2] * 3 for t, r in zip(prior_sigma_mm, prior_sigma_rad, strict=True)]
+    )
+    H = np.zeros((6 * n_views, 6 * n_views)) if information is None else np.array(information, np.float64)
+    for v in held:  # take its overlaps out: each added +A to both views' diagonal blocks, -A between them
+        sv = slice(6 * v, 6 * v + 6)
+        for i in range(n_views):
+            if i != v:
+                si = slice(6 * i, 6 * i + 6)
+                H[si, si] += H[si, sv]
+        H[sv, :] = 0.0
+        H[:, sv] = 0.0
+    return np.asarray(np.linalg.inv(H + np.diag(1.0 / np.maximum(prior, 1e-18))), dtype=np.float64)
+
+
+def _rows(points: Array, normals: Array, centre_mm: Array, lever_mm: float) -> Array:
+    """(N, 6) rows mapping a correction x = (omega * lever, tau) to each point's motion along its normal."""
+    p, n = np.asarray(points, np.float64).reshape(-1, 3), np.asarray(normals, np.float64).reshape(-1, 3)
+    return np.column_stack([np.cross(p - np.asarray(centre_mm), n) / lever_mm, n])
+
+
+def view_shares(merged: MergedCloud, weights: Sequence[Array]) -> Array:
+    """(M, n) each view's share of the weight of every merged point (rows sum to 1)."""
+    n = len(weights)
+    w = np.concatenate([np.asarray(x, dtype=np.float64).ravel() for x in weights])
+    view = np.repeat(np.arange(n), [len(x) for x in weights])
+    ok = merged.source >= 0
+    flat = np.bincount(merged.source[ok] * n + view[ok], weights=w[ok], minlength=len(merged.points_mm) * n)
+    return flat.reshape(-1, n) / merged.weight[:, None]
+
+
+def datum_alignment_map(
+    datum_points: Array,
+    datum_normals: Array,
+    datum_shares: Array,
+    centre_mm: Array,
+    lever_mm: float,
+) -> Array:
+    """B (6, 6n): the rigid correction a datum alignment (3-2-1 / RPS) makes of the views' pose errors x,
+    x_align = B x. Each datum is measured as the mean offset along its normal of the points near it, which
+    the views measured in the shares ``datum_shares`` (D, n); the alignment is the least-squares rigid motion
+    that zeroes those offsets. Datums in the refinement's frame, unit normals."""
+    A = _rows(datum_points, datum_normals, centre_mm, lever_mm)  # (D, 6)
+    shares = np.asarray(datum_shares, dtype=np.float64)
+    M = (shares[:, :, None] * A[:, None, :]).reshape(len(A), -1)  # (D, 6n)
+    return np.linalg.pinv(A) @ M
+
+
+def pose_uncertainty_of_points(
+    shares: Array, rows: Array, covariance: Array, alignment_map: Array | None
+) -> NDArray[np.float64]:
+    """1-sigma error (mm) along each merged point's normal from the views' pose errors (``covariance``,
+    :func:`posterior_covariance`): the point is the ``shares``-weighted mean of its views' points, each moved
+    by its view's error, less what the alignment takes out (``alignment_map`` B: x_align = B x; None:
+    kinematic alignment, nothing). ``rows`` (M, 6): :func:`_rows` of the merged points."""
+    n = shares.shape[1]
+    L = (shares[:, :, None] * rows[:, None, :]).reshape(len(rows), 6 * n)
+    if alignment_map is not None:
+        L -= rows @ alignment_map
+    return np.sqrt(np.maximum(np.einsum("ij,ij->i", L @ covariance, L), 0.0))
+
+
+def merged_uncertainty(
+    merged: MergedCloud, weights: Sequence[Array], u_views: Sequence[Array]
+) -> NDArray[np.float64]:
+    """u (mm) of every merged point from its input points' ``u_views`` (one array per view, in the order and
+    with the points given to :func:`cell.analysis.merge.merge_views`) and merge ``weights``: within a view the
+    errors of one voxel's points are taken as fully correlated (neighbouring pixels share edges, pose and
+    calibration), so their weighted u add linearly; the views add in quadrature."""
+    w = np.concatenate([np.asarray(x, dtype=np.float64).ravel() for x in weights])
+    u = np.concatenate([np.asarray(x, dtype=np.float64).ravel() for x in u_views])
+    view = np.repeat(np.arange(len(u_views)), [len(x) for x in u_views])
+    src = merged.source
+    ok = src >= 0
+    m = len(merged.points_mm)
+    key = src[ok] * len(u_views) + view[ok]
+    keys, inv = np.unique(key, return_inverse=True)
+    per_view = np.bincount(inv, weights=w[ok] * u[ok])  # sum of w u of one view's points in one voxel
+    var = np.bincount(keys // len(u_views), weights=per_view**2, minlength=m)
+    return np.sqrt(var) / merged.weight
+
+
+def combine(*terms_mm: NDArray[np.floating] | float) -> NDArray[np.float64]:
+    """Independent standard uncertainties added in quadrature (arrays broadcast)."""
+    return np.sqrt(sum(np.square(np.asarray(t, dtype=np.float64)) for t in terms_mm))
+
+
+def stats(x: NDArray[np.floating]) -> dict[str, float | None]:
+    """median, p95 and max (mm, 5 decimals) of the finite values, None without any."""
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if not len(x):
+        return {"median": None, "p95": None, "max": None}
+    return {
+        "median": round(float(np.median(x)), 5),
+        "p95": round(float(np.percentile(x, 95)), 5),
+        "max": round(float(x.max()), 5),
+    }
+
+
+@dataclass(frozen=True)
+class CloudUncertainty:
+    """u (mm) of every merged point and its parts: ``decode`` (image noise, quantisation, calibration; merged
+    over the views as u is), ``pose`` (the views' pose errors as the alignment leaves them) and
+    ``alignment`` (the alignment's own, from the noise of what it measured; common to all points)."""
+
+    u_mm: NDArray[np.float64]
+    decode_mm: NDArray[np.float64]
+    pose_mm: NDArray[np.float64]
+    alignment_mm: float
+
+    def budget(self) -> dict[str, Any]:
+        """Statistics of u and of each part (mm) for the report."""
+        return {
+            "u_mm": stats(self.u_mm),
+            "decode_mm": stats(self.decode_mm),
+            "pose_mm": stats(self.pose_mm),
+            "alignment_mm": round(self.alignment_mm, 5),
+        }
+
+
+def registered_cloud_uncertainty(
+    merged: MergedCloud,
+    weights: Sequence[Array],
+    decode_mm: Sequence[Array],
+    refinement: ViewRefinement,
+    prior: dict[str, Any],
+    nominal_W: NominalMesh,
+    T_W_cloud: Array,
+    alignment: dict[str, Any],
+    datums: Sequence[Datum] = (),
+) -> CloudUncertainty:
+    """u of every point of an inspection's merged cloud (in the frame ``T_W_cloud`` maps to {W}): each view's
+    decode uncertainty merged (:func:`merged_uncertainty`); the views' pose errors after the refinement
+    (:class:`cell.analysis.view_refinement.ViewRefinement`) under the ``prior`` it ran under (its record:
+    ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal, less what the recipe's
+    alignment removes (its record: ``to_json`` of :class:`cell.analysis.alignment.Alignment`): a datum
+    alignment (the ``datums`` resolved on the nominal, in the cloud's frame) the rigid motion its datums see
+    (:func:`datum_alignment_map`), any other measured alignment the views' mean motion, kinematic alignment
+    nothing; plus the alignment's own uncertainty."""
+    n = len(decode_mm)
+    T = np.asarray(T_W_cloud, dtype=np.float64)
+    sigma_mm = prior.get("prior_sigma_mm", [0.0] * n)
+    sigma_rad = np.deg2rad(prior.get("prior_sigma_deg", [0.0] * n))
+    lever, held = refinement.lever_mm, refinement.unregistered
+    C = posterior_covariance(refinement.information, n, sigma_mm, sigma_rad, lever, held)
+    points_W = transform_points(T, merged.points_mm)
+    normals_W = nominal_W.face_normals[signed_distance(nominal_W, points_W).face]
+    centre = refinement.centre_mm if refinement.centre_mm is not None else points_W.mean(axis=0)
+    shares = view_shares(merged, weights)
+    method = alignment.get("method", "kinematic")
+    B: Array | None = None
+    if "error" in alignment or method == "kinematic":
+        B = None
+    elif datums and method in ("datums", "datum_icp"):
+        tree = cKDTree(merged.points_mm)
+        d_shares = []
+        for d in datums:
+            near = tree.query_ball_point(d.point, d.radius_mm)
+            d_shares.append(shares[near].mean(axis=0) if len(near) else np.full(n, 1.0 / n))
+        B = datum_alignment_map(
+            transform_points(T, np.array([d.point for d in datums])),
+            np.array([d.normal for d in datums]) @ T[:3, :3].T,
+            np.array(d_shares),
+            centre,
+            lever,
+        )
+    else:  # best fit, features, weighted: taken as removing the views' mean motion
+        B = np.kron(np.full((1, n), 1.0 / n), np.eye(6))
+    pose = pose_uncertainty_of_points(shares, _rows(points_W, normals_W, centre, lever), C, B)
+    decode = merged_uncertainty(merged, weights, decode_mm)
+    common = float((alignment.get("uncertainty_mm") or {}).get("rms") or 0.0)
+    return CloudUncertainty(combine(decode, pose, common), decode, pose, common)
