@@ -140,8 +140,13 @@ def calibrate_intrinsics(
     obj = [v.object_points(board).astype(np.float32).reshape(-1, 1, 3) for v in good]
     img = [v.corners_px.astype(np.float32).reshape(-1, 1, 2) for v in good]
     flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
-    rms, K, dist, rvecs, tvecs, sd_intr, _, _ = cv2.calibrateCameraExtended(
-        obj, img, size, None, None, flags=flags
+    rms, K, dist, rvecs, tvecs, sd_intr, _, _ = cv2.calibrateCameraExtended(  # type: ignore[call-overload]
+        obj,
+        img,
+        size,
+        None,
+        None,
+        flags=flags,  # (the stubs do not allow None, which calibrateCamera's do)
     )
     poses = [make_pose(cv2.Rodrigues(r)[0], t.ravel()) for r, t in zip(rvecs, tvecs, strict=True)]
     per_view = np.array(
