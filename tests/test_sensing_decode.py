@@ -81,8 +81,9 @@ def dense_rig():
 def test_ramped_line_shift_edges_do_not_lock_to_the_camera_pixels_where_the_code_is_dense(dense_rig) -> None:
     """Where the code is denser than the camera samples it, a sharp edge falls between two camera pixels and
     its zero crossing locks to the pixel grid; the measuring code's edges, ramped over MEASURING_EDGE_PX
-    projector pixels, span more than a camera pixel. Measured against the truth: RMS 0.117 (sharp) and 0.047
-    projector px (2 px ramps; 0.021 with 3 px; on a sparse code, k = 0.5, 0.006 and 0.012)."""
+    projector pixels, span more than a camera pixel. Measured against the truth: RMS 0.117 projector px
+    sharp, 0.078 ramped over 1.5 px (the measuring code), 0.047 over 2 px, 0.021 over 3 px; on a sparse code
+    (k = 0.5) 0.006 sharp and 0.012 over 2 px, where the ramp's gentler slope lets the noise in."""
     from cell.sensing.patterns import MEASURING_EDGE_PX
 
     truth = dense_rig.renderer.ground_truth(dense_rig.T_W_C).projector_uv[..., 0]
@@ -94,7 +95,7 @@ def test_ramped_line_shift_edges_do_not_lock_to_the_camera_pixels_where_the_code
         ok = ad.valid & np.isfinite(truth)
         assert ok.mean() > 0.9
         rms[edge] = float(np.sqrt(np.mean((ad.u[ok] - truth[ok]) ** 2)))
-    assert rms[1.0] > 0.09 and rms[MEASURING_EDGE_PX] < 0.5 * rms[1.0], rms
+    assert rms[1.0] > 0.09 and rms[MEASURING_EDGE_PX] < 0.75 * rms[1.0], rms
 
 
 def test_ramped_edges_keep_their_zero_crossing_and_bits() -> None:

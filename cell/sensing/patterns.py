@@ -29,11 +29,12 @@ if TYPE_CHECKING:
 
 # The measuring code's line-shift edge width (projector px). A sharp edge (1) spans 1/k camera pixels where
 # one camera pixel sees k projector pixels; where k > 1 (surfaces facing the projector, seen obliquely by the
-# camera) it falls between two camera samples and its zero crossing locks to the camera's pixel grid.
-# Ramped over 2 projector pixels it spans 2/k camera pixels (measured in the ideal world, PF on the 25.4 mm
-# sphere: 63.0 -> 29.2 um at the worst position; the flat plane's noise rises, F 26.2 -> 33.0 um:
-# docs/verification.md).
-MEASURING_EDGE_PX = 2.0
+# camera) it falls between two camera samples and its zero crossing locks to the camera's pixel grid. A ramp
+# spans more camera pixels but has a gentler slope, which lets the noise in where the code is sparse. 1.5 px
+# (grey levels 40 / 215 beside each boundary) is the worst-case best measured on the calibrated default cell's
+# spheres (PF, um, at near bottom left / far top left / centre far third: sharp 52.1 / 41.5 / 63.4, 1.5 px
+# 37.3 / 42.9 / 44.4, 2 px 28.5 / 50.7 / 29.5; docs/verification.md).
+MEASURING_EDGE_PX = 1.5
 
 Codec = Literal["gcls", "gcps", "graycode"]  # graycode: plain Gray code, cell/sensing/graycode.py
 Axis = Literal["columns", "rows"]
