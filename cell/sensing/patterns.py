@@ -77,6 +77,7 @@ class PatternSet:
     codes: tuple[AxisCode, ...]
     names: tuple[str, ...]
     frames: NDArray[np.uint8] = field(repr=False)
+    edge_px: float = 1.0  # GCLS: the line shifts' edge width, projector px (shift_profile; 1: sharp)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -176,7 +177,7 @@ def _assemble(
             frames.append(
                 np.broadcast_to(p[None, :] if code.axis == "columns" else p[:, None], (height, width)).copy()
             )
-    return PatternSet(codec, width, height, tuple(codes), tuple(names), np.stack(frames))
+    return PatternSet(codec, width, height, tuple(codes), tuple(names), np.stack(frames), edge_px)
 
 
 def _axes(direction: Direction) -> list[Axis]:
