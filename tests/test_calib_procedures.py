@@ -127,8 +127,14 @@ def test_intrinsics_projector_and_board_hand_eye_recover_the_world(
     K = np.asarray(r["summary"]["K"])
     assert abs(cfg.sensor.camera.fx_px / truth.camera.fx_px - 1) > 0.004  # the config is 0.5 % off
     assert abs(K[0, 0] / truth.camera.fx_px - 1) < 0.001
-    # 1.5 pixels of the full camera, in the binned camera's 2x2 pixels (measured 0.58)
-    assert np.hypot(K[0, 2] - truth.camera.cx_px, K[1, 2] - truth.camera.cy_px) < 0.75
+    # The principal point is judged against the fit's own stated uncertainty: 8 board views give it to about
+    # 0.5 px (1 sigma) on the binned camera, so a fixed 0.75 px bound failed on noise alone. Measured over
+    # 5 seeds, errors (-0.53, -0.76), (0.23, 0.35), (0.63, 0.26), (-0.56, 0.23), (-0.18, 0.48) px against a
+    # stated 0.44-0.58 (cx) and 0.32-0.41 (cy); seed 1 (this test's) 0.93 px. The stated sigma is bounded
+    # (it grows with the corners' residuals: 0.78 px in cx when the refinement's window was too small).
+    sd = np.asarray(r["summary"]["K_sd_px"])  # fx, fy, cx, cy
+    err = np.array([K[0, 2] - truth.camera.cx_px, K[1, 2] - truth.camera.cy_px])
+    assert np.all(sd[2:] < 0.65) and np.all(np.abs(err) < 3 * sd[2:]), (err, sd)
     cfg.calibration.intrinsics = Path(r["file"])
 
     r = binned_projector
@@ -142,8 +148,12 @@ def test_intrinsics_projector_and_board_hand_eye_recover_the_world(
     from cell.calibration.store import load_calibration
 
     _, arrays = load_calibration(Path(r["file"]), "hand_eye")
+    _, lens = load_calibration(cfg.calibration.projector, "projector")  # its camera_K: the active lens
     dt, dr = pose_error(arrays["T_T_C"], T_true)
-    assert dt < 0.25 and dr < 0.05  # from 1.5 mm / 0.4 deg (robot kinematic errors remain in the poses)
+    # rotation by the lines of sight, as in the ICP test below (the frame's axes follow the principal point,
+    # 1 px = 0.06 deg on the binned camera: measured 0.067 deg with the principal point 0.93 px off)
+    worst = sight_error_deg(arrays["T_T_C"], lens["camera_K"], T_true, truth.camera)
+    assert dt < 0.25 and worst < 0.05, (dt, dr, worst)  # from 1.5 mm / 0.4 deg (robot kinematics remain)
     journal = (tmp_path / "handeye" / "journal.jsonl").read_text()
     assert '"state": "done"' in journal and '"device": "board-stage"' in journal
     # each file records the cell config it was made for, so a run with this config finds all three current
@@ -174,13 +184,20 @@ def test_icp_of_gauge_scans_from_the_mounting_drawing_recovers_the_hand_eye(
     # (0.06 deg on the binned camera): a hand-eye turned by that much is right for the camera it belongs to.
     # So its rotation is judged by where the camera looks in the flange frame (the lines of sight through the
     # image's centre and corners), as a measurement sees it; measured 0.006 deg (the frames' axes: 0.10 deg).
-    cam = truth.camera
+    worst = sight_error_deg(T, lens["camera_K"], T_true, truth.camera)
+    assert dt < 0.6 and worst < 0.06, (dt, worst)  # from 1.5 mm / 0.4 deg; measured 0.33 mm, 0.006 deg
+
+
+def sight_error_deg(T_T_C: np.ndarray, K: np.ndarray, T_true: np.ndarray, cam) -> float:
+    """The largest angle (deg) between the calibrated and the true lines of sight in the flange frame through
+    the image's centre and two corners: the hand-eye's rotation as a measurement sees it."""
     worst = 0.0
     for u, v in ((cam.width_px / 2, cam.height_px / 2), (0, 0), (cam.width_px, cam.height_px)):
-        ray, ray_true = np.linalg.solve(lens["camera_K"], (u, v, 1.0)), np.linalg.solve(cam.K(), (u, v, 1.0))
-        a, b = T[:3, :3] @ ray / np.linalg.norm(ray), T_true[:3, :3] @ ray_true / np.linalg.norm(ray_true)
+        ray, ray_true = np.linalg.solve(K, (u, v, 1.0)), np.linalg.solve(cam.K(), (u, v, 1.0))
+        a = T_T_C[:3, :3] @ ray / np.linalg.norm(ray)
+        b = T_true[:3, :3] @ ray_true / np.linalg.norm(ray_true)
         worst = max(worst, float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0)))))
-    assert dt < 0.6 and worst < 0.06, (dt, worst)  # from 1.5 mm / 0.4 deg; measured 0.33 mm, 0.006 deg
+    return worst
 
 
 def test_demo_reuses_a_calibration_only_of_the_same_cell_file(tmp_path):

@@ -79,4 +79,7 @@ def test_glare_holes_are_filled_by_g_kR(tmp_path: Path) -> None:
     for i in glare_kR:
         assert decoded[i]["defects"]["glare"] == 0 and decoded[i]["points"] > 1000
     evaluations = [e for e in run.journal() if e["event"] == "evaluation"]
-    assert evaluations[-1]["coverage"] > evaluations[0]["coverage"] + 0.3
+    # measured: 0.429 -> 0.895 with sharp line-shift edges, 0.707 -> 0.893 with the measuring code's ramped
+    # edges (this small camera is coarser than its projector: sharp edges left gaps in the first pass)
+    first, last = evaluations[0]["coverage"], evaluations[-1]["coverage"]
+    assert last > first + 0.15 and last > 0.85, (first, last)

@@ -72,7 +72,14 @@ def test_the_cells_measuring_code_is_the_dissertations_set():
     as cover it. The sensor calibration codes both axes with shifts of 2 px."""
     proj = load_cell_config(DEFAULT_CELL).sensor.projector
     assert (proj.width_px, proj.height_px) == (1024, 768)
-    np.testing.assert_array_equal(measuring_patterns(proj).frames, dissertation_gcls("full").frames)
+    measuring, paper = measuring_patterns(proj), dissertation_gcls("full")
+    assert measuring.names == paper.names and measuring.codes == paper.codes
+    # the same bits; the line shifts' edges ramped over MEASURING_EDGE_PX (grey levels beside each boundary)
+    np.testing.assert_array_equal(measuring.frames > 127, paper.frames > 127)
+    shifts = [i for i, n in enumerate(measuring.names) if "shift" in n]
+    assert np.array_equal(measuring.frames[: shifts[0]], paper.frames[: shifts[0]])
+    grey = set(np.unique(measuring.frames[shifts])) - {0, 255}
+    assert len(grey) == 2 and sum(grey) == 255  # one level either side of each boundary, mirrored
     small = small_sensor().projector
     assert len(measuring_patterns(small).frames) < len(measuring_patterns(proj).frames)
     both = sensor_calibration_patterns(proj)

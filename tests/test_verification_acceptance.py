@@ -190,3 +190,27 @@ def test_the_sensor_drops_the_grazing_light_that_made_the_spheres_too_small(tmp_
     assert dropped > 200
     assert pf < 0.06 and abs(sd) < 0.006
     assert pf_all > 0.1 and pf_all > 2 * pf
+
+
+def test_ramped_line_shift_edges_bring_the_spheres_pf_down(tmp_path) -> None:
+    """Binned camera, ideal world, the sphere where its side facing the projector is seen obliquely (the
+    densest code: a projector pixel covers less than a camera pixel). With sharp line-shift edges their zero
+    crossings lock to the camera's pixel grid and PF is that ripple; the measuring code's ramped edges
+    (cell.sensing.patterns.MEASURING_EDGE_PX) take a third of it with every point kept (measured: PF 100 um
+    with 2017 points sharp, 67 um with 2019 ramped over 1.5 px, 48 um over 2 px)."""
+    from cell.sensing import patterns
+
+    cfg = load_cell_config(CELL)
+    cfg.world = "ideal"
+    cert = load_certificate()
+    positions = [p for p in acceptance_positions(cfg, cert) if p.label == "sphere, centre, far third"]
+    got = {}
+    for edge in (1.0, patterns.MEASURING_EDGE_PX):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(patterns, "MEASURING_EDGE_PX", edge)
+            doc = run_routine(VerificationJob(cfg, cert, positions=positions), tmp_path / f"e{edge:g}", None)
+        (ball,) = doc["positions"]
+        got[edge] = (ball["pf_mm"][0], ball["n_points"])
+    (pf_sharp, n_sharp), (pf, n) = got[1.0], got[patterns.MEASURING_EDGE_PX]
+    assert n > 0.98 * n_sharp
+    assert pf < 0.75 * pf_sharp and pf < 0.08, got

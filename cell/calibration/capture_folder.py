@@ -64,6 +64,9 @@ class CodeSpec(Strict):
     n_shifts: PosInt = Field(6, description="gcls: line shifts")
     n_phase: Annotated[int, Field(ge=3)] = Field(4, description="gcps: phase steps")
     n_gray: PosInt | None = Field(None, description="gcls/gcps: Gray patterns (default: cover the axis)")
+    edge_px: Annotated[float, Field(ge=1)] = Field(
+        1.0, description="gcls: line-shift edge width, projector px (1: sharp; the measuring code ramps them)"
+    )
 
     @model_validator(mode="after")
     def _stripe_needed(self) -> CodeSpec:
@@ -77,7 +80,9 @@ class CodeSpec(Strict):
             return graycode_patterns(w, h, self.direction)
         assert self.stripe_px is not None  # _stripe_needed
         if self.kind == "gcls":
-            return gcls_patterns(w, h, self.stripe_px, self.n_shifts, self.direction, self.n_gray)
+            return gcls_patterns(
+                w, h, self.stripe_px, self.n_shifts, self.direction, self.n_gray, self.edge_px
+            )
         return gcps_patterns(w, h, self.stripe_px, self.n_phase, self.direction, self.n_gray)
 
 
@@ -333,6 +338,8 @@ def code_spec(patterns: PatternSet) -> dict[str, object]:
     spec |= {"n_shifts": c.n_shifts} if patterns.codec == "gcls" else {"n_phase": c.n_phase}
     if len({a.n_gray for a in patterns.codes}) == 1:
         spec["n_gray"] = c.n_gray
+    if patterns.codec == "gcls" and patterns.edge_px != 1.0:
+        spec["edge_px"] = patterns.edge_px
     return spec
 
 

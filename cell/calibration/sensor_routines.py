@@ -78,6 +78,7 @@ class IntrinsicsJob(CalibrationJob):
             "rms_px": res.rms_px,
             "max_view_rms_px": float(res.view_rms_px.max()),
             "K": res.K.tolist(),
+            "K_sd_px": res.sd_K_px.tolist(),  # the fit's standard deviations of fx, fy, cx, cy
             "dist": res.dist.tolist(),
         }
         path = save_calibration(

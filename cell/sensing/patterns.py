@@ -27,6 +27,15 @@ from cell.errors import ConfigError
 if TYPE_CHECKING:
     from cell.config import ProjectorConfig
 
+# The measuring code's line-shift edge width (projector px). A sharp edge (1) spans 1/k camera pixels where
+# one camera pixel sees k projector pixels; where k > 1 (surfaces facing the projector, seen obliquely by the
+# camera) it falls between two camera samples and its zero crossing locks to the camera's pixel grid. A ramp
+# spans more camera pixels but has a gentler slope, which lets the noise in where the code is sparse. 1.5 px
+# (grey levels 40 / 215 beside each boundary) is the worst-case best measured on the calibrated default cell's
+# spheres (PF, um, at near bottom left / far top left / centre far third: sharp 52.1 / 41.5 / 63.4, 1.5 px
+# 37.3 / 42.9 / 44.4, 2 px 28.5 / 50.7 / 29.5; docs/verification.md).
+MEASURING_EDGE_PX = 1.5
+
 Codec = Literal["gcls", "gcps", "graycode"]  # graycode: plain Gray code, cell/sensing/graycode.py
 Axis = Literal["columns", "rows"]
 Direction = Literal["columns", "rows", "both"]
@@ -68,6 +77,7 @@ class PatternSet:
     codes: tuple[AxisCode, ...]
     names: tuple[str, ...]
     frames: NDArray[np.uint8] = field(repr=False)
+    edge_px: float = 1.0  # GCLS: the line shifts' edge width, projector px (shift_profile; 1: sharp)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -88,9 +98,24 @@ def gray_bits(index: NDArray[np.int64], n_bits: int) -> NDArray[np.uint8]:
     return np.stack([((g >> (n_bits - 1 - b)) & 1).astype(np.uint8) for b in range(n_bits)])
 
 
-def _axis_frames(code: AxisCode, length: int) -> tuple[list[str], list[NDArray[np.uint8]]]:
-    """1-D profiles (values 0/255) of one axis' coded frames, with names; each pattern followed by its
-    inverse."""
+def shift_profile(x: NDArray[np.int64], j: int, code: AxisCode, edge_px: float = 1.0) -> NDArray[np.float64]:
+    """Line-shift pattern ``j`` at projector pixels ``x`` (0..1): the square wave of half-period
+    ``stripe_px`` averaged over a box of ``edge_px`` projector pixels centred on each pixel. ``edge_px`` 1 is
+    the plain square wave (0/1); wider boxes turn each edge into a grey ramp symmetric about its boundary, so
+    that the pattern minus its inverse still crosses zero exactly at ``j*shift_px + k*stripe_px - 0.5`` (for
+    any projector response: the two frames mirror each other there) but over more camera pixels."""
+    if edge_px < 1.0 or edge_px > code.stripe_px:
+        raise ConfigError(f"line-shift edge width {edge_px} px: give 1 to {code.stripe_px} projector pixels")
+    sub = (np.arange(32) + 0.5) / 32 - 0.5  # 32 samples across a box of width 1
+    xs = x[:, None] + 0.5 + edge_px * sub[None, :] - j * code.shift_px  # from the boundary at -0.5
+    return np.mean(np.floor(xs / code.stripe_px) % 2, axis=1)
+
+
+def _axis_frames(
+    code: AxisCode, length: int, edge_px: float = 1.0
+) -> tuple[list[str], list[NDArray[np.uint8]]]:
+    """1-D profiles (values 0..255) of one axis' coded frames, with names; each pattern followed by its
+    inverse. ``edge_px``: the line shifts' edge width (:func:`shift_profile`)."""
     x = np.arange(length, dtype=np.int64) - code.offset_px  # pixel index within the coded range
     inside = (x >= 0) & (x < code.extent_px)
     names: list[str] = []
@@ -107,7 +132,11 @@ def _axis_frames(code: AxisCode, length: int) -> tuple[list[str], list[NDArray[n
     for b, bits in enumerate(gray_bits(stripe, code.n_gray)):
         add(f"{tag}_gray{b}", bits)
     for j in range(code.n_shifts):
-        add(f"{tag}_shift{j}", (((x - j * code.shift_px) // code.stripe_px) % 2).astype(np.uint8))
+        level = np.rint(255 * shift_profile(x, j, code, edge_px))
+        names.extend([f"{tag}_shift{j}", f"{tag}_shift{j}_inv"])
+        profiles.extend(
+            [np.where(inside, level, 0).astype(np.uint8), np.where(inside, 255 - level, 0).astype(np.uint8)]
+        )
     for k in range(code.n_phase):
         # Sampled at pixel centres; phase 0 at the coded range's left boundary x = -0.5.
         theta = 2 * np.pi * (x + 0.5) / (2 * code.stripe_px) - 2 * np.pi * k / code.n_phase
@@ -136,17 +165,19 @@ def _axis_code(
     return AxisCode(axis, n_gray, stripe_px, n_shifts, n_phase, offset)
 
 
-def _assemble(codec: Codec, width: int, height: int, codes: list[AxisCode]) -> PatternSet:
+def _assemble(
+    codec: Codec, width: int, height: int, codes: list[AxisCode], edge_px: float = 1.0
+) -> PatternSet:
     names = ["white", "black"]
     frames = [np.full((height, width), 255, np.uint8), np.zeros((height, width), np.uint8)]
     for code in codes:
-        n, profiles = _axis_frames(code, width if code.axis == "columns" else height)
+        n, profiles = _axis_frames(code, width if code.axis == "columns" else height, edge_px)
         names += n
         for p in profiles:
             frames.append(
                 np.broadcast_to(p[None, :] if code.axis == "columns" else p[:, None], (height, width)).copy()
             )
-    return PatternSet(codec, width, height, tuple(codes), tuple(names), np.stack(frames))
+    return PatternSet(codec, width, height, tuple(codes), tuple(names), np.stack(frames), edge_px)
 
 
 def _axes(direction: Direction) -> list[Axis]:
@@ -162,10 +193,12 @@ def gcls_patterns(
     n_shifts: int = 12,
     direction: Direction = "columns",
     n_gray: int | None = None,
+    edge_px: float = 1.0,
 ) -> PatternSet:
     """GCLS set: white, black, then per axis Gray patterns and line-shift square waves, each with its inverse.
 
-    ``n_gray=None`` picks the fewest Gray patterns whose stripes cover the axis.
+    ``n_gray=None`` picks the fewest Gray patterns whose stripes cover the axis; ``edge_px`` is the width of
+    the line shifts' edges in projector pixels (:func:`shift_profile`; 1: sharp).
     """
     if n_shifts < 1:
         raise ConfigError("GCLS needs at least one line shift")
@@ -173,7 +206,7 @@ def gcls_patterns(
         _axis_code(a, width_px if a == "columns" else height_px, stripe_px, n_gray, n_shifts, 0)
         for a in _axes(direction)
     ]
-    return _assemble("gcls", width_px, height_px, codes)
+    return _assemble("gcls", width_px, height_px, codes, edge_px)
 
 
 def gcps_patterns(
@@ -204,9 +237,9 @@ def _gray_bits(projector: ProjectorConfig) -> int | None:
 def measuring_patterns(projector: ProjectorConfig, direction: Direction = "columns") -> PatternSet:
     """The cell's measuring code for ``projector`` (inspection, validation, verification, the hand-eye's
     gauge scans, and the cycle-time model that counts its frames): GCLS, 12 px Gray stripes and 12 line
-    shifts of 1 px."""
+    shifts of 1 px, the shifts' edges ramped over ``MEASURING_EDGE_PX`` projector pixels."""
     w, h = projector.width_px, projector.height_px
-    return gcls_patterns(w, h, 12, 12, direction, n_gray=_gray_bits(projector))
+    return gcls_patterns(w, h, 12, 12, direction, n_gray=_gray_bits(projector), edge_px=MEASURING_EDGE_PX)
 
 
 def sensor_calibration_patterns(projector: ProjectorConfig) -> PatternSet:
