@@ -44,8 +44,8 @@ from cell.analysis.view_refinement import (
     refine_views,
 )
 from cell.calibration import (
-    active_gamma_lut,
     active_hand_eye,
+    active_measuring_patterns,
     active_sensor_config,
     active_triangulator,
     believed_flange,
@@ -53,7 +53,6 @@ from cell.calibration import (
     calibration_source,
     view_pose_prior,
 )
-from cell.calibration.gamma import apply_lut
 from cell.config import CellConfig, Recipe
 from cell.contracts import CameraSettings, PixelFormat, TriggerMode
 from cell.controller import Controller, ControllerSettings, RobotLimits
@@ -74,7 +73,7 @@ from cell.raycast import RayCaster
 from cell.run_data import Evaluation, View
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
-from cell.sensing.patterns import PatternSet, measuring_patterns
+from cell.sensing.patterns import PatternSet
 from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
 from cell.sensing.triangulate import normalized_coords
@@ -149,10 +148,7 @@ class LambertianInspection(InspectionResults):
         self.T_W_B = cfg.robot.T_W_B.matrix()
         self.T_T_C = active_hand_eye(cfg)
         self.sensor = active_sensor_config(cfg)  # the calibrated geometry where calibration files exist
-        self.patterns: PatternSet = measuring_patterns(cfg.sensor.projector)
-        lut = active_gamma_lut(cfg)  # the projector's measured response, linearised (cell calibrate gamma)
-        if lut is not None:
-            self.patterns = apply_lut(self.patterns, lut)
+        self.patterns: PatternSet = active_measuring_patterns(cfg)  # through the gamma LUT, if any
         self.triangulator = active_triangulator(cfg)
         # the projector's centre in {C} (mm): the incidence filter needs it only to a degree or so
         self.projector_C = self.sensor.projector.T_C_P.matrix()[:3, 3]

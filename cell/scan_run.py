@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from cell.errors import ConfigError
 from cell.geometry import invert, look_at, pose_to_xyz_rotvec, transform_points
 from cell.planning.kinematics import UR5E
-from cell.sensing.patterns import gcps_baseline_patterns, measuring_patterns
+from cell.sensing.patterns import gcps_baseline_patterns
 from cell.sensing.scan import MASK_COLOURS, masks_image, scan_view, write_ply
 from cell.sensing.triangulate import PinholeTriangulator, reference_model_from_geometry
 
@@ -51,6 +51,7 @@ def scan_in_cell(
     cloud.ply (world mm, placed by where the cell believes the camera is), masks.png and scan.json (timings,
     counts per reason, poses) to ``out``; returns the scan.json content."""
     from cell.calibration import active_hand_eye, believed_flange
+    from cell.calibration.active import active_measuring_patterns
     from cell.config import load_cell_config
     from cell.devices import build_devices, ready_to_capture
     from cell.mesh import load_mesh
@@ -82,7 +83,7 @@ def scan_in_cell(
         # them) through the active hand-eye (what a real cell knows; the simulator's true camera pose is not
         # the pipeline's to read)
         T_W_C_reported = cfg.robot.T_W_B.matrix() @ believed_flange(cfg, dev.robot) @ active_hand_eye(cfg)
-        patterns = measuring_patterns(proj_cfg) if codec == "gcls" else gcps_baseline_patterns(proj_cfg)
+        patterns = active_measuring_patterns(cfg) if codec == "gcls" else gcps_baseline_patterns(proj_cfg)
         tri = (
             PinholeTriangulator.from_sensor(cfg.sensor)
             if model == "pinhole"

@@ -86,3 +86,35 @@ def test_the_inspection_projects_through_the_active_gamma_lut(tmp_path) -> None:
     with pytest.raises(ConfigError, match="256 grey levels"):
         bad_cfg = cfg.model_copy(update={"calibration": CalibrationFiles(gamma=bad)})
         LambertianInspection(recipe, bad_cfg, part)
+
+
+def test_every_measurement_projects_through_the_active_gamma_lut(tmp_path) -> None:
+    """Verification, validation, the hand-eye's gauge scans and `cell scan` project the same measuring code as
+    the inspection, through the cell's gamma LUT: the line-shift edges are ramped in grey, which a projector's
+    uncorrected gamma would bend (they once projected the bare code and only the inspection corrected it)."""
+    from cell.calibration.active import active_measuring_patterns
+    from cell.calibration.handeye_routines import HandEyeIcpJob
+    from cell.calibration.store import save_calibration
+    from cell.calibration.validation_routine import ValidateJob
+    from cell.config import DEFAULT_CELL, CalibrationFiles, load_cell_config
+    from cell.sensing.patterns import measuring_patterns
+    from cell.verification.certificate import load_certificate
+    from cell.verification.job import VerificationJob
+
+    cfg = load_cell_config(DEFAULT_CELL)
+    plain = measuring_patterns(cfg.sensor.projector).frames
+    assert ((plain > 0) & (plain < 255)).any()  # the ramps' grey levels: what the LUT must reach
+    lut = np.clip(np.round(255 * (np.arange(256) / 255) ** (1 / 2.2)), 10, 245).astype(np.uint8)
+    path = save_calibration(tmp_path / "gamma", "projector_gamma", {"lut": lut}, {"projector": {}})
+    with_lut = cfg.model_copy(update={"calibration": CalibrationFiles(gamma=path)})
+    np.testing.assert_array_equal(active_measuring_patterns(with_lut).frames, lut[plain])
+    np.testing.assert_array_equal(active_measuring_patterns(cfg).frames, plain)
+    jobs = [
+        VerificationJob(with_lut, load_certificate()),
+        ValidateJob(with_lut),
+        HandEyeIcpJob(with_lut),
+    ]
+    for job in jobs:
+        np.testing.assert_array_equal(
+            job.patterns(job.plan()[0]).frames, lut[plain], err_msg=type(job).__name__
+        )

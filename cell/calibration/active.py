@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from cell.calibration.gamma import apply_lut
 from cell.calibration.kinematics import KinematicErrors, camera_pose_spread
 from cell.calibration.sensor import load_sensor_model
 from cell.calibration.store import load_calibration, load_metadata
@@ -18,6 +19,7 @@ from cell.contracts import Robot
 from cell.errors import ConfigError
 from cell.geometry import Pose
 from cell.sensing.error_model import one_pixel_error
+from cell.sensing.patterns import PatternSet, measuring_patterns
 from cell.sensing.triangulate import PinholeTriangulator, Triangulator
 
 NO_CALIBRATION = "config geometry (no calibration)"
@@ -191,6 +193,16 @@ def active_gamma_lut(cfg: CellConfig) -> NDArray[np.uint8] | None:
             field="calibration.gamma",
         )
     return lut.astype(np.uint8)
+
+
+def active_measuring_patterns(cfg: CellConfig) -> PatternSet:
+    """The measuring code (GCLS) as this cell projects it: through the projector's linearising LUT when
+    ``calibration.gamma`` names one. Every measurement (inspection, verification, validation, the hand-eye's
+    gauge scans, ``cell scan``) projects this set: the line-shift edges are ramped in grey
+    (:data:`cell.sensing.patterns.MEASURING_EDGE_PX`), which a non-linear projector would bend."""
+    patterns = measuring_patterns(cfg.sensor.projector)
+    lut = active_gamma_lut(cfg)
+    return patterns if lut is None else apply_lut(patterns, lut)
 
 
 def calibration_source(cfg: CellConfig) -> str:

@@ -9,7 +9,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.calibration.active import active_hand_eye, active_sensor_config, active_triangulator
+from cell.calibration.active import (
+    active_hand_eye,
+    active_measuring_patterns,
+    active_sensor_config,
+    active_triangulator,
+)
 from cell.calibration.boards import board_pose_from_corners
 from cell.calibration.handeye import GaugeView, handeye_from_board_poses, handeye_icp, pose_error
 from cell.calibration.kinematics import BoardObservation, fit_kinematics
@@ -32,10 +37,7 @@ from cell.geometry import Pose, make_pose, transform_points
 from cell.run_data import View
 from cell.runs import RunFolder
 from cell.sensing.decode import decode
-from cell.sensing.patterns import (
-    PatternSet,
-    measuring_patterns,
-)
+from cell.sensing.patterns import PatternSet
 
 
 def _handeye_meta(T_T_C: Pose, figs: dict[str, Any], quality: dict[str, float]) -> dict[str, Any]:
@@ -228,7 +230,7 @@ class HandEyeIcpJob(CalibrationJob):
         return out
 
     def patterns(self, view: View) -> PatternSet:
-        return measuring_patterns(self.cfg.sensor.projector)
+        return active_measuring_patterns(self.cfg)  # through the gamma LUT, if any
 
     def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         dec = decode(captured["images"], self.patterns(view), self.cfg.sensor.camera.bit_depth)

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from cell.calibration.active import active_hand_eye, active_triangulator
+from cell.calibration.active import active_hand_eye, active_measuring_patterns, active_triangulator
 from cell.calibration.handeye import pose_error
 from cell.calibration.procedures import (
     GAUGE_CERTIFICATE,
@@ -27,10 +27,7 @@ from cell.geometry import Pose, invert, make_pose, transform_points
 from cell.run_data import View
 from cell.runs import RunFolder
 from cell.sensing.decode import decode
-from cell.sensing.patterns import (
-    PatternSet,
-    measuring_patterns,
-)
+from cell.sensing.patterns import PatternSet
 from cell.sensing.triangulate import ReferencePlaneTriangulator
 
 
@@ -87,7 +84,7 @@ class ValidateJob(FlatBoardJob):
         return path
 
     def patterns(self, view: View) -> PatternSet:
-        return measuring_patterns(self.cfg.sensor.projector)
+        return active_measuring_patterns(self.cfg)  # through the gamma LUT, if any
 
     def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         dec = decode(captured["images"], self.patterns(view), self.cfg.sensor.camera.bit_depth)

@@ -19,6 +19,7 @@ import numpy as np
 
 from cell.analysis.linkfilter import unreliable_pixels
 from cell.calibration import active_hand_eye, active_sensor_config, active_triangulator, calibration_source
+from cell.calibration.active import active_measuring_patterns
 from cell.calibration.procedures import CalibrationJob, _view, flange_for_camera
 from cell.config import CellConfig
 from cell.devices import DeviceBundle, build_artefact_stage
@@ -27,7 +28,7 @@ from cell.geometry import invert, look_at, make_pose, transform_points
 from cell.run_data import View
 from cell.runs import RunFolder
 from cell.sensing.decode import decode
-from cell.sensing.patterns import PatternSet, measuring_patterns
+from cell.sensing.patterns import PatternSet
 from cell.verification.certificate import Certificate
 from cell.verification.figures import FitError
 from cell.verification.multiview import BAR_DIRECTIONS_DEG, bar_pose, view_targets
@@ -107,7 +108,7 @@ class VerificationJob(CalibrationJob):
         return view
 
     def patterns(self, view: View) -> PatternSet:
-        return measuring_patterns(self.cfg.sensor.projector)
+        return active_measuring_patterns(self.cfg)  # through the gamma LUT, if any
 
     def capture(self, devices: DeviceBundle, view: View, index: int) -> dict[str, Any]:
         """Place the view's artefact (the technician's hand on a real cell) when it differs from the one
