@@ -60,7 +60,14 @@ from cell.devices import DeviceBundle
 from cell.errors import DeviceFault
 from cell.geometry import invert, transform_points, transform_vectors
 from cell.inspection_results import InspectionResults, RegisteredCloud
-from cell.inspection_views import REGIONS_FILE, ViewResult, ViewStore, save_planes, save_regions
+from cell.inspection_views import (
+    REGIONS_FILE,
+    ViewResult,
+    ViewStore,
+    save_planes,
+    save_regions,
+    stored_regions,
+)
 from cell.planning.coverage import covered_by_views
 from cell.planning.feedback import Evaluation as FeedbackEvaluation
 from cell.planning.feedback import FeedbackPlanner, evaluate, select_new
@@ -306,7 +313,7 @@ class LambertianInspection(InspectionResults):
         planes = estimate_normals(eval_W)
         writes.append(files.submit(save_planes, out_dir, planes))
         writes.append(files.submit(cv2.imwrite, str(out_dir / "reasons.png"), cloud.reasons))
-        regions = self._defects(T_W_C, cloud.reasons)
+        regions = stored_regions(self._defects(T_W_C, cloud.reasons))  # as a resumed run reads them
         writes.append(files.submit(save_regions, out_dir / REGIONS_FILE, regions))
         summary = {
             "T_W_C": T_W_C.tolist(),

@@ -31,10 +31,18 @@ from scipy.spatial import cKDTree
 from cell.analysis.view_refinement import LocalPlanes, estimate_normals
 from cell.planning.measured import DefectRegion
 from cell.runs import RunFolder
-from cell.view_files import ViewPoints, load_eval_points, load_eval_uncertainty, load_view_points
+from cell.view_files import (
+    STEP_MM,
+    ViewPoints,
+    load_eval_points,
+    load_eval_uncertainty,
+    load_view_points,
+    stored_points,
+)
 
 PLANES_FILE = "planes.npz"  # the evaluation subset's local planes (float64 centroids and normals, bool ok)
-REGIONS_FILE = "defects.npz"
+REGIONS_FILE = "defects.npz"  # the hole regions (format 2: 0.1 um steps; format 1: float64)
+REGIONS_FORMAT = 2
 # the views' full point sets kept in memory at most (the 1024x768 cell's dozen views take ~0.12 GB, a 5 MP
 # camera's ~0.9 GB); beyond it the oldest views' points are dropped and read from their folders when needed
 POINTS_IN_MEMORY_BYTES = 1_000_000_000
@@ -111,22 +119,52 @@ def load_planes(view_dir: Path, eval_W: NDArray[np.float64]) -> LocalPlanes:
 
 
 def save_regions(path: Path, regions: list[DefectRegion]) -> None:
-    """A view's hole regions (reason, boundary and interior points in {W}, pixel count) as one npz."""
+    """A view's hole regions (reason, boundary and interior points in {W}, pixel count) as one npz (format
+    2): each point array as int32 differences of :data:`STEP_MM` steps (0.1 um, as the view's points;
+    neighbouring pixels' nominal points lie close), a sixth of the deflated float64 of format 1. What is
+    read back is :func:`stored_regions` of ``regions``."""
     arrays: dict[str, Any] = {
+        "format": np.asarray(REGIONS_FORMAT, np.int32),
+        "step_mm": np.asarray(STEP_MM, np.float64),
         "reasons": np.array([r.reason for r in regions], dtype="U16"),
         "pixels": np.array([r.pixels for r in regions], dtype=np.int64),
     }
     for k, r in enumerate(regions):
-        arrays[f"boundary_{k}"] = r.boundary_W
-        arrays[f"points_{k}"] = r.points_W
+        arrays[f"boundary_{k}"] = _step_deltas(r.boundary_W)
+        arrays[f"points_{k}"] = _step_deltas(r.points_W)
     with open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
 
 
+def stored_regions(regions: list[DefectRegion]) -> list[DefectRegion]:
+    """The regions as :func:`save_regions` stores them (points rounded to :data:`STEP_MM`), which is what a
+    resumed run reads back: an uninterrupted run keeps these so that both compute the same."""
+    return [
+        DefectRegion(r.reason, stored_points(r.boundary_W), stored_points(r.points_W), r.pixels)
+        for r in regions
+    ]
+
+
+def _step_deltas(points_W: NDArray[np.float64]) -> NDArray[np.int32]:
+    steps = np.round(stored_points(points_W) / STEP_MM).astype(np.int64)
+    return np.diff(steps, axis=0, prepend=np.zeros((1, 3), np.int64)).astype(np.int32)
+
+
 def load_regions(path: Path) -> list[DefectRegion]:
+    """A view's hole regions, from format 2 or from format 1 (float64 points, no ``format`` entry)."""
     with np.load(path) as data:
+        if "format" in data.files:
+            step = float(data["step_mm"])
+
+            def points(name: str) -> NDArray[np.float64]:
+                return np.asarray(np.cumsum(data[name], axis=0, dtype=np.int64) * step, dtype=np.float64)
+        else:
+
+            def points(name: str) -> NDArray[np.float64]:
+                return np.asarray(data[name], dtype=np.float64)
+
         return [
-            DefectRegion(str(reason), data[f"boundary_{k}"], data[f"points_{k}"], int(px))
+            DefectRegion(str(reason), points(f"boundary_{k}"), points(f"points_{k}"), int(px))
             for k, (reason, px) in enumerate(zip(data["reasons"], data["pixels"], strict=True))
         ]
 

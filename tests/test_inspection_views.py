@@ -9,9 +9,18 @@ from pathlib import Path
 import numpy as np
 
 from cell.analysis.view_refinement import estimate_normals
-from cell.inspection_views import PLANES_FILE, ViewResult, ViewStore, save_planes, save_regions
+from cell.inspection_views import (
+    PLANES_FILE,
+    ViewResult,
+    ViewStore,
+    load_regions,
+    save_planes,
+    save_regions,
+    stored_regions,
+)
+from cell.planning.measured import DefectRegion
 from cell.runs import RunFolder
-from cell.view_files import ViewPoints, save_view_points
+from cell.view_files import STEP_MM, ViewPoints, save_view_points
 
 
 def _write_view(run: RunFolder, index: int, rng: np.random.Generator) -> ViewResult:
@@ -60,3 +69,37 @@ def test_the_store_holds_full_points_within_its_budget_and_reads_the_rest(tmp_pa
     assert np.array_equal(again.planes.normal, made[2].planes.normal)
     d, _ = again.eval_tree.query(again.eval_W[:5])
     assert np.all(d == 0)
+
+
+def test_the_hole_regions_are_stored_in_steps_and_old_files_still_read(tmp_path: Path) -> None:
+    """defects.npz format 2: the regions' nominal points in 0.1 um steps, read back exactly as
+    stored_regions gives them (within half a step of the originals), smaller than the float64 of format 1,
+    which is still read."""
+    rng = np.random.default_rng(2)
+    line = np.cumsum(rng.normal(0, 0.05, (4000, 3)), axis=0) + [120.0, -80.0, 35.0]  # neighbouring pixels
+    regions = [
+        DefectRegion("shadow", line[:300], line, 4000),
+        DefectRegion("glare", line[:0], line[:0], 0),
+        DefectRegion("low_contrast", line[5:9], line[5:60], 55),
+    ]
+    save_regions(tmp_path / "defects.npz", regions)
+    back = load_regions(tmp_path / "defects.npz")
+    kept = stored_regions(regions)
+    for mine, original, stored in zip(back, regions, kept, strict=True):
+        assert (mine.reason, mine.pixels) == (original.reason, original.pixels)
+        for name in ("boundary_W", "points_W"):
+            a, b = getattr(mine, name), getattr(original, name)
+            assert a.shape == b.shape and a.dtype == np.float64
+            assert np.array_equal(a, getattr(stored, name))  # what an uninterrupted run keeps
+            assert len(a) == 0 or np.abs(a - b).max() <= 0.51 * STEP_MM
+    old = tmp_path / "old.npz"  # format 1, as runs before wrote it
+    arrays = {
+        "reasons": np.array([r.reason for r in regions], "U16"),
+        "pixels": np.array([r.pixels for r in regions]),
+    }
+    for k, r in enumerate(regions):
+        arrays[f"boundary_{k}"], arrays[f"points_{k}"] = r.boundary_W, r.points_W
+    np.savez_compressed(old, **arrays)
+    for mine, original in zip(load_regions(old), regions, strict=True):
+        assert mine.reason == original.reason and np.array_equal(mine.points_W, original.points_W)
+    assert (tmp_path / "defects.npz").stat().st_size < 0.5 * old.stat().st_size
