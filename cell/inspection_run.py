@@ -257,6 +257,9 @@ def _execute_locked(
         pruned = apply_at_finish(run, cfg.retention)
         if pruned is not None:
             say(f"raw view images removed ({pruned.freed_bytes / 1e6:.1f} MB): {pruned.reason}")
+        from cell.inspection_views import remove_planes
+
+        remove_planes(run)  # a cache for a resume, recomputed from the stored points when read again
     summary = Checkpoint.from_json(run.load_checkpoint()).summary or {}
     _record_results(run, results, say)
     return RunOutcome(run, state, ctl.message, summary)

@@ -14,6 +14,7 @@ from cell.inspection_views import (
     ViewResult,
     ViewStore,
     load_regions,
+    remove_planes,
     save_planes,
     save_regions,
     stored_regions,
@@ -63,10 +64,14 @@ def test_the_store_holds_full_points_within_its_budget_and_reads_the_rest(tmp_pa
         assert np.array_equal(kept.eval_W, original.eval_W)
         assert np.array_equal(kept.planes.normal, original.planes.normal)
         assert kept.summary == original.summary
-    # a folder written before the planes were stored: computed from its evaluation points, the same
-    (run.view_dir(2) / PLANES_FILE).unlink()
-    again = ViewStore().get(run, 2)
-    assert np.array_equal(again.planes.normal, made[2].planes.normal)
+    # a folder written before the planes were stored, or a finished run (remove_planes): computed from its
+    # evaluation points, the same
+    assert remove_planes(run) > 0 and not list(run.path.glob(f"views/*/{PLANES_FILE}"))
+    for i in range(3):
+        again = ViewStore().get(run, i)
+        assert np.array_equal(again.planes.normal, made[i].planes.normal)
+        assert np.array_equal(again.planes.centroid, made[i].planes.centroid)
+        assert np.array_equal(again.planes.ok, made[i].planes.ok)
     d, _ = again.eval_tree.query(again.eval_W[:5])
     assert np.all(d == 0)
 

@@ -36,6 +36,7 @@ def kept_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cell = _cell_file(folder, {"raw_images_passed_days": 7})
     outcome = inspect(recipe, cell, folder / "run", say=lambda _: None)
     assert outcome.state == "done" and outcome.summary["verdict"] == "pass"
+    assert not list((folder / "run").glob("views/*/planes.npz"))  # the resume's cache, dropped when done
     return folder / "run"
 
 
