@@ -1,6 +1,10 @@
 """What an inspection view folder (``views/NNN/``) stores, and one reader for every format it was stored in.
 
-Format 2 (docs/storage.md), written by :func:`save_view_points` and :func:`save_raw_stack`:
+Format 3 (docs/storage.md), written by :func:`save_view_points` and :func:`save_raw_stack`, is format 2
+with the points' step differences stored as ``delta_planes`` (uint8, shape (3, 4, N)): per coordinate, the
+four bytes of its int32 differences as four planes (all lowest bytes, then the next, little-endian), the same
+numbers as format 2's ``delta``; the high bytes of small differences are nearly all 0 or 255, so deflate
+packs them 18 % smaller (1.30 against 1.59 MB a view of the pillar). Format 2:
 
 - ``points.npz`` (deflate): the view's points in the world frame {W}, in pixel order, as int32 steps of
   :data:`STEP_MM` (0.1 um), each the difference to the point before (neighbouring pixels lie close, so the
@@ -37,7 +41,7 @@ from numpy.typing import NDArray
 from cell.runs import RAW_IMAGES
 
 POINTS_FILE = "points.npz"
-FORMAT = 2
+FORMAT = 3
 STEP_MM = 1e-4  # storage step of a coordinate: 0.1 um
 _LIMIT = 2**30  # |coordinate| / STEP_MM: 107 m, so that differences of two stay within int32
 PNG_LEVEL = 1  # zlib level of the raw PNGs: level 3 saves 5 % for 1.5x the time (docs/storage.md)
@@ -74,7 +78,7 @@ def save_view_points(
     arrays: dict[str, NDArray[Any]] = {
         "format": np.asarray(FORMAT, np.int32),
         "step_mm": np.asarray(STEP_MM, np.float64),
-        "delta": delta,
+        "delta_planes": _byte_planes(delta),
         "quality": np.asarray(quality, dtype=np.float32),
         "oblique": np.asarray(oblique, dtype=bool),
         "eval": mask,
@@ -84,6 +88,21 @@ def save_view_points(
     with open(out_dir / POINTS_FILE, "wb") as f:
         np.savez_compressed(f, **arrays)  # type: ignore[arg-type]  # mypy maps **arrays onto allow_pickle
     return _from_steps(delta, STEP_MM)
+
+
+def _byte_planes(delta: NDArray[np.int32]) -> NDArray[np.uint8]:
+    """(N, 3) int32 differences as (3, 4, N) bytes: per coordinate, its little-endian bytes as planes."""
+    n = len(delta)
+    return np.ascontiguousarray(np.asarray(delta, "<i4").T).view(np.uint8).reshape(3, n, 4).transpose(0, 2, 1)
+
+
+def _deltas(z: Any) -> NDArray[np.int32]:
+    """The (N, 3) int32 step differences of a format 3 (``delta_planes``) or format 2 (``delta``) file."""
+    if "delta_planes" not in z.files:
+        return np.asarray(z["delta"])
+    planes = np.asarray(z["delta_planes"], dtype=np.uint8)
+    n = planes.shape[2]
+    return np.ascontiguousarray(planes.transpose(0, 2, 1)).view("<i4").reshape(3, n).T
 
 
 def stored_points(points_W: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -106,12 +125,12 @@ def _from_steps(delta: NDArray[np.int32], step_mm: float) -> NDArray[np.float64]
 
 
 def load_view_points(view_dir: Path) -> ViewPoints:
-    """A view's points and flags, from format 2 or format 1."""
+    """A view's points and flags, from format 3, 2 or 1."""
     path = view_dir / POINTS_FILE
     if path.is_file():
         with np.load(path) as z:
             u = _uncertainty(z)
-            return ViewPoints(_from_steps(z["delta"], float(z["step_mm"])), z["quality"], z["oblique"], u)
+            return ViewPoints(_from_steps(_deltas(z), float(z["step_mm"])), z["quality"], z["oblique"], u)
     points = np.load(view_dir / "points_W.npy")
     oblique_file = view_dir / "oblique.npy"
     oblique = np.load(oblique_file) if oblique_file.is_file() else np.zeros(len(points), dtype=bool)
@@ -119,11 +138,11 @@ def load_view_points(view_dir: Path) -> ViewPoints:
 
 
 def load_eval_points(view_dir: Path) -> NDArray[np.float64]:
-    """A view's evaluation subset (mm, {W}), from format 2 or format 1."""
+    """A view's evaluation subset (mm, {W}), from format 3, 2 or 1."""
     path = view_dir / POINTS_FILE
     if path.is_file():
         with np.load(path) as z:
-            return _from_steps(z["delta"], float(z["step_mm"]))[z["eval"]]
+            return _from_steps(_deltas(z), float(z["step_mm"]))[z["eval"]]
     return np.load(view_dir / "points_eval_W.npy")
 
 
