@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from cell.analysis import uncertainty
 from cell.analysis.merge import merge_views
 from cell.analysis.uncertainty import (
     datum_alignment_map,
@@ -215,6 +216,24 @@ def test_merged_u_averages_views_and_not_one_views_neighbours() -> None:
     assert merged_uncertainty(merged, w, u)[0] == pytest.approx(1 / math.sqrt(1 / 0.03**2 + 1 / 0.04**2))
     one = merge_views([np.vstack([a, a + 0.01])], [np.ones(2)], voxel_mm=0.2)
     assert merged_uncertainty(one, [np.ones(2)], [np.array([0.03, 0.03])])[0] == pytest.approx(0.03)
+
+
+def test_pose_u_in_chunks_is_each_points_own(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The pose u taken a few points at a time (chunks that do not divide the cloud) equals each point's own
+    sqrt(l C l^T), l its shares times its row, less the alignment map's part, computed point by point."""
+    rng = np.random.default_rng(7)
+    n, m = 3, 11
+    shares = rng.random((m, n))
+    shares /= shares.sum(1, keepdims=True)
+    rows = rng.normal(size=(m, 6))
+    A = rng.normal(size=(6 * n, 6 * n))
+    C, B = A @ A.T, rng.normal(size=(6, 6 * n))
+    monkeypatch.setattr(uncertainty, "POINTS_PER_CHUNK", 4)
+    for Bm in (None, B):
+        got = pose_uncertainty_of_points(shares, rows, C, Bm)
+        for i in range(m):
+            l_i = np.kron(shares[i], rows[i]) - (0 if Bm is None else rows[i] @ Bm)
+            assert got[i] == pytest.approx(math.sqrt(l_i @ C @ l_i), rel=1e-12)
 
 
 def test_pose_error_after_a_datum_alignment() -> None:

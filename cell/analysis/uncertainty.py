@@ -57,6 +57,7 @@ from cell.sensing.patterns import PatternSet
 from cell.sensing.triangulate import SensorCloud
 
 Array = NDArray[np.float64]
+POINTS_PER_CHUNK = 65_536  # merged points whose pose u is computed at a time (~0.1 GB of rows for 12 views)
 TARGET_SHARE_OF_BAND = 0.25  # a gauge is fit for a tolerance when U <= a quarter of its band (gauging rule)
 
 
@@ -154,12 +155,19 @@ def _rows(points: Array, normals: Array, centre_mm: Array, lever_mm: float) -> A
 
 def view_shares(merged: MergedCloud, weights: Sequence[Array]) -> Array:
     """(M, n) each view's share of the weight of every merged point (rows sum to 1)."""
-    n = len(weights)
-    w = np.concatenate([np.asarray(x, dtype=np.float64).ravel() for x in weights])
-    view = np.repeat(np.arange(n), [len(x) for x in weights])
-    ok = merged.source >= 0
-    flat = np.bincount(merged.source[ok] * n + view[ok], weights=w[ok], minlength=len(merged.points_mm) * n)
-    return flat.reshape(-1, n) / merged.weight[:, None]
+    m = len(merged.points_mm)
+    shares = np.empty((m, len(weights)), dtype=np.float64)
+    for k, (src, w) in enumerate(_per_view(merged, weights)):  # view by view: no copy of all input points
+        ok = src >= 0
+        shares[:, k] = np.bincount(src[ok], weights=np.asarray(w, dtype=np.float64).ravel()[ok], minlength=m)
+    shares /= merged.weight[:, None]
+    return shares
+
+
+def _per_view(merged: MergedCloud, per_point: Sequence[Array]) -> list[tuple[NDArray[np.int64], Array]]:
+    """Each view's slice of ``merged.source`` beside its array of ``per_point`` (the inputs' order)."""
+    ends = np.cumsum([len(x) for x in per_point])
+    return [(merged.source[e - len(x) : e], x) for x, e in zip(per_point, ends, strict=True)]
 
 
 def datum_alignment_map(
@@ -187,10 +195,16 @@ def pose_uncertainty_of_points(
     by its view's error, less what the alignment takes out (``alignment_map`` B: x_align = B x; None:
     kinematic alignment, nothing). ``rows`` (M, 6): :func:`_rows` of the merged points."""
     n = shares.shape[1]
-    L = (shares[:, :, None] * rows[:, None, :]).reshape(len(rows), 6 * n)
-    if alignment_map is not None:
-        L -= rows @ alignment_map
-    return np.sqrt(np.maximum(np.einsum("ij,ij->i", L @ covariance, L), 0.0))
+    out = np.empty(len(rows), dtype=np.float64)
+    # a chunk of points at a time: L and L C are (M, 6n) float64, 576 bytes a point each for 12 views (the
+    # pillar's 2M merged points: 1.2 GB each, several at once); every point's row is its own
+    for a in range(0, len(rows), POINTS_PER_CHUNK):
+        s, r = shares[a : a + POINTS_PER_CHUNK], rows[a : a + POINTS_PER_CHUNK]
+        L = (s[:, :, None] * r[:, None, :]).reshape(len(r), 6 * n)
+        if alignment_map is not None:
+            L -= r @ alignment_map
+        out[a : a + len(r)] = np.sqrt(np.maximum(np.einsum("ij,ij->i", L @ covariance, L), 0.0))
+    return out
 
 
 def merged_uncertainty(
@@ -200,16 +214,13 @@ def merged_uncertainty(
     with the points given to :func:`cell.analysis.merge.merge_views`) and merge ``weights``: within a view the
     errors of one voxel's points are taken as fully correlated (neighbouring pixels share edges, pose and
     calibration), so their weighted u add linearly; the views add in quadrature."""
-    w = np.concatenate([np.asarray(x, dtype=np.float64).ravel() for x in weights])
-    u = np.concatenate([np.asarray(x, dtype=np.float64).ravel() for x in u_views])
-    view = np.repeat(np.arange(len(u_views)), [len(x) for x in u_views])
-    src = merged.source
-    ok = src >= 0
     m = len(merged.points_mm)
-    key = src[ok] * len(u_views) + view[ok]
-    keys, inv = np.unique(key, return_inverse=True)
-    per_view = np.bincount(inv, weights=w[ok] * u[ok])  # sum of w u of one view's points in one voxel
-    var = np.bincount(keys // len(u_views), weights=per_view**2, minlength=m)
+    var = np.zeros(m)
+    # view by view (no copy of all input points): the sum of w u of one view's points in each voxel, squared
+    for (src, u), w in zip(_per_view(merged, u_views), weights, strict=True):
+        ok = src >= 0
+        wu = np.asarray(w, dtype=np.float64).ravel()[ok] * np.asarray(u, dtype=np.float64).ravel()[ok]
+        var += np.square(np.bincount(src[ok], weights=wu, minlength=m))
     return np.sqrt(var) / merged.weight
 
 
