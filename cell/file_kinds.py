@@ -41,7 +41,8 @@ FILE_KINDS: tuple[FileKind, ...] = (
         "recipe",
         "cell.config:Recipe",
         "part tolerance",
-        "name min_coverage exclude_from_coverage plan alignment requires_calibration regions",
+        "name min_coverage exclude_from_coverage plan alignment requires_calibration regions decision_rule "
+        "guard_band",
         "give it as the RECIPE of `cell inspect` or `cell plan` (docs/recipes.md)",
     ),
     _kind(
