@@ -33,7 +33,8 @@ if TYPE_CHECKING:
 # spans more camera pixels but has a gentler slope, which lets the noise in where the code is sparse. 1.5 px
 # (grey levels 40 / 215 beside each boundary) is the worst-case best measured on the calibrated default cell's
 # spheres (PF, um, at near bottom left / far top left / centre far third: sharp 52.1 / 41.5 / 63.4, 1.5 px
-# 37.3 / 42.9 / 44.4, 2 px 28.5 / 50.7 / 29.5; docs/verification.md).
+# 37.5 / 42.6 / 44.3, 2 px 28.5 / 50.7 / 29.5; docs/verification.md): chosen from {1, 1.5, 2} on those
+# same spheres.
 MEASURING_EDGE_PX = 1.5
 
 Codec = Literal["gcls", "gcps", "graycode"]  # graycode: plain Gray code, cell/sensing/graycode.py
