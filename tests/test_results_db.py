@@ -180,11 +180,32 @@ def test_record_query_and_filter(db_url: str, tmp_path: Path) -> None:
     store.close()
 
 
-def _hand_capability(values: list[float], lower: float, upper: float) -> tuple[float, float]:
+def _hand_capability(values: list[float], lower: float, upper: float) -> tuple[float, float, float, float]:
+    """Cp, Cpk (sigma from the mean moving range / 1.128, an individuals chart's) and Pp, Ppk (sample s)."""
     n = len(values)
     mean = sum(values) / n
     s = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1))
-    return (upper - lower) / (6 * s), min(upper - mean, mean - lower) / (3 * s)
+    within = sum(abs(values[i] - values[i - 1]) for i in range(1, n)) / (n - 1) / 1.128
+    return (
+        (upper - lower) / (6 * within),
+        min(upper - mean, mean - lower) / (3 * within),
+        (upper - lower) / (6 * s),
+        min(upper - mean, mean - lower) / (3 * s),
+    )
+
+
+def test_capability_of_a_drifting_process_shows_pp_below_cp() -> None:
+    """Means drifting 0.01 mm a run: from one run to the next the spread is small (Cp high), over the
+    series it is large (Pp low), as AIAG's individuals chart tells them apart; shuffled, Pp is unchanged."""
+    from cell.results.spc import capability
+
+    drift = [0.01 * k for k in range(10)]
+    c = capability(drift, -0.3, 0.3)
+    cp, cpk, pp, ppk = _hand_capability(drift, -0.3, 0.3)
+    assert (c.cp, c.cpk, c.pp, c.ppk) == pytest.approx((cp, cpk, pp, ppk))
+    assert c.cp == pytest.approx(0.6 / (6 * 0.01 / 1.128)) and c.pp < c.cp / 2
+    shuffled = capability([drift[k] for k in (3, 8, 0, 6, 1, 9, 4, 7, 2, 5)], -0.3, 0.3)
+    assert shuffled.pp == pytest.approx(c.pp) and shuffled.cp < c.cp / 2
 
 
 def test_spc_figures_against_hand_computation(db_url: str, tmp_path: Path) -> None:
@@ -222,19 +243,19 @@ def test_spc_figures_against_hand_computation(db_url: str, tmp_path: Path) -> No
         assert [p.mean_mm for p in s.trend] == pytest.approx(means)
         extremes = [float(p[np.argmax(np.abs(p))]) for p in points]
         assert [p.extreme_mm for p in s.trend] == pytest.approx(extremes)
-        cp, cpk = _hand_capability(means, *band)
+        cp, cpk, pp, ppk = _hand_capability(means, *band)
         c = s.capability
         assert (c.n, c.lower_mm, c.upper_mm) == (len(offsets), *band)
-        assert c.cp == pytest.approx(cp) and c.cpk == pytest.approx(cpk)
+        assert (c.cp, c.cpk, c.pp, c.ppk) == pytest.approx((cp, cpk, pp, ppk))
 
     table = list(csv.DictReader(io.StringIO(store.spc_csv("box"))))
     assert len(table) == 3 * len(offsets)
     right = [r for r in table if r["series"] == "region:right"]
     assert [float(r["mean_mm"]) for r in right] == pytest.approx(expected["right"][0], rel=1e-5)
     cap = {r["series"]: r for r in csv.DictReader(io.StringIO(store.spc_csv("box", "capability")))}
-    assert float(cap["part"]["cpk"]) == pytest.approx(
-        _hand_capability(*expected[""][0:1], *BAND)[1], rel=1e-5
-    )
+    hand = _hand_capability(*expected[""][0:1], *BAND)
+    assert float(cap["part"]["cpk"]) == pytest.approx(hand[1], rel=1e-5)
+    assert float(cap["part"]["ppk"]) == pytest.approx(hand[3], rel=1e-5)
     one = store.spc("lid")  # one run: no spread, no Cp
     assert one.n_runs == 1 and one.part.capability.cp is None and one.part.capability.mean_mm is not None
     assert store.spc("nothing").n_runs == 0

@@ -5,8 +5,8 @@ from the page, read the verdict and its reasons; lose the database while the run
 recorded once the database is back; read the runs list and the SPC table; abort a run from the page. And the
 refusals: a wrong PIN, a serial a folder cannot hold, a recipe gone since the page was loaded, a start while a
 run is in progress, an operator at the technician's pages. What the pages say is checked against the run
-folders' journals and reports, the dent the simulated part carries, and Cp/Cpk computed here from the
-reports.
+folders' journals and reports, the dent the simulated part carries, and Cp/Cpk and Pp/Ppk computed here
+from the reports.
 
 The tests of this module share one station and run in order: the runs of the early ones are the history of
 the later ones (two finished runs make the SPC)."""
@@ -287,18 +287,23 @@ def test_the_spc_table_agrees_with_the_runs_reports(page, station: StationServer
             report["deviation"]["mean_mm"], abs=6e-5
         )
         assert float(row.locator(".extreme").inner_text()) == pytest.approx(_extreme(report), abs=6e-5)
-    # Cp and Cpk of the per-run means against the band, computed here from the reports
+    # Cp/Cpk (moving range of consecutive runs / 1.128) and Pp/Ppk (sample s) of the per-run means against
+    # the band, computed here from the reports
     means = np.array([r["deviation"]["mean_mm"] for r in reports])
     s, xbar = means.std(ddof=1), means.mean()
+    within = np.abs(np.diff(means)).mean() / 1.128
     lower, upper = reports[-1]["tolerance"]["lower_mm"], reports[-1]["tolerance"]["upper_mm"]
     part = page.locator("#capability tr[data-series='part']")
-    assert float(part.locator(".cp").inner_text()) == pytest.approx((upper - lower) / (6 * s), rel=0.01)
-    assert float(part.locator(".cpk").inner_text()) == pytest.approx(
-        min(upper - xbar, xbar - lower) / (3 * s), rel=0.01
-    )
+    for cls, sigma in (("cp", within), ("pp", s)):
+        assert float(part.locator(f".{cls}").inner_text()) == pytest.approx(
+            (upper - lower) / (6 * sigma), rel=0.01
+        )
+        assert float(part.locator(f".{cls}k").inner_text()) == pytest.approx(
+            min(upper - xbar, xbar - lower) / (3 * sigma), rel=0.01
+        )
     lid = [next(v for v in r["region_verdicts"] if v["name"] == "lid")["mean_mm"] for r in reports]
     expected = (upper - lower) / (6 * np.std(lid, ddof=1))
-    assert float(page.locator("#capability tr[data-series='lid'] .cp").inner_text()) == pytest.approx(
+    assert float(page.locator("#capability tr[data-series='lid'] .pp").inner_text()) == pytest.approx(
         expected, rel=0.01
     )
     assert page.locator("figure.chart svg").count() == 2  # the trends of the part and of the region

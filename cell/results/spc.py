@@ -4,14 +4,19 @@ mean against the tolerance band.
 
 The sample: one value per run, the run's mean signed deviation (mm) of the part or the region, over the
 runs of the recipe that finished with a ``pass`` or ``fail`` verdict (``incomplete`` runs measured too
-little to judge). With x̄ and s the mean and the sample standard deviation (n - 1) of these values and
-[L, U] the tolerance band of the newest run:
+little to judge), in time order. They are individual values (one part a subgroup), so as on an
+individuals chart (AIAG SPC manual, 2nd ed.) the short-term spread comes from the moving ranges of
+consecutive runs and the long-term spread from all of them. With x̄ the mean, MR̄ the mean of |x_i - x_(i-1)|,
+sigma_within = MR̄ / d2 (d2 = 1.128 for ranges of two), s the sample standard deviation (n - 1) and [L, U]
+the tolerance band of the newest run:
 
-    Cp = (U - L) / (6 s)        Cpk = min(U - x̄, x̄ - L) / (3 s)
+    Cp = (U - L) / (6 sigma_within)        Cpk = min(U - x̄, x̄ - L) / (3 sigma_within)
+    Pp = (U - L) / (6 s)                   Ppk = min(U - x̄, x̄ - L) / (3 s)
 
-This is the capability of where the surface sits from part to part (s is the overall spread, no rational
-subgroups: Pp/Ppk in AIAG terms). It does not judge the scatter of the points within one part; the extreme
-deviation's trend shows that. Cp and Cpk are None with fewer than two runs or no spread.
+Cp/Cpk say what the process could do if it stayed as steady as from one run to the next; Pp/Ppk what it did
+over the whole series (a drift lowers Pp below Cp). This is the capability of where the surface sits from
+part to part; it does not judge the scatter of the points within one part (the extreme deviation's trend
+shows that). The indices are None with fewer than two runs or no spread.
 """
 
 from __future__ import annotations
@@ -47,7 +52,8 @@ class TrendPoint:
 
 @dataclass(frozen=True)
 class Capability:
-    """Cp and Cpk of the per-run means of a series (see the module's docstring), band in mm."""
+    """Cp/Cpk (short-term spread ``sigma_within_mm``) and Pp/Ppk (overall ``std_mm``) of the per-run means of
+    a series (see the module's docstring), band in mm."""
 
     n: int
     mean_mm: float | None
@@ -56,6 +62,9 @@ class Capability:
     upper_mm: float | None
     cp: float | None
     cpk: float | None
+    sigma_within_mm: float | None = None
+    pp: float | None = None
+    ppk: float | None = None
 
 
 @dataclass(frozen=True)
@@ -81,8 +90,20 @@ class Spc:
         return [self.part, *self.regions]
 
 
+D2_RANGE_OF_TWO = 1.128  # d2 of a range of two values: E[|x1 - x2|] = d2 sigma for normal x
+
+
+def _indices(
+    xbar: float, sigma: float, lower: float | None, upper: float | None
+) -> tuple[float | None, float | None]:
+    """(U - L) / 6 sigma and min(U - x̄, x̄ - L) / 3 sigma, or None without a band or a spread."""
+    if sigma <= 0 or lower is None or upper is None:
+        return None, None
+    return (upper - lower) / (6 * sigma), min(upper - xbar, xbar - lower) / (3 * sigma)
+
+
 def capability(means: list[float], lower: float | None, upper: float | None) -> Capability:
-    """Cp/Cpk of ``means`` against [lower, upper] (mm)."""
+    """Cp/Cpk and Pp/Ppk of ``means`` (in time order) against [lower, upper] (mm)."""
     n = len(means)
     if n == 0:
         return Capability(0, None, None, lower, upper, None, None)
@@ -90,11 +111,10 @@ def capability(means: list[float], lower: float | None, upper: float | None) -> 
     if n < 2:
         return Capability(n, xbar, None, lower, upper, None, None)
     s = math.sqrt(math.fsum((x - xbar) ** 2 for x in means) / (n - 1))
-    if s <= 0 or lower is None or upper is None:
-        return Capability(n, xbar, s, lower, upper, None, None)
-    return Capability(
-        n, xbar, s, lower, upper, (upper - lower) / (6 * s), min(upper - xbar, xbar - lower) / (3 * s)
-    )
+    within = math.fsum(abs(b - a) for a, b in zip(means, means[1:])) / (n - 1) / D2_RANGE_OF_TWO
+    cp, cpk = _indices(xbar, within, lower, upper)
+    pp, ppk = _indices(xbar, s, lower, upper)
+    return Capability(n, xbar, s, lower, upper, cp, cpk, within, pp, ppk)
 
 
 def series(name: str, trend: list[TrendPoint], lower: float | None, upper: float | None) -> SpcSeries:
@@ -113,7 +133,19 @@ TREND_COLUMNS = (
     "max_mm",
     "extreme_mm",
 )
-CAPABILITY_COLUMNS = ("series", "n", "mean_mm", "std_mm", "lower_mm", "upper_mm", "cp", "cpk")
+CAPABILITY_COLUMNS = (  # after "series", the names of Capability's fields
+    "series",
+    "n",
+    "mean_mm",
+    "std_mm",
+    "lower_mm",
+    "upper_mm",
+    "cp",
+    "cpk",
+    "sigma_within_mm",
+    "pp",
+    "ppk",
+)
 
 
 def _name(s: SpcSeries) -> str:
@@ -152,9 +184,7 @@ def to_csv(spc: Spc, table: str = "trend") -> str:
         w.writerow(CAPABILITY_COLUMNS)
         for s in spc.series:
             c = s.capability
-            w.writerow(
-                [_cell(v) for v in (_name(s), c.n, c.mean_mm, c.std_mm, c.lower_mm, c.upper_mm, c.cp, c.cpk)]
-            )
+            w.writerow([_name(s), *(_cell(getattr(c, column)) for column in CAPABILITY_COLUMNS[1:])])
     else:
         raise ValueError(f"unknown SPC table {table!r}: trend or capability")
     return out.getvalue()

@@ -49,19 +49,20 @@ def _num(value: float | None, fmt: str) -> str:
 
 
 def spc_lines(spc: Spc) -> list[str]:
-    """The capability of each series of a recipe: runs, mean and spread of the per-run means, band, Cp and
-    Cpk (mm)."""
+    """The capability of each series of a recipe: runs, mean and overall spread of the per-run means, band,
+    Cp/Cpk (from the moving range) and Pp/Ppk (from the overall spread), mm."""
     lines = [
         f"SPC of recipe {_clip(spc.recipe, 40)}: {spc.n_runs} runs finished with pass or fail",
-        "Cp/Cpk of the per-run mean deviation (mm) against the newest run's band",
-        f"{'series':<22} {'n':>4} {'mean':>8} {'std':>7} {'lower':>7} {'upper':>7} {'Cp':>7} {'Cpk':>7}",
+        "mean deviation per run (mm); Cp/Cpk: moving range, Pp/Ppk: overall s",
+        f"{'series':<14} {'n':>4} {'mean':>8} {'s':>7} {'lower':>7} {'upper':>7} "
+        f"{'Cp':>6} {'Cpk':>6} {'Pp':>6} {'Ppk':>6}",
     ]
     for s in spc.series:
         c = s.capability
         name = "whole part" if s.name == PART else s.name
         lines.append(
-            f"{_clip(name, 22):<22} {c.n:>4} {_num(c.mean_mm, '+.4f'):>8} {_num(c.std_mm, '.4f'):>7} "
-            f"{_num(c.lower_mm, '+.3f'):>7} {_num(c.upper_mm, '+.3f'):>7} {_num(c.cp, '.2f'):>7} "
-            f"{_num(c.cpk, '.2f'):>7}"
+            f"{_clip(name, 14):<14} {c.n:>4} {_num(c.mean_mm, '+.4f'):>8} {_num(c.std_mm, '.4f'):>7} "
+            f"{_num(c.lower_mm, '+.3f'):>7} {_num(c.upper_mm, '+.3f'):>7} {_num(c.cp, '.2f'):>6} "
+            f"{_num(c.cpk, '.2f'):>6} {_num(c.pp, '.2f'):>6} {_num(c.ppk, '.2f'):>6}"
         )
     return lines

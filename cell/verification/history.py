@@ -16,10 +16,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cell.verification.procedure import AcceptanceResult
-
 if TYPE_CHECKING:
     from cell.config import CellConfig
+    from cell.verification.procedure import AcceptanceResult  # its figures import scipy (0.5-1 s)
 
 FIGURES = ("PF", "PS", "SD", "F")
 
