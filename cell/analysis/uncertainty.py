@@ -57,7 +57,7 @@ from cell.sensing.patterns import PatternSet
 from cell.sensing.triangulate import SensorCloud
 
 Array = NDArray[np.float64]
-POINTS_PER_CHUNK = 65_536  # merged points whose pose u is computed at a time (~0.1 GB of rows for 12 views)
+POINTS_PER_CHUNK = 65_536  # merged points whose pose u one call of the compiled kernel computes
 TARGET_SHARE_OF_BAND = 0.25  # a gauge is fit for a tolerance when U <= a quarter of its band (gauging rule)
 
 
@@ -194,16 +194,12 @@ def pose_uncertainty_of_points(
     :func:`posterior_covariance`): the point is the ``shares``-weighted mean of its views' points, each moved
     by its view's error, less what the alignment takes out (``alignment_map`` B: x_align = B x; None:
     kinematic alignment, nothing). ``rows`` (M, 6): :func:`_rows` of the merged points."""
-    n = shares.shape[1]
+    from cell.analysis._pose_kernel import pose_sigma  # compiled: only the views a point has enter it
+
     out = np.empty(len(rows), dtype=np.float64)
-    # a chunk of points at a time: L and L C are (M, 6n) float64, 576 bytes a point each for 12 views (the
-    # pillar's 2M merged points: 1.2 GB each, several at once); every point's row is its own
-    for a in range(0, len(rows), POINTS_PER_CHUNK):
+    for a in range(0, len(rows), POINTS_PER_CHUNK):  # every point's row is its own
         s, r = shares[a : a + POINTS_PER_CHUNK], rows[a : a + POINTS_PER_CHUNK]
-        L = (s[:, :, None] * r[:, None, :]).reshape(len(r), 6 * n)
-        if alignment_map is not None:
-            L -= r @ alignment_map
-        out[a : a + len(r)] = np.sqrt(np.maximum(np.einsum("ij,ij->i", L @ covariance, L), 0.0))
+        out[a : a + len(r)] = pose_sigma(s, r, covariance, alignment_map)
     return out
 
 
