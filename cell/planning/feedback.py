@@ -110,9 +110,13 @@ def uncertainty_map(views: list[MeasuredView], u_max_mm: float, link_mm: float =
     info = np.zeros(len(pts))
     for v in carrying:
         u = np.asarray(v.uncertainty_mm, dtype=np.float64)
-        d, k = (np.asarray(a) for a in cKDTree(v.points_W).query(pts, distance_upper_bound=link_mm))
+        # only the points in the view's box grown by the link distance can have a neighbour in it
+        lo, hi = v.points_W.min(axis=0) - link_mm, v.points_W.max(axis=0) + link_mm
+        inside = np.flatnonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
+        d, k = (np.asarray(a) for a in cKDTree(v.points_W).query(pts[inside], distance_upper_bound=link_mm))
         near = np.isfinite(d)
-        info[near] += 1.0 / np.square(np.where(np.isfinite(u[k[near]]), u[k[near]], np.inf))
+        at = inside[near]
+        info[at] += 1.0 / np.square(np.where(np.isfinite(u[k[near]]), u[k[near]], np.inf))
     with np.errstate(divide="ignore"):
         u_all = 1.0 / np.sqrt(info)
     return _consistent(pts, u_all > u_max_mm)
