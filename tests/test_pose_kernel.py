@@ -39,3 +39,24 @@ def test_pose_sigma_is_the_dense_quadratic_form(dense_shares: bool) -> None:
     for Bm in (None, B):
         want = _dense(shares, rows, C, Bm)
         assert pose_sigma(shares, rows, C, Bm) == pytest.approx(want, rel=1e-9, abs=1e-12)
+
+
+def test_datum_neighbourhoods_are_the_kd_trees() -> None:
+    """The merged points near each datum (whose view shares the datum alignment's map takes), found without a
+    tree of the whole cloud: the same points as scipy's cKDTree.query_ball_point."""
+    from scipy.spatial import cKDTree
+
+    from cell.analysis.uncertainty import _within
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-30.0, 30.0, size=(200_000, 3))
+    points[:, 2] = np.round(points[:, 2] / 3.0) * 3.0  # stacked sheets, as a part's faces
+    tree = cKDTree(points)
+    sizes = []
+    for _ in range(20):
+        centre = points[rng.integers(len(points))] + rng.normal(scale=0.3, size=3)
+        radius = float(rng.uniform(0.5, 5.0))
+        found = _within(points, centre, radius)
+        assert np.array_equal(found, np.sort(tree.query_ball_point(centre, radius)))
+        sizes.append(len(found))
+    assert min(sizes) > 0  # every neighbourhood held points to compare
