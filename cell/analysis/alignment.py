@@ -178,7 +178,13 @@ class _DatumIndex:
         self.points, self.datums, self.reach_mm = points, datums, reach_mm
         near = np.zeros(len(points), dtype=bool)
         for d in datums:
-            near |= np.einsum("ij,ij->i", points - d.point, points - d.point) <= (d.radius_mm + reach_mm) ** 2
+            r = d.radius_mm + reach_mm
+            # the ball's box first (a little larger, so rounding cannot drop a point): a few thousand of the
+            # cloud's millions of points get the distance test, which decides as it did over all of them
+            box = np.flatnonzero(np.abs(points[:, 0] - d.point[0]) <= r + 1e-6)  # the slab in x, then the box
+            box = box[np.all(np.abs(points[box] - d.point) <= r + 1e-6, axis=1)]
+            gap = points[box] - d.point
+            near[box[np.einsum("ij,ij->i", gap, gap) <= r**2]] = True
         self.index = np.flatnonzero(near)
         self.tree = cKDTree(points[self.index])
         self.whole: cKDTree | None = None

@@ -35,7 +35,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from cell.analysis.alignment import Datum
 from cell.analysis.errormap import NominalMesh, signed_distance
@@ -57,7 +56,7 @@ from cell.sensing.patterns import PatternSet
 from cell.sensing.triangulate import SensorCloud
 
 Array = NDArray[np.float64]
-POINTS_PER_CHUNK = 65_536  # merged points whose pose u is computed at a time (~0.1 GB of rows for 12 views)
+POINTS_PER_CHUNK = 65_536  # merged points whose pose u one call of the compiled kernel computes
 TARGET_SHARE_OF_BAND = 0.25  # a gauge is fit for a tolerance when U <= a quarter of its band (gauging rule)
 
 
@@ -194,16 +193,12 @@ def pose_uncertainty_of_points(
     :func:`posterior_covariance`): the point is the ``shares``-weighted mean of its views' points, each moved
     by its view's error, less what the alignment takes out (``alignment_map`` B: x_align = B x; None:
     kinematic alignment, nothing). ``rows`` (M, 6): :func:`_rows` of the merged points."""
-    n = shares.shape[1]
+    from cell.analysis._pose_kernel import pose_sigma  # compiled: only the views a point has enter it
+
     out = np.empty(len(rows), dtype=np.float64)
-    # a chunk of points at a time: L and L C are (M, 6n) float64, 576 bytes a point each for 12 views (the
-    # pillar's 2M merged points: 1.2 GB each, several at once); every point's row is its own
-    for a in range(0, len(rows), POINTS_PER_CHUNK):
+    for a in range(0, len(rows), POINTS_PER_CHUNK):  # every point's row is its own
         s, r = shares[a : a + POINTS_PER_CHUNK], rows[a : a + POINTS_PER_CHUNK]
-        L = (s[:, :, None] * r[:, None, :]).reshape(len(r), 6 * n)
-        if alignment_map is not None:
-            L -= r @ alignment_map
-        out[a : a + len(r)] = np.sqrt(np.maximum(np.einsum("ij,ij->i", L @ covariance, L), 0.0))
+        out[a : a + len(r)] = pose_sigma(s, r, covariance, alignment_map)
     return out
 
 
@@ -222,6 +217,16 @@ def merged_uncertainty(
         wu = np.asarray(w, dtype=np.float64).ravel()[ok] * np.asarray(u, dtype=np.float64).ravel()[ok]
         var += np.square(np.bincount(src[ok], weights=wu, minlength=m))
     return np.sqrt(var) / merged.weight
+
+
+def _within(points: Array, centre: Array, radius_mm: float) -> NDArray[np.int64]:
+    """Indices (ascending) of ``points`` within ``radius_mm`` of ``centre``: a slab, its box, then the
+    distance (a few datums in millions of points: no KD-tree of the whole cloud, two seconds of CPU)."""
+    c = np.asarray(centre, dtype=np.float64)
+    near = np.flatnonzero(np.abs(points[:, 0] - c[0]) <= radius_mm + 1e-9)
+    near = near[np.all(np.abs(points[near] - c) <= radius_mm + 1e-9, axis=1)]
+    gap = points[near] - c
+    return near[np.sqrt(np.einsum("ij,ij->i", gap, gap)) <= radius_mm]
 
 
 def combine(*terms_mm: NDArray[np.floating] | float) -> NDArray[np.float64]:
@@ -297,10 +302,9 @@ def registered_cloud_uncertainty(
     if "error" in alignment or method == "kinematic":
         B = None
     elif datums and method in ("datums", "datum_icp"):
-        tree = cKDTree(merged.points_mm)
         d_shares = []
         for d in datums:
-            near = tree.query_ball_point(d.point, d.radius_mm)
+            near = _within(merged.points_mm, d.point, d.radius_mm)
             d_shares.append(shares[near].mean(axis=0) if len(near) else np.full(n, 1.0 / n))
         B = datum_alignment_map(
             transform_points(T, np.array([d.point for d in datums])),

@@ -40,6 +40,7 @@ def accuracy_map(
     link_mm: float = 0.5,
     first_new: int = 1,
     max_incidence_deg: float = 90.0,
+    trees: list[cKDTree | None] | None = None,
 ) -> Array:
     """IA (eq 3.9): points of a view that disagree along the surface normal by more than ``tol_mm`` with the
     nearest point (within ``link_mm``) of an earlier overlapping view. Pairs whose nominal normals differ by
@@ -52,10 +53,13 @@ def accuracy_map(
     normal (the task constraint theta_th2 of eq 3.5): a view measures more than it was planned for, and its
     points beyond the constraint are the grazing ones the sensor is not qualified for. (Coverage and the merge
     still take them: coverage counts what was measured at all, and the merge weighs points by decode quality,
-    not incidence.)"""
+    not incidence.)
+
+    ``trees``: KD-trees of the views' points (None for an empty view) when the caller has them
+    (:func:`view_trees`)."""
     min_cos = float(np.cos(np.deg2rad(max_incidence_deg)))  # used below 90 deg only
     out = []
-    trees = [cKDTree(v.points_W) if len(v.points_W) else None for v in views[:-1]]
+    trees = view_trees(views[:-1]) if trees is None else trees
     boxes = [(v.points_W.min(axis=0), v.points_W.max(axis=0)) if len(v.points_W) else None for v in views]
     for j in range(max(1, first_new), len(views)):
         vj = views[j]
@@ -97,22 +101,41 @@ def accuracy_map(
     return np.vstack(out) if out else np.zeros((0, 3))
 
 
-def uncertainty_map(views: list[MeasuredView], u_max_mm: float, link_mm: float = 0.5) -> Array:
+def view_trees(views: list[MeasuredView]) -> list[cKDTree | None]:
+    """A KD-tree of each view's points (None for a view without points), for the accuracy and uncertainty
+    maps of one evaluation: built once, used by both."""
+    return [cKDTree(v.points_W) if len(v.points_W) else None for v in views]
+
+
+def uncertainty_map(
+    views: list[MeasuredView],
+    u_max_mm: float,
+    link_mm: float = 0.5,
+    trees: list[cKDTree | None] | None = None,
+) -> Array:
     """IU: points where the views together measure with a standard uncertainty above ``u_max_mm`` (the
     accuracy target, U = k u at most a quarter of the tolerance band, over k). Each view's points carry
     their own u (decode and calibration: what more views can average); where several views measured a spot
     (within ``link_mm``) their u combine as independent measurements, 1/u^2 = sum 1/u_v^2. Only areas count
-    (:func:`_consistent`): a few uncertain points at a sheet edge are no reason for a view."""
-    carrying = [v for v in views if v.uncertainty_mm is not None and len(v.points_W)]
+    (:func:`_consistent`): a few uncertain points at a sheet edge are no reason for a view. ``trees``: the
+    views' KD-trees (:func:`view_trees`) when the caller has them."""
+    carrying = [k for k, v in enumerate(views) if v.uncertainty_mm is not None and len(v.points_W)]
     if not carrying:
         return np.zeros((0, 3))
-    pts = np.vstack([v.points_W for v in carrying])
+    pts = np.vstack([views[c].points_W for c in carrying])
     info = np.zeros(len(pts))
-    for v in carrying:
+    for c in carrying:
+        v = views[c]
+        tree = trees[c] if trees is not None else None
         u = np.asarray(v.uncertainty_mm, dtype=np.float64)
-        d, k = (np.asarray(a) for a in cKDTree(v.points_W).query(pts, distance_upper_bound=link_mm))
+        # only the points in the view's box grown by the link distance can have a neighbour in it
+        lo, hi = v.points_W.min(axis=0) - link_mm, v.points_W.max(axis=0) + link_mm
+        inside = np.flatnonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
+        tree = cKDTree(v.points_W) if tree is None else tree
+        d, k = (np.asarray(a) for a in tree.query(pts[inside], distance_upper_bound=link_mm))
         near = np.isfinite(d)
-        info[near] += 1.0 / np.square(np.where(np.isfinite(u[k[near]]), u[k[near]], np.inf))
+        at = inside[near]
+        info[at] += 1.0 / np.square(np.where(np.isfinite(u[k[near]]), u[k[near]], np.inf))
     with np.errstate(divide="ignore"):
         u_all = 1.0 / np.sqrt(info)
     return _consistent(pts, u_all > u_max_mm)
@@ -313,6 +336,7 @@ def evaluate(
         pts = np.vstack([v.points_W for v in views]) if views else np.zeros((0, 3))
         covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
     u = float(s.area[s.inspectable & ~covered].sum())
+    trees = view_trees(views)  # for both maps
     ia = np.vstack(
         [
             ia_before,
@@ -322,10 +346,11 @@ def evaluate(
                 st.accuracy_tol_mm,
                 first_new=first_new,
                 max_incidence_deg=st.theta_camera_deg,
+                trees=trees,
             ),
         ]
     )
-    iu = np.zeros((0, 3)) if u_max_mm is None else uncertainty_map(views, u_max_mm)
+    iu = np.zeros((0, 3)) if u_max_mm is None else uncertainty_map(views, u_max_mm, trees=trees)
     v_area = float(s.area[fb.samples_near(ia, 1.0)].sum()) if len(ia) else 0.0
     iu_area = float(s.area[fb.samples_near(iu, 1.0)].sum()) if len(iu) else 0.0
     flagged = np.vstack([ia, iu])
