@@ -25,6 +25,7 @@ from cell.mesh import load_part_W
 from cell.runs import RunFolder
 from tests.box_part import small_cell, write_box_recipe
 from tests.same_result import assert_same_result
+from tests.shared_runs import once_per_session
 
 
 @pytest.fixture(scope="module")
@@ -60,10 +61,10 @@ def result_of(run_dir: Path) -> dict:
     return {"verdict": doc["verdict"], "n_points": doc["n_points"], "deviation": doc["deviation"]}
 
 
-@pytest.fixture(scope="module")
-def reference(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    run_dir = tmp_path_factory.mktemp("ref") / "run"
-    ctl, devices = make_controller(recipe_path, run_dir)
+def _reference_run(folder: Path) -> dict:
+    """An uninterrupted run of the box recipe (written into ``folder``, as :func:`recipe_path` writes it)."""
+    run_dir = folder / "run"
+    ctl, devices = make_controller(write_box_recipe(folder), run_dir)
     assert ctl.execute() == "done", ctl.message
     states = [e["state"] for e in RunFolder.open(run_dir).journal() if e["event"] == "state"]
     return {
@@ -71,8 +72,15 @@ def reference(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> di
         "states": states,
         "log": devices.robot.command_log,
         "views": len(ctl.checkpoint.views),
-        "run_dir": run_dir,
+        "run_dir": run_dir,  # read only: a test that changes it copies it first
     }
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The uninterrupted reference run, made once per test session for the files that compare against it
+    (this one, tests/test_controller_safety.py, tests/test_controller_overlap.py: tests/shared_runs.py)."""
+    return once_per_session(tmp_path_factory, "box-controller-reference", _reference_run)
 
 
 def test_uninterrupted_run_passes_through_every_phase(reference: dict) -> None:

@@ -21,13 +21,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from cell.runs import RunFolder
 from tests import cli_process
-from tests.box_part import small_cell, write_box_recipe
+from tests.box_part import small_cell
 from tests.browser import require_chromium
 from tests.same_result import assert_same_result, judged_report
+from tests.shared_runs import OPERATOR, box_cli_reference
 from tests.test_controller import make_controller, recipe_path, reference, result_of  # noqa: F401
 
 REPO = Path(__file__).resolve().parent.parent
@@ -161,10 +161,8 @@ def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """The box recipe and the small cell as a file. A test that needs a signal to arrive mid-move paces the
     simulated arm of one process through CELL_SIM_REALTIME_FACTOR (fakes/robot.py), which leaves the cell
     config, and so the run's record of its inputs, as it is."""
-    folder = tmp_path_factory.mktemp("rt")
-    recipe = write_box_recipe(folder)
-    (folder / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
-    return recipe, folder / "cell.yaml"
+    recipe, cell_file, _ = box_cli_reference(tmp_path_factory)
+    return recipe, cell_file
 
 
 @pytest.fixture(scope="module")
@@ -180,18 +178,11 @@ def _forked(log: Path, *args: str) -> subprocess.CompletedProcess:
     return cli_process.run(list(args), log)
 
 
-OPERATOR = "<script>alert(1)</script>"  # a valid operator name (printable) that must reach the page escaped
-
-
 @pytest.fixture(scope="module")
-def cli_reference_run(box_inputs: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The run folder of an uninterrupted `cell inspect` of the box (same inputs, seed and settings)."""
-    recipe, cell_file = box_inputs
-    out = tmp_path_factory.mktemp("cliref") / "ref"
-    args = ("--serial", "SN-7", "--operator", OPERATOR)
-    ref = _cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(out), *args)
-    judged_report(ref, out)
-    return out
+def cli_reference_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The run folder of an uninterrupted `cell inspect` of the box (same inputs, seed and settings; the
+    serial SN-7 and the operator OPERATOR given), made once per test session (tests/shared_runs.py)."""
+    return box_cli_reference(tmp_path_factory)[2]
 
 
 @pytest.fixture(scope="module")

@@ -18,12 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from cell.exit_codes import ExitCode
 from tests import cli_process
-from tests.box_part import small_cell, write_box_recipe
 from tests.same_result import assert_same_result, judged_report
+from tests.shared_runs import box_cli_reference
 
 REPO = Path(__file__).resolve().parent.parent
 BINNED = REPO / "recipes" / "cells" / "sim_binned.yaml"
@@ -59,15 +58,14 @@ def test_dented_pillar_fails_with_the_dent_located(tmp_path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """A small box recipe and a cell config with the 160x120 test sensor, written as files for the CLI.
+def box_reference(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """A small box recipe and a cell config with the 160x120 test sensor, written as files for the CLI, and
+    the run folder of their uninterrupted `cell inspect` (a `python -m cell` process), made once per test
+    session for this file and tests/test_controller_safety.py (tests/shared_runs.py).
 
     The box stands where the robot reaches all its faces: a run takes about 8 s on the shared 2-core machine,
     against 37 s at the origin, where the planner splits the unreachable face into tiny patches."""
-    folder = tmp_path_factory.mktemp("boxcli")
-    recipe = write_box_recipe(folder, at_mm=(0.0, -60.0, 0.0))
-    (folder / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
-    return recipe, folder / "cell.yaml"
+    return box_cli_reference(tmp_path_factory)
 
 
 def _journal_length(run: Path) -> int:
@@ -104,7 +102,7 @@ def _partial(run: Path, pid: int | None) -> bool:
 
 @pytest.mark.timeout(900)  # 20 kills in 2 chains of kill, resume, kill... of the box run, on a shared machine
 def test_killed_runs_resume_to_the_same_result(
-    box_inputs: tuple[Path, Path], cli_forks: None, tmp_path: Path
+    box_reference: tuple[Path, Path, Path], cli_forks: None, tmp_path: Path
 ) -> None:
     """SIGKILL (no handler runs) at 20 points spread over the run, then `cell resume` ends with the result of
     an uninterrupted run. The kills come in 2 chains of 10: each chain starts a `cell inspect`, kills it,
@@ -117,10 +115,9 @@ def test_killed_runs_resume_to_the_same_result(
     The uninterrupted run is a `python -m cell` process; the killed ones and the resumes run the same entry
     point (`cell.cli.main`) in processes forked from one that has imported it (tests/cli_process.py), so the
     21 of them pay the interpreter's ~3 s of imports once (a kill during the imports would leave nothing)."""
-    recipe, cell_file = box_inputs
-    ref = cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(tmp_path / "ref"))
-    expected = judged_report(ref, tmp_path / "ref")
-    n_ref = _journal_length(tmp_path / "ref")
+    recipe, cell_file, ref = box_reference
+    expected = report(ref)  # its exit code checked against its verdict when it was made
+    n_ref = _journal_length(ref)
     inspect = ["inspect", str(recipe), "--cell", str(cell_file), "--out"]
     rng = np.random.default_rng(7)
     kills, chain = 0, 0
