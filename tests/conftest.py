@@ -21,7 +21,7 @@ LONGEST_FIRST = (
     "test_inspect_e2e.py",  # 131 s (load 7.5-9): a pillar inspection 64 s, the kill-and-resume test 65 s
     "test_inspect_alignment.py",  # 97 s (load 10): a pillar inspection, its kinematic report
     "test_station_browser.py",  # ~70 s, more wall time: it waits on a browser and a live run
-    "test_controller_safety.py",  # 62-68 s (load 10-11.5)
+    "test_controller_safety.py",  # 57-62 s alone (load 7), both box references included
     "test_calib_procedures.py",  # 56 s (commit edb3b19)
     "test_sync_faults.py",  # 45 s (commit 7c95bd3)
     "test_glass_rig.py",
