@@ -740,7 +740,11 @@ class FakeURController:
     def __init__(self, host: str, **kwargs: Any) -> None:
         self.host = host
         self._kwargs = kwargs
-        ctx = multiprocessing.get_context("spawn")  # fork could inherit locks held by ur_rtde threads
+        # forked from a server process that has imported this module and nothing else: a fresh process with
+        # no ur_rtde threads or locks to inherit (a fork of the caller could), without a spawned interpreter's
+        # ~0.8 s of CPU for the imports each time
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload([__name__])
         self._pipe, child = ctx.Pipe()
         self._process = ctx.Process(target=_serve_process, args=(host, kwargs, child), daemon=True)
 
@@ -752,7 +756,7 @@ class FakeURController:
 
     def __enter__(self) -> FakeURController:
         self._process.start()
-        if not self._pipe.poll(30.0):  # a spawned Python imports numpy and scipy: slow on a busy machine
+        if not self._pipe.poll(30.0):  # the first starts the server, which imports numpy: slow when busy
             raise TimeoutError(f"fake UR controller on {self.host} did not start")
         status, detail = self._pipe.recv()
         if status != "ready":

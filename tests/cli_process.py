@@ -60,6 +60,7 @@ def server() -> Iterator[None]:
     """The forkserver of this process for a block of tests: started (with the CLI's modules imported) on the
     block's first :func:`start`, stopped and reaped at its end, so that no server outlives the tests and the
     CPU time of the processes it forked counts as this process's children's."""
+    forkserver._forkserver._stop()  # one another module started (fakes/ur_controller.py) has other imports
     multiprocessing.get_context("forkserver").set_forkserver_preload(PRELOAD)
     try:
         yield

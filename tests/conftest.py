@@ -11,27 +11,30 @@ import pytest
 # marker -> what the tests marked with it need
 COUNTED = {"postgres": "PostgreSQL server", "chromium": "headless Chromium browser"}
 
-# The longest test files, longest first (CPU and wall time measured one file at a time on the shared 2-core
-# machine). `make test` runs `pytest -n 2 --dist loadfile --no-loadscope-reorder`: the two workers take whole
-# files in collection order, so these start first and the short files fill in around them (xdist's default
-# order, most tests first, would start these few-test files last, where one of them may run alone at the end).
+# The longest test files, longest first (CPU time, user+sys, measured on the shared 2-core machine with a warm
+# numba cache, nice 10, load stated). `make test` runs `pytest -n 2 --dist loadfile --no-loadscope-reorder`:
+# the two workers take whole files in collection order, so these start first and the short files fill in
+# around them (xdist's default order, most tests first, would start these few-test files last, where one of
+# them may run alone at the end). The box reference runs that several files compare against are made once per
+# session by whichever file asks first (tests/shared_runs.py); the figures include them.
 LONGEST_FIRST = (
-    "test_inspect_e2e.py",  # 120 s CPU (load 11-15): a pillar inspection and the kill-and-resume test
-    "test_inspect_alignment.py",  # 97 s CPU (load 10): a pillar inspection, its kinematic report
-    "test_controller_safety.py",  # 69.5 s CPU (load 11; 106 s before the batched planning IK)
-    "test_station_browser.py",  # ~70 s CPU, more wall time: it waits on a browser and a live run
-    "test_controller.py",  # 49 s CPU (load 11)
-    "test_driver_ur_robot.py",  # real-time moves of the fake controller
-    "test_calib_procedures.py",
+    "test_inspect_e2e.py",  # 131 s (load 7.5-9): a pillar inspection 64 s, the kill-and-resume test 65 s
+    "test_inspect_alignment.py",  # 97 s (load 10): a pillar inspection, its kinematic report
+    "test_station_browser.py",  # ~70 s, more wall time: it waits on a browser and a live run
+    "test_controller_safety.py",  # 57-62 s alone (load 7), both box references included
+    "test_calib_procedures.py",  # 56 s (commit edb3b19)
+    "test_sync_faults.py",  # 45 s (commit 7c95bd3)
     "test_glass_rig.py",
-    "test_sync_faults.py",
-    "test_feedback_glare.py",  # 29.5 s CPU (load 10; 83-96 s before the batched planning IK)
+    "test_driver_ur_robot.py",  # 31 s, 106 s wall (load 6-7): real-time moves of the fake controller
+    "test_feedback_glare.py",  # 29.5 s (load 10; 83-96 s before the batched planning IK)
     "test_verification_acceptance.py",
     "test_calib_cli.py",
     "test_safety_storage.py",
     "test_record_replay_run.py",
     "test_calib_active.py",
+    "test_controller_overlap.py",  # 16-17 s (load 10-11.5)
     "test_planning_sim.py",
+    "test_controller.py",  # 12 s (load 11.5; 39 s before its faults shared two runs)
     "test_results_db.py",
     "test_storage_run.py",
 )

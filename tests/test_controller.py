@@ -25,6 +25,7 @@ from cell.mesh import load_part_W
 from cell.runs import RunFolder
 from tests.box_part import small_cell, write_box_recipe
 from tests.same_result import assert_same_result
+from tests.shared_runs import once_per_session
 
 
 @pytest.fixture(scope="module")
@@ -60,10 +61,10 @@ def result_of(run_dir: Path) -> dict:
     return {"verdict": doc["verdict"], "n_points": doc["n_points"], "deviation": doc["deviation"]}
 
 
-@pytest.fixture(scope="module")
-def reference(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    run_dir = tmp_path_factory.mktemp("ref") / "run"
-    ctl, devices = make_controller(recipe_path, run_dir)
+def _reference_run(folder: Path) -> dict:
+    """An uninterrupted run of the box recipe (written into ``folder``, as :func:`recipe_path` writes it)."""
+    run_dir = folder / "run"
+    ctl, devices = make_controller(write_box_recipe(folder), run_dir)
     assert ctl.execute() == "done", ctl.message
     states = [e["state"] for e in RunFolder.open(run_dir).journal() if e["event"] == "state"]
     return {
@@ -71,8 +72,15 @@ def reference(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> di
         "states": states,
         "log": devices.robot.command_log,
         "views": len(ctl.checkpoint.views),
-        "run_dir": run_dir,
+        "run_dir": run_dir,  # read only: a test that changes it copies it first
     }
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The uninterrupted reference run, made once per test session for the files that compare against it
+    (this one, tests/test_controller_safety.py, tests/test_controller_overlap.py: tests/shared_runs.py)."""
+    return once_per_session(tmp_path_factory, "box-controller-reference", _reference_run)
 
 
 def test_uninterrupted_run_passes_through_every_phase(reference: dict) -> None:
@@ -118,76 +126,133 @@ def test_no_motion_while_projector_is_not_ready(recipe_path: Path, tmp_path: Pat
     assert not [e for e in devices.robot.command_log if e["command"].startswith("move")]
 
 
-@pytest.mark.parametrize(
-    "fault", ["drop_frame", "grab_timeout_once", "connection_loss", "serial_timeout", "garbled_reply"]
-)
-def test_retryable_faults_end_in_done_with_identical_results(
-    recipe_path: Path, tmp_path: Path, reference: dict, fault: str
-) -> None:
-    ctl, devices = make_controller(recipe_path, tmp_path / "run")
-    if fault == "drop_frame":
-        devices.camera.faults.drop_frames = 1
-    elif fault == "grab_timeout_once":
-        original = devices.camera.grab
-        calls = {"n": 0}
+# Each retryable fault, injected in a step of its own of one run (a retry redoes the step it failed in): the
+# first move loses the robot's connection, the first exposure's frame is lost, a later grab times out with its
+# frame still coming, and the projector's serial line answers nothing, then garbage, to the status read after
+# a later view's stack. The grab and trigger counts put them views apart (the box takes 34 frames a view).
+GRAB_TIMEOUT_AT_GRAB = 80
+SERIAL_TIMEOUT_AT_TRIGGER = 150
+GARBLED_REPLY_AT_TRIGGER = 220
 
-        def flaky_grab(timeout_ms: float):
-            calls["n"] += 1
-            devices.camera.faults.grab_timeout = calls["n"] == 7
-            return original(timeout_ms)
 
-        devices.camera.grab = flaky_grab
-    elif fault == "connection_loss":
-        devices.robot.inject_fault("connection_loss")
-    else:  # the projector's serial line fails while the stack is captured (status is read after the stack)
-        original_trigger = devices.camera.trigger
-        triggers = {"n": 0}
+@pytest.fixture(scope="module")
+def retried(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """One run with the five retryable faults: its end state, the errors it journalled in order, and its
+    result."""
+    ctl, devices = make_controller(recipe_path, tmp_path_factory.mktemp("retried") / "run")
+    camera, projector = devices.camera, devices.projector
+    devices.robot.inject_fault("connection_loss")  # the next move, half way: the first
+    camera.faults.drop_frames = 1  # the next exposure: the first view's first frame
+    grab, trigger = camera.grab, camera.trigger
+    calls = {"grab": 0, "trigger": 0}
 
-        def trigger_then_line_fault() -> None:
-            triggers["n"] += 1
-            if triggers["n"] == 10:
-                if fault == "serial_timeout":
-                    devices.projector.faults.serial_timeouts = 1
-                else:
-                    devices.projector.faults.garbled_replies = 1
-            original_trigger()
+    def grab_timing_out_once(timeout_ms: float):
+        calls["grab"] += 1
+        camera.faults.grab_timeout = calls["grab"] == GRAB_TIMEOUT_AT_GRAB
+        return grab(timeout_ms)
 
-        devices.camera.trigger = trigger_then_line_fault
-    assert ctl.execute() == "done", ctl.message
+    def trigger_then_line_faults() -> None:
+        calls["trigger"] += 1
+        if calls["trigger"] == SERIAL_TIMEOUT_AT_TRIGGER:
+            projector.faults.serial_timeouts = 1
+        elif calls["trigger"] == GARBLED_REPLY_AT_TRIGGER:
+            projector.faults.garbled_replies = 1
+        trigger()
+
+    camera.grab, camera.trigger = grab_timing_out_once, trigger_then_line_faults
+    state = ctl.execute()
     errors = [e for e in ctl.run.journal() if e["event"] == "error"]
-    assert errors and all(e["retryable"] for e in errors)
-    assert_same_result(result_of(ctl.run.path), reference["result"], fault)
+    return {"state": state, "message": ctl.message, "errors": errors, "result": result_of(ctl.run.path)}
 
 
-@pytest.mark.parametrize("fault", ["protective_stop", "lamp_error_mid_run", "operator_pause"])
-def test_pausing_faults_resume_to_identical_results(
-    recipe_path: Path, tmp_path: Path, reference: dict, fault: str
+def test_retryable_faults_end_in_done_with_identical_results(retried: dict, reference: dict) -> None:
+    assert retried["state"] == "done", retried["message"]
+    assert retried["errors"] and all(e["retryable"] for e in retried["errors"])
+    assert_same_result(retried["result"], reference["result"], "retryable faults")
+
+
+@pytest.mark.parametrize(
+    "fault, kind, says, count",
+    [
+        ("connection_loss", "DeviceTimeout", "connection lost", 1),
+        ("drop_frame and grab_timeout_once", "DeviceTimeout", "the frame was lost", 2),
+        ("serial_timeout", "DeviceTimeout", "no reply to", 1),
+        ("garbled_reply", "DeviceProtocolError", "garbled reply to", 1),
+    ],
+)
+def test_each_retryable_fault_was_met_and_retried(
+    retried: dict, fault: str, kind: str, says: str, count: int
 ) -> None:
-    run_dir = tmp_path / "run"
-    ctl, devices = make_controller(recipe_path, run_dir)
+    """Each fault of the shared run showed as the error it causes, retried (the next attempt went on)."""
+    met = [e for e in retried["errors"] if e["kind"] == kind and says in e["error"]]
+    assert len(met) == count, (fault, retried["errors"])
+    assert all(e["retryable"] for e in met), fault
+
+
+PAUSING = ("protective_stop", "lamp_error_mid_run", "operator_pause")
+
+
+def _inject_pausing_fault(ctl: Controller, devices: DeviceBundle, fault: str) -> None:
+    """A protective stop on the next move, or the lamp failing / the operator pausing at the 40th trigger
+    (in the second view of the run's part this controller does)."""
     if fault == "protective_stop":
         devices.robot.inject_fault("protective_stop")
-    else:
-        original = devices.camera.trigger
-        calls = {"n": 0}
+        return
+    original = devices.camera.trigger
+    calls = {"n": 0}
 
-        def trigger_then_fault() -> None:
-            calls["n"] += 1
-            if calls["n"] == 40:
-                if fault == "lamp_error_mid_run":
-                    devices.projector.faults.lamp_error = True
-                else:
-                    ctl.request_pause("test")
-            original()
+    def trigger_then_fault() -> None:
+        calls["n"] += 1
+        if calls["n"] == 40:
+            if fault == "lamp_error_mid_run":
+                devices.projector.faults.lamp_error = True
+            else:
+                ctl.request_pause("test")
+        original()
 
-        devices.camera.trigger = trigger_then_fault
-    assert ctl.execute() == "paused", ctl.message
-    journal_before = len(ctl.run.journal())
-    # the operator fixes the cause; a new process resumes from the run folder
-    ctl2, _ = make_controller(recipe_path, run_dir)
-    assert ctl2.execute(resume=True) == "done", ctl2.message
-    assert len(ctl2.run.journal()) > journal_before  # nothing of the first part was lost
-    assert_same_result(result_of(run_dir), reference["result"], fault)
+    devices.camera.trigger = trigger_then_fault
+
+
+@pytest.fixture(scope="module")
+def paused_and_resumed(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """One run paused by each pausing fault in turn: the run pauses (a protective stop on its first move), a
+    new controller (a new process, the operator having fixed the cause) resumes it from the run folder, that
+    one pauses (the lamp fails), the next resumes it and is paused by the operator, and the last resumes it
+    to the end. Per fault: the state and message its controller ended in and the journal's length then;
+    and the run's end and result."""
+    run_dir = tmp_path_factory.mktemp("paused") / "run"
+    stages = {}
+    for i, fault in enumerate(PAUSING):
+        ctl, devices = make_controller(recipe_path, run_dir)
+        _inject_pausing_fault(ctl, devices, fault)
+        state = ctl.execute(resume=i > 0)
+        stages[fault] = {"state": state, "message": ctl.message, "journal": len(ctl.run.journal())}
+    ctl, _ = make_controller(recipe_path, run_dir)
+    state = ctl.execute(resume=True)
+    result = result_of(run_dir) if state == "done" else None
+    return {
+        "stages": stages,
+        "state": state,
+        "message": ctl.message,
+        "journal": len(ctl.run.journal()),
+        "result": result,
+    }
+
+
+@pytest.mark.parametrize("fault", PAUSING)
+def test_pausing_faults_pause_and_the_next_process_resumes(paused_and_resumed: dict, fault: str) -> None:
+    stage = paused_and_resumed["stages"][fault]
+    assert stage["state"] == "paused", (fault, stage["message"])
+    says = {"protective_stop": "protective stop", "lamp_error_mid_run": "lamp", "operator_pause": "test"}
+    assert says[fault] in stage["message"], stage["message"]
+    # the next process resumed it: nothing of this part was lost, the journal went on
+    later = [s["journal"] for s in paused_and_resumed["stages"].values()] + [paused_and_resumed["journal"]]
+    assert later[PAUSING.index(fault) + 1] > stage["journal"]
+
+
+def test_pausing_faults_resume_to_identical_results(paused_and_resumed: dict, reference: dict) -> None:
+    assert paused_and_resumed["state"] == "done", paused_and_resumed["message"]
+    assert_same_result(paused_and_resumed["result"], reference["result"], "paused three times")
 
 
 def test_recipe_regions_are_judged_with_their_own_bands(

@@ -1,7 +1,8 @@
 # ruff: noqa: F811  (the fixtures recipe_path and reference come from tests/test_controller.py)
 """Fault matrix, robot safety: a safeguard stop, a watchdog trip, a pause mid-move, SIGTERM mid-move through
 the CLI, and a stale run-folder lock. Each ends in a defined state (paused, with the arm stopped where the
-simulated physics says), loses no view, and `resume` ends with the result of an uninterrupted run.
+simulated physics says), loses no view, and `resume` ends with the result of an uninterrupted run. The first
+three pause one run in turn, each resuming what the one before paused.
 
 Truth: the simulated arm's motion on its own clock (trapezoid profiles, a deceleration at the configured
 maximum acceleration after a stop), and the uninterrupted reference run of tests/test_controller.py.
@@ -16,18 +17,20 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
+from cell.controller import Controller
+from cell.devices import DeviceBundle
 from cell.runs import RunFolder
 from tests import cli_process
-from tests.box_part import small_cell, write_box_recipe
+from tests.box_part import small_cell
 from tests.browser import require_chromium
 from tests.same_result import assert_same_result, judged_report
+from tests.shared_runs import OPERATOR, box_cli_reference
 from tests.test_controller import make_controller, recipe_path, reference, result_of  # noqa: F401
 
 REPO = Path(__file__).resolve().parent.parent
@@ -41,23 +44,35 @@ def _views_in_journal(run_dir: Path) -> set[int]:
     return {e["view"] for e in RunFolder.open(run_dir).journal() if e["event"] == "view"}
 
 
-def _resume_and_compare(recipe_path: Path, run_dir: Path, reference: dict, context: str) -> None:
-    views_before = set(RunFolder.open(run_dir).completed_views())
-    journal_before = len(RunFolder.open(run_dir).journal())
-    ctl, _ = make_controller(recipe_path, run_dir)
-    assert ctl.execute(resume=True) == "done", ctl.message
-    assert views_before <= set(ctl.run.completed_views())  # no view lost
-    assert len(ctl.run.journal()) > journal_before
-    assert_same_result(result_of(run_dir), reference["result"], context)
+@pytest.fixture(scope="module")
+def paused_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The run folder the three in-process tests below pause in turn, in file order (a safeguard stop, a
+    watchdog trip, a pause mid-move; each test's controller a new process that resumes the run the last one
+    paused), and the fourth resumes to its end: one run, not three (a test run alone starts the run)."""
+    return tmp_path_factory.mktemp("paused") / "run"
 
 
-def test_safeguard_stop_mid_move_pauses_and_resumes(
-    recipe_path: Path, tmp_path: Path, reference: dict
-) -> None:
-    """A guard opens during a move: the arm stops on its path, the run pauses naming the safeguard stop and
-    refuses to move while the guard is open; after the reset, resume ends with the reference result."""
-    run_dir = tmp_path / "run"
+def _go_on(recipe_path: Path, run_dir: Path) -> tuple[Controller, DeviceBundle, Callable[[], str]]:
+    """A controller for the run in ``run_dir`` (a new one, or the paused one resumed), its devices, and the
+    call that executes it and checks that the views done before it are still done and the journal went on."""
     ctl, devices = make_controller(recipe_path, run_dir)
+    resumed = (run_dir / "journal.jsonl").exists()
+    views_before = set(RunFolder.open(run_dir).completed_views()) if resumed else set()
+    journal_before = len(RunFolder.open(run_dir).journal()) if resumed else 0
+
+    def execute() -> str:
+        state = ctl.execute(resume=resumed)
+        assert views_before <= set(ctl.run.completed_views())  # no view lost
+        assert len(ctl.run.journal()) > journal_before
+        return state
+
+    return ctl, devices, execute
+
+
+def test_safeguard_stop_mid_move_pauses_and_resumes(recipe_path: Path, paused_run: Path) -> None:
+    """A guard opens during a move: the arm stops on its path, the run pauses naming the safeguard stop and
+    refuses to move while the guard is open; after the reset the next test's controller resumes it."""
+    ctl, devices, execute = _go_on(recipe_path, paused_run)
     original = devices.camera.trigger
     calls = {"n": 0}
 
@@ -68,24 +83,20 @@ def test_safeguard_stop_mid_move_pauses_and_resumes(
         original()
 
     devices.camera.trigger = trigger_then_open_the_guard
-    assert ctl.execute() == "paused", ctl.message
+    assert execute() == "paused", ctl.message
     assert "safeguard stop" in ctl.message
     stopped = [e for e in _moves(devices.robot.command_log) if e["outcome"] == "safeguard_stop"]
     assert len(stopped) == 1 and stopped[0]["duration_s"] > 0.0
     devices.robot.connect()
     state = devices.robot.state()
     assert state.safeguard_stop and not state.normal and "safeguard" in state.why_not_normal
-    _resume_and_compare(recipe_path, run_dir, reference, "safeguard stop")
 
 
-def test_watchdog_trip_stops_the_arm_within_the_period(
-    recipe_path: Path, tmp_path: Path, reference: dict
-) -> None:
+def test_watchdog_trip_stops_the_arm_within_the_period(recipe_path: Path, paused_run: Path) -> None:
     """The controlling code stops kicking mid-move (as when its process dies or hangs): the simulated arm
     starts to decelerate one watchdog period after the last kick and stands still after at most v/a more,
-    never reaching its target; the run pauses and resumes to the reference result."""
-    run_dir = tmp_path / "run"
-    ctl, devices = make_controller(recipe_path, run_dir)
+    never reaching its target; the run pauses, for the next test's controller to resume."""
+    ctl, devices, execute = _go_on(recipe_path, paused_run)
     robot = devices.robot
     period = robot.watchdog_period_s
     assert period == pytest.approx(0.1)  # default 10 Hz, like ur_rtde's setWatchdog()
@@ -99,7 +110,7 @@ def test_watchdog_trip_stops_the_arm_within_the_period(
             kick()
 
     robot.kick_watchdog = kick_until_dead
-    assert ctl.execute() == "paused", ctl.message
+    assert execute() == "paused", ctl.message
     assert "watchdog" in ctl.message
     tripped = [e for e in _moves(robot.command_log) if e["outcome"] == "watchdog"]
     assert len(tripped) == 1
@@ -114,14 +125,12 @@ def test_watchdog_trip_stops_the_arm_within_the_period(
         target = np.asarray(tripped[0]["target"])[:3, 3]
         robot.connect()
         assert np.linalg.norm(robot.tool_pose()[:3, 3] - target) > 1.0  # it did not finish the move
-    _resume_and_compare(recipe_path, run_dir, reference, "watchdog trip")
 
 
-def test_pause_mid_move_stops_the_arm_at_once(recipe_path: Path, tmp_path: Path, reference: dict) -> None:
+def test_pause_mid_move_stops_the_arm_at_once(recipe_path: Path, paused_run: Path) -> None:
     """request_pause (what Ctrl-C and SIGTERM call) during a move: the arm decelerates from that instant,
-    the move ends within the stop ramp (no wait for the move to end), the run pauses and resumes."""
-    run_dir = tmp_path / "run"
-    ctl, devices = make_controller(recipe_path, run_dir)
+    the move ends within the stop ramp (no wait for the move to end), the run pauses."""
+    ctl, devices, execute = _go_on(recipe_path, paused_run)
     robot = devices.robot
     wait = robot.wait
     polls = {"n": 0, "t": None}
@@ -134,7 +143,7 @@ def test_pause_mid_move_stops_the_arm_at_once(recipe_path: Path, tmp_path: Path,
         return wait(timeout_s)
 
     robot.wait = wait_then_pause
-    assert ctl.execute() == "paused", ctl.message
+    assert execute() == "paused", ctl.message
     assert ctl.message.startswith("pause requested: test") and "stopped" in ctl.message
     stopped = [e for e in _moves(robot.command_log) if e["outcome"] == "stopped"]
     assert len(stopped) == 1
@@ -146,7 +155,14 @@ def test_pause_mid_move_stops_the_arm_at_once(recipe_path: Path, tmp_path: Path,
     )
     assert polls["t"] <= end <= polls["t"] + worst_stop + 1e-9
     assert not [e for e in _moves(robot.command_log) if e["start_s"] > polls["t"]]  # nothing sent after
-    _resume_and_compare(recipe_path, run_dir, reference, "pause mid-move")
+
+
+def test_the_run_paused_three_times_resumes_to_the_reference_result(
+    recipe_path: Path, paused_run: Path, reference: dict
+) -> None:
+    ctl, _, execute = _go_on(recipe_path, paused_run)
+    assert execute() == "done", ctl.message
+    assert_same_result(result_of(paused_run), reference["result"], "safeguard stop, watchdog, pause mid-move")
 
 
 # ------------------------------------------------------------------------------------------ CLI, processes
@@ -161,10 +177,8 @@ def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """The box recipe and the small cell as a file. A test that needs a signal to arrive mid-move paces the
     simulated arm of one process through CELL_SIM_REALTIME_FACTOR (fakes/robot.py), which leaves the cell
     config, and so the run's record of its inputs, as it is."""
-    folder = tmp_path_factory.mktemp("rt")
-    recipe = write_box_recipe(folder)
-    (folder / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
-    return recipe, folder / "cell.yaml"
+    recipe, cell_file, _ = box_cli_reference(tmp_path_factory)
+    return recipe, cell_file
 
 
 @pytest.fixture(scope="module")
@@ -180,18 +194,11 @@ def _forked(log: Path, *args: str) -> subprocess.CompletedProcess:
     return cli_process.run(list(args), log)
 
 
-OPERATOR = "<script>alert(1)</script>"  # a valid operator name (printable) that must reach the page escaped
-
-
 @pytest.fixture(scope="module")
-def cli_reference_run(box_inputs: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The run folder of an uninterrupted `cell inspect` of the box (same inputs, seed and settings)."""
-    recipe, cell_file = box_inputs
-    out = tmp_path_factory.mktemp("cliref") / "ref"
-    args = ("--serial", "SN-7", "--operator", OPERATOR)
-    ref = _cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(out), *args)
-    judged_report(ref, out)
-    return out
+def cli_reference_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The run folder of an uninterrupted `cell inspect` of the box (same inputs, seed and settings; the
+    serial SN-7 and the operator OPERATOR given), made once per test session (tests/shared_runs.py)."""
+    return box_cli_reference(tmp_path_factory)[2]
 
 
 @pytest.fixture(scope="module")

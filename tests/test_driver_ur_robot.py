@@ -9,6 +9,7 @@ import os
 import socket
 import time
 from collections.abc import Callable
+from multiprocessing import forkserver
 
 import numpy as np
 import pytest
@@ -45,6 +46,15 @@ def robot_config(host: str, **options) -> RobotConfig:
         home_joints_deg=(180.0, -90.0, 90.0, -90.0, -90.0, 0.0),
         options={"power_on_at_connect": True, **options},
     )
+
+
+@pytest.fixture(scope="module", autouse=True)
+def fake_controller_server():
+    """The fake controllers of this module are forked from one server process (fakes/ur_controller.py);
+    stopped and reaped at the module's end, so that no server outlives the tests and the CPU time of the
+    processes it forked counts as this process's children's."""
+    yield
+    forkserver._forkserver._stop()  # the standard library's own tests stop it so
 
 
 @pytest.fixture

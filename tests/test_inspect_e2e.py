@@ -9,6 +9,7 @@ resumes too (chains of kills), so that 20 kills cost about two runs, not twenty.
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -18,12 +19,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from cell.exit_codes import ExitCode
 from tests import cli_process
-from tests.box_part import small_cell, write_box_recipe
 from tests.same_result import assert_same_result, judged_report
+from tests.shared_runs import box_cli_reference
 
 REPO = Path(__file__).resolve().parent.parent
 BINNED = REPO / "recipes" / "cells" / "sim_binned.yaml"
@@ -59,23 +59,37 @@ def test_dented_pillar_fails_with_the_dent_located(tmp_path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def box_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """A small box recipe and a cell config with the 160x120 test sensor, written as files for the CLI.
+def box_reference(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """A small box recipe and a cell config with the 160x120 test sensor, written as files for the CLI, and
+    the run folder of their uninterrupted `cell inspect` (a `python -m cell` process), made once per test
+    session for this file and tests/test_controller_safety.py (tests/shared_runs.py).
 
     The box stands where the robot reaches all its faces: a run takes about 8 s on the shared 2-core machine,
     against 37 s at the origin, where the planner splits the unreachable face into tiny patches."""
-    folder = tmp_path_factory.mktemp("boxcli")
-    recipe = write_box_recipe(folder, at_mm=(0.0, -60.0, 0.0))
-    (folder / "cell.yaml").write_text(yaml.safe_dump(small_cell().model_dump(mode="json")))
-    return recipe, folder / "cell.yaml"
+    return box_cli_reference(tmp_path_factory)
 
 
-def _journal_length(run: Path) -> int:
-    """Lines in the run's journal, or -1 while the run folder does not exist under its name."""
+# the journal lines of the run's steps: a view captured, a view measured, the evaluation, the report...; not
+# the lines each process writes as it starts or resumes the run (lock, resuming, connecting, homing)
+STEPS = re.compile(
+    rb'^.*"event": "(?:plan|capture|view|evaluation|replan|registration|verdict|report_written)".*$', re.M
+)
+
+
+def _progress(run: Path) -> int:
+    """The steps the run has done (:data:`STEPS`: a line's event and view), each counted once however often
+    it was redone after a kill; -1 while the run folder does not exist under its name."""
     path = run / "journal.jsonl"
     if not path.exists():
         return -1
-    return len(path.read_bytes().splitlines())
+    steps = set()
+    for line in STEPS.findall(path.read_bytes()):
+        try:
+            entry = json.loads(line)
+        except ValueError:  # the line being written
+            continue
+        steps.add((entry["event"], entry.get("view")))
+    return len(steps)
 
 
 def _finished(run: Path) -> bool:
@@ -104,37 +118,38 @@ def _partial(run: Path, pid: int | None) -> bool:
 
 @pytest.mark.timeout(900)  # 20 kills in 2 chains of kill, resume, kill... of the box run, on a shared machine
 def test_killed_runs_resume_to_the_same_result(
-    box_inputs: tuple[Path, Path], cli_forks: None, tmp_path: Path
+    box_reference: tuple[Path, Path, Path], cli_forks: None, tmp_path: Path
 ) -> None:
     """SIGKILL (no handler runs) at 20 points spread over the run, then `cell resume` ends with the result of
     an uninterrupted run. The kills come in 2 chains of 10: each chain starts a `cell inspect`, kills it,
     resumes, kills the resume, ... and finally lets a resume finish, whose report is compared with the
     uninterrupted run's (once per chain). The first two processes of a chain are killed during start-up: the
     first once it has made its partial run folder (inputs being copied, the lock being taken), the second by
-    time (the run folder may not exist yet, or hold a dead process's lock); the other eight at journal
-    lengths spread over the reference run's whole journal (the run's own progress, not a wall-clock guess).
+    time (the run folder may not exist yet, or hold a dead process's lock); the other eight at steps spread
+    over the reference run's (views captured and measured, evaluation, replanning, registration, report, as
+    its journal records them: the run's own progress, not a wall-clock guess), each once the process has
+    done a step of its own.
 
     The uninterrupted run is a `python -m cell` process; the killed ones and the resumes run the same entry
     point (`cell.cli.main`) in processes forked from one that has imported it (tests/cli_process.py), so the
     21 of them pay the interpreter's ~3 s of imports once (a kill during the imports would leave nothing)."""
-    recipe, cell_file = box_inputs
-    ref = cell("inspect", str(recipe), "--cell", str(cell_file), "--out", str(tmp_path / "ref"))
-    expected = judged_report(ref, tmp_path / "ref")
-    n_ref = _journal_length(tmp_path / "ref")
+    recipe, cell_file, ref = box_reference
+    expected = report(ref)  # its exit code checked against its verdict when it was made
+    n_ref = _progress(ref)
     inspect = ["inspect", str(recipe), "--cell", str(cell_file), "--out"]
     rng = np.random.default_rng(7)
     kills, chain = 0, 0
     while kills < KILLS:
         assert chain < 2 * KILLS // KILLS_PER_CHAIN, f"only {kills} kills landed before their runs ended"
         run = tmp_path / f"c{chain}"
-        # kill points: two in start-up, then journal lengths spread over the reference run
+        # kill points: two in start-up, then steps spread over the reference run's
         targets = [-1, 0, *np.sort(rng.integers(1, n_ref, size=KILLS_PER_CHAIN - 2))]
         for j, target in enumerate(targets):
             if kills == KILLS or _finished(run):
                 break
             args = ["resume", str(run)] if run.exists() else [*inspect, str(run)]
-            context = f"chain {chain} kill {j} ({args[0]}, journal line {target})"
-            start = _journal_length(run)
+            context = f"chain {chain} kill {j} ({args[0]}, step {target})"
+            start = _progress(run)
             proc = cli_process.start(args, tmp_path / f"c{chain}-{j}.log")
             if target == -1:  # start-up: its partial run folder made (inputs being copied), a little later
                 while proc.is_alive() and not _partial(run, proc.pid) and not run.exists():
@@ -142,8 +157,8 @@ def test_killed_runs_resume_to_the_same_result(
                 time.sleep(rng.uniform(0.0, 0.05))
             elif target == 0:  # start-up: loading inputs, copying them or taking over a dead process's lock
                 time.sleep(rng.uniform(0.0, 0.5))
-            else:  # once this process has journalled something and reached the target, a little later
-                while proc.is_alive() and _journal_length(run) < max(target, start + 1):
+            else:  # once this process has done a step and the run has reached the target, a little later
+                while proc.is_alive() and _progress(run) < max(target, start + 1):
                     time.sleep(0.005)
                 time.sleep(rng.uniform(0.0, 0.3))
             if proc.is_alive():

@@ -25,7 +25,12 @@ from tests.contracts.camera_contract import CameraContract
 from tests.contracts.robot_contract import RobotContract
 from tests.test_driver_genicam_camera import camera_config
 from tests.test_driver_serial_projector import SESSION, projector_config, run_session
-from tests.test_driver_ur_robot import FACING_X, fresh_host, robot_config
+from tests.test_driver_ur_robot import (
+    FACING_X,
+    fake_controller_server,  # noqa: F401 - stops the fakes' forkserver
+    fresh_host,
+    robot_config,
+)
 
 pytestmark = pytest.mark.timeout(60)
 
