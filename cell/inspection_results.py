@@ -128,7 +128,7 @@ class InspectionResults:
         )
         merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
         n_views = len(points)
-        del points  # 24 bytes an input point (a 5 MP camera's dozen views: 0.5 GB), not needed after the merge
+        del points  # 24 bytes an input point (a 5 MP camera's dozen views: 0.5 GB), not needed once merged
         method = self.recipe.alignment.method
         try:
             found = self.aligner.align(merged.points_mm)

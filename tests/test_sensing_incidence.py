@@ -100,7 +100,8 @@ def test_normals_in_bands_are_the_whole_image_normals(monkeypatch: pytest.Monkey
     import cell.sensing.incidence as incidence
 
     p, valid, _ = _sphere(np.array([3.0, -2.0, 400.0]), 12.0)
-    noisy = (p + np.random.default_rng(1).normal(0, 0.008, p.shape)).astype(np.float32)  # as a cloud holds them
+    noise = np.random.default_rng(1).normal(0, 0.008, p.shape)
+    noisy = (p + noise).astype(np.float32)  # float32, as a cloud holds its points
     valid &= np.random.default_rng(2).random(valid.shape) > 0.02  # holes: windows with too few neighbours
     monkeypatch.setattr(incidence, "BAND_ROWS", 10 * H)
     whole = measured_normals(noisy, valid)

@@ -18,7 +18,6 @@ from numpy.typing import NDArray
 
 from cell.errors import ConfigError
 
-
 BAND_ROWS = 256  # image rows per band of the normals: ~10 float64 (rows, W, 3) temporaries, not full images
 
 
@@ -51,7 +50,9 @@ def measured_normals(
     return out
 
 
-def _band_normals(p: NDArray[np.float64], valid: NDArray[np.bool_], half_window_px: int) -> NDArray[np.float64]:
+def _band_normals(
+    p: NDArray[np.float64], valid: NDArray[np.bool_], half_window_px: int
+) -> NDArray[np.float64]:
     """:func:`measured_normals` of one band of rows, all at once."""
     h = half_window_px
     ok = valid & np.isfinite(p).all(axis=2)
