@@ -174,7 +174,7 @@ class SceneRenderer:
             self._cache.move_to_end(key)
             return self._cache[key]
         # Room first, for a pose as large as the largest cached one: the old poses are dropped before the new
-        # one is computed, not after (a 5 MP camera held two 0.3 GB poses at once).
+        # one is computed, not after (a 5 MP camera held two poses' geometry at once: images, blur maps).
         new = max(map(_nbytes, self._cache.values()), default=0)
         while self._cache and (
             len(self._cache) >= self._cache_size
