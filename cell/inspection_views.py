@@ -43,9 +43,12 @@ from cell.view_files import (
 PLANES_FILE = "planes.npz"  # the evaluation subset's local planes (float64 centroids and normals, bool ok)
 REGIONS_FILE = "defects.npz"  # the hole regions (format 2: 0.1 um steps; format 1: float64)
 REGIONS_FORMAT = 2
-# the views' full point sets kept in memory at most (the 1024x768 cell's dozen views take ~0.12 GB, a 5 MP
-# camera's ~0.9 GB); beyond it the oldest views' points are dropped and read from their folders when needed
-POINTS_IN_MEMORY_BYTES = 1_000_000_000
+# the views' full point sets kept in memory at most (33 bytes a point: a 1024x768 view ~10 MB, a 5 MP view
+# ~75 MB); beyond it the oldest views' points are dropped and read from their folders when needed (by the
+# registration, one view at a time). A fixed figure, not one that grows with the camera: the 1024x768 cell's
+# dozen views (0.12 GB) stay held, a 5 MP camera's dozen (0.9 GB) would sit beside the registration's own
+# ~2 GB at its peak (docs/benchmarks.md, "Peak memory of a whole inspection"), so only its last ~3 stay
+POINTS_IN_MEMORY_BYTES = 256_000_000
 
 
 @dataclass

@@ -90,3 +90,27 @@ def test_a_limit_outside_0_90_is_refused():
     p, valid, _ = _sphere(np.array([0.0, 0.0, 400.0]), 10.0)
     with pytest.raises(ConfigError, match="max_projector_incidence_deg"):
         lit_too_obliquely(p, valid, PROJECTOR_C, 95.0)
+
+
+@pytest.mark.parametrize("band_rows", [7, 64])
+def test_normals_in_bands_are_the_whole_image_normals(monkeypatch: pytest.MonkeyPatch, band_rows: int):
+    """The banded normals against one pass over the whole image (the module's band height set above the
+    image): the same NaN pattern and, where finite, the same normals to within the last bits (OpenCV's box
+    sums run down the rows from each band's first)."""
+    import cell.sensing.incidence as incidence
+
+    p, valid, _ = _sphere(np.array([3.0, -2.0, 400.0]), 12.0)
+    noise = np.random.default_rng(1).normal(0, 0.008, p.shape)
+    noisy = (p + noise).astype(np.float32)  # float32, as a cloud holds its points
+    valid &= np.random.default_rng(2).random(valid.shape) > 0.02  # holes: windows with too few neighbours
+    monkeypatch.setattr(incidence, "BAND_ROWS", 10 * H)
+    whole = measured_normals(noisy, valid)
+    whole_angle = projector_incidence_deg(noisy, valid, PROJECTOR_C)
+    monkeypatch.setattr(incidence, "BAND_ROWS", band_rows)
+    banded = measured_normals(noisy, valid)
+    banded_angle = projector_incidence_deg(noisy, valid, PROJECTOR_C)
+    assert np.isfinite(whole).all(-1).sum() > 0.5 * valid.sum()
+    assert np.array_equal(np.isnan(banded), np.isnan(whole))
+    assert np.allclose(banded, whole, rtol=0, atol=1e-12, equal_nan=True)
+    assert np.array_equal(np.isnan(banded_angle), np.isnan(whole_angle))
+    assert np.allclose(banded_angle, whole_angle, rtol=0, atol=1e-9, equal_nan=True)

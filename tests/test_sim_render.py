@@ -185,3 +185,31 @@ def test_patterns_at_one_pose_share_one_ray_cast(monkeypatch: pytest.MonkeyPatch
     assert (np.diff(stack.reshape(3, -1).mean(axis=1)) > 0).all()
     rig.renderer.render(top_down_pose(x_mm=5.0), pats[0], 10.0, 0.0, None)
     assert len(calls) == 2
+
+
+def test_a_new_pose_is_computed_after_the_old_ones_are_dropped(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Within the cache's byte budget the old poses go before a new one is computed, not after it (a 5 MP
+    pose's geometry is ~0.3 GB: two at once were a peak of the hires inspection); what is rendered from a
+    pose computed again is the same image."""
+    import fakes.sim.render as render
+
+    rig = small_rig(sim=QUIET)
+    r = rig.renderer
+    held_when_computed = []
+    original = r._compute_view
+    monkeypatch.setattr(r, "_compute_view", lambda T: held_when_computed.append(len(r._cache)) or original(T))
+    pat = np.full((96, 128), 200, np.uint8)
+    a, b = top_down_pose(), top_down_pose(x_mm=5.0)
+    first = r.render(a, pat, 10.0, 0.0, None)
+    one_pose = render._nbytes(r.view(a))
+    monkeypatch.setattr(render, "CACHE_BYTES", int(1.5 * one_pose))  # room for one pose, not two
+    r.render(b, pat, 10.0, 0.0, None)
+    assert held_when_computed == [0, 0] and list(r._cache) == [b.tobytes()]
+    again = r.render(a, pat, 10.0, 0.0, None)
+    assert held_when_computed == [0, 0, 0] and np.array_equal(again, first)
+    monkeypatch.setattr(render, "CACHE_BYTES", 10 * one_pose)  # room for several: cache_size (3) poses kept
+    for x in (10.0, 15.0):
+        r.render(top_down_pose(x_mm=x), pat, 10.0, 0.0, None)
+    assert held_when_computed == [0, 0, 0, 1, 2] and len(r._cache) == 3
+    assert np.array_equal(r.render(a, pat, 10.0, 0.0, None), first)  # still cached: no new computation
+    assert len(held_when_computed) == 5

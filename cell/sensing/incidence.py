@@ -18,6 +18,8 @@ from numpy.typing import NDArray
 
 from cell.errors import ConfigError
 
+BAND_ROWS = 256  # image rows per band of the normals: ~10 float64 (rows, W, 3) temporaries, not full images
+
 
 def measured_normals(
     points_C: NDArray[np.floating], valid: NDArray[np.bool_], half_window_px: int = 2
@@ -27,10 +29,31 @@ def measured_normals(
     points over ``half_window_px`` pixels, box-averaged over the window with invalid pixels left out (a
     normalised convolution), so 5-10 um point noise at a 0.2 mm pitch tilts a normal by well under 1 deg.
     Where the surface turns by degrees per pixel the window averages it (a 10 mm sphere at 400 mm: 1-2 deg
-    at 60-70 deg from the camera, more at its limb, which the rim filter drops)."""
-    p = np.asarray(points_C, dtype=np.float64)
+    at 60-70 deg from the camera, more at its limb, which the rim filter drops).
+
+    Computed in bands of :data:`BAND_ROWS` rows, each with the ``2 * half_window_px`` rows around it that its
+    normals read (a 5 MP view's normals took ten whole-image float64 temporaries, 1.1 GB, at the peak of the
+    hires inspection's decode). A normal reads only its own window, so a band gives the normals the whole
+    image gives, but for OpenCV's box sums, which run down the rows from the band's first: they may differ
+    in the last bits (tests/test_sensing_incidence.py bounds it)."""
+    p = np.asarray(points_C)
     if p.ndim != 3 or p.shape[2] != 3 or p.shape[:2] != np.shape(valid):
         raise ConfigError(f"measured_normals: expected (H, W, 3) points and an (H, W) mask, got {p.shape}")
+    H = p.shape[0]
+    halo = 2 * half_window_px
+    out = np.empty(p.shape, dtype=np.float64)
+    for start in range(0, H, BAND_ROWS):
+        end = min(start + BAND_ROWS, H)
+        lo, hi = max(start - halo, 0), min(end + halo, H)
+        band = _band_normals(np.asarray(p[lo:hi], dtype=np.float64), valid[lo:hi], half_window_px)
+        out[start:end] = band[start - lo : end - lo]
+    return out
+
+
+def _band_normals(
+    p: NDArray[np.float64], valid: NDArray[np.bool_], half_window_px: int
+) -> NDArray[np.float64]:
+    """:func:`measured_normals` of one band of rows, all at once."""
     h = half_window_px
     ok = valid & np.isfinite(p).all(axis=2)
     z = np.where(ok[..., None], p, 0.0)
@@ -58,9 +81,6 @@ def measured_normals(
     return np.where(facing[..., None], -n, n)
 
 
-BAND_ROWS = 256  # image rows per band of the incidence: ~10 float64 (rows, W, 3) temporaries, not full images
-
-
 def projector_incidence_deg(
     points_C: NDArray[np.floating],
     valid: NDArray[np.bool_],
@@ -79,7 +99,7 @@ def projector_incidence_deg(
         end = min(start + BAND_ROWS, H)
         lo, hi = max(start - halo, 0), min(end + halo, H)
         band = np.asarray(points_C[lo:hi], dtype=np.float64)
-        n = measured_normals(band, valid[lo:hi], half_window_px)[start - lo : end - lo]
+        n = _band_normals(band, valid[lo:hi], half_window_px)[start - lo : end - lo]
         ray = centre - band[start - lo : end - lo]
         with np.errstate(invalid="ignore"):
             ray /= np.linalg.norm(ray, axis=2, keepdims=True)

@@ -173,12 +173,16 @@ class SceneRenderer:
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
-        view = self._compute_view(T_W_C)
-        self._cache[key] = view
-        while len(self._cache) > 1 and (
-            len(self._cache) > self._cache_size or sum(map(_nbytes, self._cache.values())) > CACHE_BYTES
+        # Room first, for a pose as large as the largest cached one: the old poses are dropped before the new
+        # one is computed, not after (a 5 MP camera held two poses' geometry at once: images, blur maps).
+        new = max(map(_nbytes, self._cache.values()), default=0)
+        while self._cache and (
+            len(self._cache) >= self._cache_size
+            or sum(map(_nbytes, self._cache.values())) + new > CACHE_BYTES
         ):
             self._cache.popitem(last=False)
+        view = self._compute_view(T_W_C)
+        self._cache[key] = view
         return view
 
     def _compute_view(self, T_W_C: NDArray[np.float64]) -> ViewGeometry:
