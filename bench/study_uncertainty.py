@@ -134,6 +134,7 @@ def reregister(run_dir: Path) -> None:
     job = LambertianInspection(recipe, cfg, nominal_W)
     job.settings.pictures = False
     job.report(run, job.register(run, Checkpoint.from_json(run.load_checkpoint()).views))
+    job.render(run)  # cloud.ply (the analysis reads it) is written after the verdict
 
 
 def run_seed(seed: int, out: Path, tolerance: float) -> dict[str, Any]:
