@@ -134,6 +134,7 @@ def reregister(run_dir: Path) -> None:
     job = LambertianInspection(recipe, cfg, nominal_W)
     job.settings.pictures = False
     job.report(run, job.register(run, Checkpoint.from_json(run.load_checkpoint()).views))
+    job.render(run)  # cloud.ply (the analysis reads it) is written after the verdict
 
 
 def run_seed(seed: int, out: Path, tolerance: float) -> dict[str, Any]:
@@ -207,6 +208,11 @@ def analyse_seed(seed: int, out: Path, tolerance: float) -> dict[str, Any]:
         "face": face_of(pts[judged]),
         "n_points": int(judged.sum()),
         "views": len(report.get("metadata", {}).get("views", [])),
+        "table_seam_points": report.get("excluded", {}).get("table_seam_points"),
+        "sphere_radius_error_mm": steps.get("validate", {})
+        .get("summary", {})
+        .get("sphere", {})
+        .get("radius_error_mm"),
     }
 
 
@@ -222,6 +228,16 @@ def face_of(points: np.ndarray) -> np.ndarray:
     for k, t in reversed(list(enumerate(tests))):
         face[t] = k
     return face
+
+
+def face_offsets(r: dict[str, Any]) -> dict[str, float]:
+    """One seed's mean error (mm) of each box face, off the seam."""
+    out = {}
+    for k, name in enumerate(FACES):
+        m = (r["face"] == k) & ~r["seam"]
+        if m.any():
+            out[name] = round(float(r["error"][m].mean()), 4)
+    return out
 
 
 def by_face(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -345,6 +361,9 @@ def main() -> None:
                 "views": r["views"],
                 "rms_u_mm": round(float(np.sqrt(np.mean(r["u"] ** 2))), 5),
                 "rms_error_mm": round(float(np.sqrt(np.mean(r["error"] ** 2))), 5),
+                "table_seam_points": r["table_seam_points"],
+                "sphere_radius_error_mm": r["sphere_radius_error_mm"],
+                "face_offsets_mm": face_offsets(r),
             }
             for r in results
         ],

@@ -26,6 +26,7 @@ from cell.analysis.merge import cut_unregistered, merge_views
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, write_page, write_verdict
 from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
+from cell.analysis.table_seam import crop_table_seam
 from cell.analysis.uncertainty import registered_cloud_uncertainty
 from cell.calibration import pose_uncertainty_prior
 from cell.calibration_state import calibration_state
@@ -150,7 +151,11 @@ class InspectionResults:
             alignment,
             self.aligner.datums,
         )
+        points_P, u_mm, seam = crop_table_seam(
+            points_P, unc.u_mm, self.T_W_P, self.settings.table_margin_mm, self.nominal_P
+        )
         registration = {
+            "table_seam_points": seam,
             "n_points": int(len(points_P)),
             "n_points_views": n_points_views,
             "views": n_views,
@@ -168,7 +173,7 @@ class InspectionResults:
         T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
         error_map = signed_distance(self.nominal_P, points_P)
         self._cloud = RegisteredCloud(
-            registration, points_P, error_map, self.inspectable_coverage(run, T_align), unc.u_mm
+            registration, points_P, error_map, self.inspectable_coverage(run, T_align), u_mm
         )
         return registration
 
@@ -260,7 +265,8 @@ class InspectionResults:
         excluded = {
             "unregistered_view_measured_elsewhere_points": int(
                 registration.get("refinement", {}).get("unregistered_points_dropped", 0)
-            )
+            ),
+            "table_seam_points": int(registration.get("table_seam_points", 0)),
         }
         for view in self.views.completed(run):
             for reason, n in view.summary.get("excluded", {}).items():
