@@ -22,7 +22,7 @@ $(ARAVIS_STAMP): $(STAMP)
 	else echo "Aravis tests will skip: no libgirepository1.0-dev/libcairo2-dev (bash .ci/run installs them)"; fi
 
 demo: $(STAMP)
-	$(PY) -m cell demo
+	$(PY) -m cell demo || test $$? -eq 4  # the demo pillar is dented: its verdict is FAIL (exit 4), as it should be
 
 test: $(STAMP) $(ARAVIS_STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -q  # files in tests/conftest.py's order
