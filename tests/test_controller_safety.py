@@ -160,6 +160,12 @@ def test_pause_mid_move_stops_the_arm_at_once(recipe_path: Path, paused_run: Pat
 def test_the_run_paused_three_times_resumes_to_the_reference_result(
     recipe_path: Path, paused_run: Path, reference: dict
 ) -> None:
+    # the three tests above paused this run, in file order; run alone, there is nothing here to resume
+    journal = RunFolder.open(paused_run).journal() if (paused_run / "journal.jsonl").exists() else []
+    pauses = [e["message"] for e in journal if e["event"] == "state" and e["state"] == "paused"]
+    assert len(pauses) == 3, f"the three tests above pause this run (run the whole file): {pauses}"
+    assert "safeguard stop" in pauses[0] and "watchdog" in pauses[1], pauses
+    assert pauses[2].startswith("pause requested: test"), pauses
     ctl, _, execute = _go_on(recipe_path, paused_run)
     assert execute() == "done", ctl.message
     assert_same_result(result_of(paused_run), reference["result"], "safeguard stop, watchdog, pause mid-move")
