@@ -46,7 +46,7 @@ def test_datum_neighbourhoods_are_the_kd_trees() -> None:
     tree of the whole cloud: the same points as scipy's cKDTree.query_ball_point."""
     from scipy.spatial import cKDTree
 
-    from cell.analysis.uncertainty import _within
+    from cell.geometry import points_within
 
     rng = np.random.default_rng(5)
     points = rng.uniform(-30.0, 30.0, size=(200_000, 3))
@@ -56,7 +56,7 @@ def test_datum_neighbourhoods_are_the_kd_trees() -> None:
     for _ in range(20):
         centre = points[rng.integers(len(points))] + rng.normal(scale=0.3, size=3)
         radius = float(rng.uniform(0.5, 5.0))
-        found = _within(points, centre, radius)
+        found = points_within(points, centre, radius)
         assert np.array_equal(found, np.sort(tree.query_ball_point(centre, radius)))
         sizes.append(len(found))
     assert min(sizes) > 0  # every neighbourhood held points to compare

@@ -36,7 +36,7 @@ from cell.analysis.features import feature_align
 from cell.analysis.registration import combine_registrations, icp_point_to_plane
 from cell.config import AlignmentConfig, AlignmentEstimate, DatumPoint
 from cell.errors import ConfigError
-from cell.geometry import Pose, make_pose, transform_points
+from cell.geometry import Pose, make_pose, points_within, transform_points
 
 MIN_DATUM_POINTS = 20  # a datum region with fewer measured points is not measured
 SAME_SURFACE_COS = 0.9  # a datum region's points whose closest nominal face turns more than ~25 deg away
@@ -178,13 +178,7 @@ class _DatumIndex:
         self.points, self.datums, self.reach_mm = points, datums, reach_mm
         near = np.zeros(len(points), dtype=bool)
         for d in datums:
-            r = d.radius_mm + reach_mm
-            # the ball's box first (a little larger, so rounding cannot drop a point): a few thousand of the
-            # cloud's millions of points get the distance test, which decides as it did over all of them
-            box = np.flatnonzero(np.abs(points[:, 0] - d.point[0]) <= r + 1e-6)  # the slab in x, then the box
-            box = box[np.all(np.abs(points[box] - d.point) <= r + 1e-6, axis=1)]
-            gap = points[box] - d.point
-            near[box[np.einsum("ij,ij->i", gap, gap) <= r**2]] = True
+            near[points_within(points, d.point, d.radius_mm + reach_mm)] = True
         self.index = np.flatnonzero(near)
         self.tree = cKDTree(points[self.index])
         self.whole: cKDTree | None = None

@@ -40,7 +40,7 @@ from cell.analysis.alignment import Datum
 from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.merge import MergedCloud
 from cell.analysis.view_refinement import ViewRefinement
-from cell.geometry import transform_points
+from cell.geometry import points_within, transform_points
 from cell.sensing.decode import Decoded
 from cell.sensing.error_model import normal_error_per_pixel
 from cell.sensing.incidence import measured_normals
@@ -219,16 +219,6 @@ def merged_uncertainty(
     return np.sqrt(var) / merged.weight
 
 
-def _within(points: Array, centre: Array, radius_mm: float) -> NDArray[np.int64]:
-    """Indices (ascending) of ``points`` within ``radius_mm`` of ``centre``: a slab, its box, then the
-    distance (a few datums in millions of points: no KD-tree of the whole cloud, two seconds of CPU)."""
-    c = np.asarray(centre, dtype=np.float64)
-    near = np.flatnonzero(np.abs(points[:, 0] - c[0]) <= radius_mm + 1e-9)
-    near = near[np.all(np.abs(points[near] - c) <= radius_mm + 1e-9, axis=1)]
-    gap = points[near] - c
-    return near[np.sqrt(np.einsum("ij,ij->i", gap, gap)) <= radius_mm]
-
-
 def combine(*terms_mm: NDArray[np.floating] | float) -> NDArray[np.float64]:
     """Independent standard uncertainties added in quadrature (arrays broadcast)."""
     return np.sqrt(sum(np.square(np.asarray(t, dtype=np.float64)) for t in terms_mm))
@@ -304,7 +294,7 @@ def registered_cloud_uncertainty(
     elif datums and method in ("datums", "datum_icp"):
         d_shares = []
         for d in datums:
-            near = _within(merged.points_mm, d.point, d.radius_mm)
+            near = points_within(merged.points_mm, d.point, d.radius_mm)
             d_shares.append(shares[near].mean(axis=0) if len(near) else np.full(n, 1.0 / n))
         B = datum_alignment_map(
             transform_points(T, np.array([d.point for d in datums])),

@@ -12,6 +12,8 @@ known to the sensor, and a part may deviate from it), so the filter works the sa
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -39,15 +41,19 @@ def measured_normals(
     p = np.asarray(points_C)
     if p.ndim != 3 or p.shape[2] != 3 or p.shape[:2] != np.shape(valid):
         raise ConfigError(f"measured_normals: expected (H, W, 3) points and an (H, W) mask, got {p.shape}")
-    H = p.shape[0]
-    halo = 2 * half_window_px
     out = np.empty(p.shape, dtype=np.float64)
-    for start in range(0, H, BAND_ROWS):
-        end = min(start + BAND_ROWS, H)
-        lo, hi = max(start - halo, 0), min(end + halo, H)
+    for start, end, lo, hi in _row_bands(p.shape[0], 2 * half_window_px):
         band = _band_normals(np.asarray(p[lo:hi], dtype=np.float64), valid[lo:hi], half_window_px)
         out[start:end] = band[start - lo : end - lo]
     return out
+
+
+def _row_bands(height: int, halo: int) -> Iterator[tuple[int, int, int, int]]:
+    """(start, end, lo, hi) of each band of :data:`BAND_ROWS` image rows: its rows [start, end) and, with the
+    ``halo`` rows around it that a window reads, [lo, hi)."""
+    for start in range(0, height, BAND_ROWS):
+        end = min(start + BAND_ROWS, height)
+        yield start, end, max(start - halo, 0), min(end + halo, height)
 
 
 def _band_normals(
@@ -91,13 +97,9 @@ def projector_incidence_deg(
     (camera frame, mm); NaN where no normal could be measured. Computed in bands of :data:`BAND_ROWS` rows,
     each with the ``2 * half_window_px`` rows around it that its normals read (a 5 MP image's normals took
     ten full-image float64 temporaries, 1.2 GB)."""
-    H = np.shape(valid)[0]
-    halo = 2 * half_window_px
     out = np.empty(np.shape(valid), dtype=np.float64)
     centre = np.asarray(projector_centre_C, dtype=np.float64)
-    for start in range(0, H, BAND_ROWS):
-        end = min(start + BAND_ROWS, H)
-        lo, hi = max(start - halo, 0), min(end + halo, H)
+    for start, end, lo, hi in _row_bands(np.shape(valid)[0], 2 * half_window_px):
         band = np.asarray(points_C[lo:hi], dtype=np.float64)
         n = _band_normals(band, valid[lo:hi], half_window_px)[start - lo : end - lo]
         ray = centre - band[start - lo : end - lo]
