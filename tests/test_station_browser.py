@@ -153,28 +153,40 @@ def test_an_inspection_started_paused_and_resumed_from_the_page(
     shot(page, "start", tmp_path)
     page.fill("#serial", "")
     run = _start(page, station, "SN-1001")
-    # live: the progress comes by server-sent events as the run goes
-    page.wait_for_function(
-        "() => +document.getElementById('done').textContent >= 2"
-        " && (document.getElementById('live').dataset.state || '').startsWith('scanning')",
+    # live: the progress comes by server-sent events as the run goes; read in one go in the page (the events
+    # change it between two reads) and the pause asked at once: the box run's last views and its tail take a
+    # few seconds, so a pause asked later could find the run done (it did, under load)
+    seen = page.wait_for_function(
+        """() => {
+            const text = (id) => document.getElementById(id).textContent;
+            const state = document.getElementById('live').dataset.state || '';
+            if (!(+text('done') >= 2 && state.startsWith('scanning'))) return null;
+            return {words: text('words'), view: text('view'), total: text('total'), left: text('left')};
+        }""",
         timeout=90_000,
-    )
-    assert re.fullmatch(r"(Moving to|Measuring) view \d+", page.inner_text("#words"))
-    view, total = int(page.inner_text("#view")), int(page.inner_text("#total"))
-    assert 2 <= view <= total
-    assert re.fullmatch(r"\d+ (min \d\d )?s", page.inner_text("#left"))
-    page.wait_for_function("() => document.getElementById('thumb').complete")  # the last view's picture
-    assert page.locator("#thumb").evaluate("img => img.naturalWidth") == 320
-    # and its photo (the run keeps its raw images while it measures), the map its inset; never full size
-    page.wait_for_function(
-        "() => { const p = document.getElementById('photo'); return !p.hidden && p.complete }"
-    )
-    assert page.locator("#photo").evaluate("img => [img.naturalWidth, img.naturalHeight]") == [320, 240]
-    assert page.locator("#pictures").evaluate("f => f.classList.contains('with-photo')")
+    ).json_value()
     shot(page, "live", tmp_path)
     page.click("#pause")
+    assert re.fullmatch(r"(Moving to|Measuring) view \d+", seen["words"])
+    view, total = int(seen["view"]), int(seen["total"])
+    assert 2 <= view <= total
+    assert re.fullmatch(r"\d+ (min \d\d )?s", seen["left"])
     page.wait_for_function("() => document.getElementById('live').dataset.state === 'paused'", timeout=60_000)
     assert page.inner_text("#words") == "Paused by olga"
+    # the last measured view's picture (read once loaded, in one go: a new view would change its source) and
+    # its photo (the run keeps its raw images until it ends), the map its inset; never full size
+    loaded = "(i) => (i.getAttribute('src') && i.complete) ? [i.naturalWidth, i.naturalHeight] : null"
+    thumb = page.wait_for_function(f"() => ({loaded})(document.getElementById('thumb'))").json_value()
+    if thumb != [320, 240]:  # a broken image is complete and 0 px wide: say what the station answered
+        src = page.locator("#thumb").get_attribute("src")
+        answer = page.request.get(station.url + src)
+        said = f"HTTP {answer.status} {answer.text()[:200]!r}"
+        pytest.fail(f"the view's picture {src} did not load ({thumb}); the station answered {said}")
+    photo = page.wait_for_function(
+        f"() => {{ const p = document.getElementById('photo'); return p.hidden ? null : ({loaded})(p); }}"
+    ).json_value()
+    assert photo == [320, 240]
+    assert page.locator("#pictures").evaluate("f => f.classList.contains('with-photo')")
     expect(page.locator("#resume")).to_be_enabled(timeout=60_000)  # once the paused process has ended
     assert page.locator("#pause").is_disabled()
     shot(page, "paused", tmp_path)
