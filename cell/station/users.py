@@ -19,10 +19,10 @@ from pathlib import Path
 import yaml
 from pydantic import Field
 
-from cell.config import read_yaml, validate
 from cell.errors import ConfigError
 from cell.runs import write_atomic
 from cell.schema import Strict
+from cell.yaml_files import read_yaml, validate
 
 _SCRYPT = {"n": 2**14, "r": 8, "p": 1}  # OWASP's minimum for scrypt; ~50 ms here
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9 ._-]{0,31}")
