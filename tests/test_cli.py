@@ -105,7 +105,7 @@ def test_query_commands_load_only_what_their_answer_needs(tmp_path: Path) -> Non
     """`cell station users list` reads its YAML file without the cell config (numpy), the results database
     or the station's web stack; `cell verify history` and `cell history` read an up-to-date database
     without Alembic (its migrations run only when the schema is behind) and without numpy or scipy. One
-    process runs the three commands and says what each had loaded."""
+    process runs the three commands in that order and says what is loaded after each (the set only grows)."""
     from cell.results import open_results
     from cell.station.users import Role, add_user
 
