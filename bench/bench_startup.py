@@ -10,6 +10,8 @@ the median and best wall time and the median CPU time (user + system) are printe
   (stdout or stderr, unbuffered); the CPU time is the child's at that moment (/proc/PID/stat, 10 ms ticks),
   then the process group is killed unless it ended first. Heavy commands (inspect, calibrate, ...) are
   killed right after their first line: the figure is how long a user waits to see what the command does.
+  The query commands run twice: on a missing runs root (nothing to read) and on a kept one (K/runs, made
+  once) whose results database is up to date and whose station users file holds two users, as on a cell PC.
 
 With `--base DIR` (an older tree, e.g. `git archive f94ac49 | tar -x -C /tmp/base`) the same lines run from
 that tree too, side by side. `--only help,usage` limits the kinds; `--match compare` the command lines.
@@ -72,6 +74,14 @@ JOBS: list[tuple[str, list[str]]] = [
     ("station serve", ["--runs", "T/runs", "--port", "18473", "--cell", SIM]),
     ("station users list", ["--runs", "T/runs"]),
 ]
+# first lines only: the query commands on K/runs, a runs root with an up-to-date results.sqlite (no runs in
+# it: their answer is read from the database, not skipped because the root is missing) and a users file
+ON_DATABASE: list[tuple[str, list[str]]] = [
+    ("history", ["--runs", "K/runs"]),
+    ("verify history", ["--runs", "K/runs"]),
+    ("station users list", ["--runs", "K/runs"]),
+]
+KEPT = "kept"  # the scratch folder of K/, not emptied between rounds
 
 
 @dataclass(frozen=True)
@@ -80,7 +90,7 @@ class Line:
     args: tuple[str, ...]
 
     def label(self) -> str:
-        return "cell " + " ".join(a if not a.startswith("T/") else "…/" + a[2:] for a in self.args)
+        return "cell " + " ".join(a if a[:2] not in ("T/", "K/") else a[0] + "/" + a[2:] for a in self.args)
 
 
 def lines() -> list[Line]:
@@ -90,7 +100,14 @@ def lines() -> list[Line]:
         out.append(Line("help", (*words, "--help")))
         out.append(Line("usage", (*words, "--bogus-option")))
         out.append(Line("first", (*words, *job)))
+    out += [Line("first", (*name.split(), *job)) for name, job in ON_DATABASE]
     return out
+
+
+def _path_args(args: tuple[str, ...], scratch: Path) -> list[str]:
+    """T/x: scratch/x (emptied every round); K/x: scratch/kept/x (made once)."""
+    roots = {"T/": scratch, "K/": scratch / KEPT}
+    return [str(roots[a[:2]] / a[2:]) if a[:2] in roots else a for a in args]
 
 
 def _cpu_of(pid: int) -> float:
@@ -117,7 +134,7 @@ def _first_line(proc: subprocess.Popen, timeout_s: float) -> bytes | None:
 def run_line(tree: Path, line: Line, scratch: Path, timeout_s: float) -> tuple[float, float, str]:
     """Wall and CPU seconds of one run of ``line`` from ``tree``; and the line it printed first. A first
     line that takes longer than ``timeout_s`` counts as inf (the process is killed)."""
-    args = [str(scratch / a[2:]) if a.startswith("T/") else a for a in line.args]
+    args = _path_args(line.args, scratch)
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(tree), "COLUMNS": "100"}
     t = time.perf_counter()
     proc = subprocess.Popen(
@@ -162,10 +179,25 @@ def make_compare_inputs(scratch: Path) -> None:
     shutil.move(cloud, scratch / "cloud.ply")
 
 
+def make_kept_root(scratch: Path) -> None:
+    """K/runs: a runs root whose results.sqlite is created and migrated (by `cell history`) and whose station
+    users file holds two users (`cell station users add`), made once with this tree's `cell`."""
+    runs = scratch / KEPT / "runs"
+    runs.mkdir(parents=True)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    cell = [sys.executable, "-m", "cell"]
+    subprocess.run(
+        [*cell, "history", "--runs", str(runs)], cwd=REPO, env=env, check=True, capture_output=True
+    )
+    for name in ("anna", "ben"):
+        add = [*cell, "station", "users", "add", name, "--pin-stdin", "--runs", str(runs)]
+        subprocess.run(add, cwd=REPO, env=env, input=b"1234\n", check=True, capture_output=True)
+
+
 def reset(scratch: Path) -> None:
     """Empty the output folders of the previous round (commands refuse an --out that holds files)."""
     for child in scratch.iterdir():
-        if child.is_dir():
+        if child.is_dir() and child.name != KEPT:
             shutil.rmtree(child, ignore_errors=True)
 
 
@@ -186,6 +218,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_startup_") as tmp:
         scratch = Path(tmp)
         make_compare_inputs(scratch)
+        make_kept_root(scratch)
         for _ in range(args.rounds):
             for ln in todo:
                 for name, tree in trees.items():

@@ -12,11 +12,10 @@ import json
 import math
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
-from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from cell.defaults import DEFAULT_CELL as DEFAULT_CELL  # re-exported: where the commands' default lived
 from cell.errors import ConfigError
@@ -25,7 +24,8 @@ from cell.limits import tolerance_problem
 from cell.planning.settings import PlanSettings
 from cell.retention import RetentionConfig
 from cell.schema import Fraction, PositiveFloat, Strict, Vec3
-from cell.schema_errors import unknown_key_message, wrong_kind_message
+from cell.yaml_files import read_yaml as read_yaml  # re-exported: where every loader found them
+from cell.yaml_files import validate as validate
 
 
 class PoseConfig(Strict):
@@ -542,53 +542,6 @@ class Recipe(Strict):
 
 
 # --------------------------------------------------------------------------------------------- loading
-M = TypeVar("M", bound=BaseModel)
-
-
-def _field_path(loc: tuple[Any, ...]) -> str:
-    return ".".join(str(p) for p in loc) or "(top level)"
-
-
-def read_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping; ConfigError naming the file when it is missing, unreadable or not a mapping."""
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError("file not found; check the path", path=str(p))
-    try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"malformed YAML{where}: {getattr(exc, 'problem', exc)}", path=str(p)) from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"cannot read: {exc}", path=str(p)) from exc
-    if not isinstance(data, dict):
-        raise ConfigError("expected a mapping of keys to values at the top level", path=str(p))
-    return data
-
-
-def validate(model: type[M], data: dict[str, Any], path: str | Path) -> M:
-    """Validate ``data`` against ``model``; the first error becomes a ConfigError naming file and field. A
-    file of another known kind (a recipe where a cell config belongs) is said to be one; an unknown key gets
-    the closest known key ("did you mean")."""
-    try:
-        return model.model_validate(data)
-    except ValidationError as exc:
-        wrong_kind = wrong_kind_message(model, data) if isinstance(data, dict) else None
-        if wrong_kind:
-            raise ConfigError(wrong_kind, path=str(path)) from exc
-        errors = exc.errors()
-        # a misspelled key shows as an unknown key and a missing one: name the typo, its cause
-        err = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
-        msg = err["msg"]
-        if err["type"] == "extra_forbidden":
-            msg = unknown_key_message(model, err["loc"])
-        elif err["type"] == "missing":
-            msg = "required field is missing"
-        more = f" (and {len(exc.errors()) - 1} more problem(s))" if len(exc.errors()) > 1 else ""
-        raise ConfigError(msg + more, path=str(path), field=_field_path(err["loc"])) from exc
-
-
 def load_cell_config(path: str | Path) -> CellConfig:
     """Load and validate a cell config YAML; calibration paths become absolute and must exist. A simulated
     cell's ``world:`` section is validated by the simulator (through cell.devices), never read here."""

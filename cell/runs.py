@@ -32,11 +32,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from cell.defaults import RUNS_ROOT as RUNS_ROOT  # re-exported: where the library found it
 from cell.errors import ConfigError
 from cell.storage import fsync_path, require_writable
 
 INDEX_NAME = "index.sqlite"  # the verification history (cell.verification.history)
-RUNS_ROOT = Path(__file__).resolve().parents[1] / "runs"  # the default runs root: runs/ in the repository
 LOCK_NAME = "run.lock"
 RAW_IMAGES = "raw"  # views/NNN/raw/: a view's raw pattern stack (cell.view_files), what `cell prune` removes
 

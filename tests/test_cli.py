@@ -101,6 +101,37 @@ def test_every_command_help_and_usage_error_loads_no_library() -> None:
     assert len(words) > 25  # every group's sub-commands were walked
 
 
+def test_query_commands_load_only_what_their_answer_needs(tmp_path: Path) -> None:
+    """`cell station users list` reads its YAML file without the cell config (numpy), the results database
+    or the station's web stack; `cell verify history` and `cell history` read an up-to-date database
+    without Alembic (its migrations run only when the schema is behind) and without numpy or scipy. One
+    process runs the three commands in that order and says what is loaded after each (the set only grows)."""
+    from cell.results import open_results
+    from cell.station.users import Role, add_user
+
+    runs = tmp_path / "runs"
+    add_user(runs / ".station" / "users.yaml", "anna", Role.TECHNICIAN, "1234")
+    assert open_results(None, runs).runs() == []  # creates and migrates results.sqlite
+    code = (
+        "import json, sys\nfrom cell.cli import main\n"
+        "heavy = ('numpy', 'scipy', 'sqlalchemy', 'alembic', 'starlette', 'uvicorn', 'jinja2', 'psycopg')\n"
+        f"for args in {[['station', 'users', 'list'], ['verify', 'history'], ['history']]!r}:\n"
+        f"    try:\n        main([*args, '--runs', {str(runs)!r}])\n    except SystemExit:\n        pass\n"
+        "    loaded = sorted({m.split('.')[0] for m in sys.modules} & set(heavy))\n"
+        "    config = sorted(m for m in ('cell.config', 'cell.station.app') if m in sys.modules)\n"
+        "    print('LOADED', json.dumps([args, loaded + config]), flush=True)\n"
+    )
+    proc = run("-c", code)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    loaded = [line for line in proc.stdout.splitlines() if line.startswith("LOADED")]
+    assert loaded == [
+        'LOADED [["station", "users", "list"], []]',
+        'LOADED [["verify", "history"], ["sqlalchemy"]]',
+        'LOADED [["history"], ["sqlalchemy"]]',
+    ], proc.stdout
+    assert "anna\ttechnician" in proc.stdout and f"no runs in {runs / 'results.sqlite'}" in proc.stdout
+
+
 @pytest.mark.parametrize(
     ("args", "says"),
     [

@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parent.parent
 CELL = ROOT / "cell"
 
 FOUNDATION = (
+    "cell.defaults",
     "cell.errors",
     "cell.geometry",
     "cell.schema",
@@ -99,7 +100,7 @@ RULES = [
         "the foundation stands alone",
         FOUNDATION,
         ("cell",),
-        allowed=("cell.errors", "cell.geometry", "cell.schema", "cell.storage"),
+        allowed=("cell.defaults", "cell.errors", "cell.geometry", "cell.schema", "cell.storage"),
     ),
     Rule(
         "libraries never import a job, the controller or the device registry",

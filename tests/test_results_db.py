@@ -29,7 +29,7 @@ import pytest
 from cell.analysis.regions import Region, Tolerance
 from cell.analysis.report import ReportInput, write_report
 from cell.cli import main
-from cell.results import ResultsDamaged, ResultsStore, ResultsUnavailable, open_results
+from cell.results import ResultsDamaged, ResultsStore, ResultsUnavailable, migrate, open_results
 from cell.results.folder import PENDING_NAME
 from cell.results.migrate import current, head
 from cell.run_data import RunIdentity
@@ -510,6 +510,34 @@ def test_verification_history_in_postgresql_follows_the_cell(
     assert store.sync() == 1
     assert [e.folder for e in VerificationHistory(a, cfg).entries(cfg.name)] == [str(failed), str(passed)]
     assert inspection_block(b, cfg.name, True, cfg) is None
+
+
+def test_the_schema_is_migrated_when_behind_and_only_read_when_up_to_date(
+    db_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An up-to-date schema is told from Alembic's version table without running Alembic; the revision
+    read is the one Alembic reads, and the known head is Alembic's head of migrations/versions."""
+    from alembic.runtime.migration import MigrationContext
+
+    def alembics(engine: Any) -> str | None:
+        with engine.connect() as conn:
+            return MigrationContext.configure(conn).get_current_revision()
+
+    assert head() == migrate.alembic_head()
+    engine = ResultsStore(db_url, tmp_path).engine
+    assert current(engine) is None and alembics(engine) is None  # empty: no schema yet
+    assert migrate.upgrade(engine) is True  # behind: Alembic migrates
+    assert current(engine) == alembics(engine) == head()
+
+    def no_migration(*_: Any) -> bool:
+        raise AssertionError("an up-to-date schema was migrated")
+
+    monkeypatch.setattr(migrate, "_migrate", no_migration)
+    assert migrate.upgrade(engine) is False
+    store = ResultsStore(db_url, tmp_path)  # a later process: opens and reads without migrating
+    assert store.runs() == [] and store.verifications() == []
+    engine.dispose()
+    store.close()
 
 
 def test_a_schema_newer_than_the_software_is_refused_untouched(tmp_path: Path) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from cell.runs import RUNS_ROOT
+from cell.defaults import RUNS_ROOT
 
 
 def _since(text: str | None) -> datetime | None:

@@ -11,9 +11,8 @@ from typing import TYPE_CHECKING
 
 import typer
 
-from cell.defaults import DEFAULT_CELL, DEMO_CELL
+from cell.defaults import DEFAULT_CELL, DEMO_CELL, RUNS_ROOT
 from cell.exit_codes import ExitCode, for_run
-from cell.runs import RUNS_ROOT
 
 if TYPE_CHECKING:
     from cell.controller import Controller

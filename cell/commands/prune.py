@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cell.runs import RUNS_ROOT
+from cell.defaults import RUNS_ROOT
 
 
 def _mb(n: int) -> str:

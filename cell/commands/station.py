@@ -8,8 +8,7 @@ from pathlib import Path
 
 import typer
 
-from cell.defaults import DEFAULT_CELL
-from cell.runs import RUNS_ROOT
+from cell.defaults import DEFAULT_CELL, RUNS_ROOT
 
 station_app = typer.Typer(
     help="The operator's web application on the cell PC, and its users.", no_args_is_help=True

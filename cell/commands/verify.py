@@ -10,8 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import typer
 
-from cell.defaults import DEFAULT_CELL
-from cell.runs import RUNS_ROOT
+from cell.defaults import DEFAULT_CELL, RUNS_ROOT
 
 if TYPE_CHECKING:
     from cell.verification.procedure import AcceptanceResult

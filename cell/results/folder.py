@@ -10,8 +10,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from cell.errors import ConfigError
 from cell.run_record import sha256_file
 from cell.runs import RunFolder
@@ -41,6 +39,8 @@ def _json(path: Path) -> dict[str, Any] | None:
 
 
 def _yaml(path: Path) -> dict[str, Any]:
+    import yaml  # here: listing the database (`cell history`) reads no folder's YAML
+
     try:
         doc = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError):

@@ -19,10 +19,9 @@ from pathlib import Path
 import yaml
 from pydantic import Field
 
-from cell.config import read_yaml, validate
 from cell.errors import ConfigError
-from cell.runs import write_atomic
 from cell.schema import Strict
+from cell.yaml_files import read_yaml, validate
 
 _SCRYPT = {"n": 2**14, "r": 8, "p": 1}  # OWASP's minimum for scrypt; ~50 ms here
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9 ._-]{0,31}")
@@ -94,6 +93,8 @@ def add_user(path: Path, name: str, role: Role, pin: str) -> bool:
         )
     if not _PIN.fullmatch(pin):
         raise ConfigError("a PIN is 4 to 12 digits", field="PIN")
+    from cell.runs import write_atomic  # here: listing the users writes nothing
+
     users = load_users(path) if path.exists() else UsersFile()
     user = User(name=name, role=role, pin_hash=hash_pin(pin))
     old = users.find(name)
