@@ -129,6 +129,7 @@ def edge_sigma_px(
 
 
 N_PHASES = 10  # sub-code phase bins of the quantisation curve
+BAND_ROWS = 256  # image rows per band of the quantisation offsets (a few (rows, W, 3) float64 temporaries)
 
 
 @dataclass(frozen=True)
@@ -188,16 +189,25 @@ def quantisation(
     :func:`cell.sensing.error_model.normal_error_per_pixel`), averaged per phase bin over the view: noise
     and shape average out, the quantisation curve stays. ``sigma_x_px``: each pixel's image-noise sigma
     (:func:`edge_sigma_px`), to tell noise from the rest of the scatter."""
-    p = np.asarray(points_C, dtype=np.float64)
-    n = np.asarray(normals_C, dtype=np.float64)
+    p, n = np.asarray(points_C), np.asarray(normals_C)
     ok = valid & np.isfinite(p).all(-1) & np.isfinite(n).all(-1)
     size = (2 * half_window_px + 1,) * 2
-    z = np.where(ok[..., None], p, 0.0)
     cnt = cv2.boxFilter(ok.astype(np.float64), -1, size, normalize=False)
-    mean = np.stack([cv2.boxFilter(z[..., k], -1, size, normalize=False) for k in range(3)], -1)
     full = ok & (cnt >= size[0] * size[1])
+    # the window sums one coordinate at a time, the offsets in bands of rows (a 5 MP view's (H, W, 3) float64
+    # copies and temporaries were ~0.8 GB at the decode's peak); each pixel's offset is the same einsum of
+    # the same float64 numbers as over the whole image: the same bits
+    mean = [
+        cv2.boxFilter(np.where(ok, np.asarray(p[..., k], np.float64), 0.0), -1, size, normalize=False)
+        for k in range(3)
+    ]
+    mm = np.broadcast_to(np.asarray(mm_per_px, np.float64), ok.shape)
+    r = np.empty(ok.shape, dtype=np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        r = np.einsum("ijk,ijk->ij", p - mean / cnt[..., None], n) / np.asarray(mm_per_px, np.float64)
+        for a in range(0, ok.shape[0], BAND_ROWS):
+            b = slice(a, a + BAND_ROWS)
+            d = np.asarray(p[b], np.float64) - np.stack([m[b] for m in mean], -1) / cnt[b, :, None]
+            r[b] = np.einsum("ijk,ijk->ij", d, np.asarray(n[b], np.float64)) / mm[b]
     use = full & np.isfinite(r) & np.isfinite(phase)
     r, t, sx = r[use], np.asarray(phase)[use], np.asarray(sigma_x_px, np.float64)[use]
     if len(r) < MIN_PIXELS:
