@@ -21,6 +21,7 @@ from cell.analysis.uncertainty import (
     posterior_covariance,
 )
 from cell.geometry import look_at
+from cell.sensing import noise
 from cell.sensing.decode import decode
 from cell.sensing.error_model import TABLES, error_table, normal_error_per_pixel, one_pixel_error
 from cell.sensing.incidence import measured_normals
@@ -206,6 +207,29 @@ def test_quantisation_curve_seen_in_the_points_is_the_decoders_bias(plate_views:
     # px: the estimate errs on the large side (u stays conservative), not more than 5 % below the truth
     true_rms = np.sqrt(np.mean(truth**2))
     assert 0.95 * true_rms <= q.rms_px <= 1.3 * true_rms, (q.rms_px, true_rms)
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_quantisation_in_bands_is_the_whole_images(
+    plate_views: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The offsets taken in bands of rows that do not divide the image (the memory cut for 5 MP views) give
+    the same curve, scatter and pixels, to the bit, as one band over the whole image."""
+    rig, ps, decoded = plate_views["rig"], plate_views["ps"], plate_views["decoded"]
+    code = ps.codes[0]
+    cloud = PinholeTriangulator.from_sensor(rig.sensor).triangulate(decoded[0])
+    valid = cloud.valid & plate_views["gt"].part
+    T = rig.sensor.projector.T_C_P.matrix()
+    normals = measured_normals(cloud.points_C, valid)
+    g = normal_error_per_pixel(cloud.points_C, normals, T[:3, 3], T[:3, 1], rig.sensor.camera.fx_px)
+    phase = code_phase(decoded[0].primary(), code.shift_px, code.offset_px)
+    sigma = np.full(valid.shape, 0.01)
+    got = []
+    for rows in (valid.shape[0], 7):
+        monkeypatch.setattr(noise, "BAND_ROWS", rows)
+        got.append(quantisation(cloud.points_C, normals, valid, g, phase, sigma).to_json())
+    assert got[0]["pixels"] > 1000
+    assert got[0] == got[1]
 
 
 # ------------------------------------------------------------------------------------------ merge and pose
