@@ -120,7 +120,7 @@ def edge_sigma_px(
     pixel, in bands of :data:`BAND_ROWS` rows (a 5 MP view's whole-image float64 temporaries were ~0.3 GB)."""
     mod, contrast, sharp, u = decoded.modulation_dn, decoded.contrast, axis.sharpness, axis.u
     out = np.empty(np.shape(mod), dtype=np.float64)
-    for a in range(0, out.shape[0], BAND_ROWS):
+    for a in range(0, len(out), BAND_ROWS):
         b = slice(a, a + BAND_ROWS)
         out[b] = _edge_sigma(mod[b], contrast[b], sharp[b], u[b], axis.valid[b], noise, shift_px, offset_px)
     return out
@@ -187,7 +187,7 @@ class Quantisation:
 def code_phase(axis: AxisDecode, shift_px: float, offset_px: float) -> NDArray[np.float64]:
     """t' (H, W) in [0, 1): where each pixel lies between the edges of its code q and q + 1."""
     out = np.empty(np.shape(axis.u), dtype=np.float64)
-    for a in range(0, out.shape[0], BAND_ROWS):  # in bands: no whole-image float64 temporaries
+    for a in range(0, len(out), BAND_ROWS):  # in bands: no whole-image float64 temporaries
         b = slice(a, a + BAND_ROWS)
         out[b] = np.mod((np.asarray(axis.u[b], dtype=np.float64) + 0.5 - offset_px) / shift_px, 1.0)
     return out
