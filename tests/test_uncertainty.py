@@ -21,6 +21,7 @@ from cell.analysis.uncertainty import (
     posterior_covariance,
 )
 from cell.geometry import look_at
+from cell.sensing import noise
 from cell.sensing.decode import decode
 from cell.sensing.error_model import TABLES, error_table, normal_error_per_pixel, one_pixel_error
 from cell.sensing.incidence import measured_normals
@@ -206,6 +207,34 @@ def test_quantisation_curve_seen_in_the_points_is_the_decoders_bias(plate_views:
     # px: the estimate errs on the large side (u stays conservative), not more than 5 % below the truth
     true_rms = np.sqrt(np.mean(truth**2))
     assert 0.95 * true_rms <= q.rms_px <= 1.3 * true_rms, (q.rms_px, true_rms)
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_quantisation_in_bands_is_the_whole_images(
+    plate_views: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The per-pixel figures taken in bands of rows that do not divide the image (the memory cut for 5 MP
+    views) are, to the bit, those of one band over the whole image: the code phase, the edge noise and the
+    quantisation's curve, scatter and pixels."""
+    rig, ps, decoded = plate_views["rig"], plate_views["ps"], plate_views["decoded"]
+    code = ps.codes[0]
+    cloud = PinholeTriangulator.from_sensor(rig.sensor).triangulate(decoded[0])
+    valid = cloud.valid & plate_views["gt"].part
+    T = rig.sensor.projector.T_C_P.matrix()
+    normals = measured_normals(cloud.points_C, valid)
+    g = normal_error_per_pixel(cloud.points_C, normals, T[:3, 3], T[:3, 1], rig.sensor.camera.fx_px)
+    image_noise = estimate_image_noise(plate_views["stacks"][0], ps, valid, 12)
+    got = []
+    for rows in (valid.shape[0], 7):
+        monkeypatch.setattr(noise, "BAND_ROWS", rows)
+        axis = decoded[0].primary()
+        phase = code_phase(axis, code.shift_px, code.offset_px)
+        sigma = edge_sigma_px(decoded[0], axis, image_noise, code.shift_px, code.offset_px)
+        got.append((phase, sigma, quantisation(cloud.points_C, normals, valid, g, phase, sigma).to_json()))
+    (phase, sigma, q), (phase_b, sigma_b, q_b) = got
+    assert q["pixels"] > 1000 and np.isfinite(sigma).sum() > 1000
+    assert np.array_equal(phase, phase_b, equal_nan=True) and np.array_equal(sigma, sigma_b, equal_nan=True)
+    assert q == q_b
 
 
 # ------------------------------------------------------------------------------------------ merge and pose

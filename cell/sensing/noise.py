@@ -33,6 +33,7 @@ from cell.sensing.decode import AxisDecode, Decoded
 from cell.sensing.patterns import PatternSet
 
 MIN_PIXELS = 200  # fewer usable pixels than this: the view's noise cannot be measured
+BAND_ROWS = 256  # image rows per band of the per-pixel figures (a few (rows, W, 3) float64 temporaries)
 N_BINS = 16  # levels (quantiles of W + B) over which the per-pixel variances are averaged
 
 
@@ -115,17 +116,37 @@ def edge_sigma_px(
 ) -> NDArray[np.float64]:
     """sigma_x (H, W): the 1-sigma displacement (camera pixels, along the coded row) of each pixel's decoded
     projector coordinate caused by image noise (see the module docstring); NaN where the pixel has no code.
-    ``shift_px`` / ``offset_px``: the code's line shift and first coded projector pixel (AxisCode)."""
-    mod = np.asarray(decoded.modulation_dn, dtype=np.float64)
-    contrast = np.asarray(decoded.contrast, dtype=np.float64)
+    ``shift_px`` / ``offset_px``: the code's line shift and first coded projector pixel (AxisCode). Pixel by
+    pixel, in bands of :data:`BAND_ROWS` rows (a 5 MP view's whole-image float64 temporaries were ~0.3 GB)."""
+    mod, contrast, sharp, u = decoded.modulation_dn, decoded.contrast, axis.sharpness, axis.u
+    out = np.empty(np.shape(mod), dtype=np.float64)
+    for a in range(0, len(out), BAND_ROWS):
+        b = slice(a, a + BAND_ROWS)
+        out[b] = _edge_sigma(mod[b], contrast[b], sharp[b], u[b], axis.valid[b], noise, shift_px, offset_px)
+    return out
+
+
+def _edge_sigma(
+    modulation_dn: NDArray[np.floating],
+    contrast_: NDArray[np.floating],
+    sharpness: NDArray[np.floating],
+    u_px: NDArray[np.floating],
+    valid: NDArray[np.bool_],
+    noise: ImageNoise,
+    shift_px: float,
+    offset_px: float,
+) -> NDArray[np.float64]:
+    """:func:`edge_sigma_px` of some rows."""
+    mod = np.asarray(modulation_dn, dtype=np.float64)
+    contrast = np.asarray(contrast_, dtype=np.float64)
     # W + B from the modulation W - B and the contrast (W - B)/(W + B) the decoder kept
     with np.errstate(invalid="ignore", divide="ignore"):
         level = np.where(contrast > 0, mod / contrast, np.nan)
-        swing = np.asarray(axis.sharpness, dtype=np.float64) * mod
-        t = np.mod((np.asarray(axis.u, dtype=np.float64) + 0.5 - offset_px) / shift_px, 1.0)
+        swing = np.asarray(sharpness, dtype=np.float64) * mod
+        t = np.mod((np.asarray(u_px, dtype=np.float64) + 0.5 - offset_px) / shift_px, 1.0)
         spread = np.sqrt((1 - t) ** 2 + t**2)
         sigma = np.sqrt(noise.pair_variance(level)) / swing * np.sqrt(2.0 / 3.0) * spread
-    return np.where(axis.valid & (swing > 0), sigma, np.nan)
+    return np.where(valid & (swing > 0), sigma, np.nan)
 
 
 N_PHASES = 10  # sub-code phase bins of the quantisation curve
@@ -165,8 +186,11 @@ class Quantisation:
 
 def code_phase(axis: AxisDecode, shift_px: float, offset_px: float) -> NDArray[np.float64]:
     """t' (H, W) in [0, 1): where each pixel lies between the edges of its code q and q + 1."""
-    u = np.asarray(axis.u, dtype=np.float64)
-    return np.mod((u + 0.5 - offset_px) / shift_px, 1.0)
+    out = np.empty(np.shape(axis.u), dtype=np.float64)
+    for a in range(0, len(out), BAND_ROWS):  # in bands: no whole-image float64 temporaries
+        b = slice(a, a + BAND_ROWS)
+        out[b] = np.mod((np.asarray(axis.u[b], dtype=np.float64) + 0.5 - offset_px) / shift_px, 1.0)
+    return out
 
 
 def quantisation(
@@ -188,16 +212,25 @@ def quantisation(
     :func:`cell.sensing.error_model.normal_error_per_pixel`), averaged per phase bin over the view: noise
     and shape average out, the quantisation curve stays. ``sigma_x_px``: each pixel's image-noise sigma
     (:func:`edge_sigma_px`), to tell noise from the rest of the scatter."""
-    p = np.asarray(points_C, dtype=np.float64)
-    n = np.asarray(normals_C, dtype=np.float64)
+    p, n = np.asarray(points_C), np.asarray(normals_C)
     ok = valid & np.isfinite(p).all(-1) & np.isfinite(n).all(-1)
     size = (2 * half_window_px + 1,) * 2
-    z = np.where(ok[..., None], p, 0.0)
     cnt = cv2.boxFilter(ok.astype(np.float64), -1, size, normalize=False)
-    mean = np.stack([cv2.boxFilter(z[..., k], -1, size, normalize=False) for k in range(3)], -1)
     full = ok & (cnt >= size[0] * size[1])
+    # the window sums one coordinate at a time, the offsets in bands of rows (a 5 MP view's (H, W, 3) float64
+    # copies and temporaries were ~0.8 GB at the decode's peak); each pixel's offset is the same einsum of
+    # the same float64 numbers as over the whole image: the same bits
+    mean = [
+        cv2.boxFilter(np.where(ok, np.asarray(p[..., k], np.float64), 0.0), -1, size, normalize=False)
+        for k in range(3)
+    ]
+    mm = np.broadcast_to(np.asarray(mm_per_px, np.float64), ok.shape)
+    r = np.empty(ok.shape, dtype=np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        r = np.einsum("ijk,ijk->ij", p - mean / cnt[..., None], n) / np.asarray(mm_per_px, np.float64)
+        for a in range(0, ok.shape[0], BAND_ROWS):
+            b = slice(a, a + BAND_ROWS)
+            d = np.asarray(p[b], np.float64) - np.stack([m[b] for m in mean], -1) / cnt[b, :, None]
+            r[b] = np.einsum("ijk,ijk->ij", d, np.asarray(n[b], np.float64)) / mm[b]
     use = full & np.isfinite(r) & np.isfinite(phase)
     r, t, sx = r[use], np.asarray(phase)[use], np.asarray(sigma_x_px, np.float64)[use]
     if len(r) < MIN_PIXELS:
