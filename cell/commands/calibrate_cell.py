@@ -59,7 +59,7 @@ def validate_cmd(
         help="the slot gauge's certificate (YAML; default recipes/parts/gauge.certificate.yaml)",
     ),
     gauge_height_mm: float = typer.Option(15.0, help="the gauge's top above the reference plane (mm)"),
-    seed: int = typer.Option(2, help="simulated cells: the camera noise seed"),
+    seed: int = typer.Option(2, help="simulated cells: the noise seed (with the cell's sim.seed)"),
 ) -> None:
     """The flat board at --height-mm above the reference plane, a sphere of known radius and the slot gauge
     on the stage, measured with the cell's active calibration (or CALIBRATION): plane height error and
