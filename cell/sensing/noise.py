@@ -143,7 +143,7 @@ def _edge_sigma(
     with np.errstate(invalid="ignore", divide="ignore"):
         level = np.where(contrast > 0, mod / contrast, np.nan)
         swing = np.asarray(sharpness, dtype=np.float64) * mod
-        t = np.mod((np.asarray(u_px, dtype=np.float64) + 0.5 - offset_px) / shift_px, 1.0)
+        t = _phase(u_px, shift_px, offset_px)
         spread = np.sqrt((1 - t) ** 2 + t**2)
         sigma = np.sqrt(noise.pair_variance(level)) / swing * np.sqrt(2.0 / 3.0) * spread
     return np.where(valid & (swing > 0), sigma, np.nan)
@@ -189,8 +189,13 @@ def code_phase(axis: AxisDecode, shift_px: float, offset_px: float) -> NDArray[n
     out = np.empty(np.shape(axis.u), dtype=np.float64)
     for a in range(0, len(out), BAND_ROWS):  # in bands: no whole-image float64 temporaries
         b = slice(a, a + BAND_ROWS)
-        out[b] = np.mod((np.asarray(axis.u[b], dtype=np.float64) + 0.5 - offset_px) / shift_px, 1.0)
+        out[b] = _phase(axis.u[b], shift_px, offset_px)
     return out
+
+
+def _phase(u_px: NDArray[np.floating], shift_px: float, offset_px: float) -> NDArray[np.float64]:
+    """t' of some pixels from their decoded projector coordinates (:func:`code_phase`)."""
+    return np.mod((np.asarray(u_px, dtype=np.float64) + 0.5 - offset_px) / shift_px, 1.0)
 
 
 def quantisation(
