@@ -592,6 +592,14 @@ def config_fingerprint(cfg: CellConfig) -> str:
     """SHA-256 of the cell config as validated, without its ``calibration:`` section: what a calibration file
     records as the config it was made for (``cell_config_sha256``). Adding the file to the config does not
     change it; changing the robot, the sensor, the scene or the world does. Where results are recorded
-    (``results_db``) and how long raw images are kept (``retention``) measure nothing and are left out too."""
-    data = cfg.model_dump(mode="json", exclude={"calibration", "results_db", "retention"})
+    (``results_db``), how long raw images are kept (``retention``) and the pose prior the per-point
+    uncertainty assumes (``robot.pose_uncertainty_mm/deg``: a cell sets it from its own validation, after
+    calibrating) measure nothing and are left out too."""
+    exclude: dict[str, Any] = {
+        "calibration": True,
+        "results_db": True,
+        "retention": True,
+        "robot": {"pose_uncertainty_mm", "pose_uncertainty_deg"},
+    }
+    data = cfg.model_dump(mode="json", exclude=exclude)
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
