@@ -130,11 +130,22 @@ def reregister(run_dir: Path) -> None:
 
     run = open_inspection_run(run_dir)
     recipe, cfg, _ = load_run_inputs(run)
+    print(f"{run_dir}: pose prior {pose_prior(run_dir)}", flush=True)
     nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
     job = LambertianInspection(recipe, cfg, nominal_W)
     job.settings.pictures = False
     job.report(run, job.register(run, Checkpoint.from_json(run.load_checkpoint()).views))
     job.render(run)  # cloud.ply (the analysis reads it) is written after the verdict
+
+
+def pose_prior(run_dir: Path) -> list[float]:
+    """``robot.pose_uncertainty_mm/deg`` as the run's own cell config gives it (its inputs/ copy, read with
+    this checkout's schema and defaults): the pose prior a re-registration assumes with a kinematic
+    calibration."""
+    from cell.inspection_run import load_run_inputs, open_inspection_run
+
+    robot = load_run_inputs(open_inspection_run(run_dir))[1].robot
+    return [robot.pose_uncertainty_mm, robot.pose_uncertainty_deg]
 
 
 def run_seed(seed: int, out: Path, tolerance: float) -> dict[str, Any]:
@@ -202,6 +213,8 @@ def analyse_seed(seed: int, out: Path, tolerance: float) -> dict[str, Any]:
         "out_of_tolerance": bool(depth > tolerance),
         "verdicts": verdicts,
         "report_verdict": report["verdict"],
+        "pose_prior_mm_deg": pose_prior(folder / "run"),
+        "pose_u_p95_mm": report["uncertainty"]["budget"]["pose_mm"]["p95"],
         "error": error[judged],
         "u": u[judged],
         "seam": pts[judged, 2] < SEAM_MM,
@@ -358,6 +371,8 @@ def main() -> None:
                 "validation_height_error_mm": r["validation_height_error_mm"],
                 "verdicts": r["verdicts"],
                 "report_verdict": r["report_verdict"],
+                "pose_prior_mm_deg": r["pose_prior_mm_deg"],
+                "pose_u_p95_mm": r["pose_u_p95_mm"],
                 "views": r["views"],
                 "rms_u_mm": round(float(np.sqrt(np.mean(r["u"] ** 2))), 5),
                 "rms_error_mm": round(float(np.sqrt(np.mean(r["error"] ** 2))), 5),

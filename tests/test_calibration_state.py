@@ -32,6 +32,11 @@ def test_fingerprint_ignores_the_calibration_section_and_sees_the_rest(tmp_path:
     assert config_fingerprint(with_files) == config_fingerprint(cfg)
     moved = cfg.model_copy(update={"sensor": cfg.sensor.model_copy(update={"standoff_mm": 400.0})})
     assert config_fingerprint(moved) != config_fingerprint(cfg)
+    # the pose prior of the per-point uncertainty is set from the cell's validation, after its calibration
+    prior = cfg.robot.model_copy(update={"pose_uncertainty_mm": 0.07, "pose_uncertainty_deg": 0.03})
+    assert config_fingerprint(cfg.model_copy(update={"robot": prior})) == config_fingerprint(cfg)
+    slower = cfg.robot.model_copy(update={"max_tcp_speed_mm_s": cfg.robot.max_tcp_speed_mm_s / 2})
+    assert config_fingerprint(cfg.model_copy(update={"robot": slower})) != config_fingerprint(cfg)
 
 
 def test_good_current_calibration_satisfies_a_recipe_that_requires_it(tmp_path: Path) -> None:
