@@ -25,8 +25,9 @@ def _with_sim_seed(cfg: CellConfig, seed: int) -> CellConfig:
 
 
 def _landings(cfg: CellConfig, routine_seed: int, views: int = 4) -> np.ndarray:
-    """The flange's landing error (mm, against the world's true kinematics) of the routine's views 0..3, on
-    the devices a routine run with ``routine_seed`` gets (each view restarts its noise: begin_view)."""
+    """The flange's landing error (mm, against the world's true kinematics) of views 0..3 on the devices a
+    routine run with ``routine_seed`` gets, drawn as an inspection draws them (begin_view restarts each
+    view's noise; a routine draws its landings move by move from the same seeded devices)."""
     devices = build_devices(cfg, seed=routines.simulator_seed(cfg, routine_seed), with_stage=True)
     sim = devices.sim
     assert sim is not None
