@@ -31,7 +31,7 @@ from cell.analysis.report import ReportInput, write_report
 from cell.cli import main
 from cell.results import ResultsDamaged, ResultsStore, ResultsUnavailable, migrate, open_results
 from cell.results.folder import PENDING_NAME
-from cell.results.migrate import current, head
+from cell.results.migrate import HEAD, current
 from cell.run_data import RunIdentity
 from cell.runs import RunFolder, write_json_atomic
 from cell.verification.history import VerificationHistory, inspection_block
@@ -140,7 +140,7 @@ def test_record_query_and_filter(db_url: str, tmp_path: Path) -> None:
     for path in runs.values():
         store.record_run(path)
         store.record_run(path)  # idempotent
-    assert current(store.engine) == head()
+    assert current(store.engine) == HEAD
 
     rows = store.runs()
     assert [r.folder for r in rows] == [
@@ -523,11 +523,11 @@ def test_the_schema_is_migrated_when_behind_and_only_read_when_up_to_date(
         with engine.connect() as conn:
             return MigrationContext.configure(conn).get_current_revision()
 
-    assert head() == migrate.alembic_head()
+    assert HEAD == migrate.alembic_head()
     engine = ResultsStore(db_url, tmp_path).engine
     assert current(engine) is None and alembics(engine) is None  # empty: no schema yet
     assert migrate.upgrade(engine) is True  # behind: Alembic migrates
-    assert current(engine) == alembics(engine) == head()
+    assert current(engine) == alembics(engine) == HEAD
 
     def no_migration(*_: Any) -> bool:
         raise AssertionError("an up-to-date schema was migrated")
@@ -542,7 +542,7 @@ def test_the_schema_is_migrated_when_behind_and_only_read_when_up_to_date(
 
 def test_a_schema_newer_than_the_software_is_refused_untouched(tmp_path: Path) -> None:
     store = ResultsStore(f"sqlite:///{tmp_path / 'results.sqlite'}", tmp_path)
-    assert store.runs() == [] and current(store.engine) == head()
+    assert store.runs() == [] and current(store.engine) == HEAD
     store.close()
     with sqlite3.connect(tmp_path / "results.sqlite") as db:
         db.execute("UPDATE alembic_version SET version_num = 'f00d'")

@@ -19,11 +19,6 @@ VERSION_TABLE = "alembic_version"  # Alembic's default, where it keeps the schem
 _PG_LOCK = 0x63656C6C  # pg_advisory_xact_lock key: "cell"
 
 
-def head() -> str:
-    """The newest schema revision the code knows."""
-    return HEAD
-
-
 def current(engine: Engine) -> str | None:
     """The database's schema revision (None: no schema yet)."""
     with engine.connect() as conn:
