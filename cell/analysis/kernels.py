@@ -1,13 +1,14 @@
-"""The compare path's compiled kernels (error map, point grid), loaded without starting numba when it can be.
+"""The compare path's compiled kernels (error map, point grid, depth buffer), loaded without starting numba.
 
 A fresh ``cell compare`` spent more CPU starting numba (its import, then building its CPU target context on
 the first call of a kernel, even one loaded from numba's cache: ~1.2-1.6 s) than CloudCompare spends on the
-whole comparison. So the same kernels -- the numba functions of :mod:`cell.analysis._triangle_grid` and
-:mod:`cell.analysis._point_grid_kernels`, not a second copy -- are also compiled ahead of time by numba's
-``numba.pycc`` into a C extension module, which imports in under a millisecond and needs neither numba nor
-LLVM at run time. ``make venv`` builds it (``python -m cell.analysis.kernels``; gcc and the Python headers
-needed) into the user's cache folder (:func:`cell.user_cache.cache_dir`), named by a hash of the kernels'
-source, their signatures and the numba, numpy and Python versions: a stale build is never loaded.
+whole comparison. So the same kernels -- the numba functions of :mod:`cell.analysis._triangle_grid`,
+:mod:`cell.analysis._point_grid_kernels` and :mod:`cell.analysis._picture_kernels`, not a second copy -- are
+also compiled ahead of time by numba's ``numba.pycc`` into a C extension module, which imports in under a
+millisecond and needs neither numba nor LLVM at run time. ``make venv`` builds it (``python -m
+cell.analysis.kernels``; gcc and the Python headers needed) into the user's cache folder
+(:func:`cell.user_cache.cache_dir`), named by a hash of the kernels' source, their signatures and the numba,
+numpy and Python versions: a stale build is never loaded.
 
 :func:`get` gives the ahead-of-time build's function when it is there and numba is not loaded already, else
 numba's jit function (the only one in a process that imports numba anyway, e.g. an inspection: those kernels
@@ -55,21 +56,24 @@ SIGNATURES: dict[str, tuple[str, str]] = {
         "cell.analysis._point_grid_kernels",
         f"{_I1}({_F2}, f8, {_I1}, {_I1}, {_F1}, f8, {_I1})",
     ),
+    "zbuffer": ("cell.analysis._picture_kernels", f"Tuple(({_I1}, {_F1}))({_I1}, {_F1}, i8)"),
 }
 
 
 def build_key() -> str:
     """Hash of what the ahead-of-time build is made from: the kernel modules' source, the signatures, and
-    the numba, numpy and Python versions (16 hex digits)."""
-    from importlib.metadata import version
+    the numba (its ``_version.py``, read without importing numba), numpy and Python versions (16 hex
+    digits)."""
+    import numpy
 
     h = hashlib.sha256()
-    for module in sorted({m for m, _ in SIGNATURES.values()}):
+    for module in [*sorted({m for m, _ in SIGNATURES.values()}), "numba"]:
         spec = importlib.util.find_spec(module)
         assert spec is not None and spec.origin is not None
-        h.update(Path(spec.origin).read_bytes())
+        origin = Path(spec.origin)
+        h.update((origin.with_name("_version.py") if module == "numba" else origin).read_bytes())
     h.update(repr(sorted(SIGNATURES.items())).encode())
-    h.update(f"{version('numba')} {version('numpy')} {sys.version}".encode())
+    h.update(f"{numpy.__version__} {sys.version}".encode())
     return h.hexdigest()[:16]
 
 
