@@ -101,7 +101,7 @@ def load_aot() -> ModuleType | None:
 def jit(name: str) -> Callable[..., Any]:
     """numba's jit function ``name`` (imports numba)."""
     module, _ = SIGNATURES[name]
-    return getattr(importlib.import_module(module), name)  # type: ignore[no-any-return]
+    return getattr(importlib.import_module(module), name)
 
 
 @lru_cache(maxsize=1)
@@ -114,7 +114,7 @@ def _aot_or_none() -> ModuleType | None:
 def get(name: str) -> Callable[..., Any]:
     """Kernel ``name`` of :data:`SIGNATURES`: the ahead-of-time build's when it can be used, else numba's."""
     module = _aot_or_none()
-    return getattr(module, name) if module is not None else jit(name)  # type: ignore[no-any-return]
+    return getattr(module, name) if module is not None else jit(name)
 
 
 def build(dest: Path | None = None) -> Path:

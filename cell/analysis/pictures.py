@@ -136,7 +136,7 @@ def _zbuffer(pix: NDArray, depth: NDArray, n_pixels: int) -> tuple[NDArray[np.in
     and its depth (NaN: none); ``depth`` finite. A compiled loop (:mod:`cell.analysis._picture_kernels`)."""
     from cell.analysis import kernels
 
-    return kernels.get("zbuffer")(  # type: ignore[no-any-return]
+    return kernels.get("zbuffer")(
         np.ascontiguousarray(pix, np.int64), np.ascontiguousarray(depth, np.float64), int(n_pixels)
     )
 
