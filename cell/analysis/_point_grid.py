@@ -1,11 +1,12 @@
-"""Exact neighbour queries on a point cloud through a uniform grid (numba): the nearest other point of some of
-the points, and the groups of points linked by a radius. The report's link radius and cluster regions and the
-pictures' point spacing use them.
+"""Exact neighbour queries on a point cloud through a uniform grid (numba kernels in ``_point_grid_kernels``,
+handed out by :mod:`cell.analysis.kernels`): the nearest other point of some of the points, and the groups of
+points linked by a radius. The report's link radius and cluster regions and the pictures' point spacing use
+them.
 
 Written by hand because the library that does this, scipy's cKDTree (with scipy.sparse.csgraph for the
 groups), costs 0.6-0.9 s of CPU to import -- as much as CloudCompare's whole comparison of 200k points --
-while the error map has numba loaded already. The answers are scipy's: the same distances (the same sum of
-squares, then its root) and the same groups numbered the same way (by their lowest point index);
+while the error map's compiled kernels are loaded already. The answers are scipy's: the same distances (the
+same sum of squares, then its root) and the same groups numbered the same way (by their lowest point index);
 tests/test_analysis_point_grid.py compares them with cKDTree and connected_components.
 
 Grid: points are counting-sorted into cubic cells of side ``h`` (a CSR: ``start`` per cell, point indices in
