@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test venv bench lint typecheck clean parts
+.PHONY: demo test venv kernels bench lint typecheck clean parts
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -12,7 +12,12 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-venv: $(STAMP)
+venv: $(STAMP) kernels
+
+# the compare path's numba kernels compiled ahead of time into the user's cache folder (cell/analysis/kernels.py):
+# a fresh `cell compare` then starts without numba. Rebuilt when the kernels change; without gcc, numba's jit runs
+kernels: $(STAMP)
+	$(PY) -m cell.analysis.kernels || echo "compiled kernels not built (gcc, Python headers?): numba's jit is used"
 
 # the Aravis camera driver's Python binding, when the Debian packages it builds against are there (.ci/run)
 ARAVIS_STAMP := $(VENV)/.aravis
@@ -21,13 +26,13 @@ $(ARAVIS_STAMP): $(STAMP)
 		$(PY) -m pip install --quiet -e '.[dev,aravis]' && touch $(ARAVIS_STAMP); \
 	else echo "Aravis tests will skip: no libgirepository1.0-dev/libcairo2-dev (bash .ci/run installs them)"; fi
 
-demo: $(STAMP)
+demo: $(STAMP) kernels
 	$(PY) -m cell demo || test $$? -eq 4  # the demo pillar is dented: its verdict is FAIL (exit 4), as it should be
 
-test: $(STAMP) $(ARAVIS_STAMP)
+test: $(STAMP) $(ARAVIS_STAMP) kernels
 	$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -q  # files in tests/conftest.py's order
 
-bench: $(STAMP)
+bench: $(STAMP) kernels
 	command -v CloudCompare >/dev/null || (apt-get update && apt-get install -y cloudcompare)  # bench_compare's peer
 	$(PY) bench/run_all.py
 

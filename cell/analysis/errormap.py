@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cell.analysis._triangle_grid import build_grid, cell_order, signed_closest
+from cell.analysis import kernels
 from cell.errors import ConfigError
 from cell.mesh import merge_vertices
 
@@ -112,7 +112,7 @@ class NominalMesh:
         abac = np.einsum("ij,ij->i", ab, ac)
         denom = dbl_area * dbl_area  # = aa * cc - abac**2 exactly, without its cancellation on slivers
         lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
-        start, items, boxes = build_grid(lo, hi, origin, h, dims)
+        start, items, boxes = kernels.get("build_grid")(lo, hi, origin, h, dims)
         tri = np.column_stack([a, ab, ac, fn, aa, abac, cc, 1.0 / denom, lo, hi])
         return cls(
             vertices=v,
@@ -182,8 +182,8 @@ def signed_distance(nominal: NominalMesh, points_mm: ArrayLike) -> ErrorMap:
     # Visit points cell by cell so consecutive points touch the same triangles (3x faster than random order).
     if not np.isfinite(p).all():
         raise ConfigError("signed_distance: the points contain NaN or inf; drop them first")
-    order = cell_order(p, nominal.grid_origin, nominal.grid_h, nominal.grid_dims)
-    dev, q, face, feat = signed_closest(
+    order = kernels.get("cell_order")(p, nominal.grid_origin, nominal.grid_h, nominal.grid_dims)
+    dev, q, face, feat = kernels.get("signed_closest")(
         p,
         order,
         nominal.tri,
