@@ -91,12 +91,14 @@ class DeviceBundle:
                 if on_error is not None:
                     on_error(self.names.get(kind, kind), exc)
 
-    def begin_view(self, key: int) -> None:
-        """Called by a job before it captures a view, ``key`` naming the view the same way on a resumed run. A
-        simulated cell restarts its noise from it (a view's images then depend on the view alone); real
-        devices need nothing."""
+    def begin_view(self, key: int, arrived: int | None = None) -> None:
+        """Called by a job before it captures a view, ``key`` naming the view the same way on a resumed run,
+        ``arrived`` the key of the view for which the robot came to the pose it holds (default ``key``: it
+        came for this one). A simulated cell restarts its noise from them (a view's images then depend on the
+        view alone, and a held pose keeps its landing error on a resumed run too); real devices need
+        nothing."""
         if self.sim is not None:
-            self.sim.reseed(key)
+            self.sim.reseed(key, arrived=None if arrived is None else (arrived,))
 
 
 def _drivers(cfg: CellConfig) -> dict[str, str]:
@@ -150,11 +152,14 @@ def build_devices(
     part_W: trimesh.Trimesh | None = None,
     part_material: MaterialConfig | None = None,
     seed: int | None = None,
+    stream: tuple[int | str, ...] = (),
     with_stage: bool = False,
 ) -> DeviceBundle:
     """Devices for ``cfg``. ``part_W`` (world coordinates, mm) is what a simulated cell renders; real
-    cells ignore it. ``with_stage`` adds the board stage the calibration routines need: a simulated motorised
-    stage on a simulated cell, else the operator, asked on the console to place each target and confirm."""
+    cells ignore it, and ``seed`` and ``stream``: a simulated cell's noise is drawn from ``seed`` (default
+    its ``sim.seed``) with ``stream`` mixed in (fakes.sim_cell.noise_seed). ``with_stage`` adds the board
+    stage the calibration routines need: a simulated motorised stage on a simulated cell, else the operator,
+    asked on the console to place each target and confirm."""
     drivers = _drivers(cfg)
     sim_kinds = [k for k, d in drivers.items() if d == "sim"]
     if sim_kinds and len(sim_kinds) != len(drivers):
@@ -171,7 +176,7 @@ def build_devices(
     if sim_kinds:
         from fakes.sim_cell import build_sim_cell
 
-        sim = build_sim_cell(cfg, part_W, part_material=part_material, seed=seed)
+        sim = build_sim_cell(cfg, part_W, part_material=part_material, seed=seed, stream=stream)
         stage: BoardStage | None = None
         if with_stage:
             from fakes.stage import SimBoardStage

@@ -12,6 +12,7 @@ with the true hand-eye, lenses and projector pose. The part sits where the place
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,34 +50,61 @@ class SimCell:
     seed: int = 0
     T_place_W: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
     _landing: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
-    _moves_seen: int = 0
+    _moves_seen: int = 0  # moves made when the flange last landed
+    _moves_at_reseed: int = 0  # moves made at the last reseed
     _landing_rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
 
     def flange_pose(self) -> NDArray[np.float64]:
         """T_B_T where the flange really is (true kinematics, the last move's landing error); mm."""
         moves = self._moves_made()
-        if moves != self._moves_seen:  # a new move has ended: it landed somewhere else in the ball
+        if moves != self._moves_seen:  # the arm has gone somewhere since: it landed elsewhere in the ball
             self._moves_seen = moves
             self._landing = self.world.landing_error(self._landing_rng)
         return self.world.true_flange(self.robot.joints()) @ self._landing
 
     def _moves_made(self) -> int:
-        """Moves the robot has made (refused commands and stops do not move it)."""
+        """Moves the robot has made that took it somewhere. Refused commands and stops do not move it, and
+        a move to where it stands (a calibration routine's joint move to the pose it holds while the stage
+        moves the board) takes no time and leaves the arm where it landed: a real arm that does not move
+        does not land again."""
         log = getattr(self.robot, "command_log", ())
-        return sum(1 for e in log if e["command"].startswith("move") and e["outcome"] != "refused")
+        return sum(
+            1
+            for e in log
+            if e["command"].startswith("move") and e["outcome"] != "refused" and e["duration_s"] > 0.0
+        )
 
     def camera_pose(self) -> NDArray[np.float64]:
         """T_W_C of the camera now (mm): world <- base <- flange <- camera, all true."""
         return self.camera.pose_source()
 
-    def reseed(self, *key: int) -> None:
-        """Restart the camera noise and the landing error of the current pose from (cell seed, *key): a
-        view's images then depend only on the view, not on what was captured or how the robot got there, so
-        a resumed run reproduces an uninterrupted one exactly."""
+    def reseed(self, *key: int, arrived: tuple[int, ...] | None = None) -> None:
+        """Restart the camera noise from (cell seed, *key), and the landing error from (cell seed, *arrived)
+        when the arm has moved since the last reseed (``arrived``: the key of the view for which it came to
+        the pose it holds, default ``key``; a held pose keeps its landing). A view's images then depend only
+        on the view, not on what was captured or how the robot got there, so a resumed run reproduces an
+        uninterrupted one exactly, also when it resumes at a view of a held pose: there the arm comes from
+        home, and the draw of the view it arrived for gives it the landing the uninterrupted run kept."""
         self.camera.rng = np.random.default_rng([self.seed, *key])
-        self._landing_rng = np.random.default_rng([self.seed, *key, 1])
-        self._moves_seen = self._moves_made()
-        self._landing = self.world.landing_error(self._landing_rng)
+        rng = np.random.default_rng([self.seed, *(key if arrived is None else arrived), 1])
+        landing = self.world.landing_error(rng)  # drawn either way: the same stream after it
+        moves = self._moves_made()
+        if moves != self._moves_at_reseed:  # it came here since the last view (from home on a resumed run)
+            self._moves_seen, self._landing = moves, landing
+        self._moves_at_reseed, self._landing_rng = moves, rng
+
+
+def noise_seed(cfg: CellConfig, seed: int | None = None, stream: tuple[int | str, ...] = ()) -> int:
+    """The seed of a simulated cell's camera noise and robot landing errors: ``seed`` (default the cell's
+    ``sim.seed``), or, with a ``stream``, one drawn from it and the stream together (a text by its CRC-32,
+    stable across processes, unlike ``hash``). A calibration routine passes (its --seed, its kind), so that
+    every routine of one world and every world of one routine seed draw their own noise; an inspection's
+    --seed is the seed itself."""
+    base = cfg.sim.seed if seed is None else seed
+    if not stream:
+        return base
+    keys = [zlib.crc32(k.encode()) if isinstance(k, str) else k for k in stream]
+    return int(np.random.SeedSequence([base, *keys]).generate_state(1)[0])
 
 
 def build_sim_cell(
@@ -84,11 +112,12 @@ def build_sim_cell(
     part_W: trimesh.Trimesh | None,
     part_material: MaterialConfig | None = None,
     seed: int | None = None,
+    stream: tuple[int | str, ...] = (),
 ) -> SimCell:
     """Compose world, scene, renderer, clock, robot, projector and camera for ``cfg``; ``part_W`` is the
     (actual) part where the recipe places it, in world coordinates (mm), or None for an empty table; the
-    world's placement error moves it. ``seed`` overrides ``cfg.sim.seed`` for the noise (the world is drawn
-    from ``world.seed`` or ``sim.seed``)."""
+    world's placement error moves it. ``seed`` overrides ``cfg.sim.seed`` for the noise and ``stream`` is
+    mixed into it (:func:`noise_seed`; the world is drawn from ``world.seed`` or ``sim.seed``)."""
     world = build_world(cfg)
     T_place_W = np.eye(4)
     if part_W is not None and len(part_W.faces):
@@ -107,7 +136,7 @@ def build_sim_cell(
     robot = SimRobot(cfg.robot, clock=clock, obstacles_W=part_W, tool_body_T=sensor_body_points_T(cfg))
     projector = SimProjector(cfg.sensor.projector)
     T_W_B, T_T_C = cfg.robot.T_W_B.matrix(), world.sensor.T_T_C.matrix()
-    seed = cfg.sim.seed if seed is None else seed
+    seed = noise_seed(cfg, seed, stream)
     rng = np.random.default_rng(seed)
     cell: SimCell
 

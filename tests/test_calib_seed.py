@@ -1,7 +1,9 @@
-"""A calibration routine on a simulated cell draws its noise from the cell's world as well as from the
-routine's seed (cell.calibration.routines.simulator_seed). With the routine's seed alone, every world of a
-seed sweep saw the same landing errors in the kinematics routine, and the calibrated poses came out biased the
-same way in all of them (issue 17: the box's +y face 0.1 mm out in all 30 worlds; docs/uncertainty.md)."""
+"""A calibration routine on a simulated cell draws its noise from the cell's world, the routine's seed and the
+routine's kind together (fakes.sim_cell.noise_seed, passed by cell.calibration.routines.run_routine). With
+the routine's seed alone, every world of a seed sweep saw the same landing errors in the kinematics routine,
+and the calibrated poses came out biased the same way in all of them (issue 17: the box's +y face 0.1 mm out
+in all 30 worlds; docs/uncertainty.md); without the kind, every routine of `cell calibrate all` in one world
+started the same camera noise and landing sequence, view k of one routine erring as view k of another."""
 
 from __future__ import annotations
 
@@ -12,8 +14,11 @@ import pytest
 
 import cell.calibration.routines as routines
 from cell.calibration.handeye_routines import KinematicsJob
+from cell.calibration.procedures import CalibrationJob
+from cell.calibration.sensor_routines import IntrinsicsJob
 from cell.config import DEFAULT_CELL, CellConfig, load_cell_config
 from cell.devices import build_devices
+from fakes.sim_cell import noise_seed
 
 HONEST = DEFAULT_CELL.parent / "sim_binned_honest.yaml"
 
@@ -24,40 +29,55 @@ def _with_sim_seed(cfg: CellConfig, seed: int) -> CellConfig:
     return cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"seed": seed})})
 
 
-def _landings(cfg: CellConfig, routine_seed: int, views: int = 4) -> np.ndarray:
-    """The flange's landing error (mm, against the world's true kinematics) of views 0..3 on the devices a
-    routine run with ``routine_seed`` gets, drawn as an inspection draws them (begin_view restarts each
-    view's noise; a routine draws its landings move by move from the same seeded devices)."""
-    devices = build_devices(cfg, seed=routines.simulator_seed(cfg, routine_seed), with_stage=True)
+def _streams(monkeypatch, tmp_path: Path, jobs: list[CalibrationJob]) -> list[tuple]:
+    """The noise stream run_routine builds each job's devices with (seed 1), recorded, nothing run."""
+    seen: list[tuple] = []
+
+    def record(cfg: CellConfig, *, stream: tuple = (), **_: object) -> None:
+        seen.append(stream)
+        raise RuntimeError("devices recorded")
+
+    monkeypatch.setattr(routines, "build_devices", record)
+    for i, job in enumerate(jobs):
+        with pytest.raises(RuntimeError, match="devices recorded"):
+            routines.run_routine(job, tmp_path / f"r{i}", HONEST, seed=1)
+    monkeypatch.undo()
+    return seen
+
+
+def _draws(cfg: CellConfig, stream: tuple, views: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """The flange's landing errors (mm, against the world's true kinematics) after ``views`` moves, and the
+    camera's first noise numbers, on the devices a routine gets with ``stream`` (a routine draws its landings
+    move by move, its camera noise from one stream)."""
+    devices = build_devices(cfg, stream=stream, with_stage=True)
     sim = devices.sim
     assert sim is not None
     sim.robot.connect()
-    out = []
+    q0, out = sim.robot.joints(), []
     for k in range(views):
-        devices.begin_view(k)
+        sim.robot.move_joint(q0 + np.deg2rad(k + 1) * np.array([1, 0, 0, 0, 0, 1]), 1.0, 2.0)
         out.append(sim.flange_pose()[:3, 3] - sim.world.true_flange(sim.robot.joints())[:3, 3])
-    return np.array(out)
+    return np.array(out), sim.camera.rng.random(8)
 
 
 def test_two_worlds_calibrated_with_one_routine_seed_land_their_views_apart(monkeypatch, tmp_path: Path):
     base = load_cell_config(HONEST)
     one, two = _with_sim_seed(base, 1), _with_sim_seed(base, 2)
-    first, again, other = _landings(one, 1), _landings(one, 1), _landings(two, 1)
+    streams = _streams(monkeypatch, tmp_path, [KinematicsJob(one), KinematicsJob(two)])
+    assert streams == [(1, "robot_kinematics")] * 2  # run_routine hands the routine's seed and kind
+    (first, _), (again, _) = _draws(one, streams[0]), _draws(one, streams[0])
+    other, _ = _draws(two, streams[1])
     assert np.all(np.linalg.norm(first, axis=1) <= 0.03 + 1e-9)  # the UR5e's repeatability ball
-    np.testing.assert_array_equal(first, again)  # the same world and routine seed: reproducible (resume)
+    np.testing.assert_array_equal(first, again)  # the same world and routine seed: reproducible
     assert np.all(np.linalg.norm(first - other, axis=1) > 1e-4)  # another world: every view lands elsewhere
-    assert routines.simulator_seed(one, 1) != routines.simulator_seed(one, 2)  # another routine seed too
-    assert routines.simulator_seed(one, None) is None  # none given: the cell's sim.seed, as an inspection
+    assert noise_seed(one, stream=(1, "robot_kinematics")) != noise_seed(one, stream=(2, "robot_kinematics"))
+    assert noise_seed(one) == 1 and noise_seed(one, 7) == 7  # no stream: the seed itself, as an inspection's
 
-    # and run_routine builds its devices with that seed
-    seen: list[int | None] = []
 
-    def record(cfg: CellConfig, *, seed: int | None = None, **_: object) -> None:
-        seen.append(seed)
-        raise RuntimeError("devices recorded")
-
-    monkeypatch.setattr(routines, "build_devices", record)
-    for cfg in (one, two):
-        with pytest.raises(RuntimeError, match="devices recorded"):
-            routines.run_routine(KinematicsJob(cfg, seed=1), tmp_path / f"k{cfg.sim.seed}", HONEST, seed=1)
-    assert seen == [routines.simulator_seed(one, 1), routines.simulator_seed(two, 1)]
+def test_two_routines_of_one_world_draw_their_own_noise(monkeypatch, tmp_path: Path):
+    cfg = load_cell_config(HONEST)
+    streams = _streams(monkeypatch, tmp_path, [IntrinsicsJob(cfg), KinematicsJob(cfg)])
+    assert streams == [(1, "camera_intrinsics"), (1, "robot_kinematics")]
+    (land_i, noise_i), (land_k, noise_k) = _draws(cfg, streams[0]), _draws(cfg, streams[1])
+    assert np.all(np.linalg.norm(land_i - land_k, axis=1) > 1e-4)  # move k of one is not move k of the other
+    assert not np.any(noise_i == noise_k)  # nor is their camera noise

@@ -119,6 +119,40 @@ def test_robot_reports_nominal_kinematics_while_the_flange_follows_the_world() -
     assert np.array_equal(cell.camera_pose(), first)  # a resumed view is where the uninterrupted one was
 
 
+def test_a_held_pose_keeps_its_landing_error() -> None:
+    """A robot that holds its pose does not land again: not on a move to the joints it stands at (a
+    calibration routine's joint move to its pose while the stage moves the board), nor at the next view's
+    reseed. A resumed run that names the view it came for draws that landing again; a real move re-lands."""
+    cfg = _small(None)  # the realistic defaults: +-0.03 mm repeatability
+
+    def arrive(cell) -> np.ndarray:
+        cell.robot.connect()
+        target = cell.robot.tool_pose()
+        target[:3, 3] += (30.0, -20.0, -50.0)
+        cell.robot.move_linear(target, 100.0, 500.0)
+        return target
+
+    cell = build_sim_cell(cfg, None)
+    target = arrive(cell)
+    landed = cell.flange_pose()
+    assert not np.array_equal(landed, cell.world.true_flange(cell.robot.joints()))  # it landed off
+    cell.robot.move_joint(cell.robot.joints(), 1.0, 2.0)  # to where it stands
+    assert np.array_equal(cell.flange_pose(), landed)
+    cell.reseed(5)  # the view it came for: its landing drawn from the view's key
+    at_5 = cell.flange_pose()
+    cell.robot.move_joint(cell.robot.joints(), 1.0, 2.0)
+    cell.reseed(6)  # the next view, held
+    assert np.array_equal(cell.flange_pose(), at_5)
+    resumed = build_sim_cell(cfg, None)  # a run resumed at view 6 comes from home
+    arrive(resumed)
+    resumed.reseed(6, arrived=(5,))
+    assert np.array_equal(resumed.flange_pose(), at_5)
+    cell.robot.move_linear(UR5E.fk(np.deg2rad(cfg.robot.home_joints_deg)), 100.0, 500.0)
+    cell.robot.move_linear(target, 100.0, 500.0)  # away and back: a new landing
+    cell.reseed(7)
+    assert np.linalg.norm(cell.flange_pose()[:3, 3] - at_5[:3, 3]) > 1e-6
+
+
 def test_part_sits_off_its_fixture_by_the_placement_error() -> None:
     box = trimesh.creation.box(bounds=[(-60.0, -40.0, 0.0), (60.0, 40.0, 30.0)])
     box.apply_translation((100.0, 50.0, 0.0))

@@ -72,18 +72,6 @@ def _calibration_folder(
     return run, False
 
 
-def simulator_seed(cfg: CellConfig, seed: int | None) -> int | None:
-    """The noise seed of a simulated cell for a routine run with ``seed``: drawn from the routine's seed AND
-    the cell's own ``sim.seed`` (its world's camera noise and the robot's landing errors), so that two
-    simulated worlds calibrated with the same routine seed do not see the same noise. ``seed`` alone was
-    used before: every world of a seed sweep then saw the same 24 landing errors in the kinematics routine,
-    which biased the calibrated poses the same way in every world (the box's +y face 0.1 mm out in all 30
-    worlds of issue 17's study; docs/uncertainty.md). None: the cell's sim.seed, as an inspection uses."""
-    if seed is None:
-        return None
-    return int(np.random.SeedSequence([cfg.sim.seed, seed]).generate_state(1)[0])
-
-
 def run_routine(
     job: CalibrationJob,
     out: Path,
@@ -96,10 +84,14 @@ def run_routine(
     """Run ``job`` under the controller on the cell's devices (with a board stage) into run folder ``out``;
     an unfinished ``out`` is resumed. Returns the result (``job.result_file``); CalibrationError when the
     routine ended paused, faulted or aborted (the message says why; running it again resumes). ``inputs``
-    are further files the run reads (copied into its inputs/)."""
+    are further files the run reads (copied into its inputs/). On a simulated cell the noise is drawn from
+    the cell's ``sim.seed``, ``seed`` and the routine's kind together (fakes.sim_cell.noise_seed): each
+    routine of one world, and each world of one ``seed``, sees its own camera noise and landing errors
+    (docs/calibration.md); ``seed`` None: the cell's sim.seed alone, as an inspection uses."""
     cfg = job.cfg
     run, resume = _calibration_folder(out, cell, inputs, job.kind, job.rerun_finished)
-    devices = build_devices(cfg, seed=simulator_seed(cfg, seed), with_stage=True)
+    stream = () if seed is None else (seed, job.kind)
+    devices = build_devices(cfg, stream=stream, with_stage=True)
     controller = Controller(
         devices,
         job,

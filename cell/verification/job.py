@@ -80,6 +80,7 @@ class VerificationJob(CalibrationJob):
         self.triangulator = active_triangulator(cfg)  # once: a per-pixel model is read from its files
         self._stage: Any = None
         self._placed: tuple[Any, ...] | None = None  # what the stage holds now (artefact, label, pose)
+        self._planned: list[View] | None = None  # the plan, for the views the robot takes without moving
 
     # ------------------------------------------------------------------ the views
     def plan(self) -> list[View]:
@@ -126,8 +127,20 @@ class VerificationJob(CalibrationJob):
         if placement != self._placed:  # a resumed run places its first view's artefact again
             self._stage.place(artefact, np.asarray(T_W_A, dtype=np.float64), label)
             self._placed = placement
-        devices.begin_view(1000 + index)  # keys apart from the inspection's
+        # keys apart from the inspection's; the robot holds its pose between views that share it (Part 2)
+        devices.begin_view(1000 + index, arrived=1000 + self._arrived(view, index))
         return {**super().capture(devices, view, index), "simulated": devices.simulated}
+
+    def _arrived(self, view: View, index: int) -> int:
+        """The first of the views up to ``index`` that the robot takes at ``view``'s flange pose without
+        moving in between (Part 2's views share one pose: the robot holds it while the artefact is placed
+        anew). From the plan, so that a resumed run names it as the uninterrupted one did."""
+        if self._planned is None:
+            self._planned = self.plan()
+        first = index
+        while first > 0 and np.array_equal(self._planned[first - 1].T_B_T, view.T_B_T):
+            first -= 1
+        return first
 
     def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         """The points the sensor delivers in an inspection too (valid, off the rims, lit within
