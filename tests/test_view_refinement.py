@@ -82,6 +82,25 @@ def test_a_view_that_overlaps_nothing_is_named_and_left_alone() -> None:
     np.testing.assert_allclose(result.T[2], np.eye(4), atol=1e-9)
 
 
+def test_a_held_view_moves_no_other_view() -> None:
+    """A view too few pairs hold stays at its kinematic pose, and its pairs move no other view either: views
+    a and b of a plane agree; c, 0.4 mm off along the normal, overlaps b only in a 6 mm strip (about 200
+    pairs each way, under MIN_VIEW_PAIRS). Its pairs in the solve pulled a and b by 0.20 and 0.18 mm towards
+    it, and c kept the 0.27 mm the first (widest) matching had given it before it was held."""
+    rng = np.random.default_rng(8)
+
+    def plane(x0: float, x1: float, n: int) -> np.ndarray:
+        return np.column_stack([rng.uniform(x0, x1, n), rng.uniform(-50, 50, n), rng.normal(0, 0.02, n)])
+
+    a, b = plane(-50, 50, 4000), plane(0, 100, 4000)
+    c = transform_points(make_pose(np.eye(3), [0.0, 0.0, 0.4]), plane(94, 194, 4000))
+    result = refine_views([a, b, c], sigma_t_mm=1.0, sigma_r_rad=np.deg2rad(0.2), noise_mm=0.02)
+    assert result.unregistered == [2]
+    np.testing.assert_allclose(result.T[2], np.eye(4), atol=1e-9)
+    for T, v in zip(result.T[:2], (a, b)):  # along the normal, what a deviation sees
+        assert np.abs(transform_points(T, v)[:, 2] - v[:, 2]).max() < 0.005
+
+
 def test_a_flat_overlap_does_not_let_a_view_slide_along_it() -> None:
     """Two views of a plane constrain only the normal offset and two tilts; the prior holds the rest."""
     rng = np.random.default_rng(6)

@@ -394,20 +394,30 @@ def refine_views(
                 pool = cache.pool(a, b, radii_mm[0], seed)
                 return _match(a, b, poses[i], poses[j], boxes[j], radius, pool, noise_mm)
 
+            matches = [
+                (i, j, m)
+                for (i, j), m in zip(ordered, pool.map(matched, ordered), strict=True)
+                if m is not None
+            ]
+            overlaps = [0] * n_views
+            used = np.zeros(n_views)  # pairs (incidence-weighted) that hold each view, as source or target
+            for i, j, match in matches:
+                overlaps[i] += 1
+                used[i] += match.w.sum()
+                used[j] += match.w.sum()
+            # a view that too few good pairs hold (it overlaps the others only at grazing incidence, or hardly
+            # at all) stays at its kinematic pose: a few biased pairs would slide it where nothing checks it,
+            # and they move no other view either (they would pin its neighbours to its kinematic pose with an
+            # overlap's full weight: the pillar's view 11 pulled eleven views by 66-147 um). The views' pose
+            # covariance (cell.analysis.uncertainty.posterior_covariance) leaves them out the same way.
+            held = used < MIN_VIEW_PAIRS
             H = np.zeros((6 * n_views, 6 * n_views))
             g = np.zeros(6 * n_views)
             gaps_all: list[Array] = []
             pairs: list[tuple[int, int, Array, Array]] = []
-            overlaps = [0] * n_views
-            used = np.zeros(n_views)  # pairs (incidence-weighted) that hold each view, as source or target
-            for (i, j), match in zip(ordered, pool.map(matched, ordered), strict=True):
-                if match is None:
-                    continue
+            for i, j, match in matches:
                 p, q, nj, r, w_row = match.p, match.q, match.n, match.r, match.w
-                overlaps[i] += 1
                 gaps_all.append(r)
-                used[i] += w_row.sum()
-                used[j] += w_row.sum()
                 # a gap holds two points' noise; each unordered pair is seen twice (i->j, j->i): half weight.
                 # The pairs of one overlap are not independent (a view's calibration residual is smooth over
                 # it, estimated normals share neighbours): together they count as EFFECTIVE_PAIRS, or the
@@ -417,6 +427,9 @@ def refine_views(
                 # the prior's alone)
                 Ji = np.column_stack([np.cross((p + q) / 2 - centre, nj) / lever, nj])
                 Ji = Ji @ _observable(Ji)
+                pairs.append((i, j, Ji, r))  # the gaps after the step, held views' too
+                if held[i] or held[j]:
+                    continue
                 si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
                 Wi = Ji * (w * w_row)[:, None]
                 H[si, si] += Wi.T @ Ji
@@ -425,18 +438,15 @@ def refine_views(
                 H[sj, si] -= Wi.T @ Ji
                 g[si] += Wi.T @ r
                 g[sj] -= Wi.T @ r
-                pairs.append((i, j, Ji, r))
             rms.append(float(np.sqrt(np.mean(np.concatenate(gaps_all) ** 2))) if gaps_all else 0.0)
-            # a view that too few good pairs hold (it overlaps the others only at grazing incidence, or hardly
-            # at all) stays at its kinematic pose: a few biased pairs would slide it where nothing checks it
             information = H.copy()  # the overlaps' alone, for cell.analysis.uncertainty
-            held = used < MIN_VIEW_PAIRS
             for v in np.flatnonzero(held):
                 H[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] += np.eye(6) * 1e12
             # prior on the total correction x + dx: the solve is for the step dx
             H += np.diag(prior_w)
             g += prior_w * x.ravel()
             step = -np.linalg.solve(H, g).reshape(n_views, 6)
+            step[held] = -x[held]  # back at its kinematic pose, where an earlier (wider) matching moved it
             x += step
             last_gaps = [r + Ji @ (step[i] - step[j]) for i, j, Ji, r in pairs]
             T = [_apply(xi, centre, lever) for xi in x]
