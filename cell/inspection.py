@@ -80,6 +80,7 @@ from cell.raycast import RayCaster
 from cell.run_data import Evaluation, View
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
+from cell.sensing.incidence import measured_normals
 from cell.sensing.patterns import PatternSet
 from cell.sensing.scan import capture_stack
 from cell.sensing.stack import check_stack
@@ -280,13 +281,21 @@ class LambertianInspection(InspectionResults):
         kept = link_cluster(
             cloud.points_C, link_mm=self.settings.link_mm, min_cluster_px=self.settings.min_cluster_px
         )
+        # the measured normals once, for the projector-incidence filter and the points' uncertainty
+        normals = measured_normals(cloud.points_C, valid)
         edges, oblique = unreliable_pixels(
             cloud.points_C,
             valid,
             self.projector_C,
             self.cfg.sensor.max_projector_incidence_deg,
             self.settings.edge_jump_mm,
+            normals,
         )
+        T_C_P, fx = self.sensor.projector.T_C_P.matrix(), self.sensor.camera.fx_px
+        u = view_uncertainty(
+            stack, self.patterns, decoded, cloud, T_C_P, fx, self.calibration_px, cam.bit_depth, normals
+        )
+        del normals  # (H, W, 3) float64: 120 MB at 5 MP
         # points lit too obliquely stay in the view for the refinement and the feedback loop (their tens of
         # um of bias matter less there than the constraints they add: without them the ideal world's
         # refinement slid a view by 0.85 mm) but not in the measured cloud (register)
@@ -294,10 +303,6 @@ class LambertianInspection(InspectionResults):
         points_W = transform_points(T_W_C, cloud.points_C[keep])
         quality = cloud.contrast[keep].astype(np.float32)
         oblique_kept = oblique[keep]
-        T_C_P, fx = self.sensor.projector.T_C_P.matrix(), self.sensor.camera.fx_px
-        u = view_uncertainty(
-            stack, self.patterns, decoded, cloud, T_C_P, fx, self.calibration_px, cam.bit_depth
-        )
         deviation = signed_distance(self.nominal, points_W).deviation_mm
         crop = PartCrop(0.0, self.settings.table_margin_mm, self.settings.crop_mm).split(points_W, deviation)
         part = crop.part

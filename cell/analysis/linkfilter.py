@@ -171,9 +171,11 @@ def unreliable_pixels(
     projector_centre_C: NDArray[np.floating],
     max_incidence_deg: float,
     jump_mm: float = RIM_JUMP_MM,
+    normals: NDArray[np.float64] | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """The valid pixels of a view's organised cloud (camera frame, mm) that the sensor does not deliver:
     rims (:func:`depth_edges`) and points lit more obliquely than ``max_incidence_deg``
-    (:func:`cell.sensing.incidence.lit_too_obliquely`). Returns (rim, oblique); a pixel may be both."""
+    (:func:`cell.sensing.incidence.lit_too_obliquely`; ``normals``: the cloud's measured normals when the
+    caller has them). Returns (rim, oblique); a pixel may be both."""
     rim = depth_edges(np.where(valid, points_C[..., 2], np.nan), jump_mm)
-    return rim, lit_too_obliquely(points_C, valid, projector_centre_C, max_incidence_deg)
+    return rim, lit_too_obliquely(points_C, valid, projector_centre_C, max_incidence_deg, normals)

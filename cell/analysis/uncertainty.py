@@ -91,18 +91,20 @@ def view_uncertainty(
     fx_px: float,
     calibration_px: float = 0.0,
     bit_depth: int = 8,
+    normals: NDArray[np.float64] | None = None,
 ) -> ViewUncertainty | None:
     """The decode and calibration uncertainty of every pixel of one view (:class:`ViewUncertainty`), or None
     for a code other than GCLS (the edge model is GCLS's). ``T_C_P``: the projector in the camera frame as the
     triangulation uses it; ``fx_px``: the camera's focal length; ``calibration_px``: the calibration's
-    residual in camera pixels (0: none known)."""
+    residual in camera pixels (0: none known); ``normals``: the cloud's
+    :func:`cell.sensing.incidence.measured_normals` when the caller has them."""
     if patterns.codec != "gcls":
         return None
     axis = decoded.primary()
     code = next(c for c in patterns.codes if c.axis == axis.axis)
     valid = cloud.valid
     points = cloud.points_C
-    normals = measured_normals(points, valid)
+    normals = measured_normals(points, valid) if normals is None else normals
     T = np.asarray(T_C_P, dtype=np.float64)
     g = np.full(valid.shape, np.nan)
     g[valid] = normal_error_per_pixel(points[valid], normals[valid], T[:3, 3], T[:3, 1], fx_px)

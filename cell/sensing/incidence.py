@@ -92,16 +92,21 @@ def projector_incidence_deg(
     valid: NDArray[np.bool_],
     projector_centre_C: NDArray[np.floating],
     half_window_px: int = 2,
+    normals: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
     """Angle (deg, (H, W)) between each point's measured normal and its ray to the projector's centre
     (camera frame, mm); NaN where no normal could be measured. Computed in bands of :data:`BAND_ROWS` rows,
     each with the ``2 * half_window_px`` rows around it that its normals read (a 5 MP image's normals took
-    ten full-image float64 temporaries, 1.2 GB)."""
+    ten full-image float64 temporaries, 1.2 GB). ``normals``: :func:`measured_normals` of the same cloud with
+    the same window when the caller has them (the same numbers: each band's are computed the same way)."""
     out = np.empty(np.shape(valid), dtype=np.float64)
     centre = np.asarray(projector_centre_C, dtype=np.float64)
     for start, end, lo, hi in _row_bands(np.shape(valid)[0], 2 * half_window_px):
         band = np.asarray(points_C[lo:hi], dtype=np.float64)
-        n = _band_normals(band, valid[lo:hi], half_window_px)[start - lo : end - lo]
+        if normals is None:
+            n = _band_normals(band, valid[lo:hi], half_window_px)[start - lo : end - lo]
+        else:
+            n = normals[start:end]
         ray = centre - band[start - lo : end - lo]
         with np.errstate(invalid="ignore"):
             ray /= np.linalg.norm(ray, axis=2, keepdims=True)
@@ -115,11 +120,13 @@ def lit_too_obliquely(
     valid: NDArray[np.bool_],
     projector_centre_C: NDArray[np.floating],
     max_deg: float,
+    normals: NDArray[np.float64] | None = None,
 ) -> NDArray[np.bool_]:
     """Valid pixels the projector lights more obliquely than ``max_deg`` (or whose normal cannot be measured:
-    an isolated pixel or a thin strip, which the link filter and the rim filter also drop)."""
+    an isolated pixel or a thin strip, which the link filter and the rim filter also drop); ``normals``: the
+    cloud's :func:`measured_normals` when the caller has them."""
     if not 0 < max_deg <= 90:
         raise ConfigError(f"max_projector_incidence_deg must be in (0, 90], got {max_deg}")
-    angle = projector_incidence_deg(points_C, valid, projector_centre_C)
+    angle = projector_incidence_deg(points_C, valid, projector_centre_C, normals=normals)
     with np.errstate(invalid="ignore"):
         return valid & ~(angle <= max_deg)
