@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from cell.geometry import make_pose
-from cell.planning.feedback import accuracy_map
+from cell.planning.feedback import accuracy_map, uncertainty_map
 from cell.planning.measured import MeasuredView
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -67,3 +67,25 @@ def test_views_apart_along_the_normal_by_less_than_the_link_are_compared() -> No
     apart = [view_of_plane(0.0, seed=0), view_of_plane(0.3, seed=1)]
     assert apart[0].points_W[:, 2].max() < apart[1].points_W[:, 2].min()
     assert ia_area_fraction(apart) > 0.5
+
+
+def test_uncertainty_map_combines_overlapping_views() -> None:
+    """IU: two patches of the plane, each point measured with u = 4 um, overlap over x in [0, 20] mm. Where
+    both measured, u combines to 4 / sqrt(2) = 2.83 um, under the 3 um target; where one did, 4 um is over
+    it: the flagged points are the single-view strips, all of them (but their outermost 1 mm, where a
+    neighbourhood reaches into the overlap)."""
+    rng = np.random.default_rng(1)
+
+    def patch(x0: float) -> MeasuredView:
+        xy = np.column_stack([rng.uniform(x0, x0 + 40.0, 20000), rng.uniform(-20.0, 20.0, 20000)])
+        points = np.column_stack([xy, np.zeros(len(xy))])
+        return MeasuredView(
+            make_pose(np.eye(3), [0.0, 0.0, 400.0]), points, uncertainty_mm=np.full(20000, 0.004)
+        )
+
+    a, b = patch(-20.0), patch(0.0)
+    flagged = uncertainty_map([a, b], 0.003)
+    x = flagged[:, 0]
+    assert np.all((x < 0.5) | (x > 19.5))  # none inside the overlap (the link distance at its edges)
+    single = np.count_nonzero(a.points_W[:, 0] < -1.0) + np.count_nonzero(b.points_W[:, 0] > 21.0)
+    assert len(flagged) >= single

@@ -123,19 +123,24 @@ def uncertainty_map(
     if not carrying:
         return np.zeros((0, 3))
     pts = np.vstack([views[c].points_W for c in carrying])
+    ends = np.cumsum([len(views[c].points_W) for c in carrying])
     info = np.zeros(len(pts))
-    for c in carrying:
+    for c, end in zip(carrying, ends, strict=True):
         v = views[c]
         tree = trees[c] if trees is not None else None
         u = np.asarray(v.uncertainty_mm, dtype=np.float64)
-        # only the points in the view's box grown by the link distance can have a neighbour in it
+        # each of the view's own points is its own nearest (at 0 mm): not looked up in its tree
+        own = np.arange(end - len(v.points_W), end)
+        # of the others only those in the view's box grown by the link distance can have a neighbour in it
         lo, hi = v.points_W.min(axis=0) - link_mm, v.points_W.max(axis=0) + link_mm
         inside = np.flatnonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
+        inside = inside[(inside < own[0]) | (inside >= end)]
         tree = cKDTree(v.points_W) if tree is None else tree
         d, k = (np.asarray(a) for a in tree.query(pts[inside], distance_upper_bound=link_mm))
         near = np.isfinite(d)
-        at = inside[near]
-        info[at] += 1.0 / np.square(np.where(np.isfinite(u[k[near]]), u[k[near]], np.inf))
+        at = np.concatenate([own, inside[near]])
+        k = np.concatenate([np.arange(len(own)), k[near]])
+        info[at] += 1.0 / np.square(np.where(np.isfinite(u[k]), u[k], np.inf))
     with np.errstate(divide="ignore"):
         u_all = 1.0 / np.sqrt(info)
     return _consistent(pts, u_all > u_max_mm)
