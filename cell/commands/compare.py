@@ -43,11 +43,13 @@ def register(app: typer.Typer) -> None:
         """Error map of CLOUD against NOMINAL: signed deviations (+ outside the material) and a report. Exits
         0 on pass, 4 on fail, 5 when incomplete (docs/exit-codes.md)."""
         typer.echo(f"comparing {cloud} with {nominal} -> {out}")
+        from cell.analysis import kernels
         from cell.analysis.compare import run_compare
         from cell.exit_codes import ExitCode, for_verdict
         from cell.runs import require_empty_output
 
         require_empty_output(out)
+        kernels.prefer_aot()  # the kernels compiled ahead of time when built (make venv): numba never starts
         if pdf:
             from cell.chromium import require_chromium
 
