@@ -112,12 +112,13 @@ def prefer_aot() -> bool:
     is. Any failure to find or load it (no home folder for the cache, an unreadable cache folder, a build
     that does not load) leaves numba's jit kernels in use."""
     global _aot
+    _aot = None
     if os.environ.get("CELL_KERNELS") == "jit":
         return False
     try:
         _aot = load_aot()
     except (OSError, RuntimeError):  # PermissionError; Path.home() without a home folder
-        _aot = None
+        pass
     return _aot is not None
 
 
