@@ -405,10 +405,10 @@ def refine_views(
             # a view that too few good pairs hold (it overlaps the others only at grazing incidence, or hardly
             # at all) stays at its kinematic pose: a few biased pairs would slide it where nothing checks it,
             # and they move no other view either (they would pin its neighbours to its kinematic pose with an
-            # overlap's full weight: the pillar's view 11 pulled eleven views by PULL_UM). The views' pose
-            # covariance (cell.analysis.uncertainty.posterior_covariance) leaves them out the same way.
-            # Counted until no more views are held: a neighbour that passes MIN_VIEW_PAIRS only thanks to a
-            # held view's pairs would be registered on fewer than MIN_VIEW_PAIRS
+            # overlap's full weight: the pillar's view 11 pulled ten views by 66-147 um, docs/benchmarks.md).
+            # The views' pose covariance (cell.analysis.uncertainty.posterior_covariance) leaves them out the
+            # same way. Counted until no more views are held: a neighbour that passes MIN_VIEW_PAIRS only with
+            # a held view's pairs would be registered on fewer
             held = np.zeros(n_views, dtype=bool)
             while True:
                 used = np.zeros(n_views)  # pairs (incidence-weighted) holding each view, as source or target
