@@ -35,7 +35,7 @@ from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.linkfilter import RIM_JUMP_MM, link_cluster, unreliable_pixels
 from cell.analysis.merge import voxel_subsample_index
 from cell.analysis.report import ReportInput
-from cell.analysis.uncertainty import TARGET_SHARE_OF_BAND, view_uncertainty
+from cell.analysis.uncertainty import TARGET_SHARE_OF_BAND, has_view_uncertainty, view_uncertainty
 from cell.analysis.view_refinement import (
     OverlapCache,
     ViewRefinement,
@@ -281,8 +281,9 @@ class LambertianInspection(InspectionResults):
         kept = link_cluster(
             cloud.points_C, link_mm=self.settings.link_mm, min_cluster_px=self.settings.min_cluster_px
         )
-        # the measured normals once, for the projector-incidence filter and the points' uncertainty
-        normals = measured_normals(cloud.points_C, valid)
+        # the measured normals once, for the projector-incidence filter and the points' uncertainty; a code
+        # without a decode uncertainty leaves the filter its own banded normals (no (H, W, 3) float64 image)
+        normals = measured_normals(cloud.points_C, valid) if has_view_uncertainty(self.patterns) else None
         edges, oblique = unreliable_pixels(
             cloud.points_C,
             valid,

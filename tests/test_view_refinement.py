@@ -101,6 +101,30 @@ def test_a_held_view_moves_no_other_view() -> None:
         assert np.abs(transform_points(T, v)[:, 2] - v[:, 2]).max() < 0.005
 
 
+def test_a_view_held_only_by_a_held_view_is_held_too() -> None:
+    """Views are held until none more is: planes a and d agree; b, 0.3 mm off along the normal, overlaps a in
+    a 14 mm strip and c (held: it overlaps nothing else) in another. At the last matching b passed
+    MIN_VIEW_PAIRS only with c's pairs, so it was registered on a's alone (fewer than MIN_VIEW_PAIRS), moved
+    0.19 mm and pulled a and d 0.10 mm towards it."""
+    rng = np.random.default_rng(8)
+
+    def plane(x0: float, x1: float, n: int) -> np.ndarray:
+        return np.column_stack([rng.uniform(x0, x1, n), rng.uniform(-50, 50, n), rng.normal(0, 0.02, n)])
+
+    a, d = plane(-50, 50, 4000), plane(-86, 14, 4000)
+    b = transform_points(make_pose(np.eye(3), [0.0, 0.0, 0.3]), plane(36, 136, 4000))
+    c = plane(122, 222, 4000)
+    result = refine_views([a, d, b, c], sigma_t_mm=1.0, sigma_r_rad=np.deg2rad(0.2), noise_mm=0.02)
+    assert result.unregistered == [2, 3]
+    # no held view's overlaps in the information (cell.analysis.uncertainty.posterior_covariance relies on it)
+    assert result.information is not None and not result.information[12:].any()
+    assert not result.information[:, 12:].any()
+    for T in result.T[2:]:
+        np.testing.assert_allclose(T, np.eye(4), atol=1e-9)
+    for T, v in zip(result.T[:2], (a, d)):  # along the normal, what a deviation sees
+        assert np.abs(transform_points(T, v)[:, 2] - v[:, 2]).max() < 0.01
+
+
 def test_a_flat_overlap_does_not_let_a_view_slide_along_it() -> None:
     """Two views of a plane constrain only the normal offset and two tilts; the prior holds the rest."""
     rng = np.random.default_rng(6)

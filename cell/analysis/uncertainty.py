@@ -82,6 +82,11 @@ class ViewUncertainty:
         }
 
 
+def has_view_uncertainty(patterns: PatternSet) -> bool:
+    """Whether :func:`view_uncertainty` models ``patterns``' code (GCLS's edge model; None for the others)."""
+    return patterns.codec == "gcls"
+
+
 def view_uncertainty(
     stack: NDArray[Any],
     patterns: PatternSet,
@@ -98,7 +103,7 @@ def view_uncertainty(
     triangulation uses it; ``fx_px``: the camera's focal length; ``calibration_px``: the calibration's
     residual in camera pixels (0: none known); ``normals``: the cloud's
     :func:`cell.sensing.incidence.measured_normals` when the caller has them."""
-    if patterns.codec != "gcls":
+    if not has_view_uncertainty(patterns):
         return None
     axis = decoded.primary()
     code = next(c for c in patterns.codes if c.axis == axis.axis)
@@ -126,25 +131,16 @@ def posterior_covariance(
     prior_sigma_mm: Sequence[float],
     prior_sigma_rad: Sequence[float],
     lever_mm: float,
-    held: Sequence[int],
 ) -> Array:
     """The (6n, 6n) covariance of the views' pose errors after the refinement: its overlaps' ``information``
     (:attr:`cell.analysis.view_refinement.ViewRefinement.information`) plus the prior (1 sigma per view,
-    translation mm and rotation rad), inverted. A view the refinement held at its kinematic pose (``held``)
-    keeps its prior and informs no other view (its overlaps are left out); no refinement (one view): the
-    prior. Parameters as the refinement's: x = (omega * lever, tau) per view."""
+    translation mm and rotation rad), inverted. A view the refinement held at its kinematic pose keeps its
+    prior and informs no other view: the refinement leaves its overlaps out of ``information``; no refinement
+    (one view): the prior. Parameters as the refinement's: x = (omega * lever, tau) per view."""
     prior = np.concatenate(
         [[(r * lever_mm) ** 2] * 3 + [t**2] * 3 for t, r in zip(prior_sigma_mm, prior_sigma_rad, strict=True)]
     )
-    H = np.zeros((6 * n_views, 6 * n_views)) if information is None else np.array(information, np.float64)
-    for v in held:  # take its overlaps out: each added +A to both views' diagonal blocks, -A between them
-        sv = slice(6 * v, 6 * v + 6)
-        for i in range(n_views):
-            if i != v:
-                si = slice(6 * i, 6 * i + 6)
-                H[si, si] += H[si, sv]
-        H[sv, :] = 0.0
-        H[:, sv] = 0.0
+    H = np.zeros((6 * n_views, 6 * n_views)) if information is None else np.asarray(information, np.float64)
     return np.asarray(np.linalg.inv(H + np.diag(1.0 / np.maximum(prior, 1e-18))), dtype=np.float64)
 
 
@@ -283,8 +279,8 @@ def registered_cloud_uncertainty(
     T = np.asarray(T_W_cloud, dtype=np.float64)
     sigma_mm = prior.get("prior_sigma_mm", [0.0] * n)
     sigma_rad = np.deg2rad(prior.get("prior_sigma_deg", [0.0] * n))
-    lever, held = refinement.lever_mm, refinement.unregistered
-    C = posterior_covariance(refinement.information, n, sigma_mm, sigma_rad, lever, held)
+    lever = refinement.lever_mm
+    C = posterior_covariance(refinement.information, n, sigma_mm, sigma_rad, lever)
     points_W = transform_points(T, merged.points_mm)
     normals_W = nominal_W.face_normals[signed_distance(nominal_W, points_W).face]
     centre = refinement.centre_mm if refinement.centre_mm is not None else points_W.mean(axis=0)

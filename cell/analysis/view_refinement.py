@@ -400,17 +400,26 @@ def refine_views(
                 if m is not None
             ]
             overlaps = [0] * n_views
-            used = np.zeros(n_views)  # pairs (incidence-weighted) that hold each view, as source or target
-            for i, j, match in matches:
+            for i, _, _ in matches:
                 overlaps[i] += 1
-                used[i] += match.w.sum()
-                used[j] += match.w.sum()
             # a view that too few good pairs hold (it overlaps the others only at grazing incidence, or hardly
             # at all) stays at its kinematic pose: a few biased pairs would slide it where nothing checks it,
             # and they move no other view either (they would pin its neighbours to its kinematic pose with an
-            # overlap's full weight: the pillar's view 11 pulled eleven views by 66-147 um). The views' pose
-            # covariance (cell.analysis.uncertainty.posterior_covariance) leaves them out the same way.
-            held = used < MIN_VIEW_PAIRS
+            # overlap's full weight: the pillar's view 11 pulled ten views by 66-147 um, docs/benchmarks.md).
+            # The views' pose covariance (cell.analysis.uncertainty.posterior_covariance) leaves them out the
+            # same way. Counted until no more views are held: a neighbour that passes MIN_VIEW_PAIRS only with
+            # a held view's pairs would be registered on fewer
+            held = np.zeros(n_views, dtype=bool)
+            while True:
+                used = np.zeros(n_views)  # pairs (incidence-weighted) holding each view, as source or target
+                for i, j, match in matches:
+                    if not (held[i] or held[j]):
+                        used[i] += match.w.sum()
+                        used[j] += match.w.sum()
+                now_held = held | (used < MIN_VIEW_PAIRS)  # only grows: at most n_views rounds
+                if (now_held == held).all():
+                    break
+                held = now_held
             H = np.zeros((6 * n_views, 6 * n_views))
             g = np.zeros(6 * n_views)
             gaps_all: list[Array] = []
