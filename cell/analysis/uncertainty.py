@@ -198,7 +198,7 @@ class MergeShares:
         self, k: int, number: NDArray[np.int64], m: int, w: Array, per_point: tuple[NDArray[Any], ...]
     ) -> None:
         """Add view ``k``: its points' merged-point ``number`` (of ``m``), merge weights and (u,)."""
-        column = np.bincount(number, weights=w, minlength=m)
+        column = np.asarray(np.bincount(number, weights=w, minlength=m), dtype=np.float64)
         index = np.flatnonzero(column)  # the weights are > 0: every merged point the view has
         self._index[k], self._value[k] = index, column[index]
         if per_point:
