@@ -5,7 +5,8 @@ budget applies: the newest views' full points stay, the rest are read from their
 refines them against each other, then runs the job's ``register`` (merge, alignment, uncertainty, error map)
 and prints its wall and CPU seconds and the process's peak RSS before and during it (VmHWM, reset before the
 registration through /proc/self/clear_refs). Run it under `/usr/bin/time -f "%M kB"` for the whole
-process's peak as well; `--out FILE` writes the registration record as JSON, to compare two versions'.
+process's peak as well; `--out FILE` writes the registration record as JSON with a hash of the registered
+points, their deviations and u, to compare two versions'.
 
     .venv/bin/python bench/bench_register_memory.py RUN [--out registration.json]
 """
@@ -13,6 +14,7 @@ process's peak as well; `--out FILE` writes the registration record as JSON, to 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import time
@@ -20,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cell.analysis._pose_kernel import pose_sigma
 from cell.analysis.errormap import signed_distance
 from cell.inspection import LambertianInspection
 from cell.inspection_run import load_run_inputs, open_inspection_run
@@ -47,6 +50,7 @@ def main() -> None:
     job = LambertianInspection(recipe, cfg, nominal_W)
     checkpoint = Checkpoint.from_json(run.load_checkpoint())
     signed_distance(job.nominal, np.zeros((4, 3)))  # the kernels loaded (or compiled) before the clock runs
+    pose_sigma(np.ones((1, 1)), np.zeros((1, 6)), np.eye(6), None)
     _ = job.plan_model, job.aligner, job.nominal_P
     done, _ = job.refinement(run)
     print(
@@ -62,6 +66,15 @@ def main() -> None:
         f"{registration.get('n_points')} points of {registration.get('n_points_views')}"
     )
     if args.out:
+        cloud = job._cloud
+        if cloud is not None:  # the registered points, deviations and u, to the bit
+            digest = hashlib.sha256(cloud.points_P.tobytes())
+            for values in (
+                cloud.uncertainty_mm,
+                None if cloud.error_map is None else cloud.error_map.deviation_mm,
+            ):
+                digest.update(b"" if values is None else values.tobytes())
+            registration = {**registration, "cloud_sha256": digest.hexdigest()}
         args.out.write_text(json.dumps(registration, indent=1, sort_keys=True))
 
 
