@@ -70,7 +70,12 @@ def main() -> None:
     timed(inspection, "refine_views")
     for name in ("accuracy_map", "uncertainty_map"):
         timed(feedback, name)
-    for name in ("merge_views", "registered_cloud_uncertainty", "cut_unregistered", "signed_distance"):
+    for name in (
+        "merge_view_stream",
+        "registered_cloud_uncertainty",
+        "unregistered_redundant",
+        "signed_distance",
+    ):
         timed(results, name)
     timed(results.InspectionResults, "inspectable_coverage")
     for step, call in (

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -22,15 +23,16 @@ from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.decision import DecisionRule
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.judge import judge
-from cell.analysis.merge import cut_unregistered, merge_views
+from cell.analysis.merge import merge_view_stream, unregistered_redundant
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, write_page, write_verdict
 from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
 from cell.analysis.table_seam import crop_table_seam
-from cell.analysis.uncertainty import registered_cloud_uncertainty
+from cell.analysis.uncertainty import MergeShares, registered_cloud_uncertainty
 from cell.calibration import pose_uncertainty_prior
 from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
+from cell.errors import ConfigError
 from cell.geometry import invert, transform_points
 from cell.inspection_views import ViewStore
 from cell.planning.coverage import coverage_fraction, covered_by_views
@@ -43,6 +45,12 @@ if TYPE_CHECKING:
     from cell.analysis.view_refinement import ViewRefinement
     from cell.inspection import InspectionSettings
     from cell.planning.planner import Plan
+
+# the registration merges the views in two passes (their voxels, then the sums), reading each view again for
+# the second unless the first kept its points, weights and u (40 bytes a point): kept up to this many bytes,
+# which holds a 1024x768 camera's dozen views (the second read and transform cost ~40 % of the registration's
+# CPU) and ~3 of a 5 MP camera's 40
+MERGE_INPUTS_KEPT_BYTES = 256_000_000
 
 
 @dataclass
@@ -108,28 +116,55 @@ class InspectionResults:
         T_P_W = invert(self.T_W_P)
         done, refined = self.refinement(run)
         stored = [self.views.get(run, i) for i in done]
-        points, weights, u_decode = [], [], []
-        for view, T_fix in zip(stored, refined.T, strict=True):
-            held = view.points()
-            measured = ~held.oblique  # the sensor's points, without those lit too obliquely
-            points.append(transform_points(T_P_W @ T_fix, held.points_W[measured]))
-            weights.append(np.square(held.quality[measured]).astype(np.float64) + 1e-6)
-            u = held.uncertainty  # None in run folders from before issue 17
-            u_decode.append(np.full(len(points[-1]), np.nan) if u is None else u[measured].astype(np.float64))
-        if not points or not sum(len(p) for p in points):
-            return {"n_points": 0, "views": len(points)}
+
+        def measured(k: int) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+            """View k's points in {P}, merge weights and decode u (mm; NaN in run folders from before issue
+            17): the sensor's points, without those lit too obliquely; read again on each call."""
+            held = stored[k].points()
+            keep = ~held.oblique
+            points = transform_points(T_P_W @ refined.T[k], held.points_W[keep])
+            weights = np.square(held.quality[keep]).astype(np.float64) + 1e-6
+            u = held.uncertainty
+            return points, weights, np.full(len(points), np.nan) if u is None else u[keep].astype(np.float64)
+
+        # the views are merged one at a time, read again from their folders when the store no longer holds
+        # them (all of a 5 MP camera's views' points together were 7.3 GB with the merge's arrays)
+        redundant = unregistered_redundant(
+            lambda k: measured(k)[0], len(stored), refined.unregistered, self.recipe.plan.coverage_radius_mm
+        )
+        n_measured: list[int] = []
+        kept: dict[int, tuple[NDArray[Any], ...]] = {}  # the first pass's views kept for the second
+        room, passes = [MERGE_INPUTS_KEPT_BYTES], [0]
+
+        def views_once() -> Iterator[tuple[NDArray[Any], ...]]:
+            passes[0] += 1
+            for k in range(len(stored)):
+                if k in kept:
+                    yield kept.pop(k)
+                    continue
+                points, weights, u = measured(k)
+                n_measured.append(len(points))
+                cut = redundant.get(k)
+                view = (points, weights, u) if cut is None else (points[~cut], weights[~cut], u[~cut])
+                size = sum(x.nbytes for x in view)
+                if passes[0] == 1 and size <= room[0]:
+                    kept[k], room[0] = view, room[0] - size
+                yield view
+
+        shares = MergeShares(len(stored))
+        merged = merge_view_stream(views_once, self.settings.merge_voxel_mm, shares)
+        n_points_views = int(sum(n_measured[: len(stored)]))  # the first pass's
+        if merged is None and not n_points_views:
+            return {"n_points": 0, "views": len(stored)}
+        if merged is None:
+            raise ConfigError("merge_views: no finite points with a positive weight in any view")
         refinement = {
             **refined.to_json([v.eval_W for v in stored]),
             "unregistered_views": [done[k] for k in refined.unregistered],
             **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
         }
-        n_points_views = int(sum(len(p) for p in points))
-        refinement["unregistered_points_dropped"] = cut_unregistered(
-            points, weights, refined.unregistered, self.recipe.plan.coverage_radius_mm, u_decode
-        )
-        merged = merge_views(points, weights, voxel_mm=self.settings.merge_voxel_mm)
-        n_views = len(points)
-        del points  # 24 bytes an input point (a 5 MP camera's dozen views: 0.5 GB), not needed once merged
+        refinement["unregistered_points_dropped"] = int(sum(int(cut.sum()) for cut in redundant.values()))
+        n_views = len(stored)
         method = self.recipe.alignment.method
         try:
             found = self.aligner.align(merged.points_mm)
@@ -142,8 +177,8 @@ class InspectionResults:
         prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
         unc = registered_cloud_uncertainty(
             merged,
-            weights,
-            u_decode,
+            shares.shares(merged),
+            shares.decode(merged),
             refined,
             prior,
             self.nominal,

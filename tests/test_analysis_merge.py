@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.analysis.merge import cut_unregistered, measured_elsewhere, merge_views, voxel_subsample_index
+from cell.analysis.merge import (
+    cut_unregistered,
+    measured_elsewhere,
+    merge_view_stream,
+    merge_views,
+    voxel_subsample_index,
+)
 from cell.errors import ConfigError
 
 
@@ -114,3 +120,35 @@ def test_voxel_subsample_keeps_the_first_point_of_each_voxel_of_the_merge_grid()
     assert idx.tolist() == sorted(first.values())
     assert len(merge_views([pts], voxel_mm=1.0).points_mm) == len(idx)
     assert len(voxel_subsample_index(np.zeros((0, 3)), 1.0)) == 0
+
+
+def test_the_merge_read_view_by_view_is_the_merge_of_all_points_together() -> None:
+    """Views given one at a time (each widening the occupied box: a voxel's number must not change when a
+    later view adds voxels below it) merge to the voxels of all points taken together: numbered in the
+    order of their cells (x, y, z), each with its distinct views and the sums of its points."""
+    rng = np.random.default_rng(5)
+    views = [rng.uniform(lo, lo + 6, (300, 3)) for lo in (4.0, -3.0, 9.0, 0.5)]
+    weights = [rng.uniform(0.5, 2.0, 300) for _ in views]
+    read: list[int] = []
+
+    def once() -> list[tuple[np.ndarray, ...]]:
+        read.append(len(read))
+        return list(zip(views, weights, strict=True))
+
+    numbers: dict[int, np.ndarray] = {}
+    m = merge_view_stream(lambda: iter(once()), 1.0, lambda k, at, n, w, extra: numbers.setdefault(k, at))
+    assert m is not None and m.source is None and len(read) == 2  # two passes over the views
+    cells = np.floor(np.concatenate(views)).astype(int)
+    order = sorted({tuple(c) for c in cells})  # the occupied voxels, counted independently
+    number = {c: i for i, c in enumerate(order)}
+    assert np.array_equal(np.concatenate([numbers[k] for k in range(4)]), [number[tuple(c)] for c in cells])
+    of_view = [set(map(tuple, np.floor(v).astype(int))) for v in views]
+    seen = [sum(c in s for s in of_view) for c in order]
+    assert m.n_views.tolist() == seen
+    w = np.concatenate(weights)
+    at = np.array([number[tuple(c)] for c in cells])
+    assert np.allclose(m.weight, np.bincount(at, weights=w)) and m.count.sum() == 1200
+    assert np.allclose(m.points_mm[:, 0], np.bincount(at, weights=w * np.concatenate(views)[:, 0]) / m.weight)
+    same = merge_views(views, weights, voxel_mm=1.0)
+    assert same.points_mm.tobytes() == m.points_mm.tobytes() and same.source is not None
+    assert np.array_equal(same.source, at)

@@ -17,7 +17,7 @@ Every number comes from what the cell itself measured or calibrated, never from 
    leaves them (its posterior covariance; a view it could not register keeps its prior) along each point's
    normal, less what the recipe's alignment takes out: a datum alignment the rigid motion its datums see
    (:func:`datum_alignment_map`), kinematic alignment nothing (the chain's whole error stays);
-4. **merge** (:func:`merged_uncertainty`, :func:`view_shares`): the weighted voxel mean of the views; points
+4. **merge** (:func:`merged_uncertainty`, :class:`MergeShares`): the weighted voxel mean of the views; points
    of one view in a voxel share edges and pose, so their decode errors add linearly, the views' in
    quadrature; the pose errors through the views' shares of each point;
 5. **alignment**: the recipe alignment's own 1-sigma displacement from the noise of what it measured
@@ -150,19 +150,75 @@ def _rows(points: Array, normals: Array, centre_mm: Array, lever_mm: float) -> A
     return np.column_stack([np.cross(p - np.asarray(centre_mm), n) / lever_mm, n])
 
 
-def view_shares(merged: MergedCloud, weights: Sequence[Array]) -> Array:
-    """(M, n) each view's share of the weight of every merged point (rows sum to 1)."""
-    m = len(merged.points_mm)
-    shares = np.empty((m, len(weights)), dtype=np.float64)
-    for k, (src, w) in enumerate(_per_view(merged, weights)):  # view by view: no copy of all input points
-        ok = src >= 0
-        shares[:, k] = np.bincount(src[ok], weights=np.asarray(w, dtype=np.float64).ravel()[ok], minlength=m)
-    shares /= merged.weight[:, None]
-    return shares
+class ViewShares:
+    """(M, n) each view's share of the weight of every merged point (rows sum to 1), held by view: the merged
+    points each view has (ascending) and its shares of them; a point has a few of the views, so this is a
+    fraction of the dense (M, n) float64 (1.1 GB for a 5 MP camera's 40 views). Indexed by a slice of rows or
+    an array of row indices, it gives those rows dense."""
+
+    def __init__(self, m: int, index: list[NDArray[np.int64]], value: list[Array]) -> None:
+        self.shape = (m, len(index))
+        self._index, self._value = index, value
+
+    def __getitem__(self, rows: slice | NDArray[np.int64]) -> Array:
+        if isinstance(rows, slice):
+            start, stop, step = rows.indices(self.shape[0])
+            assert step == 1, "rows a step apart: index them by an array"
+            out = np.zeros((max(stop - start, 0), self.shape[1]))
+            for k, (idx, val) in enumerate(zip(self._index, self._value, strict=True)):
+                lo, hi = np.searchsorted(idx, [start, stop])
+                out[idx[lo:hi] - start, k] = val[lo:hi]
+            return out
+        assert np.asarray(rows).dtype.kind in "iu", "rows by index, not by a mask"
+        rows = np.asarray(rows, dtype=np.int64).ravel()
+        out = np.zeros((len(rows), self.shape[1]))
+        for k, (idx, val) in enumerate(zip(self._index, self._value, strict=True)):
+            if len(idx):
+                at = np.minimum(np.searchsorted(idx, rows), len(idx) - 1)
+                hit = idx[at] == rows
+                out[hit, k] = val[at[hit]]
+        return out
+
+
+class MergeShares:
+    """Each view's share of the merged points' weight (:class:`ViewShares`) and their merged decode u
+    (:func:`merged_uncertainty`), summed view by view as a merge gives the views' points: its ``each_view``
+    (:func:`cell.analysis.merge.merge_view_stream`, with the views' decode u (mm) as their first per-point
+    array, or none for the shares alone)."""
+
+    def __init__(self, n_views: int) -> None:
+        self.n_views = n_views
+        self._index: list[NDArray[np.int64]] = [np.zeros(0, np.int64)] * n_views  # a view's merged points
+        self._value: list[Array] = [np.zeros(0)] * n_views  # its summed weights there (then its shares)
+        self._var: Array | None = None  # (M,) sum over views of (sum of w u of the view's points)^2
+
+    def __call__(
+        self, k: int, number: NDArray[np.int64], m: int, w: Array, per_point: tuple[NDArray[Any], ...]
+    ) -> None:
+        """Add view ``k``: its points' merged-point ``number`` (of ``m``), merge weights and (u,)."""
+        column = np.asarray(np.bincount(number, weights=w, minlength=m), dtype=np.float64)
+        index = np.flatnonzero(column)  # the weights are > 0: every merged point the view has
+        self._index[k], self._value[k] = index, column[index]
+        if per_point:
+            if self._var is None:
+                self._var = np.zeros(m)
+            wu = w * np.asarray(per_point[0], dtype=np.float64).ravel()
+            self._var += np.square(np.bincount(number, weights=wu, minlength=m))
+
+    def shares(self, merged: MergedCloud) -> ViewShares:
+        """(M, n) each view's share of every merged point's weight (rows sum to 1)."""
+        value = [v / merged.weight[i] for i, v in zip(self._index, self._value, strict=True)]
+        return ViewShares(len(merged.weight), self._index, value)
+
+    def decode(self, merged: MergedCloud) -> NDArray[np.float64]:
+        """u (mm) of every merged point from its views' decode u (:func:`merged_uncertainty`)."""
+        assert self._var is not None, "no view with a decode u was added"
+        return np.asarray(np.sqrt(self._var) / merged.weight, dtype=np.float64)
 
 
 def _per_view(merged: MergedCloud, per_point: Sequence[Array]) -> list[tuple[NDArray[np.int64], Array]]:
     """Each view's slice of ``merged.source`` beside its array of ``per_point`` (the inputs' order)."""
+    assert merged.source is not None, "a streamed merge gives each view's source as it merges"
     ends = np.cumsum([len(x) for x in per_point])
     return [(merged.source[e - len(x) : e], x) for x, e in zip(per_point, ends, strict=True)]
 
@@ -185,7 +241,7 @@ def datum_alignment_map(
 
 
 def pose_uncertainty_of_points(
-    shares: Array, rows: Array, covariance: Array, alignment_map: Array | None
+    shares: Array | ViewShares, rows: Array, covariance: Array, alignment_map: Array | None
 ) -> NDArray[np.float64]:
     """1-sigma error (mm) along each merged point's normal from the views' pose errors (``covariance``,
     :func:`posterior_covariance`): the point is the ``shares``-weighted mean of its views' points, each moved
@@ -207,14 +263,13 @@ def merged_uncertainty(
     with the points given to :func:`cell.analysis.merge.merge_views`) and merge ``weights``: within a view the
     errors of one voxel's points are taken as fully correlated (neighbouring pixels share edges, pose and
     calibration), so their weighted u add linearly; the views add in quadrature."""
-    m = len(merged.points_mm)
-    var = np.zeros(m)
+    acc = MergeShares(len(weights))
     # view by view (no copy of all input points): the sum of w u of one view's points in each voxel, squared
-    for (src, u), w in zip(_per_view(merged, u_views), weights, strict=True):
+    for k, ((src, u), w) in enumerate(zip(_per_view(merged, u_views), weights, strict=True)):
         ok = src >= 0
-        wu = np.asarray(w, dtype=np.float64).ravel()[ok] * np.asarray(u, dtype=np.float64).ravel()[ok]
-        var += np.square(np.bincount(src[ok], weights=wu, minlength=m))
-    return np.sqrt(var) / merged.weight
+        w_ok = np.asarray(w, dtype=np.float64).ravel()[ok]
+        acc(k, src[ok], len(merged.points_mm), w_ok, (np.asarray(u, dtype=np.float64).ravel()[ok],))
+    return acc.decode(merged)
 
 
 def combine(*terms_mm: NDArray[np.floating] | float) -> NDArray[np.float64]:
@@ -258,8 +313,8 @@ class CloudUncertainty:
 
 def registered_cloud_uncertainty(
     merged: MergedCloud,
-    weights: Sequence[Array],
-    decode_mm: Sequence[Array],
+    shares: Array | ViewShares,
+    decode_mm: Array,
     refinement: ViewRefinement,
     prior: dict[str, Any],
     nominal_W: NominalMesh,
@@ -267,15 +322,16 @@ def registered_cloud_uncertainty(
     alignment: dict[str, Any],
     datums: Sequence[Datum] = (),
 ) -> CloudUncertainty:
-    """u of every point of an inspection's merged cloud (in the frame ``T_W_cloud`` maps to {W}): each view's
-    decode uncertainty merged (:func:`merged_uncertainty`); the views' pose errors after the refinement
-    (:class:`cell.analysis.view_refinement.ViewRefinement`) under the ``prior`` it ran under (its record:
-    ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal, less what the recipe's
-    alignment removes (its record: ``to_json`` of :class:`cell.analysis.alignment.Alignment`): a datum
-    alignment (the ``datums`` resolved on the nominal, in the cloud's frame) the rigid motion its datums see
-    (:func:`datum_alignment_map`), any other measured alignment the views' mean motion, kinematic alignment
-    nothing; plus the alignment's own uncertainty."""
-    n = len(decode_mm)
+    """u of every point of an inspection's merged cloud (in the frame ``T_W_cloud`` maps to {W}) from the
+    views' ``shares`` (M, n) of its points (:class:`ViewShares`) and its merged decode u ``decode_mm`` (M,)
+    (:func:`merged_uncertainty`; both from :class:`MergeShares` while the views merge); the views' pose
+    errors after the refinement (:class:`cell.analysis.view_refinement.ViewRefinement`) under the ``prior``
+    it ran under (its record: ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal,
+    less what the recipe's alignment removes (its record: ``to_json`` of
+    :class:`cell.analysis.alignment.Alignment`): a datum alignment (the ``datums`` resolved on the nominal, in
+    the cloud's frame) the rigid motion its datums see (:func:`datum_alignment_map`), any other measured
+    alignment the views' mean motion, kinematic alignment nothing; plus the alignment's own uncertainty."""
+    n = shares.shape[1]
     T = np.asarray(T_W_cloud, dtype=np.float64)
     sigma_mm = prior.get("prior_sigma_mm", [0.0] * n)
     sigma_rad = np.deg2rad(prior.get("prior_sigma_deg", [0.0] * n))
@@ -284,7 +340,6 @@ def registered_cloud_uncertainty(
     points_W = transform_points(T, merged.points_mm)
     normals_W = nominal_W.face_normals[signed_distance(nominal_W, points_W).face]
     centre = refinement.centre_mm if refinement.centre_mm is not None else points_W.mean(axis=0)
-    shares = view_shares(merged, weights)
     method = alignment.get("method", "kinematic")
     B: Array | None = None
     if "error" in alignment or method == "kinematic":
@@ -304,6 +359,6 @@ def registered_cloud_uncertainty(
     else:  # best fit, features, weighted: taken as removing the views' mean motion
         B = np.kron(np.full((1, n), 1.0 / n), np.eye(6))
     pose = pose_uncertainty_of_points(shares, _rows(points_W, normals_W, centre, lever), C, B)
-    decode = merged_uncertainty(merged, weights, decode_mm)
+    decode = np.asarray(decode_mm, dtype=np.float64)
     common = float((alignment.get("uncertainty_mm") or {}).get("rms") or 0.0)
     return CloudUncertainty(combine(decode, pose, common), decode, pose, common)
