@@ -30,7 +30,6 @@ from fakes.sim.render import SceneRenderer
 from fakes.sim.scene import Scene
 from fakes.sim.world import World, build_world, place_about
 
-
 HELD_RAD = 1e-9  # a move that changes no joint by more (rad, 6e-8 deg) leaves the arm where it landed
 
 

@@ -54,13 +54,15 @@ def _calibrate_sensor(cell, out) -> None:
 
 def test_sensor_and_gamma_commands(tmp_path, small_cell):
     # The robot holds its pose while the stage steps the board (it lands once, +-0.03 mm): d's mean was
-    # 297.5-298.9 mm over six noise draws against the world's 300.05 mm baseline, as with a robot that lands
-    # exactly. When the simulator landed the held robot afresh at every step it swung 291-331 mm.
+    # 297.6-298.9 mm over six noise draws (--seed 1-6, bench/trace_sensor_routine.py --small) against the
+    # world's 300.05 mm baseline: the routine's own bias (-0.66 % in the binned honest world,
+    # docs/calibration.md) and 1.3 mm of spread. When the simulator landed the held robot afresh at every step
+    # it swung over 290.7-331.2 mm, mostly outside the 1.5 % (295.5-304.5 mm) asked here.
     out = tmp_path / "cal"
     _calibrate_sensor(small_cell, out)
     report = json.loads((out / "calibration.json").read_text())
     assert report["kind"] == "sensor_per_pixel"
-    assert report["summary"]["d_mm"]["mean"] == pytest.approx(300.0, rel=0.03)  # small_sensor's baseline
+    assert report["summary"]["d_mm"]["mean"] == pytest.approx(300.0, rel=0.015)  # small_sensor's baseline
     assert (out / "sensor.yaml").exists() and (out / "journal.jsonl").exists()
     # a short run (3 x 1 mm) predicts heights at the far end of the depth of field far worse than the 6 x 4 mm
     # one on disk: refused without --force, accepted with it

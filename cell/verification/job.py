@@ -127,7 +127,7 @@ class VerificationJob(CalibrationJob):
         if placement != self._placed:  # a resumed run places its first view's artefact again
             self._stage.place(artefact, np.asarray(T_W_A, dtype=np.float64), label)
             self._placed = placement
-        # Part 2's views share one pose: the robot holds it (and its landing) while the artefact is placed anew
+        # Part 2's views share one pose: the robot holds it (and its landing) while the artefact is placed
         return {**super().capture(devices, view, index, views), "simulated": devices.simulated}
 
     def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
