@@ -179,8 +179,11 @@ def test_validate_command_plane_sphere_and_slots(tmp_path, small_cell):
     assert summary["plane"]["std_mm"] < 0.05 and abs(summary["flat"]["mean_mm"]) < 0.03
     # the flat test is only valid where the camera saw the reference plane from: the same pose here
     assert summary["flat"]["reference_pose_change_mm"] < 0.1
-    # the slot gauge against its certificate (Fig 5.4): at 1 px/mm a point's noise is ~0.027 mm, but ~600
-    # points per slot floor put the deepest slot's depth within a few um
+    # the slot gauge against its certificate (Fig 5.4): at 1 px/mm a point's noise is ~0.027 mm and ~600
+    # points per slot floor average it to ~2 um, but the per-pixel model of this short run (256 points, d
+    # scattered by 7 mm a point) errs in height alike over a slot's few mm: over 16 noise draws of the two
+    # routines (--seed k, k and k, k+1 for k = 1-4, before and after their noise was restarted per view) the
+    # deepest slot's depth erred by -8.4 to +9.6 um (4.4 um rms; this draw +9.6)
     slots = summary["slots"]["slots"]
     assert [s["nominal_um"] for s in slots] == [32.0, 24.0, 14.0, 6.0]
-    assert slots[0]["resolved"] and abs(slots[0]["measured_um"] - 32.0) < 8.0
+    assert slots[0]["resolved"] and abs(slots[0]["measured_um"] - 32.0) < 12.0
