@@ -33,7 +33,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -164,8 +164,9 @@ class Job(Protocol):
         """The initial viewpoints V0."""
         ...
 
-    def capture(self, devices: DeviceBundle, view: View, index: int) -> Any:
-        """Project and grab at a view (the robot is already there); returns what :meth:`decode` needs."""
+    def capture(self, devices: DeviceBundle, view: View, index: int, views: Sequence[View]) -> Any:
+        """Project and grab at view ``index`` of ``views`` (the robot is already there); returns what
+        :meth:`decode` needs. ``views`` are the views the controller runs (the stored ones on a resume)."""
         ...
 
     def decode(self, view: View, captured: Any, out_dir: Path) -> dict[str, Any]:
@@ -597,7 +598,7 @@ class Controller:
         view = self.checkpoint.views[index]
         self._make_room()
         self.run.log("capture", view=index)
-        captured = self.job.capture(self.devices, view, index)
+        captured = self.job.capture(self.devices, view, index, self.checkpoint.views)
         assert self._executor is not None
         future = self._executor.submit(self._decode_view, index, view, captured)
         self._pending[index] = future

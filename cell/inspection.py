@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import threading
+from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -225,7 +226,9 @@ class LambertianInspection(InspectionResults):
             )
         )
 
-    def capture(self, devices: DeviceBundle, view: View, index: int) -> Captured:
+    def capture(self, devices: DeviceBundle, view: View, index: int, views: Sequence[View]) -> Captured:
+        """Grab view ``index``'s stack (the robot moves to every view: each lands afresh, so ``views`` are
+        not needed)."""
         devices.begin_view(index)
         self.prepare(devices)
         T_B_T = believed_flange(self.cfg, devices.robot)

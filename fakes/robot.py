@@ -458,6 +458,7 @@ class SimRobot:
             "start_s": start,
             "duration_s": duration,
             "outcome": outcome,
+            "moved_rad": 0.0,  # set when the move ends: the largest joint's change from start to end
         }
         self.command_log.append(entry)
         return entry
@@ -627,7 +628,9 @@ class SimRobot:
         if now < m.t0 + m.finish_t() - 1e-12:  # compared in absolute time, as wait() advances the clock
             return
         self._motion = None
-        m.entry.update(duration_s=m.finish_t(), outcome=m.outcome)
+        m.entry.update(
+            duration_s=m.finish_t(), outcome=m.outcome, moved_rad=float(np.max(np.abs(self._q - m.path[0])))
+        )
         if m.outcome == "protective_stop":
             self._protective_stop = True
         elif m.outcome == "safeguard_stop":

@@ -30,6 +30,8 @@ from fakes.sim.render import SceneRenderer
 from fakes.sim.scene import Scene
 from fakes.sim.world import World, build_world, place_about
 
+HELD_RAD = 1e-9  # a move that changes no joint by more (rad, 6e-8 deg) leaves the arm where it landed
+
 
 @dataclass
 class SimCell:
@@ -65,13 +67,15 @@ class SimCell:
     def _moves_made(self) -> int:
         """Moves the robot has made that took it somewhere. Refused commands and stops do not move it, and
         a move to where it stands (a calibration routine's joint move to the pose it holds while the stage
-        moves the board) takes no time and leaves the arm where it landed: a real arm that does not move
-        does not land again."""
+        moves the board) leaves the arm where it landed: a real arm that does not move does not land again.
+        Judged by how far the move took the joints (the command log's ``moved_rad``, end against start), not
+        by its duration: an IK solution of the pose it holds differs from its joints by round-off (~1e-15
+        rad), which takes a tiny but non-zero time."""
         log = getattr(self.robot, "command_log", ())
         return sum(
             1
             for e in log
-            if e["command"].startswith("move") and e["outcome"] != "refused" and e["duration_s"] > 0.0
+            if e["command"].startswith("move") and e["outcome"] != "refused" and e["moved_rad"] > HELD_RAD
         )
 
     def camera_pose(self) -> NDArray[np.float64]:

@@ -54,13 +54,15 @@ def _calibrate_sensor(cell, out) -> None:
 
 def test_sensor_and_gamma_commands(tmp_path, small_cell):
     # The robot holds its pose while the stage steps the board (it lands once, +-0.03 mm): d's mean was
-    # 297.5-298.9 mm over six noise draws against the world's 300.05 mm baseline, as with a robot that lands
-    # exactly. When the simulator landed the held robot afresh at every step it swung 291-331 mm.
+    # 297.6-298.9 mm over six noise draws (--seed 1-6, bench/trace_sensor_routine.py --small) against the
+    # world's 300.05 mm baseline: the routine's own bias (-0.66 % in the binned honest world,
+    # docs/calibration.md) and 1.3 mm of spread. When the simulator landed the held robot afresh at every step
+    # it swung over 290.7-331.2 mm, mostly outside the 1.5 % (295.5-304.5 mm) asked here.
     out = tmp_path / "cal"
     _calibrate_sensor(small_cell, out)
     report = json.loads((out / "calibration.json").read_text())
     assert report["kind"] == "sensor_per_pixel"
-    assert report["summary"]["d_mm"]["mean"] == pytest.approx(300.0, rel=0.03)  # small_sensor's baseline
+    assert report["summary"]["d_mm"]["mean"] == pytest.approx(300.0, rel=0.015)  # small_sensor's baseline
     assert (out / "sensor.yaml").exists() and (out / "journal.jsonl").exists()
     # a short run (3 x 1 mm) predicts heights at the far end of the depth of field far worse than the 6 x 4 mm
     # one on disk: refused without --force, accepted with it
@@ -177,8 +179,11 @@ def test_validate_command_plane_sphere_and_slots(tmp_path, small_cell):
     assert summary["plane"]["std_mm"] < 0.05 and abs(summary["flat"]["mean_mm"]) < 0.03
     # the flat test is only valid where the camera saw the reference plane from: the same pose here
     assert summary["flat"]["reference_pose_change_mm"] < 0.1
-    # the slot gauge against its certificate (Fig 5.4): at 1 px/mm a point's noise is ~0.027 mm, but ~600
-    # points per slot floor put the deepest slot's depth within a few um
+    # the slot gauge against its certificate (Fig 5.4): at 1 px/mm a point's noise is ~0.027 mm and ~600
+    # points per slot floor average it to ~2 um, but the per-pixel model of this short run (256 points, d
+    # scattered by 7 mm a point) errs in height alike over a slot's few mm: over 16 noise draws of the two
+    # routines (--seed k, k and k, k+1 for k = 1-4, before and after their noise was restarted per view) the
+    # deepest slot's depth erred by -8.4 to +9.6 um (4.4 um rms; this draw +9.6)
     slots = summary["slots"]["slots"]
     assert [s["nominal_um"] for s in slots] == [32.0, 24.0, 14.0, 6.0]
-    assert slots[0]["resolved"] and abs(slots[0]["measured_um"] - 32.0) < 8.0
+    assert slots[0]["resolved"] and abs(slots[0]["measured_um"] - 32.0) < 12.0

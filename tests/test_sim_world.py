@@ -120,9 +120,10 @@ def test_robot_reports_nominal_kinematics_while_the_flange_follows_the_world() -
 
 
 def test_a_held_pose_keeps_its_landing_error() -> None:
-    """A robot that holds its pose does not land again: not on a move to the joints it stands at (a
-    calibration routine's joint move to its pose while the stage moves the board), nor at the next view's
-    reseed. A resumed run that names the view it came for draws that landing again; a real move re-lands."""
+    """A robot that holds its pose does not land again: not on a move to the joints it stands at, exactly or
+    to round-off (a calibration routine's joint move to its pose while the stage moves the board), nor at the
+    next view's reseed. A resumed run that names the view it came for draws that landing again; a real move
+    re-lands."""
     cfg = _small(None)  # the realistic defaults: +-0.03 mm repeatability
 
     def arrive(cell) -> np.ndarray:
@@ -147,6 +148,9 @@ def test_a_held_pose_keeps_its_landing_error() -> None:
     arrive(resumed)
     resumed.reseed(6, arrived=(5,))
     assert np.array_equal(resumed.flange_pose(), at_5)
+    cell.robot.move_joint(cell.robot.joints() + 1e-12, 1.0, 2.0)  # to it by an IK solution's round-off
+    assert cell.robot.command_log[-1]["duration_s"] > 0.0  # it takes time, but goes nowhere: no new landing
+    np.testing.assert_allclose(cell.flange_pose(), at_5, rtol=0.0, atol=1e-6)  # a new one: up to 0.03 mm
     cell.robot.move_linear(UR5E.fk(np.deg2rad(cfg.robot.home_joints_deg)), 100.0, 500.0)
     cell.robot.move_linear(target, 100.0, 500.0)  # away and back: a new landing
     cell.reseed(7)

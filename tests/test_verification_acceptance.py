@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 
+from cell.calibration.procedures import arrived_for
 from cell.calibration.routines import run_routine
 from cell.cli import main
 from cell.config import load_cell_config
@@ -219,13 +220,13 @@ def test_ramped_line_shift_edges_bring_the_spheres_pf_down(tmp_path) -> None:
 def test_the_simulated_robot_holds_its_landing_over_the_views_of_one_pose() -> None:
     """Part 2's views share one flange pose (the robot holds it while the stage places each artefact): each
     view names the first as the one the robot arrived for, so its landing error is kept, and a run resumed
-    at any of them draws that landing again (fakes.sim_cell.SimCell.reseed). Part 3's views each have their
-    own pose, each its own landing."""
+    at any of them draws that landing again (fakes.sim_cell.SimCell.reseed; the first named by
+    cell.calibration.procedures.arrived_for over the views the controller runs). Part 3's views each have
+    their own pose, each its own landing."""
     cfg = load_cell_config(CELL)
     cert = load_certificate()
     job = VerificationJob(cfg, cert)
     views = job.plan()
-    assert len(views) > 1 and [job._arrived(v, i) for i, v in enumerate(views)] == [0] * len(views)
-    job = VerificationJob(cfg, cert, part=3, directions={"along x": 0.0})
-    views = job.plan()
-    assert [job._arrived(v, i) for i, v in enumerate(views)] == list(range(len(views)))
+    assert len(views) > 1 and [arrived_for(views, i) for i in range(len(views))] == [0] * len(views)
+    views = VerificationJob(cfg, cert, part=3, directions={"along x": 0.0}).plan()
+    assert [arrived_for(views, i) for i in range(len(views))] == list(range(len(views)))

@@ -19,6 +19,7 @@ Frames: {W} world, {B} robot base, {T} flange, {C} camera, {P} projector, {Bd} t
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -132,6 +133,18 @@ def _pose_text(T: Any) -> str:
     return f"world ({T[0, 3]:.0f}, {T[1, 3]:.0f}, {T[2, 3]:.0f}) mm, tilt {tilt:.0f} deg"
 
 
+def arrived_for(views: Sequence[View], index: int) -> int:
+    """The first of ``views`` up to ``index`` that the robot takes at view ``index``'s flange pose without
+    moving in between: consecutive views of one ``T_B_T`` are taken where the robot stands (the controller's
+    move to them is a joint move to the joints it holds, JointMotion), e.g. while the stage steps the board or
+    places another artefact. From the views the controller runs (the stored ones on a resume), so that a
+    resumed run names it as the uninterrupted one did."""
+    first = index
+    while first > 0 and np.array_equal(views[first - 1].T_B_T, views[index].T_B_T):
+        first -= 1
+    return first
+
+
 class CalibrationJob:
     """What every routine shares: placing targets, grabbing stacks, a trivial evaluate/replan, the report.
 
@@ -140,6 +153,7 @@ class CalibrationJob:
 
     kind = ""
     file_stem = ""
+    view_key = 0  # view i's key for DeviceBundle.begin_view is view_key + i
     result_file = "calibration.json"  # what the routine leaves in its run folder
     rerun_finished = True  # a finished run folder is measured again (the previous views kept aside)
     part_name = "calibration"
@@ -163,7 +177,11 @@ class CalibrationJob:
         """The projector frames of a view (the first frame of every set is full white)."""
         return uniform_patterns(self.cfg.sensor.projector, (255, 0))
 
-    def capture(self, devices: DeviceBundle, view: View, index: int) -> dict[str, Any]:
+    def capture(self, devices: DeviceBundle, view: View, index: int, views: Sequence[View]) -> dict[str, Any]:
+        """Place the view's target, if any, and grab its stack. A simulated cell restarts its noise from the
+        view's key, and the landing error of the pose the robot holds from the key of the view it came there
+        for (:func:`arrived_for`): a resumed routine then draws what an uninterrupted one drew."""
+        devices.begin_view(self.view_key + index, arrived=self.view_key + arrived_for(views, index))
         if "board" in view.data:
             if devices.stage is None:
                 raise DeviceFault(

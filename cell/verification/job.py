@@ -11,7 +11,7 @@ inspection merges its views, so SD contains the robot's and the hand-eye's error
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +52,7 @@ class VerificationJob(CalibrationJob):
     ``interim``: the start-of-shift check (the report says so)."""
 
     kind, file_stem, result_file = "verification", "verification", "verification.json"
+    view_key = 1000  # begin_view's keys apart from the inspection's
     part_name = "verification"
     rerun_finished = False  # a finished test is a record: a new one goes into a new folder
 
@@ -80,7 +81,6 @@ class VerificationJob(CalibrationJob):
         self.triangulator = active_triangulator(cfg)  # once: a per-pixel model is read from its files
         self._stage: Any = None
         self._placed: tuple[Any, ...] | None = None  # what the stage holds now (artefact, label, pose)
-        self._planned: list[View] | None = None  # the plan, for the views the robot takes without moving
 
     # ------------------------------------------------------------------ the views
     def plan(self) -> list[View]:
@@ -111,7 +111,7 @@ class VerificationJob(CalibrationJob):
     def patterns(self, view: View) -> PatternSet:
         return active_measuring_patterns(self.cfg)  # through the gamma LUT, if any
 
-    def capture(self, devices: DeviceBundle, view: View, index: int) -> dict[str, Any]:
+    def capture(self, devices: DeviceBundle, view: View, index: int, views: Sequence[View]) -> dict[str, Any]:
         """Place the view's artefact (the technician's hand on a real cell) when it differs from the one
         placed for the previous view (the views of one Part 3 position share one placement: placing the bar
         again between them would measure two placements), then grab the stack."""
@@ -127,20 +127,8 @@ class VerificationJob(CalibrationJob):
         if placement != self._placed:  # a resumed run places its first view's artefact again
             self._stage.place(artefact, np.asarray(T_W_A, dtype=np.float64), label)
             self._placed = placement
-        # keys apart from the inspection's; the robot holds its pose between views that share it (Part 2)
-        devices.begin_view(1000 + index, arrived=1000 + self._arrived(view, index))
-        return {**super().capture(devices, view, index), "simulated": devices.simulated}
-
-    def _arrived(self, view: View, index: int) -> int:
-        """The first of the views up to ``index`` that the robot takes at ``view``'s flange pose without
-        moving in between (Part 2's views share one pose: the robot holds it while the artefact is placed
-        anew). From the plan, so that a resumed run names it as the uninterrupted one did."""
-        if self._planned is None:
-            self._planned = self.plan()
-        first = index
-        while first > 0 and np.array_equal(self._planned[first - 1].T_B_T, view.T_B_T):
-            first -= 1
-        return first
+        # Part 2's views share one pose: the robot holds it (and its landing) while the artefact is placed
+        return {**super().capture(devices, view, index, views), "simulated": devices.simulated}
 
     def decode_view(self, view: View, captured: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         """The points the sensor delivers in an inspection too (valid, off the rims, lit within
