@@ -16,18 +16,13 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
+from bench_tail_steps import load_finished_run  # bench/ is on sys.path when run as a script
 
 from cell.analysis._pose_kernel import pose_sigma
-from cell.analysis.errormap import signed_distance
-from cell.inspection import LambertianInspection
-from cell.inspection_run import load_run_inputs, open_inspection_run
-from cell.mesh import load_mesh
-from cell.run_data import Checkpoint
 
 
 def status_kb(field: str) -> int:
@@ -43,15 +38,8 @@ def main() -> None:
     ap.add_argument("run", type=Path)
     ap.add_argument("--out", type=Path, help="write the registration record (JSON) here")
     args = ap.parse_args()
-    print(f"nproc {os.cpu_count()}, load average {os.getloadavg()}")
-    run = open_inspection_run(args.run)
-    recipe, cfg, _ = load_run_inputs(run)
-    nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
-    job = LambertianInspection(recipe, cfg, nominal_W)
-    checkpoint = Checkpoint.from_json(run.load_checkpoint())
-    signed_distance(job.nominal, np.zeros((4, 3)))  # the kernels loaded (or compiled) before the clock runs
-    pose_sigma(np.ones((1, 1)), np.zeros((1, 6)), np.eye(6), None)
-    _ = job.plan_model, job.aligner, job.nominal_P
+    run, job, checkpoint = load_finished_run(args.run)
+    pose_sigma(np.ones((1, 1)), np.zeros((1, 6)), np.eye(6), None)  # loaded before the clock too
     done, _ = job.refinement(run)
     print(
         f"{len(done)} views loaded and refined: RSS {status_kb('VmRSS') / 1e6:.2f} GB, "

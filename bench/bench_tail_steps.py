@@ -53,18 +53,26 @@ def timed(owner: Any, name: str) -> None:
     setattr(owner, name, wrapper)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("run", type=Path)
-    args = ap.parse_args()
+def load_finished_run(path: Path) -> tuple[Any, LambertianInspection, Checkpoint]:
+    """A finished inspection's run folder, its job (recipe, cell and nominal as the run read them) and its
+    checkpoint, with the job's lazy models built and the error map's kernels loaded, so that no bench clock
+    counts them (also used by bench_register_memory.py)."""
     print(f"nproc {os.cpu_count()}, load average {os.getloadavg()}")
-    run = open_inspection_run(args.run)
+    run = open_inspection_run(path)
     recipe, cfg, _ = load_run_inputs(run)
     nominal_W = load_mesh(recipe.part.cad).apply_transform(recipe.part.T_W_P.matrix())
     job = LambertianInspection(recipe, cfg, nominal_W)
     checkpoint = Checkpoint.from_json(run.load_checkpoint())
     signed_distance(job.nominal, np.zeros((4, 3)))  # the kernels loaded (or compiled) before the clock runs
     _ = job.plan_model, job.aligner, job.nominal_P
+    return run, job, checkpoint
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("run", type=Path)
+    args = ap.parse_args()
+    run, job, checkpoint = load_finished_run(args.run)
     for i in run.completed_views():  # what the decode worker did view by view
         job._first_overlaps(run, job.views.get(run, i))
     timed(inspection, "refine_views")
