@@ -157,7 +157,7 @@ class InspectionResults:
         if merged is None and not n_points_views:
             return {"n_points": 0, "views": len(stored)}
         if merged is None:
-            raise ConfigError("merge_views: no finite points with a positive weight in any view")
+            raise ConfigError("registration merge: no finite points with a positive weight in any view")
         refinement = {
             **refined.to_json([v.eval_W for v in stored]),
             "unregistered_views": [done[k] for k in refined.unregistered],
