@@ -125,13 +125,16 @@ def accuracy_map(
         found = [(i, src, dst) for i, src, dst in found if len(src)]
         if max_incidence_deg < 90.0 and found:
             # the nominal normal of each of view j's paired points, once however many views it is paired in
-            used = np.unique(np.concatenate([src for _, src, _ in found]))
+            used = np.zeros(len(pj), dtype=bool)
+            for _, src, _ in found:
+                used[src] = True
+            at = np.cumsum(used) - 1  # where a paired point's normal is in n_used
             n_used = normals_at(pj[used])
         for i, src, dst in found:
             vi = views[i]
             pi = vi.points_W
             if max_incidence_deg < 90.0:
-                n_nom = n_used[np.searchsorted(used, src)]
+                n_nom = n_used[at[src]]
                 seen = (incidence_cos(pj[src], n_nom, vj.T_W_C[:3, 3]) >= min_cos) & (
                     incidence_cos(pi[dst], n_nom, vi.T_W_C[:3, 3]) >= min_cos
                 )
