@@ -351,7 +351,10 @@ class LambertianInspection(InspectionResults):
     def _first_overlaps(self, run: RunFolder, new: ViewResult) -> None:
         """The refinement's first matching of a new view with every view measured before it (both ways, at
         their kinematic poses), and the feedback maps' pairs of the two (:meth:`_map_pairs`): what the
-        evaluation after the last view would otherwise begin with."""
+        evaluation after the last view would otherwise begin with. Whatever the caches held of a view of this
+        index before (a decode that failed after this and is redone) is dropped first."""
+        self._overlaps.forget(new.index)
+        self._pairs.forget(new.index)
         views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
         prepare_overlaps(
             self._overlaps,

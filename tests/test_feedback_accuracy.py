@@ -218,3 +218,17 @@ def test_pairing_before_small_corrections_changes_little() -> None:
     ia_moved, iu_moved = maps(views, None)
     assert abs(len(ia) - len(ia_moved)) <= 0.05 * len(ia_moved) and len(ia_moved) > 50
     assert abs(len(iu) - len(iu_moved)) <= 0.05 * len(iu_moved) and len(iu_moved) > 200
+
+
+def test_a_view_measured_again_is_paired_anew() -> None:
+    """The pairs are kept by view index: a view decoded again (a failed decode redone) must not find the
+    pairs of its first measurement."""
+    kinematic, _ = corrected_views(0.0, 0.0)
+    cache, tree = PairCache(), cKDTree(kinematic[0])
+    first = cache.pairs(1, 0, LINK, kinematic[1], tree)
+    again = kinematic[1] + [0.0, 0.0, 0.45]  # measured again 0.45 mm higher: fewer points within the link
+    assert cache.pairs(1, 0, LINK, again, tree)[0] is first[0]  # kept
+    cache.forget(1)
+    src, dst = cache.pairs(1, 0, LINK, again, tree)
+    truth = brute_pairs(again, kinematic[0])
+    assert np.array_equal(src, truth[0]) and np.array_equal(dst, truth[1]) and len(src) < len(first[0])

@@ -171,6 +171,13 @@ class OverlapCache:
         self._boxes: dict[int, tuple[Array, Array]] = {}
         self._lock = threading.Lock()
 
+    def forget(self, view: int) -> None:
+        """Drop what the cache holds of view ``view`` (it is measured again: its overlaps are made anew)."""
+        with self._lock:
+            self._pools = {k: v for k, v in self._pools.items() if view not in k[:2]}
+            self._first = {k: v for k, v in self._first.items() if view not in k[:2]}
+            self._boxes.pop(view, None)
+
     def box(self, view: int, points: Array) -> tuple[Array, Array]:
         """The bounding box (min, max) of view ``view``'s ``points`` (zeros when it has none), found once."""
         with self._lock:

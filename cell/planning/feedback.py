@@ -72,6 +72,11 @@ class PairCache:
         self._pairs: dict[tuple[int, int, float], Pairs] = {}
         self._lock = threading.Lock()
 
+    def forget(self, view: int) -> None:
+        """Drop the pairs of view ``view`` (it is measured again: its pairs are found anew)."""
+        with self._lock:
+            self._pairs = {k: v for k, v in self._pairs.items() if view not in k[:2]}
+
     def pairs(self, a: int, b: int, link_mm: float, points_a: Array, tree_b: cKDTree | None) -> Pairs:
         """The pairs of view ``a`` (points ``points_a``) in view ``b`` (``tree_b``), found once."""
         key = (a, b, link_mm)
