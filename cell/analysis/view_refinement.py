@@ -502,9 +502,9 @@ def _moved_box(T: Pose, points: Array, box: tuple[Array, Array]) -> tuple[Array,
     if not len(points):
         return np.zeros(3), np.zeros(3)
     lo, hi = box
-    reach = float(
-        np.linalg.norm(T[:3, :3] - np.eye(3)) * np.linalg.norm(hi - lo) / 2
-    )  # Frobenius >= spectral
+    # how far the turn moves a point relative to the centre at most: |R - I| (its Frobenius norm, at least the
+    # spectral one) times the half-diagonal
+    reach = float(np.linalg.norm(T[:3, :3] - np.eye(3)) * np.linalg.norm(hi - lo) / 2)
     margin = 2.0 * reach + 1e-6  # and a nanometre for the rounding of the moved coordinates
     near = np.flatnonzero(np.any((points >= hi - margin) | (points <= lo + margin), axis=1))
     moved = transform_points(T, points[near])
