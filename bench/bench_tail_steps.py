@@ -74,8 +74,10 @@ def main() -> None:
     ap.add_argument("run", type=Path)
     args = ap.parse_args()
     run, job, checkpoint = load_finished_run(args.run)
-    for i in run.completed_views():  # what the decode worker did view by view
-        job._first_overlaps(run, job.views.get(run, i))
+    # what the decode worker did view by view (the last view's maps' pairs are left to the evaluation)
+    done = run.completed_views()
+    for i in done:
+        job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
     timed(inspection, "refine_views")
     timed(job.aligner, "align", "Aligner.align (evaluate, register)")
     timed(inspection, "signed_distance", "evaluate: deviations")

@@ -124,6 +124,9 @@ class Captured:
     joints: NDArray[np.float64]
     camera: str
     index: int | None = None  # the view's index in the plan: its decode is kept in the job's view store
+    # the plan's last view so far: an evaluation (and the registration beside it) waits for its decode, which
+    # leaves the feedback maps' pairs of it to the evaluation (made there beside the registration, not before)
+    last: bool = False
 
 
 @dataclass
@@ -242,7 +245,7 @@ class LambertianInspection(InspectionResults):
             status = devices.projector.status()
             why = ", ".join(status.errors) or str(status)
             raise DeviceFault(devices.projector.name, f"not ready after the pattern stack: {why}")
-        return Captured(images, T_B_T, joints, devices.camera.name, index)
+        return Captured(images, T_B_T, joints, devices.camera.name, index, index == len(views) - 1)
 
     def decode(self, view: View, captured: Captured, out_dir: Path) -> dict[str, Any]:
         """Decode, triangulate and filter one view and write its folder ``out_dir`` (points, planes, holes,
@@ -344,15 +347,16 @@ class LambertianInspection(InspectionResults):
             points = ViewPoints(stored, quality, oblique_kept, u_stored)
             eval_u = None if u_stored is None else u_stored[sub]
             result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder, eval_u)
-            self._first_overlaps(RunFolder(out_dir.parent.parent), result)
+            self._first_overlaps(RunFolder(out_dir.parent.parent), result, pair_maps=not captured.last)
             self.views.add(result)
         return summary
 
-    def _first_overlaps(self, run: RunFolder, new: ViewResult) -> None:
+    def _first_overlaps(self, run: RunFolder, new: ViewResult, pair_maps: bool = True) -> None:
         """The refinement's first matching of a new view with every view measured before it (both ways, at
-        their kinematic poses), and the feedback maps' pairs of the two (:meth:`_map_pairs`): what the
-        evaluation after the last view would otherwise begin with. Whatever the caches held of a view of this
-        index before (a decode that failed after this and is redone) is dropped first."""
+        their kinematic poses), and with ``pair_maps`` the feedback maps' pairs of the two
+        (:meth:`_map_pairs`): what the evaluation after the last view would otherwise begin with. Whatever the
+        caches held of a view of this index before (a decode that failed after this and is redone) is dropped
+        first."""
         self._overlaps.forget(new.index)
         self._pairs.forget(new.index)
         views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
@@ -365,7 +369,7 @@ class LambertianInspection(InspectionResults):
             [v.index for v in views],
             new=len(views) - 1,
         )
-        for other in views[:-1]:
+        for other in views[:-1] if pair_maps else []:
             for a, b in ((new, other), (other, new)):
                 self._pairs.pairs(
                     a.index, b.index, MAP_LINK_MM, a.eval_W, b.eval_tree if len(b.eval_W) else None
