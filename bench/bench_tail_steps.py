@@ -36,16 +36,17 @@ from cell.run_data import Checkpoint
 TIMES: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0, 0.0])
 
 
-def timed(owner: Any, name: str) -> None:
-    """Wrap ``owner.name`` so that its calls add to TIMES[name] (wall s, CPU s, calls)."""
+def timed(owner: Any, name: str, label: str | None = None) -> None:
+    """Wrap ``owner.name`` so that its calls add to TIMES[label or name] (wall s, CPU s, calls)."""
     inner = getattr(owner, name)
+    label = label or name
 
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         wall, cpu = time.perf_counter(), time.process_time()
         try:
             return inner(*args, **kwargs)
         finally:
-            entry = TIMES[name]
+            entry = TIMES[label]
             entry[0] += time.perf_counter() - wall
             entry[1] += time.process_time() - cpu
             entry[2] += 1
@@ -73,9 +74,14 @@ def main() -> None:
     ap.add_argument("run", type=Path)
     args = ap.parse_args()
     run, job, checkpoint = load_finished_run(args.run)
-    for i in run.completed_views():  # what the decode worker did view by view
-        job._first_overlaps(run, job.views.get(run, i))
+    # what the decode worker did view by view (the last view's maps' pairs are left to the evaluation)
+    done = run.completed_views()
+    for i in done:
+        job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
     timed(inspection, "refine_views")
+    timed(job.aligner, "align", "Aligner.align (evaluate, register)")
+    timed(inspection, "signed_distance", "evaluate: deviations")
+    timed(inspection, "covered_by_views", "evaluate: coverage")
     for name in ("accuracy_map", "uncertainty_map"):
         timed(feedback, name)
     for name in (
