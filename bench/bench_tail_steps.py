@@ -2,7 +2,7 @@
 the last view moves the others' refinement.
 
 Reads a run folder (`cell inspect ... --out RUN`), prepares what the decode worker prepares while the robot
-moves (each view's first overlaps, in view order), then times, in one thread, the job's ``evaluate`` and
+moves (each view's first overlaps and merge bins, in view order), then times, in one thread, the job's ``evaluate`` and
 ``register`` as the controller calls them after the last view, with each step inside them (wall and CPU
 seconds; the process's numba kernels are loaded first so no compilation is counted). Then it refines the
 views without the last one and prints how far each earlier view's correction moved when the last view was
@@ -75,13 +75,14 @@ def main() -> None:
     run, job, checkpoint = load_finished_run(args.run)
     for i in run.completed_views():  # what the decode worker did view by view
         job._first_overlaps(run, job.views.get(run, i))
+        job.bin_view(run, job.views.get(run, i))
     timed(inspection, "refine_views")
     for name in ("accuracy_map", "uncertainty_map"):
         timed(feedback, name)
     for name in (
-        "merge_view_stream",
+        "merge_bins",
         "registered_cloud_uncertainty",
-        "unregistered_redundant",
+        "held_redundant",
         "signed_distance",
     ):
         timed(results, name)

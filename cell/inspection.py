@@ -344,6 +344,7 @@ class LambertianInspection(InspectionResults):
             eval_u = None if u_stored is None else u_stored[sub]
             result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder, eval_u)
             self._first_overlaps(RunFolder(out_dir.parent.parent), result)
+            self.bin_view(RunFolder(out_dir.parent.parent), result)
             self.views.add(result)
         return summary
 

@@ -17,7 +17,7 @@ Every number comes from what the cell itself measured or calibrated, never from 
    leaves them (its posterior covariance; a view it could not register keeps its prior) along each point's
    normal, less what the recipe's alignment takes out: a datum alignment the rigid motion its datums see
    (:func:`datum_alignment_map`), kinematic alignment nothing (the chain's whole error stays);
-4. **merge** (:func:`merged_uncertainty`, :class:`MergeShares`): the weighted voxel mean of the views; points
+4. **merge** (:class:`MergeShares`): the weighted voxel mean of the views; points
    of one view in a voxel share edges and pose, so their decode errors add linearly, the views' in
    quadrature; the pose errors through the views' shares of each point;
 5. **alignment**: the recipe alignment's own 1-sigma displacement from the noise of what it measured
@@ -181,10 +181,11 @@ class ViewShares:
 
 
 class MergeShares:
-    """Each view's share of the merged points' weight (:class:`ViewShares`) and their merged decode u
-    (:func:`merged_uncertainty`), summed view by view as a merge gives the views' points: its ``each_view``
-    (:func:`cell.analysis.merge.merge_view_stream`, with the views' decode u (mm) as their first per-point
-    array, or none for the shares alone)."""
+    """Each view's share of the merged points' weight (:class:`ViewShares`) and their merged decode u, summed
+    view by view as the merge gives the views' voxels (its ``each_view``:
+    :func:`cell.analysis.merge.merge_bins`). Within a view the errors of one voxel's points are taken as fully
+    correlated (neighbouring pixels share edges, pose and calibration), so their weighted u add linearly;
+    the views add in quadrature: u = sqrt(sum_v (sum_i w_i u_i)_v^2) / sum w."""
 
     def __init__(self, n_views: int) -> None:
         self.n_views = n_views
@@ -193,17 +194,14 @@ class MergeShares:
         self._var: Array | None = None  # (M,) sum over views of (sum of w u of the view's points)^2
 
     def __call__(
-        self, k: int, number: NDArray[np.int64], m: int, w: Array, per_point: tuple[NDArray[Any], ...]
+        self, k: int, rows: NDArray[np.int64], m: int, weight: Array, wu: NDArray[np.floating]
     ) -> None:
-        """Add view ``k``: its points' merged-point ``number`` (of ``m``), merge weights and (u,)."""
-        column = np.asarray(np.bincount(number, weights=w, minlength=m), dtype=np.float64)
-        index = np.flatnonzero(column)  # the weights are > 0: every merged point the view has
-        self._index[k], self._value[k] = index, column[index]
-        if per_point:
-            if self._var is None:
-                self._var = np.zeros(m)
-            wu = w * np.asarray(per_point[0], dtype=np.float64).ravel()
-            self._var += np.square(np.bincount(number, weights=wu, minlength=m))
+        """Add view ``k``: the merged points it has (``rows`` of ``m``, ascending, distinct), its points'
+        weight sum at each and their weighted decode u sum (mm; NaN: none known)."""
+        self._index[k], self._value[k] = np.asarray(rows, np.int64), np.asarray(weight, np.float64)
+        if self._var is None:
+            self._var = np.zeros(m)
+        self._var[rows] += np.square(np.asarray(wu, dtype=np.float64))
 
     def shares(self, merged: MergedCloud) -> ViewShares:
         """(M, n) each view's share of every merged point's weight (rows sum to 1)."""
@@ -211,16 +209,9 @@ class MergeShares:
         return ViewShares(len(merged.weight), self._index, value)
 
     def decode(self, merged: MergedCloud) -> NDArray[np.float64]:
-        """u (mm) of every merged point from its views' decode u (:func:`merged_uncertainty`)."""
-        assert self._var is not None, "no view with a decode u was added"
+        """u (mm) of every merged point from its views' decode u."""
+        assert self._var is not None, "no view was added"
         return np.asarray(np.sqrt(self._var) / merged.weight, dtype=np.float64)
-
-
-def _per_view(merged: MergedCloud, per_point: Sequence[Array]) -> list[tuple[NDArray[np.int64], Array]]:
-    """Each view's slice of ``merged.source`` beside its array of ``per_point`` (the inputs' order)."""
-    assert merged.source is not None, "a streamed merge gives each view's source as it merges"
-    ends = np.cumsum([len(x) for x in per_point])
-    return [(merged.source[e - len(x) : e], x) for x, e in zip(per_point, ends, strict=True)]
 
 
 def datum_alignment_map(
@@ -254,22 +245,6 @@ def pose_uncertainty_of_points(
         s, r = shares[a : a + POINTS_PER_CHUNK], rows[a : a + POINTS_PER_CHUNK]
         out[a : a + len(r)] = pose_sigma(s, r, covariance, alignment_map)
     return out
-
-
-def merged_uncertainty(
-    merged: MergedCloud, weights: Sequence[Array], u_views: Sequence[Array]
-) -> NDArray[np.float64]:
-    """u (mm) of every merged point from its input points' ``u_views`` (one array per view, in the order and
-    with the points given to :func:`cell.analysis.merge.merge_views`) and merge ``weights``: within a view the
-    errors of one voxel's points are taken as fully correlated (neighbouring pixels share edges, pose and
-    calibration), so their weighted u add linearly; the views add in quadrature."""
-    acc = MergeShares(len(weights))
-    # view by view (no copy of all input points): the sum of w u of one view's points in each voxel, squared
-    for k, ((src, u), w) in enumerate(zip(_per_view(merged, u_views), weights, strict=True)):
-        ok = src >= 0
-        w_ok = np.asarray(w, dtype=np.float64).ravel()[ok]
-        acc(k, src[ok], len(merged.points_mm), w_ok, (np.asarray(u, dtype=np.float64).ravel()[ok],))
-    return acc.decode(merged)
 
 
 def combine(*terms_mm: NDArray[np.floating] | float) -> NDArray[np.float64]:
@@ -324,7 +299,7 @@ def registered_cloud_uncertainty(
 ) -> CloudUncertainty:
     """u of every point of an inspection's merged cloud (in the frame ``T_W_cloud`` maps to {W}) from the
     views' ``shares`` (M, n) of its points (:class:`ViewShares`) and its merged decode u ``decode_mm`` (M,)
-    (:func:`merged_uncertainty`; both from :class:`MergeShares` while the views merge); the views' pose
+    (both from :class:`MergeShares` while the views merge); the views' pose
     errors after the refinement (:class:`cell.analysis.view_refinement.ViewRefinement`) under the ``prior``
     it ran under (its record: ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal,
     less what the recipe's alignment removes (its record: ``to_json`` of
