@@ -2,12 +2,12 @@
 the last view moves the others' refinement.
 
 Reads a run folder (`cell inspect ... --out RUN`), prepares what the decode worker prepares while the robot
-moves (each view's first overlaps and merge bins, in view order), then times, in one thread, the job's ``evaluate`` and
-``register`` as the controller calls them after the last view, with each step inside them (wall and CPU
-seconds; the process's numba kernels are loaded first so no compilation is counted). Then it refines the
-views without the last one and prints how far each earlier view's correction moved when the last view was
-added (the largest motion of its evaluation points between the two solutions, um): what an incremental
-registration would have to correct after the last frame.
+moves (each view's first overlaps and merge bins, in view order), then times, in one thread, the job's
+``evaluate`` and ``register`` as the controller calls them after the last view, with each step inside them
+(wall and CPU seconds; the process's numba kernels are loaded first so no compilation is counted). Then it
+refines the views without the last one and prints how far each earlier view's correction moved when the last
+view was added (the largest motion of its evaluation points between the two solutions, um): what an
+incremental registration would have to correct after the last frame.
 
     .venv/bin/python bench/bench_tail_steps.py RUN
 """

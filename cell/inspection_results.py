@@ -154,9 +154,9 @@ class InspectionResults:
         self.merge_bins_for(run).add(view.index, *self._view_bins(view))
 
     def _view_bins(self, view: ViewResult) -> tuple[NDArray[np.int64], ViewBins, int]:
-        """A view's voxels' keys, its merge bins and its measured points' count: the sensor's points in {P} at their kinematic
-        pose (T_P_W @ p_W), without those lit too obliquely, weighted by quality^2, with their decode u (NaN
-        in run folders from before issue 17)."""
+        """A view's voxels' keys, its merge bins and its measured points' count: the sensor's points in {P}
+        at their kinematic pose (T_P_W @ p_W), without those lit too obliquely, weighted by quality^2, with
+        their decode u (NaN in run folders from before issue 17)."""
         held = view.points()
         keep = ~held.oblique
         points = transform_points(invert(self.T_W_P), held.points_W[keep])
