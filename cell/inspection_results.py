@@ -26,13 +26,13 @@ from cell.analysis.merge import MergeGrid, ViewBins, bin_view, held_redundant, m
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, write_page, write_verdict
 from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
-from cell.analysis.table_seam import crop_table_seam
+from cell.analysis.table_seam import table_seam
 from cell.analysis.uncertainty import MergeShares, registered_cloud_uncertainty
 from cell.calibration import pose_uncertainty_prior
 from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
 from cell.errors import ConfigError
-from cell.geometry import invert, transform_points
+from cell.geometry import invert, transform_points, transform_vectors
 from cell.inspection_views import ViewResult, ViewStore
 from cell.planning.coverage import coverage_fraction, covered_by_views
 from cell.planning.unseen import plan_feedback
@@ -223,6 +223,8 @@ class InspectionResults:
             points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
         # judged as cloud.ply stores them (float32), so a rebuilt report gives the same figures
         points_P = stored_points(points_P)
+        error_map = signed_distance(self.nominal_P, points_P)  # its faces' normals are the u's too
+        normals_W = transform_vectors(self.T_W_P, self.nominal_P.face_normals[error_map.face])
         prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
         unc = registered_cloud_uncertainty(
             merged,
@@ -230,14 +232,20 @@ class InspectionResults:
             shares.decode(merged),
             refined,
             prior,
-            self.nominal,
+            normals_W,
             self.T_W_P,
             alignment,
             self.aligner.datums,
         )
-        points_P, u_mm, seam = crop_table_seam(
-            points_P, unc.u_mm, self.T_W_P, self.settings.table_margin_mm, self.nominal_P
+        keep = ~table_seam(
+            points_P,
+            self.T_W_P,
+            self.settings.table_margin_mm,
+            self.nominal_P,
+            deviation_mm=error_map.deviation_mm,
         )
+        points_P, u_mm, error_map = points_P[keep], unc.u_mm[keep], error_map.take(keep)
+        seam = int((~keep).sum())
         registration = {
             "table_seam_points": seam,
             "n_points": int(len(points_P)),
@@ -255,7 +263,6 @@ class InspectionResults:
             },
         }
         T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
-        error_map = signed_distance(self.nominal_P, points_P)
         self._cloud = RegisteredCloud(
             registration, points_P, error_map, self.inspectable_coverage(run, T_align), u_mm
         )

@@ -37,7 +37,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.analysis.alignment import Datum
-from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.merge import MergedCloud
 from cell.analysis.view_refinement import ViewRefinement
 from cell.geometry import points_within, transform_points
@@ -292,17 +291,18 @@ def registered_cloud_uncertainty(
     decode_mm: Array,
     refinement: ViewRefinement,
     prior: dict[str, Any],
-    nominal_W: NominalMesh,
+    normals_W: Array,
     T_W_cloud: Array,
     alignment: dict[str, Any],
     datums: Sequence[Datum] = (),
 ) -> CloudUncertainty:
     """u of every point of an inspection's merged cloud (in the frame ``T_W_cloud`` maps to {W}) from the
     views' ``shares`` (M, n) of its points (:class:`ViewShares`) and its merged decode u ``decode_mm`` (M,)
-    (both from :class:`MergeShares` while the views merge); the views' pose
-    errors after the refinement (:class:`cell.analysis.view_refinement.ViewRefinement`) under the ``prior``
-    it ran under (its record: ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal,
-    less what the recipe's alignment removes (its record: ``to_json`` of
+    (both from :class:`MergeShares` while the views merge); the views' pose errors after the refinement
+    (:class:`cell.analysis.view_refinement.ViewRefinement`) under the ``prior`` it ran under (its record:
+    ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal at each point,
+    ``normals_W`` (M, 3, {W}: the normal of the nominal face nearest the point as judged, from its error
+    map), less what the recipe's alignment removes (its record: ``to_json`` of
     :class:`cell.analysis.alignment.Alignment`): a datum alignment (the ``datums`` resolved on the nominal, in
     the cloud's frame) the rigid motion its datums see (:func:`datum_alignment_map`), any other measured
     alignment the views' mean motion, kinematic alignment nothing; plus the alignment's own uncertainty."""
@@ -313,7 +313,6 @@ def registered_cloud_uncertainty(
     lever = refinement.lever_mm
     C = posterior_covariance(refinement.information, n, sigma_mm, sigma_rad, lever)
     points_W = transform_points(T, merged.points_mm)
-    normals_W = nominal_W.face_normals[signed_distance(nominal_W, points_W).face]
     centre = refinement.centre_mm if refinement.centre_mm is not None else points_W.mean(axis=0)
     method = alignment.get("method", "kinematic")
     B: Array | None = None
