@@ -204,14 +204,14 @@ def merge_bins(
     ``each_view(k, rows, m, weight, wu)``, when given, is called with the merged points view k has (``rows``
     of the ``m``, ascending), its weight sums there and its weighted u sums, e.g. for the views' shares
     (:class:`cell.analysis.uncertainty.MergeShares`). None when no view gives a voxel."""
-    placed: list[NDArray[np.int64]] = []  # each given bin's voxel: its number, or -1 - index into ``new``
+    placed: list[NDArray[np.int32]] = []  # each given bin's voxel: its number, or -1 - index into ``found``
     found: list[NDArray[np.int64]] = []  # the keys of the voxels the bins moved into
     moved_kept: dict[int, NDArray[np.float64]] = {}  # the moved means, for the sums, within MOVED_KEPT_BYTES
     room = MOVED_KEPT_BYTES
     for k, (view_ids, kept, T_k) in enumerate(zip(numbers, keep, T, strict=True)):
         b = bins(k)
         moved = moved_means(b, T_k) if kept is None else moved_means(b, T_k)[kept]
-        at = (view_ids if kept is None else view_ids[kept]).astype(np.int64)  # a copy: the numbers stay
+        at = (view_ids if kept is None else view_ids[kept]).astype(np.int32)  # a copy: the numbers stay
         keys = grid_keys(np.floor(moved / grid.voxel_mm).astype(np.int64))
         out = keys != grid.key_of[at]
         at[out] = -1 - (sum(len(f) for f in found) + np.arange(int(out.sum())))
@@ -244,14 +244,14 @@ def merge_bins(
             moved = moved_kept.pop(k)
         else:
             moved = moved_means(b, T_k) if kept is None else moved_means(b, T_k)[kept]
-        at = row[placed_k]
-        order = np.argsort(at, kind="stable")  # the view's bins by merged point (a few out of key order)
-        at = at[order]
-        first = np.empty(len(at), dtype=bool)
+        merged_at = row[placed_k]
+        order = np.argsort(merged_at, kind="stable")  # the view's bins by merged point (some out of order)
+        merged_at = merged_at[order]
+        first = np.empty(len(merged_at), dtype=bool)
         first[:1] = True
-        np.not_equal(at[1:], at[:-1], out=first[1:])
+        np.not_equal(merged_at[1:], merged_at[:-1], out=first[1:])
         starts = np.flatnonzero(first)
-        rows = at[starts]
+        rows = merged_at[starts]
 
         w_rows = _per_row(w, order, starts)
         wsum[rows] += w_rows  # distinct rows: fancy-index addition adds each once

@@ -155,7 +155,7 @@ class ViewShares:
     fraction of the dense (M, n) float64 (1.1 GB for a 5 MP camera's 40 views). Indexed by a slice of rows or
     an array of row indices, it gives those rows dense."""
 
-    def __init__(self, m: int, index: list[NDArray[np.int64]], value: list[Array]) -> None:
+    def __init__(self, m: int, index: Sequence[NDArray[np.integer]], value: list[Array]) -> None:
         self.shape = (m, len(index))
         self._index, self._value = index, value
 
@@ -188,7 +188,7 @@ class MergeShares:
 
     def __init__(self, n_views: int) -> None:
         self.n_views = n_views
-        self._index: list[NDArray[np.int64]] = [np.zeros(0, np.int64)] * n_views  # a view's merged points
+        self._index: list[NDArray[np.int32]] = [np.zeros(0, np.int32)] * n_views  # a view's merged points
         self._value: list[Array] = [np.zeros(0)] * n_views  # its summed weights there (then its shares)
         self._var: Array | None = None  # (M,) sum over views of (sum of w u of the view's points)^2
 
@@ -197,7 +197,7 @@ class MergeShares:
     ) -> None:
         """Add view ``k``: the merged points it has (``rows`` of ``m``, ascending, distinct), its points'
         weight sum at each and their weighted decode u sum (mm; NaN: none known)."""
-        self._index[k], self._value[k] = np.asarray(rows, np.int64), np.asarray(weight, np.float64)
+        self._index[k], self._value[k] = np.asarray(rows, np.int32), np.asarray(weight, np.float64)
         if self._var is None:
             self._var = np.zeros(m)
         self._var[rows] += np.square(np.asarray(wu, dtype=np.float64))
