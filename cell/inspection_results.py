@@ -224,7 +224,7 @@ class InspectionResults:
         # judged as cloud.ply stores them (float32), so a rebuilt report gives the same figures
         points_P = stored_points(points_P)
         error_map = signed_distance(self.nominal_P, points_P)  # its faces' normals are the u's too
-        normals_W = transform_vectors(self.T_W_P, self.nominal_P.face_normals[error_map.face])
+        normals_W = transform_vectors(self.T_W_P, self.nominal_P.face_normals)[error_map.face]
         prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
         unc = registered_cloud_uncertainty(
             merged,

@@ -146,7 +146,12 @@ def posterior_covariance(
 def _rows(points: Array, normals: Array, centre_mm: Array, lever_mm: float) -> Array:
     """(N, 6) rows mapping a correction x = (omega * lever, tau) to each point's motion along its normal."""
     p, n = np.asarray(points, np.float64).reshape(-1, 3), np.asarray(normals, np.float64).reshape(-1, 3)
-    return np.column_stack([np.cross(p - np.asarray(centre_mm), n) / lever_mm, n])
+    d = p - np.asarray(centre_mm)
+    out = np.empty((len(p), 6))
+    for i, (j, k) in enumerate(((1, 2), (2, 0), (0, 1))):  # (d x n) / lever: np.cross's products, column-wise
+        out[:, i] = (d[:, j] * n[:, k] - d[:, k] * n[:, j]) / lever_mm
+    out[:, 3:] = n
+    return out
 
 
 class ViewShares:
