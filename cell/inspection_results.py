@@ -45,9 +45,9 @@ if TYPE_CHECKING:
     from cell.inspection import InspectionSettings
     from cell.planning.planner import Plan
 
-# the views' merge bins (cell.analysis.merge.ViewBins, 36 bytes an occupied voxel of a view) kept in memory at
-# most: a 1024x768 camera's dozen views (~11 MB each) stay; of a 5 MP camera's 40 (~50 MB each) the first ones
-# made are dropped and binned again from their points when merged
+# the views' merge bins (cell.analysis.merge.ViewBins, 40 bytes an occupied voxel of a view) kept in memory at
+# most: a 1024x768 camera's dozen views (~13 MB each) stay; of a 5 MP camera's 40 (~70 MB each) the first ones
+# made are dropped and binned again from their points (read from their folders) when merged
 MERGE_BINS_KEPT_BYTES = 256_000_000
 
 
@@ -168,13 +168,14 @@ class InspectionResults:
         """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
         already being in {W} through robot pose and hand-eye), refined against each other, merged on a voxel
         grid weighted by quality (cell.analysis.merge: each view binned once at its kinematic positions, as it
-        arrives, and the sums moved by the views' refinement here; a view the refinement could not register
-        gives only the surface no registered view measured: :func:`held_redundant`), then moved by the
-        recipe's alignment (cell.analysis.alignment). An alignment the measurement does not allow leaves the
-        kinematic cloud and makes the verdict incomplete (``alignment.error``). The registered cloud stays in
-        memory for :meth:`report` with its error map and coverage, computed here (the controller registers
-        while it evaluates, so they are ready when the evaluation is); it is stored as results/cloud.ply with
-        the report's page, and a resumed run registers again, deterministically, to the same points."""
+        arrives; here each bin's mean is moved by its view's refinement and merged where it then falls; a
+        view the refinement could not register gives only the surface no registered view measured:
+        :func:`held_redundant`), then moved by the recipe's alignment (cell.analysis.alignment). An
+        alignment the measurement does not allow leaves the kinematic cloud and makes the verdict incomplete
+        (``alignment.error``). The registered cloud stays in memory for :meth:`report` with its error map
+        and coverage, computed here (the controller registers while it evaluates, so they are ready when the
+        evaluation is); it is stored as results/cloud.ply with the report's page, and a resumed run
+        registers again, deterministically, to the same points."""
         T_P_W = invert(self.T_W_P)
         done, refined = self.refinement(run)
         stored = [self.views.get(run, i) for i in done]
