@@ -33,8 +33,8 @@ from cell.geometry import invert, transform_points
 
 KEY_BITS = 21  # bits per axis of a voxel key: +-2^20 voxels (+-210 m of 0.2 mm voxels) about the origin
 _HALF = 1 << (KEY_BITS - 1)
-# the merge's views' moved voxel means kept between its two passes at most (24 bytes a bin: a 1024x768
-# camera's dozen views' 90 MB stay; of a 5 MP camera's 40 views' ~1.4 GB the last ones are moved again)
+# the merge keeps its views' moved voxel means between its two passes when all fit in this (24 bytes a bin: a
+# 1024x768 camera's dozen views' 90 MB do; a 5 MP camera's 40 views' ~0.5 GB are moved again instead)
 MOVED_KEPT_BYTES = 128_000_000
 
 
@@ -206,8 +206,8 @@ def merge_bins(
     (:class:`cell.analysis.uncertainty.MergeShares`). None when no view gives a voxel."""
     placed: list[NDArray[np.int32]] = []  # each given bin's voxel: its number, or -1 - index into ``found``
     found: list[NDArray[np.int64]] = []  # the keys of the voxels the bins moved into
-    moved_kept: dict[int, NDArray[np.float64]] = {}  # the moved means, for the sums, within MOVED_KEPT_BYTES
-    room = MOVED_KEPT_BYTES
+    moved_kept: dict[int, NDArray[np.float64]] = {}  # the moved means for the sums: all, or none
+    keep_moved = 24 * sum(len(x) for x in numbers) <= MOVED_KEPT_BYTES
     for k, (view_ids, kept, T_k) in enumerate(zip(numbers, keep, T, strict=True)):
         b = bins(k)
         moved = moved_means(b, T_k) if kept is None else moved_means(b, T_k)[kept]
@@ -217,8 +217,8 @@ def merge_bins(
         at[out] = -1 - (sum(len(f) for f in found) + np.arange(int(out.sum())))
         found.append(keys[out])
         placed.append(at)
-        if moved.nbytes <= room:
-            moved_kept[k], room = moved, room - moved.nbytes
+        if keep_moved:
+            moved_kept[k] = moved
     new, back = np.unique(np.concatenate([np.zeros(0, np.int64), *found]), return_inverse=True)
     number = grid.number(new)[back]  # the voxels the bins moved into, numbered at once (new ones too)
     for at in placed:
