@@ -180,25 +180,30 @@ class InspectionResults:
         done, refined = self.refinement(run)
         stored = [self.views.get(run, i) for i in done]
         state = self.merge_bins_for(run)
-        for v in stored:  # views binned by no decode worker of this process (a resumed run's), in view order
-            if v.index not in state.numbers:
-                state.add(v.index, *self._view_bins(v))
         T_P = [T_P_W @ T @ self.T_W_P for T in refined.T]  # the views' refinement in {P}
 
-        def bins(k: int) -> ViewBins:
-            """View k's bins: kept, else binned again from its points (read from its folder)."""
-            kept = state.get(done[k])
-            return kept if kept is not None else self._view_bins(stored[k])[1]
+        def view(k: int) -> tuple[NDArray[np.int32], ViewBins]:
+            """View k's voxel numbers and bins: kept, else binned again from its points (from its folder when
+            the view store no longer holds them); a view no decode worker of this process binned (a resumed
+            run's) is numbered here, when first asked for (in view order)."""
+            i = done[k]
+            kept = state.get(i)
+            if kept is None or i not in state.numbers:
+                keys, kept, n = self._view_bins(stored[k])
+                if i not in state.numbers:
+                    state.add(i, keys, kept, n)
+            return state.numbers[i], kept
 
         # a held view's voxels near a registered view's (or an earlier held view's kept ones) are cut
-        redundant = held_redundant(bins, T_P, refined.unregistered, self.recipe.plan.coverage_radius_mm)
+        redundant = held_redundant(
+            lambda k: view(k)[1], T_P, refined.unregistered, self.recipe.plan.coverage_radius_mm
+        )
         shares = MergeShares(len(stored))
         merged = merge_bins(
             state.grid,
-            [state.numbers[i] for i in done],
+            view,
             [None if (cut := redundant.get(k)) is None else ~cut for k in range(len(stored))],
             T_P,
-            bins,
             shares,
         )
         n_points_views = int(sum(state.n_points[i] for i in done))
@@ -212,7 +217,7 @@ class InspectionResults:
             **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
         }
         refinement["unregistered_points_dropped"] = int(
-            sum(int(bins(k).count[cut].sum()) for k, cut in redundant.items())
+            sum(int(view(k)[1].count[cut].sum()) for k, cut in redundant.items())
         )
         n_views = len(stored)
         method = self.recipe.alignment.method

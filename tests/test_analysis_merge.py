@@ -38,9 +38,7 @@ def merge(
     for k in order or range(len(views)):
         numbers[k] = grid.number(binned[k][0])
     n = len(views)
-    return merge_bins(
-        grid, [numbers[k] for k in range(n)], [None] * n, T or [np.eye(4)] * n, lambda k: binned[k][1]
-    )
+    return merge_bins(grid, lambda k: (numbers[k], binned[k][1]), [None] * n, T or [np.eye(4)] * n)
 
 
 def _plane(x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -245,7 +245,7 @@ def _merged_u(views: list[np.ndarray], weights: list[np.ndarray], u: list[np.nda
     numbers = [grid.number(keys) for keys, _ in binned]
     acc = MergeShares(len(views))
     n = len(views)
-    merged = merge_bins(grid, numbers, [None] * n, [np.eye(4)] * n, lambda k: binned[k][1], acc)
+    merged = merge_bins(grid, lambda k: (numbers[k], binned[k][1]), [None] * n, [np.eye(4)] * n, acc)
     assert merged is not None
     return acc.decode(merged)
 

@@ -178,17 +178,17 @@ class MergeGrid:
 
 def merge_bins(
     grid: MergeGrid,
-    numbers: Sequence[NDArray[np.int32]],
+    views: Callable[[int], tuple[NDArray[np.int32], ViewBins]],
     keep: Sequence[NDArray[np.bool_] | None],
     T: Sequence[NDArray[np.float64]],
-    bins: Callable[[int], ViewBins],
     each_view: Callable[[int, NDArray[np.int64], int, NDArray[np.float64], NDArray[np.float64]], None]
     | None = None,
 ) -> MergedCloud | None:
-    """Merge binned views: view k's bins ``bins(k)`` (:func:`bin_view`; asked for twice, in view order), their
-    voxels' ``numbers`` in ``grid`` (:meth:`MergeGrid.number`), its refinement ``T[k]`` (4x4, {P} to {P})
-    and which of its bins it gives, ``keep[k]`` (None: all; a view the refinement could not register gives
-    only what no other view measured: :func:`held_redundant`).
+    """Merge binned views: ``views(k)`` gives view k's voxels' numbers in ``grid`` (:meth:`MergeGrid.number`)
+    and its bins (:func:`bin_view`; asked for twice, in view order: the first time, a view not numbered yet
+    may be numbered then); ``T[k]`` is its refinement (4x4, {P} to {P}) and ``keep[k]`` which of its bins it
+    gives (None: all; a view the refinement could not register gives only what no other view measured:
+    :func:`held_redundant`).
 
     Each bin's mean, moved by its view's refinement, falls in a voxel of the grid (most in the one it was
     binned in: the refinement's corrections are tens of um; the others are looked up, and numbered when new);
@@ -207,9 +207,9 @@ def merge_bins(
     placed: list[NDArray[np.int32]] = []  # each given bin's voxel: its number, or -1 - index into ``found``
     found: list[NDArray[np.int64]] = []  # the keys of the voxels the bins moved into
     moved_kept: dict[int, NDArray[np.float64]] = {}  # the moved means for the sums: all, or none
-    keep_moved = 24 * sum(len(x) for x in numbers) <= MOVED_KEPT_BYTES
-    for k, (view_ids, kept, T_k) in enumerate(zip(numbers, keep, T, strict=True)):
-        b = bins(k)
+    room: int | None = MOVED_KEPT_BYTES  # None: they did not fit
+    for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
+        view_ids, b = views(k)
         moved = moved_means(b, T_k) if kept is None else moved_means(b, T_k)[kept]
         at = (view_ids if kept is None else view_ids[kept]).astype(np.int32)  # a copy: the numbers stay
         keys = grid_keys(np.floor(moved / grid.voxel_mm).astype(np.int64))
@@ -217,8 +217,10 @@ def merge_bins(
         at[out] = -1 - (sum(len(f) for f in found) + np.arange(int(out.sum())))
         found.append(keys[out])
         placed.append(at)
-        if keep_moved:
-            moved_kept[k] = moved
+        if room is not None and moved.nbytes <= room:
+            moved_kept[k], room = moved, room - moved.nbytes
+        else:
+            moved_kept, room = {}, None
     new, back = np.unique(np.concatenate([np.zeros(0, np.int64), *found]), return_inverse=True)
     number = grid.number(new)[back]  # the voxels the bins moved into, numbered at once (new ones too)
     for at in placed:
@@ -236,7 +238,7 @@ def merge_bins(
     row[in_key_order] = np.arange(m)
     wsum, sums, count = np.zeros(m), np.zeros((3, m)), np.zeros(m, dtype=np.int64)
     for k, (placed_k, kept, T_k) in enumerate(zip(placed, keep, T, strict=True)):
-        b = bins(k)
+        b = views(k)[1]
         w, c, wu = b.weight, b.count, b.wu.astype(np.float64)
         if kept is not None:
             w, c, wu = w[kept], c[kept], wu[kept]
