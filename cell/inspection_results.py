@@ -46,11 +46,9 @@ if TYPE_CHECKING:
     from cell.planning.planner import Plan
 
 # the views' merge bins (cell.analysis.merge.ViewBins, 40 bytes an occupied voxel of a view) kept in memory at
-# most, the newest first, and only of views whose bins are at most 1/MERGE_BINS_MIN_VIEWS of it: a 1024x768
-# camera's dozen views (7-23 MB each) stay; a 5 MP camera's (~70 MB each) are not kept (the budget would hold
-# 3 of its 40, and 256 MB more at the scan's peak) but binned again from their points when merged
-MERGE_BINS_KEPT_BYTES = 256_000_000
-MERGE_BINS_MIN_VIEWS = 8
+# most, the newest first: a 1024x768 camera's dozen pillar views (7-23 MB each, 152 MB) stay; of a 5 MP
+# camera's 40 (15-22 MB each) the first ones made are dropped and binned again from their points when merged
+MERGE_BINS_KEPT_BYTES = 160_000_000
 
 
 class MergeBins:
@@ -70,14 +68,12 @@ class MergeBins:
         self.run: Path | None = None
 
     def add(self, index: int, keys: NDArray[np.int64], bins: ViewBins, n_points: int) -> None:
-        """Number view ``index``'s voxels (``keys``) and keep its ``bins`` (within the budget, the newest
-        first, when they are small enough: :data:`MERGE_BINS_MIN_VIEWS`)."""
+        """Number view ``index``'s voxels (``keys``) and keep its ``bins`` (within the budget: the newest
+        stay)."""
         with self._lock:
             self.numbers[index] = self.grid.number(keys)
             self.n_points[index] = n_points
             self._bins.pop(index, None)
-            if bins.nbytes * MERGE_BINS_MIN_VIEWS > self.kept_bytes:
-                return  # views this large are binned again when merged (a 5 MP camera's: ~70 MB each)
             self._bins[index] = bins
             held = sum(b.nbytes for b in self._bins.values())
             for k in list(self._bins):
