@@ -2,12 +2,12 @@
 the last view moves the others' refinement.
 
 Reads a run folder (`cell inspect ... --out RUN`), prepares what the decode worker prepares while the robot
-moves (each view's first overlaps, in view order), then times, in one thread, the job's ``evaluate`` and
-``register`` as the controller calls them after the last view, with each step inside them (wall and CPU
-seconds; the process's numba kernels are loaded first so no compilation is counted). Then it refines the
-views without the last one and prints how far each earlier view's correction moved when the last view was
-added (the largest motion of its evaluation points between the two solutions, um): what an incremental
-registration would have to correct after the last frame.
+moves (each view's first overlaps and merge bins, in view order), then times, in one thread, the job's
+``evaluate`` and ``register`` as the controller calls them after the last view, with each step inside them
+(wall and CPU seconds; the process's numba kernels are loaded first so no compilation is counted). Then it
+refines the views without the last one and prints how far each earlier view's correction moved when the last
+view was added (the largest motion of its evaluation points between the two solutions, um): what an
+incremental registration would have to correct after the last frame.
 
     .venv/bin/python bench/bench_tail_steps.py RUN
 """
@@ -74,10 +74,12 @@ def main() -> None:
     ap.add_argument("run", type=Path)
     args = ap.parse_args()
     run, job, checkpoint = load_finished_run(args.run)
-    # what the decode worker did view by view (the last view's maps' pairs are left to the evaluation)
+    # what the decode worker did view by view (the last view's maps' pairs and bins are left to the tail)
     done = run.completed_views()
     for i in done:
         job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
+        if i != done[-1]:
+            job.bin_view(run, job.views.get(run, i))
     timed(inspection, "refine_views")
     timed(job.aligner, "align", "Aligner.align (evaluate, register)")
     timed(inspection, "signed_distance", "evaluate: deviations")
@@ -85,9 +87,9 @@ def main() -> None:
     for name in ("accuracy_map", "uncertainty_map"):
         timed(feedback, name)
     for name in (
-        "merge_view_stream",
+        "merge_bins",
         "registered_cloud_uncertainty",
-        "unregistered_redundant",
+        "held_redundant",
         "signed_distance",
     ):
         timed(results, name)

@@ -352,7 +352,12 @@ class LambertianInspection(InspectionResults):
             points = ViewPoints(stored, quality, oblique_kept, u_stored)
             eval_u = None if u_stored is None else u_stored[sub]
             result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder, eval_u)
-            self._first_overlaps(RunFolder(out_dir.parent.parent), result, pair_maps=not captured.last)
+            run = RunFolder(out_dir.parent.parent)
+            # the plan's last view leaves its maps' pairs and its bins to the evaluation and the registration
+            # (which run side by side after it): the decode both wait for is shorter
+            self._first_overlaps(run, result, pair_maps=not captured.last)
+            if not captured.last:
+                self.bin_view(run, result)
             self.views.add(result)
         return summary
 
