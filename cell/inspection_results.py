@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -229,28 +230,38 @@ class InspectionResults:
             points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
         # judged as cloud.ply stores them (float32), so a rebuilt report gives the same figures
         points_P = stored_points(points_P)
-        error_map = signed_distance(self.nominal_P, points_P)  # its faces' normals are the u's too
-        normals_W = transform_vectors(self.T_W_P, self.nominal_P.face_normals)[error_map.face]
+        T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
         prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
-        unc = registered_cloud_uncertainty(
-            merged,
-            shares.shares(merged),
-            shares.decode(merged),
-            refined,
-            prior,
-            normals_W,
-            self.T_W_P,
-            alignment,
-            self.aligner.datums,
-        )
-        keep = ~table_seam(
-            points_P,
-            self.T_W_P,
-            self.settings.table_margin_mm,
-            self.nominal_P,
-            deviation_mm=error_map.deviation_mm,
-        )
-        points_P, u_mm, error_map = points_P[keep], unc.u_mm[keep], error_map.take(keep)
+        # what follows the alignment, on two threads (numpy, scipy's trees and the kernels release the GIL;
+        # each step writes its own results, so they are those of one thread): the coverage beside the error
+        # map, the table seam beside the points' u, whose chunks both threads compute
+        with ThreadPoolExecutor(2, thread_name_prefix="register") as pool:
+            coverage = pool.submit(self.inspectable_coverage, run, T_align)
+            error_map = signed_distance(self.nominal_P, points_P)  # its faces' normals are the u's too
+            seam_cut = pool.submit(
+                table_seam,
+                points_P,
+                self.T_W_P,
+                self.settings.table_margin_mm,
+                self.nominal_P,
+                deviation_mm=error_map.deviation_mm,
+            )
+            normals_W = transform_vectors(self.T_W_P, self.nominal_P.face_normals)[error_map.face]
+            unc = registered_cloud_uncertainty(
+                merged,
+                shares.shares(merged),
+                shares.decode(merged),
+                refined,
+                prior,
+                normals_W,
+                self.T_W_P,
+                alignment,
+                self.aligner.datums,
+                pool,
+            )
+            keep = ~seam_cut.result()
+            points_P, u_mm, error_map = points_P[keep], unc.u_mm[keep], error_map.take(keep)
+            covered = coverage.result()
         seam = int((~keep).sum())
         registration = {
             "table_seam_points": seam,
@@ -268,10 +279,7 @@ class InspectionResults:
                 "poses": prior.get("prior"),
             },
         }
-        T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
-        self._cloud = RegisteredCloud(
-            registration, points_P, error_map, self.inspectable_coverage(run, T_align), u_mm
-        )
+        self._cloud = RegisteredCloud(registration, points_P, error_map, covered, u_mm)
         return registration
 
     @property

@@ -31,7 +31,7 @@ def _form(r, A, row0, col0):
     return q
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)  # nogil: a pool's threads compute chunks side by side
 def _pose_variance(shares, rows, C, D, E, aligned, out):
     m, n = shares.shape
     seen = np.empty(n, np.int64)

@@ -30,6 +30,7 @@ u = sqrt(merged decode^2 + pose^2 + alignment^2); the decision rules use U = k u
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Any
 
@@ -235,19 +236,45 @@ def datum_alignment_map(
     return np.linalg.pinv(A) @ M
 
 
+class PointRows:
+    """:func:`_rows` of (M, 3) points and their normals, made a slice at a time when indexed (a chunk of the
+    pose kernel's: cache-sized, not a (M, 6) array of the whole cloud; the same values either way)."""
+
+    def __init__(self, points: Array, normals: Array, centre_mm: Array, lever_mm: float) -> None:
+        self.points, self.normals = points, normals
+        self.centre_mm, self.lever_mm = centre_mm, lever_mm
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def __getitem__(self, rows: slice) -> Array:
+        return _rows(self.points[rows], self.normals[rows], self.centre_mm, self.lever_mm)
+
+
 def pose_uncertainty_of_points(
-    shares: Array | ViewShares, rows: Array, covariance: Array, alignment_map: Array | None
+    shares: Array | ViewShares,
+    rows: Array | PointRows,
+    covariance: Array,
+    alignment_map: Array | None,
+    pool: Executor | None = None,
 ) -> NDArray[np.float64]:
     """1-sigma error (mm) along each merged point's normal from the views' pose errors (``covariance``,
     :func:`posterior_covariance`): the point is the ``shares``-weighted mean of its views' points, each moved
     by its view's error, less what the alignment takes out (``alignment_map`` B: x_align = B x; None:
-    kinematic alignment, nothing). ``rows`` (M, 6): :func:`_rows` of the merged points."""
+    kinematic alignment, nothing). ``rows`` (M, 6): :func:`_rows` of the merged points (or a
+    :class:`PointRows`). With a ``pool`` its threads compute the chunks side by side (the kernel releases the
+    GIL; each chunk writes its own points: the same values as one thread's)."""
     from cell.analysis._pose_kernel import pose_sigma  # compiled: only the views a point has enter it
 
     out = np.empty(len(rows), dtype=np.float64)
-    for a in range(0, len(rows), POINTS_PER_CHUNK):  # every point's row is its own
+
+    def chunk(a: int) -> None:  # every point's row is its own
         s, r = shares[a : a + POINTS_PER_CHUNK], rows[a : a + POINTS_PER_CHUNK]
         out[a : a + len(r)] = pose_sigma(s, r, covariance, alignment_map)
+
+    starts = range(0, len(rows), POINTS_PER_CHUNK)
+    for _ in map(chunk, starts) if pool is None else pool.map(chunk, starts):
+        pass
     return out
 
 
@@ -300,6 +327,7 @@ def registered_cloud_uncertainty(
     T_W_cloud: Array,
     alignment: dict[str, Any],
     datums: Sequence[Datum] = (),
+    pool: Executor | None = None,
 ) -> CloudUncertainty:
     """u of every point of an inspection's merged cloud (in the frame ``T_W_cloud`` maps to {W}) from the
     views' ``shares`` (M, n) of its points (:class:`ViewShares`) and its merged decode u ``decode_mm`` (M,)
@@ -310,7 +338,8 @@ def registered_cloud_uncertainty(
     map), less what the recipe's alignment removes (its record: ``to_json`` of
     :class:`cell.analysis.alignment.Alignment`): a datum alignment (the ``datums`` resolved on the nominal, in
     the cloud's frame) the rigid motion its datums see (:func:`datum_alignment_map`), any other measured
-    alignment the views' mean motion, kinematic alignment nothing; plus the alignment's own uncertainty."""
+    alignment the views' mean motion, kinematic alignment nothing; plus the alignment's own uncertainty.
+    ``pool``: threads for the points' pose u (:func:`pose_uncertainty_of_points`)."""
     n = shares.shape[1]
     T = np.asarray(T_W_cloud, dtype=np.float64)
     sigma_mm = prior.get("prior_sigma_mm", [0.0] * n)
@@ -337,7 +366,7 @@ def registered_cloud_uncertainty(
         )
     else:  # best fit, features, weighted: taken as removing the views' mean motion
         B = np.kron(np.full((1, n), 1.0 / n), np.eye(6))
-    pose = pose_uncertainty_of_points(shares, _rows(points_W, normals_W, centre, lever), C, B)
+    pose = pose_uncertainty_of_points(shares, PointRows(points_W, normals_W, centre, lever), C, B, pool)
     decode = np.asarray(decode_mm, dtype=np.float64)
     common = float((alignment.get("uncertainty_mm") or {}).get("rms") or 0.0)
     return CloudUncertainty(combine(decode, pose, common), decode, pose, common)
