@@ -62,8 +62,11 @@ def invert(T: Pose) -> Pose:
 def transform_points(T: NDArray[np.floating[Any]], points: ArrayLike) -> NDArray[np.float64]:
     """Apply T to an (..., 3) array of points."""
     p = np.asarray(points, dtype=np.float64)
-    # einsum, not p @ R.T: numpy's matmul on (N, 3) x (3, 3) is several times slower here
-    return np.einsum("...j,ij->...i", p, T[:3, :3]) + T[:3, 3]
+    # einsum, not p @ R.T: numpy's matmul on (N, 3) x (3, 3) is several times slower here (and rounds
+    # otherwise); the translation added in place: the same sums without a second (N, 3) array
+    out: NDArray[np.float64] = np.einsum("...j,ij->...i", p, T[:3, :3])
+    out += T[:3, 3]
+    return out
 
 
 def transform_vectors(T: Pose, vectors: ArrayLike) -> NDArray[np.float64]:
