@@ -22,6 +22,8 @@ residuals show.
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -182,14 +184,16 @@ class _DatumIndex:
         self.index = np.flatnonzero(near)
         self.tree = cKDTree(points[self.index])
         self.whole: cKDTree | None = None
+        self._lock = threading.Lock()  # the datums are looked up side by side (:meth:`Aligner._datum_offsets`)
 
     def ball(self, k: int, centre: NDArray, radius_mm: float) -> NDArray[np.int64]:
         """The points within ``radius_mm`` of ``centre``: where datum ``k`` lies in the cloud's frame."""
         d = self.datums[k]
         if radius_mm <= d.radius_mm and float(np.linalg.norm(centre - d.point)) <= self.reach_mm:
             return np.sort(self.index[self.tree.query_ball_point(centre, radius_mm)])
-        if self.whole is None:
-            self.whole = cKDTree(self.points)
+        with self._lock:
+            if self.whole is None:
+                self.whole = cKDTree(self.points)
         return np.sort(np.asarray(self.whole.query_ball_point(centre, radius_mm), dtype=np.int64))
 
 
@@ -210,10 +214,13 @@ class Aligner:
         return _DatumIndex(points, self.datums, self.config.max_correction_mm + 1.0)
 
     def _datum_offsets(self, tree: _DatumIndex, points: NDArray, T: Pose) -> list[tuple[float, float, int]]:
-        """(mean deviation, its std, point count) of each datum region with the cloud moved by ``T``."""
+        """(mean deviation, its std, point count) of each datum region with the cloud moved by ``T``: the
+        datums on two threads (the trees' look-ups and the error map's kernel release the GIL; each datum's
+        figures its own), the first datum not measured, in their order, raised."""
         T_inv = np.linalg.inv(T)
-        out = []
-        for k, d in enumerate(self.datums):
+
+        def offset(k: int) -> tuple[float, float, int]:
+            d = self.datums[k]
             idx = tree.ball(k, transform_points(T_inv, d.point), d.radius_mm)
             if len(idx) < MIN_DATUM_POINTS:
                 raise AlignmentError(
@@ -240,8 +247,10 @@ class Aligner:
                     f"{d.radius_mm} mm of it (needs {MIN_DATUM_POINTS}); plan views that see it or move it"
                 )
             dev = dev[own]
-            out.append((float(dev.mean()), float(dev.std()), int(own.sum())))
-        return out
+            return float(dev.mean()), float(dev.std()), int(own.sum())
+
+        with ThreadPoolExecutor(2, thread_name_prefix="datums") as pool:
+            return list(pool.map(offset, range(len(self.datums))))
 
     def _residuals(self, before: list, after: list) -> list[dict[str, Any]]:
         return [
