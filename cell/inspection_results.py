@@ -234,7 +234,8 @@ class InspectionResults:
         prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
         # what follows the alignment, on two threads (numpy, scipy's trees and the kernels release the GIL;
         # each step writes its own results, so they are those of one thread): the coverage beside the error
-        # map, the table seam beside the points' u, whose chunks both threads compute
+        # map, the table seam beside the points' u, whose chunks both threads compute, its statistics beside
+        # the seam's cut
         with ThreadPoolExecutor(2, thread_name_prefix="register") as pool:
             coverage = pool.submit(self.inspectable_coverage, run, T_align)
             error_map = signed_distance(self.nominal_P, points_P)  # its faces' normals are the u's too
@@ -259,9 +260,10 @@ class InspectionResults:
                 self.aligner.datums,
                 pool,
             )
+            budget = pool.submit(unc.budget)  # its medians and p95 beside the seam's cut
             keep = ~seam_cut.result()
             points_P, u_mm, error_map = points_P[keep], unc.u_mm[keep], error_map.take(keep)
-            covered = coverage.result()
+            covered, unc_budget = coverage.result(), budget.result()
         seam = int((~keep).sum())
         registration = {
             "table_seam_points": seam,
@@ -274,7 +276,7 @@ class InspectionResults:
             "refinement": refinement,
             "alignment": alignment,
             "uncertainty": {
-                **unc.budget(),
+                **unc_budget,
                 "calibration": self.calibration_residual,
                 "poses": prior.get("prior"),
             },
