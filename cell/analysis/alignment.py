@@ -184,7 +184,7 @@ class _DatumIndex:
         self.index = np.flatnonzero(near)
         self.tree = cKDTree(points[self.index])
         self.whole: cKDTree | None = None
-        self._lock = threading.Lock()  # the datums are looked up side by side (:meth:`Aligner._datum_offsets`)
+        self._lock = threading.Lock()  # datums are looked up side by side (:meth:`Aligner._datum_offsets`)
 
     def ball(self, k: int, centre: NDArray, radius_mm: float) -> NDArray[np.int64]:
         """The points within ``radius_mm`` of ``centre``: where datum ``k`` lies in the cloud's frame."""
