@@ -7,6 +7,7 @@ the pose part after an alignment."""
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from cell.analysis import uncertainty
 from cell.analysis.merge import MergeGrid, bin_view, merge_bins
 from cell.analysis.uncertainty import (
     MergeShares,
+    PointRows,
     datum_alignment_map,
     pose_uncertainty_of_points,
     posterior_covariance,
@@ -273,11 +275,20 @@ def test_pose_u_in_chunks_is_each_points_own(monkeypatch: pytest.MonkeyPatch) ->
     A = rng.normal(size=(6 * n, 6 * n))
     C, B = A @ A.T, rng.normal(size=(6, 6 * n))
     monkeypatch.setattr(uncertainty, "POINTS_PER_CHUNK", 4)
-    for Bm in (None, B):
-        got = pose_uncertainty_of_points(shares, rows, C, Bm)
-        for i in range(m):
-            l_i = np.kron(shares[i], rows[i]) - (0 if Bm is None else rows[i] @ Bm)
-            assert got[i] == pytest.approx(math.sqrt(l_i @ C @ l_i), rel=1e-12)
+    points, normals = rng.normal(size=(m, 3)) * 50, rng.normal(size=(m, 3))
+    centre, lever = np.array([1.0, -2.0, 3.0]), 80.0
+    made = PointRows(points, normals, centre, lever)  # the rows made a chunk at a time
+    want = np.column_stack([np.cross(points - centre, normals) / lever, normals])
+    assert made[2:9] == pytest.approx(want[2:9])
+    with ThreadPoolExecutor(2) as pool:  # the chunks on two threads: each point's own value, as on one
+        for Bm in (None, B):
+            got = pose_uncertainty_of_points(shares, rows, C, Bm)
+            for i in range(m):
+                l_i = np.kron(shares[i], rows[i]) - (0 if Bm is None else rows[i] @ Bm)
+                assert got[i] == pytest.approx(math.sqrt(l_i @ C @ l_i), rel=1e-12)
+            assert np.array_equal(pose_uncertainty_of_points(shares, rows, C, Bm, pool), got)
+            one = pose_uncertainty_of_points(shares, made, C, Bm)
+            assert np.array_equal(pose_uncertainty_of_points(shares, made, C, Bm, pool), one)
 
 
 def test_pose_error_after_a_datum_alignment() -> None:
