@@ -1,0 +1,50 @@
+"""Hashes of a finished run's registration, to check that a change to the merge leaves it bit-identical.
+
+Loads a run folder as bench_tail_steps.py does, bins the views as the decode worker does (``--bins eager``,
+all but the last), on first ask (``lazy``, a resumed run) or keeps none (``none``: a budget of 0 bytes), then
+registers and prints the SHA-256 of the cloud's points, deviations and u (and their counts).
+
+    .venv/bin/python bench/hash_register.py RUN [--bins eager|lazy|none]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_tail_steps import load_finished_run  # noqa: E402
+
+
+def digest(x: np.ndarray | None) -> str:
+    return "None" if x is None else hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest()[:16]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--bins", choices=("eager", "lazy", "none"), default="eager")
+    args = ap.parse_args()
+    run, job, checkpoint = load_finished_run(args.run)
+    if args.bins == "none":
+        job.merge_bins_for(run).kept_bytes = 0  # each view's bins dropped as the next are added
+    done = run.completed_views()
+    for i in done:
+        job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
+        if args.bins == "eager" and i != done[-1]:
+            job.bin_view(run, job.views.get(run, i))
+    job.register(run, checkpoint.views)
+    cloud = job._cloud
+    assert cloud is not None and cloud.error_map is not None
+    print(f"bins {args.bins}: {len(cloud.points_P)} points")
+    print("points_P", digest(cloud.points_P))
+    print("deviation_mm", digest(cloud.error_map.deviation_mm))
+    print("uncertainty_mm", digest(cloud.uncertainty_mm))
+
+
+if __name__ == "__main__":
+    main()
