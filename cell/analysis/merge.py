@@ -300,7 +300,8 @@ def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm
     near = np.vstack(rest)
     # and only those in the cells of side radius_mm next to a cell of ``points`` (a view of few points spread
     # over a wide box has far fewer others near it than in its box: the tree is built on those alone)
-    cells = np.floor((p - lo) / radius_mm).astype(np.int64)
+    # (the distinct cells first, ~100 times fewer than a view's voxel means at 2 mm, then their neighbours)
+    cells = np.unique(np.floor((p - lo) / radius_mm).astype(np.int64), axis=0)
     around = np.unique(grid_keys((cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
     keys = grid_keys(np.floor((near - lo) / radius_mm).astype(np.int64))
     at = np.minimum(np.searchsorted(around, keys), len(around) - 1)
