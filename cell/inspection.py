@@ -366,9 +366,11 @@ class LambertianInspection(InspectionResults):
         their kinematic poses), and with ``pair_maps`` the feedback maps' pairs of the two
         (:meth:`_map_pairs`): what the evaluation after the last view would otherwise begin with. Whatever the
         caches held of a view of this index before (a decode that failed after this and is redone) is dropped
-        first."""
+        first, and its merge bins (made again by :meth:`bin_view`, or when the registration first asks for
+        them: the plan's last view's)."""
         self._overlaps.forget(new.index)
         self._pairs.forget(new.index)
+        self.merge_bins_for(run).forget(new.index)
         views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
         prepare_overlaps(
             self._overlaps,

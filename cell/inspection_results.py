@@ -86,6 +86,14 @@ class MergeBins:
         with self._lock:
             return self._bins.get(index)
 
+    def forget(self, index: int) -> None:
+        """Drop view ``index``'s bins, numbers and count (it is measured again: binned anew when merged). Its
+        voxels stay numbered in the grid: a voxel no view gives is not merged."""
+        with self._lock:
+            self._bins.pop(index, None)
+            self.numbers.pop(index, None)
+            self.n_points.pop(index, None)
+
 
 @dataclass
 class RegisteredCloud:
