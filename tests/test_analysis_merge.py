@@ -37,8 +37,10 @@ def merge(
     numbers: dict[int, np.ndarray] = {}
     for k in order or range(len(views)):
         numbers[k] = grid.number(binned[k][0])
-    n = len(views)
-    return merge_bins(grid, lambda k: (numbers[k], binned[k][1]), [None] * n, T or [np.eye(4)] * n)
+    n, size = len(views), grid.size
+    merged = merge_bins(grid, lambda k: (numbers[k], binned[k][1]), [None] * n, T or [np.eye(4)] * n)
+    assert grid.size == size  # the voxels the moved bins fall into are not kept: merging again adds nothing
+    return merged
 
 
 def _plane(x: np.ndarray, y: np.ndarray) -> np.ndarray:

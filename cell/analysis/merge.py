@@ -191,7 +191,8 @@ def merge_bins(
     :func:`held_redundant`).
 
     Each bin's mean, moved by its view's refinement, falls in a voxel of the grid (most in the one it was
-    binned in: the refinement's corrections are tens of um; the others are looked up, and numbered when new);
+    binned in: the refinement's corrections are tens of um; the others are looked up, and numbered for this
+    merge alone when the grid does not have them: it grows by the views' own voxels only);
     each occupied voxel's point is sum W_b (R_v m_b + t_v) / sum W_b over the bins in it (m_b a bin's mean at
     the kinematic pose, W_b its weight sum), summed in view order. That is the weighted mean of the refined
     points in the voxel, binned at their refined positions as a bin's points go together (a bin of a 0.2 mm
@@ -225,17 +226,32 @@ def merge_bins(
     del found  # (each of these arrays: ~50 MB for a 5 MP camera's 40 views)
     new, back = np.unique(moved_keys, return_inverse=True)
     del moved_keys
-    number = grid.number(new)[back]  # the voxels the bins moved into, numbered at once (new ones too)
-    del new, back
+    # the voxels the bins moved into: the grid's numbers, or (voxels it does not have) numbers after its last
+    # for this merge alone, so that the grid does not grow with every registration
+    pos = np.searchsorted(grid.keys, new)
+    known = pos < grid.size
+    known[known] = grid.keys[pos[known]] == new[known]
+    number = np.empty(len(new), dtype=np.int32)
+    number[known] = grid.ids[pos[known]]
+    unknown = ~known
+    # the kinematic voxels and those bins moved into: 4.7 a merged point (5 MP, uncalibrated)
+    n = grid.size + int(unknown.sum())
+    if n >= 2**31:
+        raise ConfigError("merge: more than 2^31 voxels; use larger voxels")
+    number[unknown] = np.arange(grid.size, n, dtype=np.int32)
+    ids_by_key = np.insert(grid.ids, pos[unknown], number[unknown])  # all n voxels' numbers, by key
+    del new, pos, known, unknown
+    number = number[back]
+    del back
     for at in placed:
         out = at < 0
         at[out] = number[-1 - at[out]]
     del number
-    n = grid.size  # the kinematic voxels and those bins moved into: 4.7 a merged point (5 MP, uncalibrated)
     given = np.zeros(n, dtype=np.int32)
     for at in placed:
         given[at] += 1  # once per view, whatever its bins there
-    in_key_order = grid.ids[given[grid.ids] > 0]  # the merged voxels' numbers, by key
+    in_key_order = ids_by_key[given[ids_by_key] > 0]  # the merged voxels' numbers, by key
+    del ids_by_key
     m = len(in_key_order)
     if not m:
         return None
