@@ -60,7 +60,7 @@ from cell.controller import Controller, ControllerSettings, RobotLimits
 from cell.devices import DeviceBundle
 from cell.errors import DeviceFault
 from cell.geometry import invert, transform_points, transform_vectors
-from cell.inspection_results import InspectionResults, RegisteredCloud
+from cell.inspection_results import InspectionResults, MergeBins, RegisteredCloud
 from cell.inspection_views import (
     REGIONS_FILE,
     ViewResult,
@@ -176,6 +176,8 @@ class LambertianInspection(InspectionResults):
         self.views = ViewStore()  # the completed views, each decoded or read once (cell.inspection_views)
         self._overlaps = OverlapCache()  # the refinement's matching at the views' kinematic poses, per pair
         self._pairs = PairCache()  # the feedback maps' pairs at the views' kinematic poses, per pair
+        self._merge_bins: MergeBins | None = None  # the views' merge bins, made as they arrive (bin_view)
+        self._merge_bins_lock = threading.Lock()
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
         self._cloud: RegisteredCloud | None = None  # the registration's cloud, judged ahead of the report

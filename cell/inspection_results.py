@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import threading
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +24,7 @@ from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.decision import DecisionRule
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.judge import judge
-from cell.analysis.merge import MergeGrid, ViewBins, bin_view, held_redundant, merge_bins
+from cell.analysis.merge import MergedCloud, MergeGrid, ViewBins, bin_view, held_redundant, merge_bins
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, write_page, write_verdict
 from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
@@ -57,16 +58,17 @@ class MergeBins:
     kinematic positions in {P}), made once a view, as it arrives (the decode worker) or when first merged (a
     resumed run's views), with their voxel numbers in one :class:`cell.analysis.merge.MergeGrid`. The bins
     depend on the view alone and the merge neither on the numbers nor on the order the views were binned in,
-    so a resumed run merges what an uninterrupted one does. Thread-safe."""
+    so a resumed run merges what an uninterrupted one does. Thread-safe: the grid, the numbers and the counts
+    are written and read under one lock (a merge holds it throughout: a view binned meanwhile waits)."""
 
-    def __init__(self, voxel_mm: float, kept_bytes: int = MERGE_BINS_KEPT_BYTES) -> None:
+    def __init__(self, voxel_mm: float, run: Path, kept_bytes: int = MERGE_BINS_KEPT_BYTES) -> None:
+        self.run = run  # the run folder whose views these are
         self.grid = MergeGrid(voxel_mm)
         self.kept_bytes = kept_bytes
         self.numbers: dict[int, NDArray[np.int32]] = {}  # by view index: its voxels' numbers
         self.n_points: dict[int, int] = {}  # by view index: its measured points (not the oblique ones)
         self._bins: dict[int, ViewBins] = {}  # by view index, the first ones dropped beyond ``kept_bytes``
-        self._lock = threading.Lock()
-        self.run: Path | None = None
+        self._lock = threading.RLock()  # reentrant: a merge asks for views, which may be binned then
 
     def add(self, index: int, keys: NDArray[np.int64], bins: ViewBins, n_points: int) -> None:
         """Number view ``index``'s voxels (``keys``) and keep its ``bins`` (within the budget: the newest
@@ -85,6 +87,37 @@ class MergeBins:
     def get(self, index: int) -> ViewBins | None:
         with self._lock:
             return self._bins.get(index)
+
+    def view(
+        self, index: int, make: Callable[[], tuple[NDArray[np.int64], ViewBins, int]]
+    ) -> tuple[NDArray[np.int32], ViewBins]:
+        """View ``index``'s voxel numbers and bins: kept, else made by ``make`` (its keys, bins and count:
+        binned again from its points), and numbered and kept when it has no numbers yet (a resumed run's
+        view, numbered when first asked for)."""
+        with self._lock:
+            numbers, bins = self.numbers.get(index), self._bins.get(index)
+            if numbers is not None and bins is not None:
+                return numbers, bins
+            keys, bins, n = make()
+            if numbers is None:
+                self.add(index, keys, bins, n)
+            return self.numbers[index], bins
+
+    def merge(
+        self,
+        views: Callable[[int], tuple[NDArray[np.int32], ViewBins]],
+        keep: Sequence[NDArray[np.bool_] | None],
+        T: Sequence[NDArray[np.float64]],
+        each_view: MergeShares,
+    ) -> MergedCloud | None:
+        """:func:`cell.analysis.merge.merge_bins` on this grid, under the lock."""
+        with self._lock:
+            return merge_bins(self.grid, views, keep, T, each_view)
+
+    def points(self, indices: Sequence[int]) -> int:
+        """The measured points of the views ``indices`` (all binned)."""
+        with self._lock:
+            return int(sum(self.n_points[i] for i in indices))
 
     def forget(self, index: int) -> None:
         """Drop view ``index``'s bins, numbers and count (it is measured again: binned anew when merged). Its
@@ -128,8 +161,8 @@ class InspectionResults:
     _cloud: RegisteredCloud | None
     _judged: tuple[ReportInput, dict[str, Any], bool] | None
     _refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None
-    _merge_bins: MergeBins | None = None  # the views' merge bins, made as they arrive (:meth:`bin_view`)
-    _merge_bins_lock = threading.Lock()
+    _merge_bins: MergeBins | None  # the views' merge bins, made as they arrive (:meth:`bin_view`)
+    _merge_bins_lock: threading.Lock
 
     if TYPE_CHECKING:
 
@@ -152,8 +185,7 @@ class InspectionResults:
         with self._merge_bins_lock:
             state = self._merge_bins
             if state is None or state.run != run.path:
-                state = MergeBins(self.settings.merge_voxel_mm)
-                state.run = run.path
+                state = MergeBins(self.settings.merge_voxel_mm, run.path)
                 self._merge_bins = state
             return state
 
@@ -195,27 +227,20 @@ class InspectionResults:
             """View k's voxel numbers and bins: kept, else binned again from its points (from its folder when
             the view store no longer holds them); a view no decode worker of this process binned (a resumed
             run's) is numbered here, when first asked for (in view order)."""
-            i = done[k]
-            kept = state.get(i)
-            if kept is None or i not in state.numbers:
-                keys, kept, n = self._view_bins(stored[k])
-                if i not in state.numbers:
-                    state.add(i, keys, kept, n)
-            return state.numbers[i], kept
+            return state.view(done[k], lambda: self._view_bins(stored[k]))
 
         # a held view's voxels near a registered view's (or an earlier held view's kept ones) are cut
         redundant = held_redundant(
             lambda k: view(k)[1], T_P, refined.unregistered, self.recipe.plan.coverage_radius_mm
         )
         shares = MergeShares(len(stored))
-        merged = merge_bins(
-            state.grid,
+        merged = state.merge(
             view,
             [None if (cut := redundant.get(k)) is None else ~cut for k in range(len(stored))],
             T_P,
             shares,
         )
-        n_points_views = int(sum(state.n_points[i] for i in done))
+        n_points_views = state.points(done)
         if merged is None and not n_points_views:
             return {"n_points": 0, "views": len(stored)}
         if merged is None:
