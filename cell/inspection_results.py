@@ -230,9 +230,15 @@ class InspectionResults:
             return state.view(done[k], lambda: self._view_bins(stored[k]))
 
         # a held view's voxels near a registered view's (or an earlier held view's kept ones) are cut
-        redundant = held_redundant(
-            lambda k: view(k)[1], T_P, refined.unregistered, self.recipe.plan.coverage_radius_mm
-        )
+        counts: dict[int, NDArray[np.int32]] = {}  # the held views' points per bin, for the count cut
+
+        def held_bins(k: int) -> ViewBins:
+            bins = view(k)[1]
+            if k in refined.unregistered:
+                counts[k] = bins.count
+            return bins
+
+        redundant = held_redundant(held_bins, T_P, refined.unregistered, self.recipe.plan.coverage_radius_mm)
         shares = MergeShares(len(stored))
         merged = state.merge(
             view,
@@ -251,7 +257,7 @@ class InspectionResults:
             **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
         }
         refinement["unregistered_points_dropped"] = int(
-            sum(int(view(k)[1].count[cut].sum()) for k, cut in redundant.items())
+            sum(int(counts[k][cut].sum()) for k, cut in redundant.items())
         )
         n_views = len(stored)
         method = self.recipe.alignment.method

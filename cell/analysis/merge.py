@@ -341,31 +341,35 @@ def held_redundant(
     ``T[k]``, :func:`moved_means`) a registered view or an earlier unregistered one (cut so) measured: a
     voxel mean of theirs within ``radius_mm`` (:func:`measured_elsewhere`). The voxel means stand for the
     points in them (which lie within a voxel's diagonal, 0.35 mm at 0.2 mm, of their mean): a view's voxel
-    is given or cut whole. Of the registered views only the voxels in the unregistered ones' box are moved."""
+    is given or cut whole. Of the registered views only the voxels in the unregistered ones' box are moved,
+    and each registered view's bins are asked for once."""
     held = sorted(set(unregistered))
     if not held:
         return {}
     mine = {k: moved_means(bins(k), T[k]) for k in held}
-    redundant: dict[int, NDArray[np.bool_]] = {}
-    for k in held:
-        p = mine[k]
-        if not len(p):
-            redundant[k] = np.zeros(0, dtype=bool)
+    boxes = {k: (p.min(0) - radius_mm, p.max(0) + radius_mm) for k, p in mine.items() if len(p)}
+    # the registered views' moved voxel means in each held view's box (only points in it can be that close),
+    # each registered view's bins asked for once for all the held views
+    near: dict[int, list[NDArray[np.float64]]] = {k: [] for k in boxes}
+    for m in range(len(T)):
+        if m in mine or not boxes:
             continue
-        lo, hi = p.min(0) - radius_mm, p.max(0) + radius_mm  # only points in this box can be that close
-        corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), axis=-1).reshape(-1, 3)
-        others = [mine[j][~redundant[j]] for j in held if j in redundant]
-        for m in range(len(T)):
-            if m in mine:
-                continue
-            T_m = np.asarray(T[m], dtype=np.float64)
+        T_m = np.asarray(T[m], dtype=np.float64)
+        mean = bins(m).mean
+        for k, (lo, hi) in boxes.items():
+            corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), axis=-1).reshape(-1, 3)
             # the box at the view's kinematic pose holds its part of the refined one: grown by the most the
             # inverse correction moves a corner (a rigid motion moves no point of the box farther)
             grow = float(np.linalg.norm(transform_points(invert(T_m), corners) - corners, axis=1).max())
-            mean = bins(m).mean
             o = transform_points(T_m, mean[_in_box(mean, lo - grow, hi + grow)])
-            others.append(o[_in_box(o, lo, hi)])
-        redundant[k] = measured_elsewhere(p, others, radius_mm)
+            near[k].append(o[_in_box(o, lo, hi)])
+    redundant: dict[int, NDArray[np.bool_]] = {}
+    for k in held:
+        if k not in boxes:
+            redundant[k] = np.zeros(0, dtype=bool)
+            continue
+        others = [mine[j][~redundant[j]] for j in held if j in redundant]
+        redundant[k] = measured_elsewhere(mine[k], others + near.pop(k), radius_mm)
     return redundant
 
 
