@@ -2,7 +2,8 @@
 
 Loads a run folder as bench_tail_steps.py does, bins the views as the decode worker does (``--bins eager``,
 all but the last), on first ask (``lazy``, a resumed run) or keeps none (``none``: a budget of 0 bytes), then
-registers and prints the SHA-256 of the cloud's points, deviations and u (and their counts).
+registers and prints the SHA-256 of the cloud's points, deviations and u (and their counts), the held views'
+points cut and the views' measured points per merge bin.
 
     .venv/bin/python bench/hash_register.py RUN [--bins eager|lazy|none]
 """
@@ -37,7 +38,21 @@ def main() -> None:
         job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
         if args.bins == "eager" and i != done[-1]:
             job.bin_view(run, job.views.get(run, i))
-    job.register(run, checkpoint.views)
+    registration = job.register(run, checkpoint.views)
+    refinement = registration.get("refinement", {})
+    print(
+        "unregistered views",
+        refinement.get("unregistered_views"),
+        "points dropped",
+        refinement.get("unregistered_points_dropped"),
+    )
+    state = job.merge_bins_for(run)
+    per_bin = [state.n_points[i] / len(state.numbers[i]) for i in done if len(state.numbers[i])]
+    points, bins = sum(state.n_points[i] for i in done), sum(len(state.numbers[i]) for i in done)
+    print(
+        f"points per bin (of {state.grid.voxel_mm} mm): {points / bins:.3f} over the views,"
+        f" {min(per_bin):.3f}-{max(per_bin):.3f} per view"
+    )
     cloud = job._cloud
     assert cloud is not None and cloud.error_map is not None
     print(f"bins {args.bins}: {len(cloud.points_P)} points")
