@@ -11,9 +11,13 @@ kinematic positions (T_P_W @ p_W; :func:`bin_view`: per voxel the view's weight 
 m_b), and the voxels numbered in one grid that grows with the views (:class:`MergeGrid`). After the last view
 each bin's mean is moved by its view's refinement T_v = [R_v t_v] and merged in the voxel it then falls in
 (:func:`merge_bins`): sum W_b (R_v m_b + t_v) / sum W_b, which is the weighted mean of the refined points, as
-exactly as a bin's points are moved together. That is the one model change against binning every refined
-point (a 1024x768 view has ~1.03 points per bin of 0.2 mm: the demo pillar merges to 1.6 % fewer points,
-deviations within 2.3 um at p99; docs/benchmarks.md).
+exactly as a bin's points are moved together. Against binning every refined point that changes the model in
+three ways: (a) a bin's points move together (1.04 points a bin of 0.2 mm on the demo pillar's 1024x768 views,
+1.02-1.09 per view, `bench/hash_register.py`; ~4 on a 5 MP camera's, docs/benchmarks.md: the demo pillar
+merges to 1.6 % fewer points, deviations within 2.3 um at p99); (b) a view the refinement could not register
+is cut by whole voxels, judged by their means (:func:`held_redundant`), not point by point; (c) the registered
+cloud's u takes its surface normals from the faces of the aligned cloud's error map (one nearest face a merged
+point; cell.inspection_results).
 
 Choose ``voxel_mm`` about the views' point spacing: much coarser voxels also average real surface shape.
 """
@@ -89,7 +93,7 @@ class ViewBins:
     """One view's points binned on the merge grid at their kinematic positions in {P}: per occupied voxel (in
     the order of its keys, :func:`bin_view`) the points' weighted ``mean`` (mm), weight sum ``weight``,
     weighted sum of their decode u ``wu`` (mm; NaN where a point has none) and ``count``. They depend on the
-    view alone. 40 bytes a voxel (a 1024x768 pillar view's points fall ~1.1 to a voxel of 0.2 mm)."""
+    view alone. 40 bytes a voxel (a 1024x768 pillar view's points fall 1.02-1.09 to a voxel of 0.2 mm)."""
 
     mean: NDArray[np.float64]
     weight: NDArray[np.float64]
@@ -196,7 +200,7 @@ def merge_bins(
     each occupied voxel's point is sum W_b (R_v m_b + t_v) / sum W_b over the bins in it (m_b a bin's mean at
     the kinematic pose, W_b its weight sum), summed in view order. That is the weighted mean of the refined
     points in the voxel, binned at their refined positions as a bin's points go together (a bin of a 0.2 mm
-    grid holds ~1.03 of a 1024x768 view's points; merging the bins where they were binned, at the kinematic
+    grid holds ~1.04 of a 1024x768 view's points; merging the bins where they were binned, at the kinematic
     positions, would leave two views' surfaces, apart by the chain's error, in two layers of voxels averaged
     apart: on the demo pillar 7 % more points and a noisier cloud). The voxels come in the order of their
     keys (x, then y, then z), so the result depends neither on the numbers nor on the order the views were
