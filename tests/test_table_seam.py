@@ -17,7 +17,7 @@ import trimesh
 
 from cell.analysis.crop import PartCrop
 from cell.analysis.errormap import NominalMesh, signed_distance
-from cell.analysis.table_seam import above_table_mm, crop_table_seam
+from cell.analysis.table_seam import above_table_mm, table_seam
 from cell.geometry import look_at, make_pose, transform_points
 from cell.sensing.decode import decode
 from cell.sensing.patterns import measuring_patterns
@@ -63,13 +63,13 @@ def test_seam_crop_removes_the_table_at_the_walls_foot_and_keeps_the_wall() -> N
 
     # the alignment's correction (here the lift itself), into {P}; then the seam crop
     points_P = transform_points(np.linalg.inv(T_W_P), points_W[kept] - [0.0, 0.0, LIFT_MM])
-    u = np.arange(
-        len(points_P), dtype=np.float64
-    )  # each point's own tag: shows which u stays with which point
-    cropped, u_kept, n_cut = crop_table_seam(points_P, u, T_W_P, MARGIN_MM, NominalMesh.from_trimesh(box_P))
-    survivors = u_kept.astype(int)
-    assert n_cut == len(points_P) - len(cropped)
-    np.testing.assert_array_equal(cropped, points_P[survivors])
+    box = NominalMesh.from_trimesh(box_P)
+    table = table_seam(points_P, T_W_P, MARGIN_MM, box)
+    # the registration passes the deviations it has: the same cut
+    deviation = signed_distance(box, points_P).deviation_mm
+    np.testing.assert_array_equal(table_seam(points_P, T_W_P, MARGIN_MM, box, deviation_mm=deviation), table)
+    survivors = np.flatnonzero(~table)
+    cropped = points_P[survivors]
 
     # truth: no table point stays; every wall point the simulator puts above the margin (plus the noise) stays
     part_of_kept, true_z = on_part[kept], true_W[kept][:, 2]
@@ -78,7 +78,6 @@ def test_seam_crop_removes_the_table_at_the_walls_foot_and_keeps_the_wall() -> N
     assert wall.sum() > 1000
     assert np.isin(np.flatnonzero(wall), survivors).all()
     # what stays at the foot (the lowest 2 mm) is on the part: within the sensor's noise of the true box
-    box = NominalMesh.from_trimesh(box_P)
     foot = points_P[:, 2] < 2.0
     before = np.abs(signed_distance(box, points_P[foot]).deviation_mm)
     after = np.abs(signed_distance(box, cropped[cropped[:, 2] < 2.0]).deviation_mm)

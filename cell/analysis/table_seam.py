@@ -55,17 +55,3 @@ def table_seam(
             dev = deviation_mm[band]
         table[band] = dev > h[band]
     return table
-
-
-def crop_table_seam(
-    points_P: NDArray[np.float64],
-    u_mm: NDArray[np.float64] | None,
-    T_W_P: NDArray[np.float64],
-    margin_mm: float,
-    nominal_P: NominalMesh,
-    band_mm: float = SEAM_BAND_MM,
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, int]:
-    """The aligned cloud ``points_P`` (N, 3, {P}) and its points' uncertainty ``u_mm`` (N,) without the table
-    (:func:`table_seam`). Returns both and how many were cut."""
-    keep = ~table_seam(points_P, T_W_P, margin_mm, nominal_P, band_mm)
-    return points_P[keep], (None if u_mm is None else u_mm[keep]), int((~keep).sum())
