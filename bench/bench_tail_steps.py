@@ -79,7 +79,7 @@ def main() -> None:
     for i in done:
         job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
         if i != done[-1]:
-            job.bin_view(run, job.views.get(run, i))
+            job.bin_arrived_view(run, job.views.get(run, i))
     timed(inspection, "refine_views")
     timed(job.aligner, "align", "Aligner.align (evaluate, register)")
     timed(inspection, "signed_distance", "evaluate: deviations")

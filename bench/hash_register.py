@@ -37,7 +37,7 @@ def main() -> None:
     for i in done:
         job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
         if args.bins == "eager" and i != done[-1]:
-            job.bin_view(run, job.views.get(run, i))
+            job.bin_arrived_view(run, job.views.get(run, i))
     registration = job.register(run, checkpoint.views)
     refinement = registration.get("refinement", {})
     print(

@@ -176,7 +176,7 @@ class LambertianInspection(InspectionResults):
         self.views = ViewStore()  # the completed views, each decoded or read once (cell.inspection_views)
         self._overlaps = OverlapCache()  # the refinement's matching at the views' kinematic poses, per pair
         self._pairs = PairCache()  # the feedback maps' pairs at the views' kinematic poses, per pair
-        self._merge_bins: MergeBins | None = None  # the views' merge bins, made as they arrive (bin_view)
+        self._merge_bins: MergeBins | None = None  # the views' merge bins, made as they arrive
         self._merge_bins_lock = threading.Lock()
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
@@ -359,7 +359,7 @@ class LambertianInspection(InspectionResults):
             # (which run side by side after it): the decode both wait for is shorter
             self._first_overlaps(run, result, pair_maps=not captured.last)
             if not captured.last:
-                self.bin_view(run, result)
+                self.bin_arrived_view(run, result)
             self.views.add(result)
         return summary
 
@@ -368,8 +368,8 @@ class LambertianInspection(InspectionResults):
         their kinematic poses), and with ``pair_maps`` the feedback maps' pairs of the two
         (:meth:`_map_pairs`): what the evaluation after the last view would otherwise begin with. Whatever the
         caches held of a view of this index before (a decode that failed after this and is redone) is dropped
-        first, and its merge bins (made again by :meth:`bin_view`, or when the registration first asks for
-        them: the plan's last view's)."""
+        first, and its merge bins (made again by :meth:`bin_arrived_view`, or when the registration first asks
+        for them: the plan's last view's)."""
         self._overlaps.forget(new.index)
         self._pairs.forget(new.index)
         self.merge_bins_for(run).forget(new.index)

@@ -161,7 +161,7 @@ class InspectionResults:
     _cloud: RegisteredCloud | None
     _judged: tuple[ReportInput, dict[str, Any], bool] | None
     _refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None
-    _merge_bins: MergeBins | None  # the views' merge bins, made as they arrive (:meth:`bin_view`)
+    _merge_bins: MergeBins | None  # the views' merge bins, made as they arrive (:meth:`bin_arrived_view`)
     _merge_bins_lock: threading.Lock
 
     if TYPE_CHECKING:
@@ -189,7 +189,7 @@ class InspectionResults:
                 self._merge_bins = state
             return state
 
-    def bin_view(self, run: RunFolder, view: ViewResult) -> None:
+    def bin_arrived_view(self, run: RunFolder, view: ViewResult) -> None:
         """Bin a completed view for the registration's merge (:class:`MergeBins`), in the decode worker while
         the robot moves on: what the merge after the last view would otherwise begin with."""
         self.merge_bins_for(run).add(view.index, *self._view_bins(view))

@@ -204,7 +204,7 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
         view = job.views.get(run, i)
         job._first_overlaps(run, view, pair_maps=i != last)
         if bins in ("eager", "redo") and i != last:
-            job.bin_view(run, view)
+            job.bin_arrived_view(run, view)
     job.register(run, Checkpoint.from_json(run.load_checkpoint()).views)
     cloud = job._cloud
     assert cloud is not None and cloud.error_map is not None and cloud.uncertainty_mm is not None
