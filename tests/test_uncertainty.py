@@ -289,6 +289,8 @@ def test_pose_u_in_chunks_is_each_points_own(monkeypatch: pytest.MonkeyPatch) ->
             assert np.array_equal(pose_uncertainty_of_points(shares, rows, C, Bm, pool), got)
             one = pose_uncertainty_of_points(shares, made, C, Bm)
             assert np.array_equal(pose_uncertainty_of_points(shares, made, C, Bm, pool), one)
+            # the rows made per chunk give the u of the rows made at once (np.cross)
+            assert one == pytest.approx(pose_uncertainty_of_points(shares, want, C, Bm), rel=1e-12)
 
 
 def test_pose_error_after_a_datum_alignment() -> None:
