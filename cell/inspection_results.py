@@ -51,6 +51,11 @@ if TYPE_CHECKING:
 # most, the newest first: a 1024x768 camera's dozen pillar views (7-23 MB each, 152 MB) stay; of a 5 MP
 # camera's 40 (15-22 MB each) the first ones made are dropped and binned again from their points when merged
 MERGE_BINS_KEPT_BYTES = 160_000_000
+# views of more measured points than this are not binned as they arrive but when first merged (as a resumed
+# run's): a 1024x768 camera's views (at most 0.79M pixels) are, a 5 MP camera's (1.7M points a pillar view)
+# are not, whose grid, voxel numbers and bins would hold ~0.5 GB through the scan, where its peak memory is
+# (docs/benchmarks.md, item 5); the merge is the same either way (tests/test_inspect_e2e.py)
+ARRIVAL_BINNING_MAX_POINTS = 1_000_000
 
 
 class MergeBins:
@@ -191,7 +196,10 @@ class InspectionResults:
 
     def bin_arrived_view(self, run: RunFolder, view: ViewResult) -> None:
         """Bin a completed view for the registration's merge (:class:`MergeBins`), in the decode worker while
-        the robot moves on: what the merge after the last view would otherwise begin with."""
+        the robot moves on: what the merge after the last view would otherwise begin with. A view of more than
+        :data:`ARRIVAL_BINNING_MAX_POINTS` is left to the merge."""
+        if int(view.summary["points"]) > ARRIVAL_BINNING_MAX_POINTS:
+            return
         self.merge_bins_for(run).add(view.index, *self._view_bins(view))
 
     def _view_bins(self, view: ViewResult) -> tuple[NDArray[np.int64], ViewBins, int]:
