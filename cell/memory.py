@@ -1,0 +1,45 @@
+"""Give the C heap's free pages back to the operating system between views (glibc only).
+
+A view's work allocates and frees many whole-image arrays of 1-32 MB (a 5 MP camera's float32 image is 20 MB;
+the decode's bands of 256 rows are 2.5-5 MB). glibc serves these from its heaps rather than from mappings of
+their own once a larger block has been freed (its mmap threshold rises to the size of each freed mapping, up to
+32 MB), and a heap gives memory back only from its top: freed arrays below a live one stay resident. Over a
+run of many views that freed-but-held memory builds up (see docs/benchmarks.md, "Peak memory of a whole
+inspection"). ``malloc_trim(0)`` returns the free whole pages of every arena (the main thread's and the decode
+worker's) to the system; no Python library exposes it, hence ctypes. Elsewhere (musl, macOS, Windows) it is a
+no-op: those allocators return memory on their own terms.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import sys
+from collections.abc import Callable
+
+__all__ = ["release_free_heap"]
+
+
+def _glibc_malloc_trim() -> Callable[[int], int] | None:
+    """glibc's ``malloc_trim`` from the running process, or None where the C library is not glibc."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(None)
+        libc.gnu_get_libc_version  # noqa: B018  # glibc only: musl has no such symbol
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):
+        return None
+    trim.argtypes = [ctypes.c_size_t]
+    trim.restype = ctypes.c_int
+    return trim  # type: ignore[no-any-return]
+
+
+_MALLOC_TRIM = _glibc_malloc_trim()
+
+
+def release_free_heap() -> bool:
+    """Return the C heap's free pages to the system (``malloc_trim(0)``, every arena); True if glibc gave any
+    back, False if none or not glibc. Safe from any thread and at any time: it frees nothing in use."""
+    if _MALLOC_TRIM is None:
+        return False
+    return bool(_MALLOC_TRIM(0))
