@@ -54,7 +54,7 @@ from cell.errors import (
     StorageError,
     ViewProcessingError,
 )
-from cell.memory import release_free_heap
+from cell.memory import map_large_arrays, release_free_heap
 from cell.planning.motion import Move
 from cell.run_data import Checkpoint, Evaluation, Phase, View
 from cell.runs import RunFolder
@@ -404,6 +404,7 @@ class Controller:
         """Run until done, paused, faulted or aborted; returns the final state. Devices are made safe on
         exit."""
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="decode")
+        map_large_arrays()  # whole images in mappings of their own, not in the heaps (cell.memory)
         in_main = threading.current_thread() is threading.main_thread()
         previous = {}
         if in_main:  # Ctrl-C and SIGTERM (systemd, docker stop, kill) both pause safely, mid-move too
