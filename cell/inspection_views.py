@@ -211,11 +211,16 @@ class ViewStore:
     """The completed views of the run a job works on, each read once: :meth:`add` from the decode worker
     (the view as it is being written), :meth:`get` reads a view not added (a run resumed by a new process)."""
 
-    def __init__(self, points_budget_bytes: int = POINTS_IN_MEMORY_BYTES) -> None:
+    def __init__(
+        self,
+        points_budget_bytes: int = POINTS_IN_MEMORY_BYTES,
+        held_view_max_bytes: int = POINTS_HELD_VIEW_MAX_BYTES,
+    ) -> None:
         self._views: dict[int, ViewResult] = {}
         self._run: Path | None = None
         self._lock = threading.Lock()
         self.points_budget_bytes = points_budget_bytes
+        self.held_view_max_bytes = held_view_max_bytes
 
     def _for(self, run: RunFolder) -> None:
         """Forget the views of another run folder: a job works on one run (the first one it is asked about
@@ -243,11 +248,11 @@ class ViewStore:
         return found
 
     def _within_budget(self, keep: int) -> None:
-        """Drop the full points of views bigger than :data:`POINTS_HELD_VIEW_MAX_BYTES`, and of the views added
-        first until the held ones fit the budget (the newest view stays, whatever its size)."""
+        """Drop the full points of views bigger than ``held_view_max_bytes``, and of the views added first
+        until the held ones fit the budget (the newest view stays, whatever its size)."""
         held = sum(v.held_bytes for v in self._views.values())
         for index, view in self._views.items():
-            big = view.held_bytes > POINTS_HELD_VIEW_MAX_BYTES
+            big = view.held_bytes > self.held_view_max_bytes
             if held <= self.points_budget_bytes and not big:
                 continue
             if index != keep and view.held is not None and view.folder is not None:
