@@ -1,13 +1,15 @@
-"""Give the C heap's free pages back to the operating system between views (glibc only).
+"""Keep the C heap from holding freed whole images (glibc only): the hires camera's memory (issue 16, item 5).
 
-A view's work allocates and frees many whole-image arrays of 1-32 MB (a 5 MP camera's float32 image is 20 MB;
-the decode's bands of 256 rows are 2.5-5 MB). glibc serves these from its heaps rather than from mappings of
-their own once a larger block has been freed (its mmap threshold rises to the size of each freed mapping, up to
-32 MB), and a heap gives memory back only from its top: freed arrays below a live one stay resident. Over a
-run of many views that freed-but-held memory builds up (see docs/benchmarks.md, "Peak memory of a whole
-inspection"). ``malloc_trim(0)`` returns the free whole pages of every arena (the main thread's and the decode
-worker's) to the system; no Python library exposes it, hence ctypes. Elsewhere (musl, macOS, Windows) it is a
-no-op: those allocators return memory on their own terms.
+A view's work allocates and frees many whole-image arrays (a 5 MP camera's float32 image is 20 MB, its
+bool or uint8 one 5 MB; the decode's bands of 256 rows 2.5-5 MB). glibc serves blocks below its mmap
+threshold from its heaps, and raises that threshold to the size of each large block freed (up to 32 MB), so
+after the first views nearly every image is in a heap; a heap gives memory back only from its top, so the
+images freed below the arrays a view keeps stay resident: much of the ~65 MB a view the hires pillar's
+process grew by over its feedback views (docs/benchmarks.md, "Peak memory of a whole inspection").
+:func:`map_large_arrays` fixes the threshold (blocks from 8 MiB on get mappings of their own, returned when
+freed); :func:`release_free_heap` returns the free whole pages of every arena (the main thread's and the
+decode worker's) between views. No Python library exposes either, hence ctypes. Elsewhere (musl, macOS,
+Windows) both are no-ops: those allocators manage their memory on their own terms.
 """
 
 from __future__ import annotations
@@ -31,13 +33,13 @@ def _glibc_malloc_trim() -> Callable[[int], int] | None:
         return None
     trim.argtypes = [ctypes.c_size_t]
     trim.restype = ctypes.c_int
-    return trim  # type: ignore[no-any-return]
+    return trim
 
 
 _MALLOC_TRIM = _glibc_malloc_trim()
 
-# glibc's mallopt parameter for the mmap threshold (malloc.h), and the value set: blocks of 8 MiB and more
-# (a 5 MP camera's float32 or int16 images, its float64 ones) get mappings of their own, returned to the system
+# glibc's mallopt parameter for the mmap threshold (malloc.h), and the value set: blocks of 8 MiB and more (a
+# 5 MP camera's float32 or int16 images, its float64 ones) get mappings of their own, returned to the system
 # when freed; smaller ones (the decode's bands of 256 rows, 5 MB) stay in the heaps, which reuse them. Lower
 # thresholds cost system time for every fresh page: at 1 MiB a hires run's system CPU tripled (200 -> 673 s).
 _M_MMAP_THRESHOLD = -3
@@ -51,7 +53,7 @@ def _glibc_mallopt() -> Callable[[int, int], int] | None:
     mallopt = libc.mallopt
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     mallopt.restype = ctypes.c_int
-    return mallopt  # type: ignore[no-any-return]
+    return mallopt
 
 
 _MALLOPT = _glibc_mallopt()
