@@ -50,8 +50,8 @@ REGIONS_FORMAT = 2
 # ~2 GB at its peak (docs/benchmarks.md, "Peak memory of a whole inspection")
 POINTS_IN_MEMORY_BYTES = 256_000_000
 # and a view's points only while they are at most this big (the newest view's stay until the next one comes):
-# a 5 MP view's would save the registration one read of its folder (~0.3 s) for 75-90 MB held through the scan
-# and beside the registration's peak; the 1024x768 cell's are all kept
+# a 5 MP view's would save the registration one read of its folder (~0.5 s CPU) for up to 90 MB held through
+# the scan and beside the registration's peak; the 1024x768 cell's are all kept
 POINTS_HELD_VIEW_MAX_BYTES = 32_000_000
 
 
