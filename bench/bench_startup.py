@@ -12,6 +12,9 @@ the median and best wall time and the median CPU time (user + system) are printe
   killed right after their first line: the figure is how long a user waits to see what the command does.
   The query commands run twice: on a missing runs root (nothing to read) and on a kept one (K/runs, made
   once) whose results database is up to date and whose station users file holds two users, as on a cell PC.
+  With ``--history-run RUN`` (a finished inspection's folder; by default the newest in runs/ that has a
+  report) K/runs also holds HISTORY_COPIES copies of that run (its inputs, journal, checkpoint and
+  report.json), recorded in the database, so `cell history` prints a page of real rows.
 
 With `--base DIR` (an older tree, e.g. `git archive f94ac49 | tar -x -C /tmp/base`) the same lines run from
 that tree too, side by side. `--only help,usage` limits the kinds; `--match compare` the command lines.
@@ -74,14 +77,16 @@ JOBS: list[tuple[str, list[str]]] = [
     ("station serve", ["--runs", "T/runs", "--port", "18473", "--cell", SIM]),
     ("station users list", ["--runs", "T/runs"]),
 ]
-# first lines only: the query commands on K/runs, a runs root with an up-to-date results.sqlite (no runs in
-# it: their answer is read from the database, not skipped because the root is missing) and a users file
+# first lines only: the query commands on K/runs, a runs root with an up-to-date results.sqlite (with
+# --history-run, a hundred runs in it; their answer is read from the database, not skipped because the root
+# is missing) and a users file
 ON_DATABASE: list[tuple[str, list[str]]] = [
     ("history", ["--runs", "K/runs"]),
     ("verify history", ["--runs", "K/runs"]),
     ("station users list", ["--runs", "K/runs"]),
 ]
 KEPT = "kept"  # the scratch folder of K/, not emptied between rounds
+HISTORY_COPIES = 100  # runs recorded in K/runs's database with --history-run: `cell history` prints 50
 
 
 @dataclass(frozen=True)
@@ -179,16 +184,36 @@ def make_compare_inputs(scratch: Path) -> None:
     shutil.move(cloud, scratch / "cloud.ply")
 
 
-def make_kept_root(scratch: Path) -> None:
-    """K/runs: a runs root whose results.sqlite is created and migrated (by `cell history`) and whose station
-    users file holds two users (`cell station users add`), made once with this tree's `cell`."""
+def newest_reported_run(root: Path = REPO / "runs") -> Path | None:
+    """The newest run folder under ``root`` with a results/report.json (None if there is none)."""
+    found = sorted(p.parent.parent for p in root.glob("*/results/report.json"))
+    return found[-1] if found else None
+
+
+def copy_run_record(run: Path, runs: Path, copies: int) -> None:
+    """``copies`` copies of finished run ``run`` under ``runs`` (what the results database records from a
+    run folder: inputs, journal, checkpoint, results/report.json; not the cloud or the pictures)."""
+    for k in range(copies):
+        dest = runs / f"{run.name}-copy{k:03d}"
+        shutil.copytree(run / "inputs", dest / "inputs")
+        for name in ("journal.jsonl", "checkpoint.json"):
+            shutil.copy2(run / name, dest / name)
+        (dest / "results").mkdir()
+        shutil.copy2(run / "results" / "report.json", dest / "results" / "report.json")
+
+
+def make_kept_root(scratch: Path, history_run: Path | None) -> None:
+    """K/runs: a runs root whose results.sqlite is created and migrated (by `cell history`), holding
+    HISTORY_COPIES records of ``history_run`` when given (`cell history --rebuild`), and whose station users
+    file holds two users (`cell station users add`), made once with this tree's `cell`."""
     runs = scratch / KEPT / "runs"
     runs.mkdir(parents=True)
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     cell = [sys.executable, "-m", "cell"]
-    subprocess.run(
-        [*cell, "history", "--runs", str(runs)], cwd=REPO, env=env, check=True, capture_output=True
-    )
+    if history_run is not None:
+        copy_run_record(history_run, runs, HISTORY_COPIES)
+    make_db = ["history", "--runs", str(runs)] + (["--rebuild"] if history_run is not None else [])
+    subprocess.run([*cell, *make_db], cwd=REPO, env=env, check=True, capture_output=True)
     for name in ("anna", "ben"):
         add = [*cell, "station", "users", "add", name, "--pin-stdin", "--runs", str(runs)]
         subprocess.run(add, cwd=REPO, env=env, input=b"1234\n", check=True, capture_output=True)
@@ -208,17 +233,28 @@ def main() -> None:
     ap.add_argument("--only", default="help,usage,first", help="kinds of line: help, usage, first")
     ap.add_argument("--match", default="", help="only command lines containing this text")
     ap.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for a first line")
+    ap.add_argument(
+        "--history-run",
+        type=Path,
+        default=newest_reported_run(),
+        help="a finished run folder whose record fills K/runs's database (default: newest in runs/)",
+    )
+    ap.add_argument("--empty-history", action="store_true", help="K/runs's database holds no runs")
     args = ap.parse_args()
+    history_run = None if args.empty_history else args.history_run
     trees = {"now": REPO} | ({"base": args.base} if args.base else {})
     kinds = args.only.split(",")
     todo = [ln for ln in lines() if ln.kind in kinds and args.match in " ".join(ln.args)]
     print(f"nproc {os.cpu_count()}, load average {os.getloadavg()}, {args.rounds} rounds, {len(todo)} lines")
+    print(
+        f"K/runs's database: {HISTORY_COPIES} copies of {history_run}" if history_run else "K/runs: no runs"
+    )
     times: dict[tuple[str, Line], list[tuple[float, float]]] = {(n, ln): [] for n in trees for ln in todo}
     said: dict[tuple[str, Line], str] = {}
     with tempfile.TemporaryDirectory(prefix="bench_startup_") as tmp:
         scratch = Path(tmp)
         make_compare_inputs(scratch)
-        make_kept_root(scratch)
+        make_kept_root(scratch, history_run)
         for _ in range(args.rounds):
             for ln in todo:
                 for name, tree in trees.items():

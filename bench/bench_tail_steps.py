@@ -2,12 +2,12 @@
 the last view moves the others' refinement.
 
 Reads a run folder (`cell inspect ... --out RUN`), prepares what the decode worker prepares while the robot
-moves (each view's first overlaps, in view order), then times, in one thread, the job's ``evaluate`` and
-``register`` as the controller calls them after the last view, with each step inside them (wall and CPU
-seconds; the process's numba kernels are loaded first so no compilation is counted). Then it refines the
-views without the last one and prints how far each earlier view's correction moved when the last view was
-added (the largest motion of its evaluation points between the two solutions, um): what an incremental
-registration would have to correct after the last frame.
+moves (each view's first overlaps and merge bins, in view order), then times, in one thread, the job's
+``evaluate`` and ``register`` as the controller calls them after the last view, with each step inside them
+(wall and CPU seconds; the process's numba kernels are loaded first so no compilation is counted). Then it
+refines the views without the last one and prints how far each earlier view's correction moved when the last
+view was added (the largest motion of its evaluation points between the two solutions, um): what an
+incremental registration would have to correct after the last frame.
 
     .venv/bin/python bench/bench_tail_steps.py RUN
 """
@@ -36,16 +36,17 @@ from cell.run_data import Checkpoint
 TIMES: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0, 0.0])
 
 
-def timed(owner: Any, name: str) -> None:
-    """Wrap ``owner.name`` so that its calls add to TIMES[name] (wall s, CPU s, calls)."""
+def timed(owner: Any, name: str, label: str | None = None) -> None:
+    """Wrap ``owner.name`` so that its calls add to TIMES[label or name] (wall s, CPU s, calls)."""
     inner = getattr(owner, name)
+    label = label or name
 
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         wall, cpu = time.perf_counter(), time.process_time()
         try:
             return inner(*args, **kwargs)
         finally:
-            entry = TIMES[name]
+            entry = TIMES[label]
             entry[0] += time.perf_counter() - wall
             entry[1] += time.process_time() - cpu
             entry[2] += 1
@@ -73,15 +74,22 @@ def main() -> None:
     ap.add_argument("run", type=Path)
     args = ap.parse_args()
     run, job, checkpoint = load_finished_run(args.run)
-    for i in run.completed_views():  # what the decode worker did view by view
-        job._first_overlaps(run, job.views.get(run, i))
+    # what the decode worker did view by view (the last view's maps' pairs and bins are left to the tail)
+    done = run.completed_views()
+    for i in done:
+        job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
+        if i != done[-1]:
+            job.bin_view(run, job.views.get(run, i))
     timed(inspection, "refine_views")
+    timed(job.aligner, "align", "Aligner.align (evaluate, register)")
+    timed(inspection, "signed_distance", "evaluate: deviations")
+    timed(inspection, "covered_by_views", "evaluate: coverage")
     for name in ("accuracy_map", "uncertainty_map"):
         timed(feedback, name)
     for name in (
-        "merge_view_stream",
+        "merge_bins",
         "registered_cloud_uncertainty",
-        "unregistered_redundant",
+        "held_redundant",
         "signed_distance",
     ):
         timed(results, name)

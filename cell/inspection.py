@@ -70,8 +70,8 @@ from cell.inspection_views import (
     stored_regions,
 )
 from cell.planning.coverage import covered_by_views
+from cell.planning.feedback import MAP_LINK_MM, FeedbackPlanner, PairCache, PairsOf, evaluate, select_new
 from cell.planning.feedback import Evaluation as FeedbackEvaluation
-from cell.planning.feedback import FeedbackPlanner, evaluate, select_new
 from cell.planning.kinematics import UR5E
 from cell.planning.measured import DefectRegion, MeasuredView, measured_view_from_masks
 from cell.planning.motion import MotionPlanner
@@ -124,6 +124,9 @@ class Captured:
     joints: NDArray[np.float64]
     camera: str
     index: int | None = None  # the view's index in the plan: its decode is kept in the job's view store
+    # the plan's last view so far: an evaluation (and the registration beside it) waits for its decode, which
+    # leaves the feedback maps' pairs of it to the evaluation (made there beside the registration, not before)
+    last: bool = False
 
 
 @dataclass
@@ -172,6 +175,7 @@ class LambertianInspection(InspectionResults):
         self._nominal_P: NominalMesh | None = None
         self.views = ViewStore()  # the completed views, each decoded or read once (cell.inspection_views)
         self._overlaps = OverlapCache()  # the refinement's matching at the views' kinematic poses, per pair
+        self._pairs = PairCache()  # the feedback maps' pairs at the views' kinematic poses, per pair
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
         self._cloud: RegisteredCloud | None = None  # the registration's cloud, judged ahead of the report
@@ -241,7 +245,7 @@ class LambertianInspection(InspectionResults):
             status = devices.projector.status()
             why = ", ".join(status.errors) or str(status)
             raise DeviceFault(devices.projector.name, f"not ready after the pattern stack: {why}")
-        return Captured(images, T_B_T, joints, devices.camera.name, index)
+        return Captured(images, T_B_T, joints, devices.camera.name, index, index == len(views) - 1)
 
     def decode(self, view: View, captured: Captured, out_dir: Path) -> dict[str, Any]:
         """Decode, triangulate and filter one view and write its folder ``out_dir`` (points, planes, holes,
@@ -307,8 +311,13 @@ class LambertianInspection(InspectionResults):
         points_W = transform_points(T_W_C, cloud.points_C[keep])
         quality = cloud.contrast[keep].astype(np.float32)
         oblique_kept = oblique[keep]
-        deviation = signed_distance(self.nominal, points_W).deviation_mm
-        crop = PartCrop(0.0, self.settings.table_margin_mm, self.settings.crop_mm).split(points_W, deviation)
+        crop_rule = PartCrop(0.0, self.settings.table_margin_mm, self.settings.crop_mm)
+        # the table's points are cut whatever their distance from the nominal: measured off the table only
+        # (a third of a view's points, and of the decode's longest step, on the demo pillar)
+        off_table = ~crop_rule.on_table(points_W)
+        deviation = np.zeros(len(points_W))
+        deviation[off_table] = signed_distance(self.nominal, points_W[off_table]).deviation_mm
+        crop = crop_rule.split(points_W, deviation)
         part = crop.part
         points_W, quality, oblique_kept = points_W[part], quality[part], oblique_kept[part]
         u_points = None if u is None else u.u_mm[keep][part]
@@ -343,13 +352,23 @@ class LambertianInspection(InspectionResults):
             points = ViewPoints(stored, quality, oblique_kept, u_stored)
             eval_u = None if u_stored is None else u_stored[sub]
             result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder, eval_u)
-            self._first_overlaps(RunFolder(out_dir.parent.parent), result)
+            run = RunFolder(out_dir.parent.parent)
+            # the plan's last view leaves its maps' pairs and its bins to the evaluation and the registration
+            # (which run side by side after it): the decode both wait for is shorter
+            self._first_overlaps(run, result, pair_maps=not captured.last)
+            if not captured.last:
+                self.bin_view(run, result)
             self.views.add(result)
         return summary
 
-    def _first_overlaps(self, run: RunFolder, new: ViewResult) -> None:
+    def _first_overlaps(self, run: RunFolder, new: ViewResult, pair_maps: bool = True) -> None:
         """The refinement's first matching of a new view with every view measured before it (both ways, at
-        their kinematic poses): what the refinement after the last view would otherwise begin with."""
+        their kinematic poses), and with ``pair_maps`` the feedback maps' pairs of the two
+        (:meth:`_map_pairs`): what the evaluation after the last view would otherwise begin with. Whatever the
+        caches held of a view of this index before (a decode that failed after this and is redone) is dropped
+        first."""
+        self._overlaps.forget(new.index)
+        self._pairs.forget(new.index)
         views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
         prepare_overlaps(
             self._overlaps,
@@ -360,6 +379,11 @@ class LambertianInspection(InspectionResults):
             [v.index for v in views],
             new=len(views) - 1,
         )
+        for other in views[:-1] if pair_maps else []:
+            for a, b in ((new, other), (other, new)):
+                self._pairs.pairs(
+                    a.index, b.index, MAP_LINK_MM, a.eval_W, b.eval_tree if len(b.eval_W) else None
+                )
 
     def _defects(self, T_W_C: NDArray[np.float64], reasons: NDArray[np.uint8]) -> list[DefectRegion]:
         """Hole regions per reason, located on the nominal surface by casting their pixels' rays on the
@@ -472,13 +496,32 @@ class LambertianInspection(InspectionResults):
         views = [(self.views.get(run, i).eval_tree, A @ T) for i, T in zip(done, found.T, strict=True)]
         return covered_by_views(surface, views, st.point_density_per_mm2, st.coverage_radius_mm)
 
+    def _map_pairs(self, run: RunFolder, done: Sequence[int]) -> PairsOf:
+        """The feedback maps' pairs (cell.planning.feedback.PairsOf) of the views ``done`` (view indices, by
+        position in the maps' list): each view's evaluation points paired with their nearest in the other
+        view at the two views' kinematic poses, found once per pair (as the later view arrives, by
+        :meth:`_first_overlaps`, or when first asked after a resume: the same numbers). The maps compare the
+        pairs at the refined (and aligned) poses. Pairing before the refinement instead of after it is a small
+        model change: its corrections are tens of um against the 0.5 mm link distance, so only points near
+        the link distance or between two near-equidistant neighbours pair differently (9 % of the demo
+        pillar's pairs, the evaluation unchanged and the maps at tighter thresholds within 2 %;
+        docs/benchmarks.md). It keeps the pairing off the evaluation after the last view."""
+
+        def pairs(a: int, b: int, link_mm: float) -> tuple[NDArray[np.integer], NDArray[np.integer]]:
+            va, vb = self.views.get(run, done[a]), self.views.get(run, done[b])
+            tree = vb.eval_tree if len(vb.eval_W) else None
+            return self._pairs.pairs(va.index, vb.index, link_mm, va.eval_W, tree)
+
+        return pairs
+
     def _feedback_round(self, run: RunFolder) -> FeedbackRound:
         T_W_align, how = self._evaluation_alignment(run)
         measured = self._measured(run, T_W_align)
         fb = FeedbackPlanner(self.plan_model)
         covered = self._covered(run, T_W_align)
         u_max = self.u_target_mm / self.decision.k
-        ev = evaluate(fb, list(measured.values()), 1, np.zeros((0, 3)), u_max, covered=covered)
+        pairs = self._map_pairs(run, list(measured))
+        ev = evaluate(fb, list(measured.values()), 1, np.zeros((0, 3)), u_max, covered=covered, pairs=pairs)
         return FeedbackRound(fb, ev, measured, how)
 
     def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -23,18 +22,18 @@ from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.decision import DecisionRule
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.judge import judge
-from cell.analysis.merge import merge_view_stream, unregistered_redundant
+from cell.analysis.merge import MergeGrid, ViewBins, bin_view, held_redundant, merge_bins
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, write_page, write_verdict
 from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
-from cell.analysis.table_seam import crop_table_seam
+from cell.analysis.table_seam import table_seam
 from cell.analysis.uncertainty import MergeShares, registered_cloud_uncertainty
 from cell.calibration import pose_uncertainty_prior
 from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
 from cell.errors import ConfigError
-from cell.geometry import invert, transform_points
-from cell.inspection_views import ViewStore
+from cell.geometry import invert, transform_points, transform_vectors
+from cell.inspection_views import ViewResult, ViewStore
 from cell.planning.coverage import coverage_fraction, covered_by_views
 from cell.planning.unseen import plan_feedback
 from cell.run_data import Checkpoint, View
@@ -46,11 +45,45 @@ if TYPE_CHECKING:
     from cell.inspection import InspectionSettings
     from cell.planning.planner import Plan
 
-# the registration merges the views in two passes (their voxels, then the sums), reading each view again for
-# the second unless the first kept its points, weights and u (40 bytes a point): kept up to this many bytes,
-# which holds a 1024x768 camera's dozen views (the second read and transform cost ~40 % of the registration's
-# CPU) and ~3 of a 5 MP camera's 40
-MERGE_INPUTS_KEPT_BYTES = 256_000_000
+# the views' merge bins (cell.analysis.merge.ViewBins, 40 bytes an occupied voxel of a view) kept in memory at
+# most, the newest first: a 1024x768 camera's dozen pillar views (7-23 MB each, 152 MB) stay; of a 5 MP
+# camera's 40 (15-22 MB each) the first ones made are dropped and binned again from their points when merged
+MERGE_BINS_KEPT_BYTES = 160_000_000
+
+
+class MergeBins:
+    """The views' bins on the registration's merge grid (:func:`cell.analysis.merge.bin_view`: at their
+    kinematic positions in {P}), made once a view, as it arrives (the decode worker) or when first merged (a
+    resumed run's views), with their voxel numbers in one :class:`cell.analysis.merge.MergeGrid`. The bins
+    depend on the view alone and the merge neither on the numbers nor on the order the views were binned in,
+    so a resumed run merges what an uninterrupted one does. Thread-safe."""
+
+    def __init__(self, voxel_mm: float, kept_bytes: int = MERGE_BINS_KEPT_BYTES) -> None:
+        self.grid = MergeGrid(voxel_mm)
+        self.kept_bytes = kept_bytes
+        self.numbers: dict[int, NDArray[np.int32]] = {}  # by view index: its voxels' numbers
+        self.n_points: dict[int, int] = {}  # by view index: its measured points (not the oblique ones)
+        self._bins: dict[int, ViewBins] = {}  # by view index, the first ones dropped beyond ``kept_bytes``
+        self._lock = threading.Lock()
+        self.run: Path | None = None
+
+    def add(self, index: int, keys: NDArray[np.int64], bins: ViewBins, n_points: int) -> None:
+        """Number view ``index``'s voxels (``keys``) and keep its ``bins`` (within the budget: the newest
+        stay)."""
+        with self._lock:
+            self.numbers[index] = self.grid.number(keys)
+            self.n_points[index] = n_points
+            self._bins.pop(index, None)
+            self._bins[index] = bins
+            held = sum(b.nbytes for b in self._bins.values())
+            for k in list(self._bins):
+                if held <= self.kept_bytes or k == index:
+                    break
+                held -= self._bins.pop(k).nbytes
+
+    def get(self, index: int) -> ViewBins | None:
+        with self._lock:
+            return self._bins.get(index)
 
 
 @dataclass
@@ -86,6 +119,8 @@ class InspectionResults:
     _cloud: RegisteredCloud | None
     _judged: tuple[ReportInput, dict[str, Any], bool] | None
     _refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None
+    _merge_bins: MergeBins | None = None  # the views' merge bins, made as they arrive (:meth:`bin_view`)
+    _merge_bins_lock = threading.Lock()
 
     if TYPE_CHECKING:
 
@@ -103,57 +138,75 @@ class InspectionResults:
                 self._aligner = Aligner(self.recipe.alignment, nominal_P)
             return self._aligner
 
+    def merge_bins_for(self, run: RunFolder) -> MergeBins:
+        """The views' merge bins of ``run`` (a job works on one run: another run's are forgotten)."""
+        with self._merge_bins_lock:
+            state = self._merge_bins
+            if state is None or state.run != run.path:
+                state = MergeBins(self.settings.merge_voxel_mm)
+                state.run = run.path
+                self._merge_bins = state
+            return state
+
+    def bin_view(self, run: RunFolder, view: ViewResult) -> None:
+        """Bin a completed view for the registration's merge (:class:`MergeBins`), in the decode worker while
+        the robot moves on: what the merge after the last view would otherwise begin with."""
+        self.merge_bins_for(run).add(view.index, *self._view_bins(view))
+
+    def _view_bins(self, view: ViewResult) -> tuple[NDArray[np.int64], ViewBins, int]:
+        """A view's voxels' keys, its merge bins and its measured points' count: the sensor's points in {P}
+        at their kinematic pose (T_P_W @ p_W), without those lit too obliquely, weighted by quality^2, with
+        their decode u (NaN in run folders from before issue 17)."""
+        held = view.points()
+        keep = ~held.oblique
+        points = transform_points(invert(self.T_W_P), held.points_W[keep])
+        weights = np.square(held.quality[keep]).astype(np.float64) + 1e-6
+        u = None if held.uncertainty is None else held.uncertainty[keep].astype(np.float64)
+        return (*bin_view(points, weights, u, self.settings.merge_voxel_mm), len(points))
+
     def register(self, run: RunFolder, views: list[View]) -> dict[str, Any]:
         """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
         already being in {W} through robot pose and hand-eye), refined against each other, merged on a voxel
-        grid weighted by quality (a view the refinement could not register gives only the surface no
-        registered view measured: :func:`cut_unregistered`), then moved by the recipe's alignment
-        (cell.analysis.alignment). An alignment the measurement does not allow leaves the kinematic cloud and
-        makes the verdict incomplete (``alignment.error``). The registered cloud stays in memory for
-        :meth:`report` with its error map and coverage, computed here (the controller registers while it
-        evaluates, so they are ready when the evaluation is); it is stored as results/cloud.ply with the
-        report's page, and a resumed run registers again, deterministically, to the same points."""
+        grid weighted by quality (cell.analysis.merge: each view binned once at its kinematic positions, as it
+        arrives; here each bin's mean is moved by its view's refinement and merged where it then falls; a
+        view the refinement could not register gives only the surface no registered view measured:
+        :func:`held_redundant`), then moved by the recipe's alignment (cell.analysis.alignment). An
+        alignment the measurement does not allow leaves the kinematic cloud and makes the verdict incomplete
+        (``alignment.error``). The registered cloud stays in memory for :meth:`report` with its error map
+        and coverage, computed here (the controller registers while it evaluates, so they are ready when the
+        evaluation is); it is stored as results/cloud.ply with the report's page, and a resumed run
+        registers again, deterministically, to the same points."""
         T_P_W = invert(self.T_W_P)
         done, refined = self.refinement(run)
         stored = [self.views.get(run, i) for i in done]
+        state = self.merge_bins_for(run)
+        T_P = [T_P_W @ T @ self.T_W_P for T in refined.T]  # the views' refinement in {P}
 
-        def measured(k: int) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-            """View k's points in {P}, merge weights and decode u (mm; NaN in run folders from before issue
-            17): the sensor's points, without those lit too obliquely; read again on each call."""
-            held = stored[k].points()
-            keep = ~held.oblique
-            points = transform_points(T_P_W @ refined.T[k], held.points_W[keep])
-            weights = np.square(held.quality[keep]).astype(np.float64) + 1e-6
-            u = held.uncertainty
-            return points, weights, np.full(len(points), np.nan) if u is None else u[keep].astype(np.float64)
+        def view(k: int) -> tuple[NDArray[np.int32], ViewBins]:
+            """View k's voxel numbers and bins: kept, else binned again from its points (from its folder when
+            the view store no longer holds them); a view no decode worker of this process binned (a resumed
+            run's) is numbered here, when first asked for (in view order)."""
+            i = done[k]
+            kept = state.get(i)
+            if kept is None or i not in state.numbers:
+                keys, kept, n = self._view_bins(stored[k])
+                if i not in state.numbers:
+                    state.add(i, keys, kept, n)
+            return state.numbers[i], kept
 
-        # the views are merged one at a time, read again from their folders when the store no longer holds
-        # them (all of a 5 MP camera's views' points together were 7.3 GB with the merge's arrays)
-        redundant = unregistered_redundant(
-            lambda k: measured(k)[0], len(stored), refined.unregistered, self.recipe.plan.coverage_radius_mm
+        # a held view's voxels near a registered view's (or an earlier held view's kept ones) are cut
+        redundant = held_redundant(
+            lambda k: view(k)[1], T_P, refined.unregistered, self.recipe.plan.coverage_radius_mm
         )
-        n_measured: list[int] = []
-        kept: dict[int, tuple[NDArray[Any], ...]] = {}  # the first pass's views kept for the second
-        room, passes = [MERGE_INPUTS_KEPT_BYTES], [0]
-
-        def views_once() -> Iterator[tuple[NDArray[Any], ...]]:
-            passes[0] += 1
-            for k in range(len(stored)):
-                if k in kept:
-                    yield kept.pop(k)
-                    continue
-                points, weights, u = measured(k)
-                n_measured.append(len(points))
-                cut = redundant.get(k)
-                view = (points, weights, u) if cut is None else (points[~cut], weights[~cut], u[~cut])
-                size = sum(x.nbytes for x in view)
-                if passes[0] == 1 and size <= room[0]:
-                    kept[k], room[0] = view, room[0] - size
-                yield view
-
         shares = MergeShares(len(stored))
-        merged = merge_view_stream(views_once, self.settings.merge_voxel_mm, shares)
-        n_points_views = int(sum(n_measured[: len(stored)]))  # the first pass's
+        merged = merge_bins(
+            state.grid,
+            view,
+            [None if (cut := redundant.get(k)) is None else ~cut for k in range(len(stored))],
+            T_P,
+            shares,
+        )
+        n_points_views = int(sum(state.n_points[i] for i in done))
         if merged is None and not n_points_views:
             return {"n_points": 0, "views": len(stored)}
         if merged is None:
@@ -163,7 +216,9 @@ class InspectionResults:
             "unregistered_views": [done[k] for k in refined.unregistered],
             **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
         }
-        refinement["unregistered_points_dropped"] = int(sum(int(cut.sum()) for cut in redundant.values()))
+        refinement["unregistered_points_dropped"] = int(
+            sum(int(view(k)[1].count[cut].sum()) for k, cut in redundant.items())
+        )
         n_views = len(stored)
         method = self.recipe.alignment.method
         try:
@@ -174,6 +229,8 @@ class InspectionResults:
             points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
         # judged as cloud.ply stores them (float32), so a rebuilt report gives the same figures
         points_P = stored_points(points_P)
+        error_map = signed_distance(self.nominal_P, points_P)  # its faces' normals are the u's too
+        normals_W = transform_vectors(self.T_W_P, self.nominal_P.face_normals)[error_map.face]
         prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
         unc = registered_cloud_uncertainty(
             merged,
@@ -181,14 +238,20 @@ class InspectionResults:
             shares.decode(merged),
             refined,
             prior,
-            self.nominal,
+            normals_W,
             self.T_W_P,
             alignment,
             self.aligner.datums,
         )
-        points_P, u_mm, seam = crop_table_seam(
-            points_P, unc.u_mm, self.T_W_P, self.settings.table_margin_mm, self.nominal_P
+        keep = ~table_seam(
+            points_P,
+            self.T_W_P,
+            self.settings.table_margin_mm,
+            self.nominal_P,
+            deviation_mm=error_map.deviation_mm,
         )
+        points_P, u_mm, error_map = points_P[keep], unc.u_mm[keep], error_map.take(keep)
+        seam = int((~keep).sum())
         registration = {
             "table_seam_points": seam,
             "n_points": int(len(points_P)),
@@ -206,7 +269,6 @@ class InspectionResults:
             },
         }
         T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
-        error_map = signed_distance(self.nominal_P, points_P)
         self._cloud = RegisteredCloud(
             registration, points_P, error_map, self.inspectable_coverage(run, T_align), u_mm
         )

@@ -1,18 +1,44 @@
-"""Multi-view merge of noisy views of a known plane: noise drops as the weights predict, no bias, no loss."""
+"""Multi-view merge of noisy views of a known plane: noise drops as the weights predict, no bias, no loss; the
+merge of views binned as they arrive (at their kinematic poses) and moved by their refinement at the end."""
 
 from __future__ import annotations
+
+from collections import defaultdict
 
 import numpy as np
 import pytest
 
 from cell.analysis.merge import (
-    cut_unregistered,
+    MergedCloud,
+    MergeGrid,
+    ViewBins,
+    bin_view,
+    held_redundant,
     measured_elsewhere,
-    merge_view_stream,
-    merge_views,
+    merge_bins,
     voxel_subsample_index,
 )
 from cell.errors import ConfigError
+from cell.geometry import transform_points
+
+
+def merge(
+    views: list[np.ndarray],
+    weights: list[np.ndarray] | None = None,
+    voxel_mm: float = 0.2,
+    T: list[np.ndarray] | None = None,
+    order: list[int] | None = None,
+) -> MergedCloud | None:
+    """The registration's merge of views given in memory: each binned, numbered in ``order`` (default: view
+    order), moved by ``T`` (default: none)."""
+    ws = weights or [np.ones(len(v)) for v in views]
+    binned = [bin_view(v, w, None, voxel_mm) for v, w in zip(views, ws, strict=True)]
+    grid = MergeGrid(voxel_mm)
+    numbers: dict[int, np.ndarray] = {}
+    for k in order or range(len(views)):
+        numbers[k] = grid.number(binned[k][0])
+    n = len(views)
+    return merge_bins(grid, lambda k: (numbers[k], binned[k][1]), [None] * n, T or [np.eye(4)] * n)
 
 
 def _plane(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -36,7 +62,8 @@ def _views() -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
 
 def test_weighted_merge_noise_matches_prediction_without_bias() -> None:
     views, weights, _ = _views()
-    m = merge_views(views, weights, voxel_mm=1.0)
+    m = merge(views, weights, voxel_mm=1.0)
+    assert m is not None
     # Residual of each merged point from the known plane: the weighted mean of its points' noise (the plane
     # is linear, so the mean of points on it lies on it). Expected std per voxel: 1 / sqrt(sum w).
     r = m.points_mm[:, 2] - _plane(m.points_mm[:, 0], m.points_mm[:, 1])
@@ -50,7 +77,8 @@ def test_weighted_merge_noise_matches_prediction_without_bias() -> None:
     only_best = m.points_mm[:, 0] < 10  # voxels seen by the 0.02 mm view alone
     assert rms3 < 0.92 * np.sqrt(np.mean(r[only_best] ** 2))
     # Equal weights do worse: the noisy view drags the mean.
-    eq = merge_views(views, None, voxel_mm=1.0)
+    eq = merge(views, None, voxel_mm=1.0)
+    assert eq is not None
     r_eq = eq.points_mm[:, 2] - _plane(eq.points_mm[:, 0], eq.points_mm[:, 1])
     assert np.sqrt(np.mean(r[overlap3] ** 2)) < 0.8 * np.sqrt(np.mean(r_eq[eq.n_views == 3] ** 2))
 
@@ -59,24 +87,28 @@ def test_no_points_lost_and_views_outside_overlaps_kept() -> None:
     views, weights, _ = _views()
     views[1] = views[1].copy()
     views[1][:5] = np.nan
-    m = merge_views(views, weights, voxel_mm=1.0)
+    m = merge(views, weights, voxel_mm=1.0)
+    assert m is not None
     n = sum(len(v) for v in views)
-    assert (m.source == -1).sum() == 5 and m.count.sum() == n - 5
+    assert m.count.sum() == n - 5
     p = np.concatenate(views)
-    ok = m.source >= 0
+    ok = np.isfinite(p).all(1)
     assert np.allclose(m.weight.sum(), np.concatenate(weights)[ok].sum())
-    # Every input point lies in the voxel of its merged point.
-    assert np.array_equal(np.floor(p[ok] / 1.0), np.floor(m.points_mm[m.source[ok]] / 1.0))
-    # The occupied voxels are exactly those of the inputs: the single-view strips (x < 10, x > 50) remain.
-    assert len(m.points_mm) == len(np.unique(np.floor(p[ok]), axis=0))
+    # The occupied voxels are exactly those of the inputs, in the order of their cells (x, then y, then z),
+    # each merged point inside its voxel: the single-view strips (x < 10, x > 50) remain.
+    cells = np.unique(np.floor(p[ok]).astype(int), axis=0)
+    assert np.array_equal(np.floor(m.points_mm).astype(int), cells)
     assert (m.points_mm[:, 0] < 10).sum() == 200 and (m.points_mm[:, 0] > 50).sum() == 200
 
 
 def test_bad_input() -> None:
+    assert merge([np.full((3, 3), np.nan)]) is None
     with pytest.raises(ConfigError):
-        merge_views([np.full((3, 3), np.nan)])
+        merge([np.zeros((3, 3))], voxel_mm=0.0)
     with pytest.raises(ConfigError):
-        merge_views([np.zeros((3, 3))], voxel_mm=0.0)
+        MergeGrid(-1.0)
+    with pytest.raises(ConfigError):  # beyond the key's +-2^20 voxels
+        merge([np.array([[0.0, 0.0, 3e5]])], voxel_mm=0.2)
 
 
 def test_an_unregistered_view_gives_only_what_no_registered_view_measured() -> None:
@@ -96,16 +128,23 @@ def test_an_unregistered_view_gives_only_what_no_registered_view_measured() -> N
 
 def test_two_unregistered_views_over_one_spot_give_it_once() -> None:
     """Two unregistered views 0.4 mm apart over the same surface, which no registered view measured: the
-    merge must not get both (the second would sit beside the first as a false deviation)."""
+    merge must not get both (the second would sit beside the first as a false deviation); and a registered
+    view's voxels are taken where its refinement moved them (here 12 mm along x: over the first's edge)."""
     rng = np.random.default_rng(4)
     registered = np.column_stack([rng.uniform(-20, 0, (4000, 2)), np.zeros(4000)])
     first = np.column_stack([rng.uniform(10, 30, (4000, 2)), np.zeros(4000)])
     second = np.column_stack([rng.uniform(10, 30, (4000, 2)), np.full(4000, 0.4)])
-    points = [registered, first, second]
-    weights = [np.ones(len(p)) for p in points]
-    cut = cut_unregistered(points, weights, [1, 2], radius_mm=2.0)
-    assert len(points[0]) == 4000 and len(points[1]) == 4000  # nothing registered there: the first stays
-    assert len(points[2]) == len(weights[2]) == 0 and cut == 4000  # the second repeats the first
+    binned = [bin_view(p, np.ones(len(p)), None, 0.2)[1] for p in (registered, first, second)]
+    T = [np.eye(4)] * 3
+    cut = held_redundant(lambda k: binned[k], T, [1, 2], radius_mm=2.0)
+    assert sorted(cut) == [1, 2] and not cut[1].any()  # nothing registered there: the first stays whole
+    assert cut[2].all()  # the second repeats the first
+    shifted = np.eye(4)
+    shifted[0, 3] = 12.0  # the registered view's right edge to x = 12: within 2 mm of the first's x < 14
+    cut = held_redundant(lambda k: binned[k], [shifted, T[1], T[2]], [1, 2], radius_mm=2.0)
+    x = binned[1].mean[:, 0]
+    y = binned[1].mean[:, 1]
+    assert cut[1][(x < 11.8) & (y < -0.2)].all() and not cut[1][(x > 14.2) | (y > 2.2)].any()
 
 
 def test_voxel_subsample_keeps_the_first_point_of_each_voxel_of_the_merge_grid() -> None:
@@ -118,37 +157,88 @@ def test_voxel_subsample_keeps_the_first_point_of_each_voxel_of_the_merge_grid()
     for i, c in enumerate(map(tuple, cells)):
         first.setdefault(c, i)
     assert idx.tolist() == sorted(first.values())
-    assert len(merge_views([pts], voxel_mm=1.0).points_mm) == len(idx)
+    merged = merge([pts], voxel_mm=1.0)
+    assert merged is not None and len(merged.points_mm) == len(idx)
     assert len(voxel_subsample_index(np.zeros((0, 3)), 1.0)) == 0
 
 
-def test_the_merge_read_view_by_view_is_the_merge_of_all_points_together() -> None:
-    """Views given one at a time (each widening the occupied box: a voxel's number must not change when a
-    later view adds voxels below it) merge to the voxels of all points taken together: numbered in the
-    order of their cells (x, y, z), each with its distinct views and the sums of its points."""
+def _rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * K + (1 - np.cos(angle_rad)) * K @ K
+
+
+def test_the_merge_of_binned_views_is_the_refined_points_merged_bin_by_bin() -> None:
+    """Views binned at their kinematic poses and merged with known rigid corrections (a few tenths of a mm and
+    of a degree: many bins change voxel) equal, to 1e-9 mm, the refined points merged plainly: each view's
+    points grouped by their kinematic voxel, each group moved by the view's correction and put, whole, in
+    the voxel its weighted mean moved into; every voxel's weighted mean over all groups in it, the voxels in
+    the order of their cells. Counted here point by point in Python, without the merge's code."""
+    rng = np.random.default_rng(11)
+    voxel = 0.2
+    views, weights, T = [], [], []
+    for k in range(4):
+        xy = rng.uniform(0, 4, (3000, 2)) + 0.7 * k
+        views.append(np.column_stack([xy, 0.3 * xy[:, 0] + rng.normal(0, 0.01, len(xy))]))
+        weights.append(rng.uniform(0.5, 2.0, len(xy)))
+        T_k = np.eye(4)
+        T_k[:3, :3] = _rotation(rng.normal(size=3), np.deg2rad(0.2))
+        T_k[:3, 3] = rng.uniform(-0.3, 0.3, 3)
+        T.append(T_k)
+    m = merge(views, weights, voxel, T)
+    assert m is not None
+    wsum: dict[tuple[int, ...], float] = defaultdict(float)
+    psum: dict[tuple[int, ...], np.ndarray] = defaultdict(lambda: np.zeros(3))
+    n_views: dict[tuple[int, ...], set[int]] = defaultdict(set)
+    for k, (p, w) in enumerate(zip(views, weights, strict=True)):
+        groups: dict[tuple[int, ...], list[int]] = defaultdict(list)
+        for i, c in enumerate(np.floor(p / voxel).astype(int)):
+            groups[tuple(c)].append(i)
+        moved = transform_points(T[k], p)
+        for idx in groups.values():
+            g_w = w[idx]
+            mean = (g_w[:, None] * moved[idx]).sum(0) / g_w.sum()
+            cell = tuple(np.floor(mean / voxel).astype(int))
+            wsum[cell] += g_w.sum()
+            psum[cell] += (g_w[:, None] * moved[idx]).sum(0)
+            n_views[cell].add(k)
+    cells = sorted(wsum)
+    expected = np.array([psum[c] / wsum[c] for c in cells])
+    assert len(m.points_mm) == len(cells)
+    assert np.abs(m.points_mm - expected).max() < 1e-9
+    assert np.allclose(m.weight, [wsum[c] for c in cells], rtol=1e-12)
+    assert m.n_views.tolist() == [len(n_views[c]) for c in cells] and m.count.sum() == 12000
+    # the corrections mattered: binned at the kinematic voxels the groups would fill other voxels
+    kinematic = {tuple(c) for p in views for c in np.floor(p / voxel).astype(int)}
+    assert len(kinematic.symmetric_difference(cells)) > 1000
+
+
+def test_the_merge_does_not_depend_on_the_order_the_views_were_numbered_in() -> None:
+    """The decode worker numbers the views as they arrive, a resumed run in view order: the merge is the same
+    to the bit (sums in view order, voxels in the order of their cells)."""
     rng = np.random.default_rng(5)
     views = [rng.uniform(lo, lo + 6, (300, 3)) for lo in (4.0, -3.0, 9.0, 0.5)]
     weights = [rng.uniform(0.5, 2.0, 300) for _ in views]
-    read: list[int] = []
+    T = [np.eye(4)] * 4
+    for k, t in enumerate(T):
+        T[k] = t.copy()
+        T[k][:3, 3] = rng.uniform(-0.2, 0.2, 3)
+    first = merge(views, weights, 1.0, T)
+    again = merge(views, weights, 1.0, T, order=[2, 0, 3, 1])
+    assert first is not None and again is not None
+    for a, b in zip(
+        (first.points_mm, first.weight, first.count, first.n_views),
+        (again.points_mm, again.weight, again.count, again.n_views),
+        strict=True,
+    ):
+        assert a.tobytes() == b.tobytes()
 
-    def once() -> list[tuple[np.ndarray, ...]]:
-        read.append(len(read))
-        return list(zip(views, weights, strict=True))
 
-    numbers: dict[int, np.ndarray] = {}
-    m = merge_view_stream(lambda: iter(once()), 1.0, lambda k, at, n, w, extra: numbers.setdefault(k, at))
-    assert m is not None and m.source is None and len(read) == 2  # two passes over the views
-    cells = np.floor(np.concatenate(views)).astype(int)
-    order = sorted({tuple(c) for c in cells})  # the occupied voxels, counted independently
-    number = {c: i for i, c in enumerate(order)}
-    assert np.array_equal(np.concatenate([numbers[k] for k in range(4)]), [number[tuple(c)] for c in cells])
-    of_view = [set(map(tuple, np.floor(v).astype(int))) for v in views]
-    seen = [sum(c in s for s in of_view) for c in order]
-    assert m.n_views.tolist() == seen
-    w = np.concatenate(weights)
-    at = np.array([number[tuple(c)] for c in cells])
-    assert np.allclose(m.weight, np.bincount(at, weights=w)) and m.count.sum() == 1200
-    assert np.allclose(m.points_mm[:, 0], np.bincount(at, weights=w * np.concatenate(views)[:, 0]) / m.weight)
-    same = merge_views(views, weights, voxel_mm=1.0)
-    assert same.points_mm.tobytes() == m.points_mm.tobytes() and same.source is not None
-    assert np.array_equal(same.source, at)
+def test_view_bins_hold_the_points_weighted_sums() -> None:
+    """A view's bins: per voxel the weighted mean, the weight sum, the weighted u sum and the count."""
+    p = np.array([[0.05, 0.05, 0.05], [0.15, 0.05, 0.05], [0.25, 0.05, 0.05]])
+    keys, bins = bin_view(p, np.array([1.0, 3.0, 2.0]), np.array([0.01, 0.02, 0.04]), 0.2)
+    assert isinstance(bins, ViewBins) and len(keys) == len(bins) == 2 and keys[0] < keys[1]
+    assert np.allclose(bins.mean[0], [0.125, 0.05, 0.05]) and np.allclose(bins.mean[1], p[2])
+    assert bins.weight.tolist() == [4.0, 2.0] and bins.count.tolist() == [2, 1]
+    assert np.allclose(bins.wu, [0.07, 0.08])

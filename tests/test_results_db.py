@@ -578,19 +578,21 @@ def test_history_fits_80_columns_filters_and_says_when_empty(
     make_run(root, "a", deviations(0.0), part="a-very-long-part-name-indeed", identity=long)
     make_run(root, "b", deviations(0.4), identity=RunIdentity("SN-2", "bob"), started=T0 + timedelta(days=1))
     main(["history", "--runs", str(root)])
-    lines = capsys.readouterr().out.splitlines()
+    said, *lines = capsys.readouterr().out.splitlines()  # first what it reads (a path: as long as it is)
+    assert said == f"past runs in {root / 'results.sqlite'}, newest first"
     assert len(lines) == 3 and all(len(line) <= 80 for line in lines)
     dev = deviations(0.4)
     assert "fail" in lines[1] and "SN-2" in lines[1] and f"{dev.min():+.3f}  {dev.max():+.3f}" in lines[1]
     main(["history", "--runs", str(root), "--verdict", "fail"])
-    assert len(capsys.readouterr().out.splitlines()) == 2
+    assert len(capsys.readouterr().out.splitlines()) == 3
     main(["history", "--runs", str(root), "--since", "2026-11-21T00:00+00:00", "--operator", "bob"])
-    assert len(capsys.readouterr().out.splitlines()) == 2
+    assert len(capsys.readouterr().out.splitlines()) == 3
     main(["history", "--runs", str(root), "--serial", "SN-404"])
     assert "no runs with serial SN-404 in" in capsys.readouterr().out
     main(["history", "--runs", str(root), "--spc", "box", "--csv", str(tmp_path / "box.csv")])
     out = capsys.readouterr().out.splitlines()
-    table = [line for line in out if str(tmp_path) not in line]  # the CSV paths are as long as they are
+    table = [line for line in out if str(tmp_path) not in line]  # the paths are as long as they are
+    assert out[0] == f"SPC of recipe 'box' from {root / 'results.sqlite'}"
     assert len(table) == 6 and all(len(line) <= 80 for line in table) and table[4].startswith("left ")
     assert (tmp_path / "box.csv").is_file() and (tmp_path / "box-capability.csv").is_file()
     with pytest.raises(SystemExit) as exit_:

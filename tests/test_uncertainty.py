@@ -13,10 +13,10 @@ import pytest
 import trimesh
 
 from cell.analysis import uncertainty
-from cell.analysis.merge import merge_views
+from cell.analysis.merge import MergeGrid, bin_view, merge_bins
 from cell.analysis.uncertainty import (
+    MergeShares,
     datum_alignment_map,
-    merged_uncertainty,
     pose_uncertainty_of_points,
     posterior_covariance,
 )
@@ -238,6 +238,18 @@ def test_quantisation_in_bands_is_the_whole_images(
 
 
 # ------------------------------------------------------------------------------------------ merge and pose
+def _merged_u(views: list[np.ndarray], weights: list[np.ndarray], u: list[np.ndarray]) -> np.ndarray:
+    """The merged decode u of views merged as the registration merges them (binned, numbered, summed)."""
+    binned = [bin_view(v, w, x, 0.2) for v, w, x in zip(views, weights, u, strict=True)]
+    grid = MergeGrid(0.2)
+    numbers = [grid.number(keys) for keys, _ in binned]
+    acc = MergeShares(len(views))
+    n = len(views)
+    merged = merge_bins(grid, lambda k: (numbers[k], binned[k][1]), [None] * n, [np.eye(4)] * n, acc)
+    assert merged is not None
+    return acc.decode(merged)
+
+
 def test_merged_u_averages_views_and_not_one_views_neighbours() -> None:
     """Two views of one voxel with u 0.03 and 0.04 merged with weights 1/u^2: 1/sqrt(1/0.03^2 + 1/0.04^2);
     two points of one view in a voxel (shared edges) keep their u: they are not independent."""
@@ -245,10 +257,9 @@ def test_merged_u_averages_views_and_not_one_views_neighbours() -> None:
     views = [a, a + 0.01]
     u = [np.array([0.03]), np.array([0.04])]
     w = [1 / x**2 for x in u]
-    merged = merge_views(views, w, voxel_mm=0.2)
-    assert merged_uncertainty(merged, w, u)[0] == pytest.approx(1 / math.sqrt(1 / 0.03**2 + 1 / 0.04**2))
-    one = merge_views([np.vstack([a, a + 0.01])], [np.ones(2)], voxel_mm=0.2)
-    assert merged_uncertainty(one, [np.ones(2)], [np.array([0.03, 0.03])])[0] == pytest.approx(0.03)
+    assert _merged_u(views, w, u)[0] == pytest.approx(1 / math.sqrt(1 / 0.03**2 + 1 / 0.04**2))
+    one = _merged_u([np.vstack([a, a + 0.01])], [np.ones(2)], [np.array([0.03, 0.03])])
+    assert one[0] == pytest.approx(0.03)
 
 
 def test_pose_u_in_chunks_is_each_points_own(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -79,7 +79,9 @@ def test_check_command_stores_its_figures(tmp_path, capsys) -> None:
     assert entry.kind == "check" and entry.figures_mm["SD"] == pytest.approx(doc["figures_mm"]["SD"])
     assert (folders[0] / "inputs" / "certificate.yaml").is_file()
     main(["verify", "history", "--runs", str(tmp_path)])
-    assert "check" in capsys.readouterr().out.splitlines()[1]
+    said, header, row = capsys.readouterr().out.splitlines()  # what it reads, then the table
+    assert said == f"interim checks in {tmp_path / 'results.sqlite'}, oldest first"
+    assert header.startswith("time") and "check" in row
 
 
 def test_a_failed_check_blocks_inspections_until_one_passes(tmp_path) -> None:

@@ -14,9 +14,10 @@ def _cell_of(x: float, origin: float, h: float, n: int) -> int:
     return min(max(int(np.floor((x - origin) / h)), 0), n - 1)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _bin(points, origin, h, dims):
-    """Counting sort of the points by cell: ``start`` (cells + 1) and the point indices cell by cell."""
+    """Counting sort of the points by their clamped grid cell (O(N), unlike argsort): ``start`` (cells + 1)
+    and the point indices cell by cell. The point grid's bins, and the error map's visiting order."""
     nx, ny, nz = dims[0], dims[1], dims[2]
     N = points.shape[0]
     key = np.empty(N, np.int64)

@@ -203,24 +203,3 @@ def signed_closest(points, order, tri, start, items, boxes, origin, h, dims, fac
         out_f[n] = bf
         out_feat[n] = bfeat
     return out_dev, out_q, out_f, out_feat
-
-
-@nb.njit(cache=True, nogil=True)
-def cell_order(points, origin, h, dims):
-    """Point indices grouped by grid cell (counting sort on the clamped cell key; O(N), unlike argsort)."""
-    nx, ny, nz = dims[0], dims[1], dims[2]
-    N = points.shape[0]
-    key = np.empty(N, np.int64)
-    counts = np.zeros(nx * ny * nz + 1, np.int64)
-    for n in range(N):
-        cx = min(max(int(np.floor((points[n, 0] - origin[0]) / h)), 0), nx - 1)
-        cy = min(max(int(np.floor((points[n, 1] - origin[1]) / h)), 0), ny - 1)
-        cz = min(max(int(np.floor((points[n, 2] - origin[2]) / h)), 0), nz - 1)
-        key[n] = (cx * ny + cy) * nz + cz
-        counts[key[n] + 1] += 1
-    fill = np.cumsum(counts)
-    order = np.empty(N, np.int64)
-    for n in range(N):
-        order[fill[key[n]]] = n
-        fill[key[n]] += 1
-    return order

@@ -40,15 +40,17 @@ class PartCrop:
     table_margin_mm: float = 0.5
     background_mm: float | None = 5.0
 
+    def on_table(self, points_mm: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Which of ``points_mm`` (N, 3) are the table (all False without one)."""
+        if self.table_z_mm is None:
+            return np.zeros(len(points_mm), dtype=bool)
+        return np.asarray(points_mm)[:, 2] < self.table_z_mm + self.table_margin_mm
+
     def split(self, points_mm: NDArray[np.float64], deviation_mm: NDArray[np.float64]) -> CropMasks:
         """Which of ``points_mm`` (N, 3) with signed deviations ``deviation_mm`` (N,) are table and
-        background."""
+        background (the table's points' deviations are not read)."""
         n = len(deviation_mm)
-        on_table = (
-            np.zeros(n, dtype=bool)
-            if self.table_z_mm is None
-            else np.asarray(points_mm)[:, 2] < self.table_z_mm + self.table_margin_mm
-        )
+        on_table = self.on_table(points_mm)
         far = (
             np.zeros(n, dtype=bool)
             if self.background_mm is None

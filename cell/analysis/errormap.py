@@ -182,7 +182,7 @@ def signed_distance(nominal: NominalMesh, points_mm: ArrayLike) -> ErrorMap:
     # Visit points cell by cell so consecutive points touch the same triangles (3x faster than random order).
     if not np.isfinite(p).all():
         raise ConfigError("signed_distance: the points contain NaN or inf; drop them first")
-    order = kernels.get("cell_order")(p, nominal.grid_origin, nominal.grid_h, nominal.grid_dims)
+    _, order = kernels.get("_bin")(p, nominal.grid_origin, nominal.grid_h, nominal.grid_dims)
     dev, q, face, feat = kernels.get("signed_closest")(
         p,
         order,

@@ -40,7 +40,6 @@ SIGNATURES: dict[str, tuple[str, str]] = {
         "cell.analysis._triangle_grid",
         f"Tuple(({_I1}, {_I1}, {_F2}))({_F2}, {_F2}, {_F1}, f8, {_I1})",
     ),
-    "cell_order": ("cell.analysis._triangle_grid", f"{_I1}({_F2}, {_F1}, f8, {_I1})"),
     "signed_closest": (
         "cell.analysis._triangle_grid",
         f"Tuple(({_F1}, {_F2}, {_I1}, i1[::1]))"

@@ -1,18 +1,26 @@
 """Merging of registered multi-view clouds: overlaps averaged on a voxel grid with per-point quality weights.
 
-All views are already in one frame (the part frame {P}, mm). Every input point falls in one voxel of a grid of
-side ``voxel_mm``; each occupied voxel yields one output point, the weighted mean of the points in it. With
-weights w_i = 1 / sigma_i^2 (sigma_i: the point's expected noise, mm, e.g. from the sensing error model) the
-mean is the minimum-variance estimate and its expected noise is 1 / sqrt(sum w_i) (``sigma_mm``). Voxels seen
-by one view keep that view's points averaged alone, so nothing outside the overlaps is lost; ``source``
-maps every input point to its output point.
+Every point falls in one voxel of a grid of side ``voxel_mm`` in the part frame {P} (mm); each occupied voxel
+yields one output point, the weighted mean of the points in it. With weights w_i = 1 / sigma_i^2 (sigma_i:
+the point's expected noise, mm, e.g. from the sensing error model) the mean is the minimum-variance estimate
+and its expected noise is 1 / sqrt(sum w_i) (``sigma_mm``). Voxels seen by one view keep that view's points
+averaged alone, so nothing outside the overlaps is lost.
+
+The work is split at the views' refinement (issue 16). As a view arrives its points are binned once at their
+kinematic positions (T_P_W @ p_W; :func:`bin_view`: per voxel the view's weight sum W_b and weighted mean
+m_b), and the voxels numbered in one grid that grows with the views (:class:`MergeGrid`). After the last view
+each bin's mean is moved by its view's refinement T_v = [R_v t_v] and merged in the voxel it then falls in
+(:func:`merge_bins`): sum W_b (R_v m_b + t_v) / sum W_b, which is the weighted mean of the refined points, as
+exactly as a bin's points are moved together. That is the one model change against binning every refined
+point (a 1024x768 view has ~1.03 points per bin of 0.2 mm: the demo pillar merges to 1.6 % fewer points,
+deviations within 2.3 um at p99; docs/benchmarks.md).
 
 Choose ``voxel_mm`` about the views' point spacing: much coarser voxels also average real surface shape.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,20 +29,24 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from cell.errors import ConfigError
+from cell.geometry import invert, transform_points
+
+KEY_BITS = 21  # bits per axis of a voxel key: +-2^20 voxels (+-210 m of 0.2 mm voxels) about the origin
+_HALF = 1 << (KEY_BITS - 1)
+# the merge keeps its views' moved voxel means between its two passes when all fit in this (24 bytes a bin: a
+# 1024x768 camera's dozen views' 90 MB do; a 5 MP camera's 40 views' ~0.5 GB are moved again instead)
+MOVED_KEPT_BYTES = 128_000_000
 
 
 @dataclass(frozen=True)
 class MergedCloud:
     """``points_mm`` (M, 3) weighted voxel means; ``weight`` (M,) summed weights; ``count`` (M,) input points
-    per voxel; ``n_views`` (M,) distinct views per voxel; ``source`` (N,) output index of every finite input
-    point in the concatenated input order (-1 for dropped non-finite points; None from
-    :func:`merge_view_stream`, which gives it view by view)."""
+    per voxel; ``n_views`` (M,) distinct views per voxel."""
 
     points_mm: NDArray[np.float64]
     weight: NDArray[np.float64]
     count: NDArray[np.int64]
     n_views: NDArray[np.int64]
-    source: NDArray[np.int64] | None
 
     @property
     def sigma_mm(self) -> NDArray[np.float64]:
@@ -58,163 +70,216 @@ def voxel_keys(points: NDArray[np.float64], voxel_mm: float) -> NDArray[np.int64
 
 def voxel_subsample_index(points: NDArray[np.float64], voxel_mm: float) -> NDArray[np.int64]:
     """Indices (ascending) of one point, the first, per occupied voxel of edge ``voxel_mm`` (mm): an even
-    thinning that keeps measured points as they are (no averaging, unlike :func:`merge_views`)."""
+    thinning that keeps measured points as they are (no averaging, unlike the merge)."""
     _, first = np.unique(voxel_keys(points, voxel_mm), return_index=True)
     return np.sort(first)
 
 
-class VoxelGrid:
-    """The merge's voxel numbering, built from views given one at a time: the occupied voxels of edge
-    ``voxel_mm`` (mm) of all the views, numbered by ascending row-major key over their occupied box (as
-    ``np.unique`` of :func:`voxel_keys` of all points taken together numbers them), and each voxel's count of
-    distinct views. Row-major keys over any box that holds two voxels order them as their integer cells
-    (x, then y, then z), so the voxels found so far keep their order when a view widens the box.
+def grid_keys(cells: NDArray[np.int64]) -> NDArray[np.int64]:
+    """One int64 per voxel cell (N, 3) of the merge grid, the same in every call (unlike :func:`voxel_keys`):
+    ordered as the cells (x, then y, then z)."""
+    if len(cells) and (cells.min() < -_HALF or cells.max() >= _HALF):
+        raise ConfigError(f"merge: points beyond +-{_HALF} voxels of the part frame's origin")
+    c = cells + _HALF
+    return np.asarray((c[:, 0] << (2 * KEY_BITS)) | (c[:, 1] << KEY_BITS) | c[:, 2], dtype=np.int64)
 
-    Memory: the occupied voxels (8 bytes each, twice while a view is added) and one view's points' cells;
-    never every view's points at once."""
+
+@dataclass(frozen=True)
+class ViewBins:
+    """One view's points binned on the merge grid at their kinematic positions in {P}: per occupied voxel (in
+    the order of its keys, :func:`bin_view`) the points' weighted ``mean`` (mm), weight sum ``weight``,
+    weighted sum of their decode u ``wu`` (mm; NaN where a point has none) and ``count``. They depend on the
+    view alone. 40 bytes a voxel (a 1024x768 pillar view's points fall ~1.1 to a voxel of 0.2 mm)."""
+
+    mean: NDArray[np.float64]
+    weight: NDArray[np.float64]
+    wu: NDArray[np.float32]
+    count: NDArray[np.int32]
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(x.nbytes for x in (self.mean, self.weight, self.wu, self.count)))
+
+    def __len__(self) -> int:
+        return len(self.weight)
+
+
+def bin_view(
+    points: NDArray[np.float64], weights: NDArray[np.float64], u: NDArray[np.float64] | None, voxel_mm: float
+) -> tuple[NDArray[np.int64], ViewBins]:
+    """Bin one view's points ((N, 3) mm in {P}, at the pose the kinematic chain gave them) with their merge
+    weights ((N,) > 0) and decode u ((N,) mm, or None) on the merge grid of edge ``voxel_mm`` (mm): the
+    occupied voxels' keys (:func:`grid_keys`, ascending) and their :class:`ViewBins`. Points with a
+    non-finite position or a weight that is not finite and positive are left out."""
+    if not voxel_mm > 0:
+        raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    w = np.asarray(weights, dtype=np.float64).ravel()
+    ok = np.isfinite(p).all(1) & np.isfinite(w) & (w > 0)
+    if not ok.all():
+        p, w = p[ok], w[ok]
+        u = None if u is None else np.asarray(u)[ok]
+    keys = grid_keys(np.floor(p / voxel_mm).astype(np.int64))
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    first = np.empty(len(keys), dtype=bool)
+    first[:1] = True
+    np.not_equal(keys[1:], keys[:-1], out=first[1:])
+    at = np.cumsum(first) - 1
+    n = int(at[-1]) + 1 if len(at) else 0
+    w = w[order]
+    wsum = np.asarray(np.bincount(at, weights=w, minlength=n), dtype=np.float64)
+    mean = np.empty((n, 3))
+    for j in range(3):
+        mean[:, j] = np.bincount(at, weights=w * p[order, j], minlength=n) / wsum
+    if u is None:
+        wu = np.full(n, np.nan)
+    else:
+        wu = np.bincount(at, weights=w * np.asarray(u, dtype=np.float64).ravel()[order], minlength=n)
+    count = np.bincount(at, minlength=n).astype(np.int32)
+    return keys[first], ViewBins(mean, wsum, wu.astype(np.float32), count)
+
+
+class MergeGrid:
+    """The merge's voxel numbering, grown as views are binned (:meth:`number`): a voxel's number is given
+    when a view first has it and never changes. Which voxel gets which number depends on the order the views
+    were numbered in; the merge does not (:func:`merge_bins` sums the views in view order and gives the
+    voxels in the order of their keys). Memory: 20 bytes a voxel. Not thread-safe: the caller locks."""
 
     def __init__(self, voxel_mm: float) -> None:
         if not voxel_mm > 0:
             raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
         self.voxel_mm = voxel_mm
-        self.lo = np.zeros(3, dtype=np.int64)  # the occupied box's lowest cell
-        self.dims = np.zeros(3, dtype=np.int64)  # its cells along x, y, z (0: no voxel yet)
-        self.keys = np.zeros(0, dtype=np.int64)  # (M,) the occupied voxels' keys in the box, ascending
-        self.n_views = np.zeros(0, dtype=np.int64)  # (M,) distinct views per voxel
+        self.keys = np.zeros(0, dtype=np.int64)  # (M,) the voxels' keys, ascending
+        self.ids = np.zeros(0, dtype=np.int32)  # (M,) the number of each of them
+        self.key_of = np.zeros(0, dtype=np.int64)  # (M,) the key of each number
 
-    def add_view(self, points: NDArray[np.float64]) -> None:
-        """Add one view's (finite) points ((N, 3) mm) to the occupied voxels."""
-        if not len(points):
-            return
-        cell = self._cells(points)
-        lo, hi = cell.min(0), cell.max(0)
-        if len(self.keys):
-            lo, hi = np.minimum(lo, self.lo), np.maximum(hi, self.lo + self.dims - 1)
-        dims = hi - lo + 1
-        if float(np.prod(dims.astype(np.float64))) >= 2.0**62:
-            raise ConfigError(
-                f"{dims} voxels of {self.voxel_mm} mm overflow the voxel key; use larger voxels"
-            )
-        if not len(self.keys) or ((lo == self.lo).all() and (dims == self.dims).all()):
-            held = self.keys
-        else:  # the box widened: the same voxels' keys in the new one
-            held = _encode(_decode(self.keys, self.dims) + (self.lo - lo), dims)
-        new = np.sort(_encode(cell - lo, dims))  # np.unique (hashing, then sorting) took 5 times as long
-        del cell
-        new = new[np.concatenate([[True], new[1:] != new[:-1]])]
-        keys = np.concatenate([held, new])
-        count = np.concatenate([self.n_views, np.ones(len(new), dtype=np.int64)])
-        del held, new
-        order = np.argsort(keys, kind="stable")  # two ascending runs
-        keys, count = keys[order], count[order]
-        del order
-        first = np.empty(len(keys), dtype=bool)
-        first[:1] = True
-        np.not_equal(keys[1:], keys[:-1], out=first[1:])
-        self.n_views = np.add.reduceat(count, np.flatnonzero(first)) if len(keys) else count
-        self.keys, self.lo, self.dims = keys[first], lo, dims
+    @property
+    def size(self) -> int:
+        return len(self.keys)
 
-    def number(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
-        """The voxel number of each of ``points`` ((N, 3) mm, finite, inside voxels added before)."""
-        return np.searchsorted(self.keys, _encode(self._cells(points) - self.lo, self.dims)).astype(np.int64)
-
-    def _cells(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
-        return np.floor(points / self.voxel_mm).astype(np.int64)
+    def number(self, keys: NDArray[np.int64]) -> NDArray[np.int32]:
+        """The numbers of the voxels ``keys`` (ascending, distinct: :func:`bin_view`'s), new ones numbered on
+        from the last, in the order of their keys."""
+        at = np.searchsorted(self.keys, keys)
+        known = at < len(self.keys)
+        known[known] = self.keys[at[known]] == keys[known]
+        out = np.empty(len(keys), dtype=np.int32)
+        out[known] = self.ids[at[known]]
+        new = ~known
+        if len(self.keys) + int(new.sum()) >= 2**31:
+            raise ConfigError("merge: more than 2^31 voxels; use larger voxels")
+        out[new] = np.arange(len(self.keys), len(self.keys) + int(new.sum()), dtype=np.int32)
+        self.keys = np.insert(self.keys, at[new], keys[new])
+        self.ids = np.insert(self.ids, at[new], out[new])
+        self.key_of = np.concatenate([self.key_of, keys[new]])
+        return out
 
 
-def _encode(cell: NDArray[np.int64], dims: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Row-major keys of cells (N, 3) in a box of ``dims`` cells whose lowest cell is 0."""
-    return (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
-
-
-def _decode(keys: NDArray[np.int64], dims: NDArray[np.int64]) -> NDArray[np.int64]:
-    """The cells (N, 3) of row-major keys in a box of ``dims`` cells (:func:`_encode`'s inverse)."""
-    yz = keys % (dims[1] * dims[2])
-    return np.column_stack([keys // (dims[1] * dims[2]), yz // dims[2], yz % dims[2]])
-
-
-def merge_view_stream(
-    views: Callable[[], Iterable[tuple[NDArray[Any], ...]]],
-    voxel_mm: float = 0.2,
-    each_view: Callable[[int, NDArray[np.int64], int, NDArray[np.float64], tuple[NDArray[Any], ...]], None]
+def merge_bins(
+    grid: MergeGrid,
+    views: Callable[[int], tuple[NDArray[np.int32], ViewBins]],
+    keep: Sequence[NDArray[np.bool_] | None],
+    T: Sequence[NDArray[np.float64]],
+    each_view: Callable[[int, NDArray[np.int64], int, NDArray[np.float64], NDArray[np.float64]], None]
     | None = None,
 ) -> MergedCloud | None:
-    """Merge registered views read one at a time, as :func:`merge_views` merges them (the same voxels, sums
-    and order: the same bits), without holding more than one view's points.
+    """Merge binned views: ``views(k)`` gives view k's voxels' numbers in ``grid`` (:meth:`MergeGrid.number`)
+    and its bins (:func:`bin_view`; asked for twice, in view order: the first time, a view not numbered yet
+    may be numbered then); ``T[k]`` is its refinement (4x4, {P} to {P}) and ``keep[k]`` which of its bins it
+    gives (None: all; a view the refinement could not register gives only what no other view measured:
+    :func:`held_redundant`).
 
-    ``views()`` yields each view's (points (N_k, 3) mm, weights (N_k,) > 0, *per_point arrays (N_k, ...)) in
-    view order; it is called twice (the voxels first, then the sums), and must yield the same both times.
-    ``each_view(k, number, m, weights, per_point)``, when given, is called on the second pass with view k's
-    finite points' voxel numbers (of the ``m`` merged points), weights and per-point arrays (the finite
-    points'), e.g. to accumulate each view's share of the merged points. The result's ``source`` is None:
-    ``number`` is each view's part of it. None when no view has a finite point with a positive weight."""
-    grid = VoxelGrid(voxel_mm)
-    n_total = 0
-    for p, w, *_ in views():
-        p, w = _finite(p, w)[:2]
-        grid.add_view(p)
-        n_total += len(p)
-    if not n_total:
+    Each bin's mean, moved by its view's refinement, falls in a voxel of the grid (most in the one it was
+    binned in: the refinement's corrections are tens of um; the others are looked up, and numbered when new);
+    each occupied voxel's point is sum W_b (R_v m_b + t_v) / sum W_b over the bins in it (m_b a bin's mean at
+    the kinematic pose, W_b its weight sum), summed in view order. That is the weighted mean of the refined
+    points in the voxel, binned at their refined positions as a bin's points go together (a bin of a 0.2 mm
+    grid holds ~1.03 of a 1024x768 view's points; merging the bins where they were binned, at the kinematic
+    positions, would leave two views' surfaces, apart by the chain's error, in two layers of voxels averaged
+    apart: on the demo pillar 7 % more points and a noisier cloud). The voxels come in the order of their
+    keys (x, then y, then z), so the result depends neither on the numbers nor on the order the views were
+    numbered in.
+
+    ``each_view(k, rows, m, weight, wu)``, when given, is called with the merged points view k has (``rows``
+    of the ``m``, ascending), its weight sums there and its weighted u sums, e.g. for the views' shares
+    (:class:`cell.analysis.uncertainty.MergeShares`). None when no view gives a voxel."""
+    placed: list[NDArray[np.int32]] = []  # each given bin's voxel: its number, or -1 - index into ``found``
+    found: list[NDArray[np.int64]] = []  # the keys of the voxels the bins moved into
+    moved_kept: dict[int, NDArray[np.float64]] = {}  # the moved means for the sums: all, or none
+    room: int | None = MOVED_KEPT_BYTES  # None: they did not fit
+    for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
+        view_ids, b = views(k)
+        moved = moved_means(b, T_k) if kept is None else moved_means(b, T_k)[kept]
+        at = (view_ids if kept is None else view_ids[kept]).astype(np.int32)  # a copy: the numbers stay
+        keys = grid_keys(np.floor(moved / grid.voxel_mm).astype(np.int64))
+        out = keys != grid.key_of[at]
+        at[out] = -1 - (sum(len(f) for f in found) + np.arange(int(out.sum())))
+        found.append(keys[out])
+        placed.append(at)
+        if room is not None and moved.nbytes <= room:
+            moved_kept[k], room = moved, room - moved.nbytes
+        else:
+            moved_kept, room = {}, None
+    moved_keys = np.concatenate([np.zeros(0, np.int64), *found])
+    del found  # (each of these arrays: ~50 MB for a 5 MP camera's 40 views)
+    new, back = np.unique(moved_keys, return_inverse=True)
+    del moved_keys
+    number = grid.number(new)[back]  # the voxels the bins moved into, numbered at once (new ones too)
+    del new, back
+    for at in placed:
+        out = at < 0
+        at[out] = number[-1 - at[out]]
+    del number
+    n = grid.size  # the kinematic voxels and those bins moved into: 4.7 a merged point (5 MP, uncalibrated)
+    given = np.zeros(n, dtype=np.int32)
+    for at in placed:
+        given[at] += 1  # once per view, whatever its bins there
+    in_key_order = grid.ids[given[grid.ids] > 0]  # the merged voxels' numbers, by key
+    m = len(in_key_order)
+    if not m:
         return None
-    m = len(grid.keys)
-    wsum, sums, count = np.zeros(m), np.zeros((m, 3)), np.zeros(m, dtype=np.int64)
-    for k, (p, w, *per_point) in enumerate(views()):
-        p, w, ok = _finite(p, w)
-        at = grid.number(p)
-        wsum += np.bincount(at, weights=w, minlength=m)
+    row = np.full(n, -1, dtype=np.int32)
+    row[in_key_order] = np.arange(m, dtype=np.int32)
+    wsum, sums, count = np.zeros(m), np.zeros((3, m)), np.zeros(m, dtype=np.int64)
+    for k, (placed_k, kept, T_k) in enumerate(zip(placed, keep, T, strict=True)):
+        b = views(k)[1]
+        w, c, wu = b.weight, b.count, b.wu.astype(np.float64)
+        if kept is not None:
+            w, c, wu = w[kept], c[kept], wu[kept]
+        if k in moved_kept:
+            moved = moved_kept.pop(k)
+        else:
+            moved = moved_means(b, T_k) if kept is None else moved_means(b, T_k)[kept]
+        merged_at = row[placed_k].astype(np.int64)
+        order = np.argsort(merged_at, kind="stable")  # the view's bins by merged point (some out of order)
+        merged_at = merged_at[order]
+        first = np.empty(len(merged_at), dtype=bool)
+        first[:1] = True
+        np.not_equal(merged_at[1:], merged_at[:-1], out=first[1:])
+        starts = np.flatnonzero(first)
+        rows = merged_at[starts]
+
+        w_rows = _per_row(w, order, starts)
+        wsum[rows] += w_rows  # distinct rows: fancy-index addition adds each once
         for j in range(3):
-            sums[:, j] += np.bincount(at, weights=w * p[:, j], minlength=m)
-        count += np.bincount(at, minlength=m)
+            column = sums[j]
+            column[rows] += _per_row(w * moved[:, j], order, starts)
+        count[rows] += _per_row(c.astype(np.float64), order, starts).astype(np.int64)
         if each_view is not None:
-            each_view(k, at, m, w, tuple(x if ok is None else x[ok] for x in per_point))
-    return MergedCloud(
-        points_mm=sums / wsum[:, None], weight=wsum, count=count, n_views=grid.n_views, source=None
-    )
+            each_view(k, rows, m, w_rows, _per_row(wu, order, starts))
+    return MergedCloud((sums / wsum).T.copy(), wsum, count, given[in_key_order].astype(np.int64))
 
 
-def _finite(
-    p: NDArray[np.float64], w: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
-    """A view's points with a finite position and a finite, positive weight, and which (None: all)."""
-    ok = np.isfinite(p).all(1) & np.isfinite(w) & (w > 0)
-    return (p, w, None) if ok.all() else (p[ok], w[ok], ok)
+def _per_row(x: NDArray[np.float64], order: NDArray[Any], starts: NDArray[Any]) -> NDArray[np.float64]:
+    """``x`` of a view's bins summed per merged point (the bins by merged point: ``order``; ``starts``)."""
+    return x[order] if len(starts) == len(x) else np.add.reduceat(x[order], starts)
 
 
-def merge_views(
-    views: Sequence[ArrayLike],
-    weights: Sequence[ArrayLike] | None = None,
-    voxel_mm: float = 0.2,
-) -> MergedCloud:
-    """Merge registered views ((N_k, 3) mm each) with per-point weights ((N_k,) > 0; default 1), given in
-    memory (:func:`merge_view_stream` reads them one at a time); ``source`` maps every input point.
-
-    Memory: besides the inputs, the occupied voxels and 8 bytes a point (``source``); the views are never
-    copied into one array (a 5 MP sensor's dozen views hold 30 million points)."""
-    if not voxel_mm > 0:
-        raise ConfigError(f"merge_views: voxel size must be > 0 mm, got {voxel_mm}")
-    if len(views) == 0:
-        raise ConfigError("merge_views: no views to merge")
-    pts = [np.asarray(v, dtype=np.float64).reshape(-1, 3) for v in views]
-    if weights is not None and len(weights) != len(pts):
-        raise ConfigError(f"merge_views: {len(pts)} views but {len(weights)} weight arrays")
-    ws = [
-        np.ones(len(p)) if weights is None else np.broadcast_to(np.asarray(w, dtype=np.float64), (len(p),))
-        for p, w in zip(pts, weights if weights is not None else [None] * len(pts), strict=True)
-    ]
-    source = np.full(sum(len(p) for p in pts), -1, np.int64)
-    starts = np.cumsum([0] + [len(p) for p in pts])
-
-    def each_view(
-        k: int, number: NDArray[np.int64], m: int, w: NDArray[np.float64], index: tuple[NDArray[Any], ...]
-    ) -> None:
-        source[starts[k] + index[0]] = number  # the view's finite points
-
-    merged = merge_view_stream(
-        lambda: ((p, w, np.arange(len(p))) for p, w in zip(pts, ws, strict=True)), voxel_mm, each_view
-    )
-    if merged is None:
-        raise ConfigError("merge_views: no finite points with a positive weight in any view")
-    return MergedCloud(merged.points_mm, merged.weight, merged.count, merged.n_views, source)
+def moved_means(bins: ViewBins, T: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A view's voxel means (its points' weighted mean in each of its voxels, at the kinematic pose) moved by
+    its refinement ``T`` (4x4, {P} to {P}), mm."""
+    return transform_points(np.asarray(T, dtype=np.float64), bins.mean)
 
 
 def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm: float) -> NDArray[np.bool_]:
@@ -232,49 +297,65 @@ def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm
     rest = [o for o in rest if len(o)]
     if not rest:
         return np.zeros(len(p), dtype=bool)
-    d, _ = cKDTree(np.vstack(rest)).query(p, distance_upper_bound=radius_mm)
+    near = np.vstack(rest)
+    # and only those in the cells of side radius_mm next to a cell of ``points`` (a view of few points spread
+    # over a wide box has far fewer others near it than in its box: the tree is built on those alone)
+    cells = np.floor((p - lo) / radius_mm).astype(np.int64)
+    around = np.unique(grid_keys((cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
+    keys = grid_keys(np.floor((near - lo) / radius_mm).astype(np.int64))
+    at = np.minimum(np.searchsorted(around, keys), len(around) - 1)
+    near = near[around[at] == keys]
+    if not len(near):
+        return np.zeros(len(p), dtype=bool)
+    d, _ = cKDTree(near).query(p, distance_upper_bound=radius_mm)
     return np.isfinite(d)
 
 
-def unregistered_redundant(
-    points: Callable[[int], NDArray[np.float64]], n_views: int, unregistered: Sequence[int], radius_mm: float
+_NEIGHBOURS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def held_redundant(
+    bins: Callable[[int], ViewBins],
+    T: Sequence[NDArray[np.float64]],
+    unregistered: Sequence[int],
+    radius_mm: float,
 ) -> dict[int, NDArray[np.bool_]]:
-    """Which points of each unregistered view (an index of the ``n_views`` views, whose points ``points(k)``
-    gives, (N_k, 3) mm) a registered view or an earlier unregistered one (cut so) measured
-    (:func:`measured_elsewhere`). The views are read one at a time: the unregistered ones are held, and of the
-    registered ones only their points within ``radius_mm`` of the unregistered views' box."""
+    """Which voxels of each unregistered view (an index of the views whose bins ``bins(k)`` gives, refined by
+    ``T[k]``, :func:`moved_means`) a registered view or an earlier unregistered one (cut so) measured: a
+    voxel mean of theirs within ``radius_mm`` (:func:`measured_elsewhere`). The voxel means stand for the
+    points in them (which lie within a voxel's diagonal, 0.35 mm at 0.2 mm, of their mean): a view's voxel
+    is given or cut whole. Of the registered views only the voxels in the unregistered ones' box are moved."""
     held = sorted(set(unregistered))
     if not held:
         return {}
-    mine = {k: np.asarray(points(k), dtype=np.float64).reshape(-1, 3) for k in held}
-    boxes = [(p.min(0) - radius_mm, p.max(0) + radius_mm) for p in mine.values() if len(p)]
-    others: list[NDArray[np.float64]] = []
-    if boxes:  # measured_elsewhere looks no further than a view's own box, which this one holds
-        lo, hi = np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
-        for m in range(n_views):
-            if m not in mine:
-                o = np.asarray(points(m), dtype=np.float64).reshape(-1, 3)
-                others.append(o[np.all((o >= lo) & (o <= hi), axis=1)])
-    redundant = {}
+    mine = {k: moved_means(bins(k), T[k]) for k in held}
+    redundant: dict[int, NDArray[np.bool_]] = {}
     for k in held:
-        redundant[k] = measured_elsewhere(mine[k], others, radius_mm)
-        others.append(mine[k][~redundant[k]])
+        p = mine[k]
+        if not len(p):
+            redundant[k] = np.zeros(0, dtype=bool)
+            continue
+        lo, hi = p.min(0) - radius_mm, p.max(0) + radius_mm  # only points in this box can be that close
+        corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), axis=-1).reshape(-1, 3)
+        others = [mine[j][~redundant[j]] for j in held if j in redundant]
+        for m in range(len(T)):
+            if m in mine:
+                continue
+            T_m = np.asarray(T[m], dtype=np.float64)
+            # the box at the view's kinematic pose holds its part of the refined one: grown by the most the
+            # inverse correction moves a corner (a rigid motion moves no point of the box farther)
+            grow = float(np.linalg.norm(transform_points(invert(T_m), corners) - corners, axis=1).max())
+            mean = bins(m).mean
+            o = transform_points(T_m, mean[_in_box(mean, lo - grow, hi + grow)])
+            others.append(o[_in_box(o, lo, hi)])
+        redundant[k] = measured_elsewhere(p, others, radius_mm)
     return redundant
 
 
-def cut_unregistered(
-    points: list[NDArray[np.float64]],
-    weights: list[NDArray[np.float64]],
-    unregistered: Sequence[int],
-    radius_mm: float,
-    *per_point: list[NDArray[np.float64]],
-) -> int:
-    """Cut each unregistered view (index into ``points``/``weights`` and any further ``per_point`` lists of
-    per-point arrays, changed in place) back to the surface that neither a registered view nor an earlier
-    unregistered one measured (:func:`unregistered_redundant`); returns how many points were cut."""
-    redundant = unregistered_redundant(lambda k: points[k], len(points), unregistered, radius_mm)
-    for k, cut in redundant.items():
-        points[k], weights[k] = points[k][~cut], weights[k][~cut]
-        for values in per_point:
-            values[k] = values[k][~cut]
-    return int(sum(int(cut.sum()) for cut in redundant.values()))
+def _in_box(points: NDArray[np.float64], lo: NDArray[Any], hi: NDArray[Any]) -> NDArray[np.int64]:
+    """Indices of ``points`` (N, 3) inside the box [lo, hi]: x tested on all, y and z on those left."""
+    idx = np.flatnonzero((points[:, 0] >= lo[0]) & (points[:, 0] <= hi[0]))
+    for j in (1, 2):
+        c = points[idx, j]
+        idx = idx[(c >= lo[j]) & (c <= hi[j])]
+    return idx

@@ -32,6 +32,31 @@ def above_table_mm(points_P: NDArray[np.float64], T_W_P: NDArray[np.float64]) ->
     return np.asarray(p @ T[2, :3] + T[2, 3], dtype=np.float64)  # z of the point in {W}
 
 
+def table_seam(
+    points_P: NDArray[np.float64],
+    T_W_P: NDArray[np.float64],
+    margin_mm: float,
+    nominal_P: NominalMesh,
+    band_mm: float = SEAM_BAND_MM,
+    deviation_mm: NDArray[np.float64] | None = None,
+) -> NDArray[np.bool_]:
+    """Which points of the aligned cloud ``points_P`` (N, 3, {P}) are table: those less than ``margin_mm``
+    above it (:func:`above_table_mm`), and those less than ``band_mm`` above it that lie outside the nominal
+    ``nominal_P`` by more than their height (nearer the table than the part: a table point the decode lifted
+    past the margin). ``deviation_mm``: the points' signed distances to ``nominal_P`` when the caller has
+    them (else computed for the band's points)."""
+    h = above_table_mm(points_P, T_W_P)
+    table = h < margin_mm
+    band = np.flatnonzero(~table & (h < band_mm))
+    if len(band):
+        if deviation_mm is None:
+            dev = signed_distance(nominal_P, points_P[band]).deviation_mm
+        else:
+            dev = deviation_mm[band]
+        table[band] = dev > h[band]
+    return table
+
+
 def crop_table_seam(
     points_P: NDArray[np.float64],
     u_mm: NDArray[np.float64] | None,
@@ -40,14 +65,7 @@ def crop_table_seam(
     nominal_P: NominalMesh,
     band_mm: float = SEAM_BAND_MM,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, int]:
-    """The aligned cloud ``points_P`` (N, 3, {P}) and its points' uncertainty ``u_mm`` (N,) without the table:
-    the points less than ``margin_mm`` above it (:func:`above_table_mm`), and those less than ``band_mm``
-    above it that lie outside the nominal ``nominal_P`` by more than their height (nearer the table than the
-    part: a table point the decode lifted past the margin). Returns both and how many were cut."""
-    h = above_table_mm(points_P, T_W_P)
-    table = h < margin_mm
-    band = np.flatnonzero(~table & (h < band_mm))
-    if len(band):
-        table[band] = signed_distance(nominal_P, points_P[band]).deviation_mm > h[band]
-    keep = ~table
-    return points_P[keep], (None if u_mm is None else u_mm[keep]), int(table.sum())
+    """The aligned cloud ``points_P`` (N, 3, {P}) and its points' uncertainty ``u_mm`` (N,) without the table
+    (:func:`table_seam`). Returns both and how many were cut."""
+    keep = ~table_seam(points_P, T_W_P, margin_mm, nominal_P, band_mm)
+    return points_P[keep], (None if u_mm is None else u_mm[keep]), int((~keep).sum())

@@ -17,7 +17,7 @@ Every number comes from what the cell itself measured or calibrated, never from 
    leaves them (its posterior covariance; a view it could not register keeps its prior) along each point's
    normal, less what the recipe's alignment takes out: a datum alignment the rigid motion its datums see
    (:func:`datum_alignment_map`), kinematic alignment nothing (the chain's whole error stays);
-4. **merge** (:func:`merged_uncertainty`, :class:`MergeShares`): the weighted voxel mean of the views; points
+4. **merge** (:class:`MergeShares`): the weighted voxel mean of the views; points
    of one view in a voxel share edges and pose, so their decode errors add linearly, the views' in
    quadrature; the pose errors through the views' shares of each point;
 5. **alignment**: the recipe alignment's own 1-sigma displacement from the noise of what it measured
@@ -37,7 +37,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.analysis.alignment import Datum
-from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.analysis.merge import MergedCloud
 from cell.analysis.view_refinement import ViewRefinement
 from cell.geometry import points_within, transform_points
@@ -147,7 +146,12 @@ def posterior_covariance(
 def _rows(points: Array, normals: Array, centre_mm: Array, lever_mm: float) -> Array:
     """(N, 6) rows mapping a correction x = (omega * lever, tau) to each point's motion along its normal."""
     p, n = np.asarray(points, np.float64).reshape(-1, 3), np.asarray(normals, np.float64).reshape(-1, 3)
-    return np.column_stack([np.cross(p - np.asarray(centre_mm), n) / lever_mm, n])
+    d = p - np.asarray(centre_mm)
+    out = np.empty((len(p), 6))
+    for i, (j, k) in enumerate(((1, 2), (2, 0), (0, 1))):  # (d x n) / lever: np.cross's products, column-wise
+        out[:, i] = (d[:, j] * n[:, k] - d[:, k] * n[:, j]) / lever_mm
+    out[:, 3:] = n
+    return out
 
 
 class ViewShares:
@@ -156,7 +160,7 @@ class ViewShares:
     fraction of the dense (M, n) float64 (1.1 GB for a 5 MP camera's 40 views). Indexed by a slice of rows or
     an array of row indices, it gives those rows dense."""
 
-    def __init__(self, m: int, index: list[NDArray[np.int64]], value: list[Array]) -> None:
+    def __init__(self, m: int, index: Sequence[NDArray[np.integer]], value: list[Array]) -> None:
         self.shape = (m, len(index))
         self._index, self._value = index, value
 
@@ -181,29 +185,27 @@ class ViewShares:
 
 
 class MergeShares:
-    """Each view's share of the merged points' weight (:class:`ViewShares`) and their merged decode u
-    (:func:`merged_uncertainty`), summed view by view as a merge gives the views' points: its ``each_view``
-    (:func:`cell.analysis.merge.merge_view_stream`, with the views' decode u (mm) as their first per-point
-    array, or none for the shares alone)."""
+    """Each view's share of the merged points' weight (:class:`ViewShares`) and their merged decode u, summed
+    view by view as the merge gives the views' voxels (its ``each_view``:
+    :func:`cell.analysis.merge.merge_bins`). Within a view the errors of one voxel's points are taken as fully
+    correlated (neighbouring pixels share edges, pose and calibration), so their weighted u add linearly;
+    the views add in quadrature: u = sqrt(sum_v (sum_i w_i u_i)_v^2) / sum w."""
 
     def __init__(self, n_views: int) -> None:
         self.n_views = n_views
-        self._index: list[NDArray[np.int64]] = [np.zeros(0, np.int64)] * n_views  # a view's merged points
+        self._index: list[NDArray[np.int32]] = [np.zeros(0, np.int32)] * n_views  # a view's merged points
         self._value: list[Array] = [np.zeros(0)] * n_views  # its summed weights there (then its shares)
         self._var: Array | None = None  # (M,) sum over views of (sum of w u of the view's points)^2
 
     def __call__(
-        self, k: int, number: NDArray[np.int64], m: int, w: Array, per_point: tuple[NDArray[Any], ...]
+        self, k: int, rows: NDArray[np.int64], m: int, weight: Array, wu: NDArray[np.floating]
     ) -> None:
-        """Add view ``k``: its points' merged-point ``number`` (of ``m``), merge weights and (u,)."""
-        column = np.asarray(np.bincount(number, weights=w, minlength=m), dtype=np.float64)
-        index = np.flatnonzero(column)  # the weights are > 0: every merged point the view has
-        self._index[k], self._value[k] = index, column[index]
-        if per_point:
-            if self._var is None:
-                self._var = np.zeros(m)
-            wu = w * np.asarray(per_point[0], dtype=np.float64).ravel()
-            self._var += np.square(np.bincount(number, weights=wu, minlength=m))
+        """Add view ``k``: the merged points it has (``rows`` of ``m``, ascending, distinct), its points'
+        weight sum at each and their weighted decode u sum (mm; NaN: none known)."""
+        self._index[k], self._value[k] = np.asarray(rows, np.int32), np.asarray(weight, np.float64)
+        if self._var is None:
+            self._var = np.zeros(m)
+        self._var[rows] += np.square(np.asarray(wu, dtype=np.float64))
 
     def shares(self, merged: MergedCloud) -> ViewShares:
         """(M, n) each view's share of every merged point's weight (rows sum to 1)."""
@@ -211,16 +213,9 @@ class MergeShares:
         return ViewShares(len(merged.weight), self._index, value)
 
     def decode(self, merged: MergedCloud) -> NDArray[np.float64]:
-        """u (mm) of every merged point from its views' decode u (:func:`merged_uncertainty`)."""
-        assert self._var is not None, "no view with a decode u was added"
+        """u (mm) of every merged point from its views' decode u."""
+        assert self._var is not None, "no view was added"
         return np.asarray(np.sqrt(self._var) / merged.weight, dtype=np.float64)
-
-
-def _per_view(merged: MergedCloud, per_point: Sequence[Array]) -> list[tuple[NDArray[np.int64], Array]]:
-    """Each view's slice of ``merged.source`` beside its array of ``per_point`` (the inputs' order)."""
-    assert merged.source is not None, "a streamed merge gives each view's source as it merges"
-    ends = np.cumsum([len(x) for x in per_point])
-    return [(merged.source[e - len(x) : e], x) for x, e in zip(per_point, ends, strict=True)]
 
 
 def datum_alignment_map(
@@ -254,22 +249,6 @@ def pose_uncertainty_of_points(
         s, r = shares[a : a + POINTS_PER_CHUNK], rows[a : a + POINTS_PER_CHUNK]
         out[a : a + len(r)] = pose_sigma(s, r, covariance, alignment_map)
     return out
-
-
-def merged_uncertainty(
-    merged: MergedCloud, weights: Sequence[Array], u_views: Sequence[Array]
-) -> NDArray[np.float64]:
-    """u (mm) of every merged point from its input points' ``u_views`` (one array per view, in the order and
-    with the points given to :func:`cell.analysis.merge.merge_views`) and merge ``weights``: within a view the
-    errors of one voxel's points are taken as fully correlated (neighbouring pixels share edges, pose and
-    calibration), so their weighted u add linearly; the views add in quadrature."""
-    acc = MergeShares(len(weights))
-    # view by view (no copy of all input points): the sum of w u of one view's points in each voxel, squared
-    for k, ((src, u), w) in enumerate(zip(_per_view(merged, u_views), weights, strict=True)):
-        ok = src >= 0
-        w_ok = np.asarray(w, dtype=np.float64).ravel()[ok]
-        acc(k, src[ok], len(merged.points_mm), w_ok, (np.asarray(u, dtype=np.float64).ravel()[ok],))
-    return acc.decode(merged)
 
 
 def combine(*terms_mm: NDArray[np.floating] | float) -> NDArray[np.float64]:
@@ -317,17 +296,18 @@ def registered_cloud_uncertainty(
     decode_mm: Array,
     refinement: ViewRefinement,
     prior: dict[str, Any],
-    nominal_W: NominalMesh,
+    normals_W: Array,
     T_W_cloud: Array,
     alignment: dict[str, Any],
     datums: Sequence[Datum] = (),
 ) -> CloudUncertainty:
     """u of every point of an inspection's merged cloud (in the frame ``T_W_cloud`` maps to {W}) from the
     views' ``shares`` (M, n) of its points (:class:`ViewShares`) and its merged decode u ``decode_mm`` (M,)
-    (:func:`merged_uncertainty`; both from :class:`MergeShares` while the views merge); the views' pose
-    errors after the refinement (:class:`cell.analysis.view_refinement.ViewRefinement`) under the ``prior``
-    it ran under (its record: ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal,
-    less what the recipe's alignment removes (its record: ``to_json`` of
+    (both from :class:`MergeShares` while the views merge); the views' pose errors after the refinement
+    (:class:`cell.analysis.view_refinement.ViewRefinement`) under the ``prior`` it ran under (its record:
+    ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal at each point,
+    ``normals_W`` (M, 3, {W}: the normal of the nominal face nearest the point as judged, from its error
+    map), less what the recipe's alignment removes (its record: ``to_json`` of
     :class:`cell.analysis.alignment.Alignment`): a datum alignment (the ``datums`` resolved on the nominal, in
     the cloud's frame) the rigid motion its datums see (:func:`datum_alignment_map`), any other measured
     alignment the views' mean motion, kinematic alignment nothing; plus the alignment's own uncertainty."""
@@ -338,7 +318,6 @@ def registered_cloud_uncertainty(
     lever = refinement.lever_mm
     C = posterior_covariance(refinement.information, n, sigma_mm, sigma_rad, lever)
     points_W = transform_points(T, merged.points_mm)
-    normals_W = nominal_W.face_normals[signed_distance(nominal_W, points_W).face]
     centre = refinement.centre_mm if refinement.centre_mm is not None else points_W.mean(axis=0)
     method = alignment.get("method", "kinematic")
     B: Array | None = None

@@ -161,14 +161,32 @@ class PairMatch:
 class OverlapCache:
     """What the refinement finds between two views at their kinematic poses (no correction yet): each ordered
     pair's candidate pool (the source's trusted points in the target's box, grown by the first match radius
-    and :data:`POOL_SLACK_MM`, in a random order of the pair's own) and its first matching. Both depend on the
-    two views alone, so they hold while views are added, and a view's decode worker can make them as it
-    arrives (:func:`prepare_overlaps`)."""
+    and :data:`POOL_SLACK_MM`, in a random order of the pair's own) and its first matching, and each view's
+    bounding box. They depend on the views alone, so they hold while views are added, and a view's decode
+    worker can make them as it arrives (:func:`prepare_overlaps`)."""
 
     def __init__(self) -> None:
         self._pools: dict[tuple[int, int, float, int], NDArray[np.integer]] = {}
         self._first: dict[tuple[Any, ...], PairMatch | None] = {}
+        self._boxes: dict[int, tuple[Array, Array]] = {}
         self._lock = threading.Lock()
+
+    def forget(self, view: int) -> None:
+        """Drop what the cache holds of view ``view`` (it is measured again: its overlaps are made anew)."""
+        with self._lock:
+            self._pools = {k: v for k, v in self._pools.items() if view not in k[:2]}
+            self._first = {k: v for k, v in self._first.items() if view not in k[:2]}
+            self._boxes.pop(view, None)
+
+    def box(self, view: int, points: Array) -> tuple[Array, Array]:
+        """The bounding box (min, max) of view ``view``'s ``points`` (zeros when it has none), found once."""
+        with self._lock:
+            found = self._boxes.get(view)
+        if found is None:
+            found = (points.min(0), points.max(0)) if len(points) else (np.zeros(3), np.zeros(3))
+            with self._lock:
+                self._boxes[view] = found
+        return found
 
     def pool(self, a: _Side, b: _Side, radius_mm: float, seed: int) -> NDArray[np.integer]:
         key = (a.id, b.id, radius_mm, seed)
@@ -199,6 +217,7 @@ def _sides(
     cameras: list[Array] | None,
     trees: list[cKDTree | None] | None,
     ids: list[int] | None,
+    cache: OverlapCache,
 ) -> list[_Side]:
     return [
         _Side(
@@ -206,7 +225,7 @@ def _sides(
             lp,
             (trees[k] if trees is not None else (cKDTree(v) if len(v) else None)),
             None if cameras is None else np.asarray(cameras[k], dtype=np.float64),
-            (v.min(0), v.max(0)) if len(v) else (np.zeros(3), np.zeros(3)),
+            cache.box(k if ids is None else int(ids[k]), v),
             k if ids is None else int(ids[k]),
         )
         for k, (v, lp) in enumerate(zip(views, planes, strict=True))
@@ -309,7 +328,7 @@ def prepare_overlaps(
     """Make the first matching (at the kinematic poses, :func:`refine_views`' first radius) of view ``new``
     (a position in the lists) with every other view, both ways, into ``cache``: what a refinement over these
     views does first, done as the view arrives."""
-    sides = _sides(views, planes, cameras, trees, ids)
+    sides = _sides(views, planes, cameras, trees, ids, cache)
     for other in range(len(sides)):
         if other == new:
             continue
@@ -353,8 +372,8 @@ def refine_views(
     centre = np.vstack(nonempty).mean(axis=0) if nonempty else np.zeros(3)
     lever = max(float(np.linalg.norm(np.vstack(nonempty) - centre, axis=1).max()), 1.0) if nonempty else 1.0
     normals = planes if planes is not None else [estimate_normals(v) for v in views]
-    sides = _sides(views, normals, cameras, trees, ids)
     cache = cache if cache is not None else OverlapCache()
+    sides = _sides(views, normals, cameras, trees, ids, cache)
     sigma_r = np.broadcast_to(np.asarray(sigma_r_rad, dtype=np.float64), (n_views,))
     sigma_t = np.broadcast_to(np.asarray(sigma_t_mm, dtype=np.float64), (n_views,))
     # per view: three rotation weights (as mm at the lever arm), three translation weights
@@ -368,7 +387,8 @@ def refine_views(
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="refine") as pool:
         for it, radius in enumerate(radii_mm):
             boxes = [
-                _moved_box(Ti, side.points) if it else side.box for Ti, side in zip(T, sides, strict=True)
+                _moved_box(Ti, side.points, side.box) if it else side.box
+                for Ti, side in zip(T, sides, strict=True)
             ]
             ordered = [
                 (i, j)
@@ -474,8 +494,18 @@ def refine_views(
     )
 
 
-def _moved_box(T: Pose, points: Array) -> tuple[Array, Array]:
+def _moved_box(T: Pose, points: Array, box: tuple[Array, Array]) -> tuple[Array, Array]:
+    """The bounding box of ``points`` (their own box: ``box``) moved by the rigid motion ``T``. A turn R moves
+    a point relative to the box's centre by at most |R - I| times its distance from it, so a point farther
+    than twice that inside every face of ``box`` cannot be extreme once moved: only the points near a face
+    are moved (a small correction's box from a few percent of the points; the same box)."""
     if not len(points):
         return np.zeros(3), np.zeros(3)
-    moved = transform_points(T, points)
+    lo, hi = box
+    # how far the turn moves a point relative to the centre at most: |R - I| (its Frobenius norm, at least the
+    # spectral one) times the half-diagonal
+    reach = float(np.linalg.norm(T[:3, :3] - np.eye(3)) * np.linalg.norm(hi - lo) / 2)
+    margin = 2.0 * reach + 1e-6  # and a nanometre for the rounding of the moved coordinates
+    near = np.flatnonzero(np.any((points >= hi - margin) | (points <= lo + margin), axis=1))
+    moved = transform_points(T, points[near])
     return moved.min(0), moved.max(0)

@@ -8,6 +8,7 @@ job. Every decision is appended to the plan's log with its reason.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -33,14 +34,72 @@ def cost_q(hole_area_mm2: float, distance_area_mm2: float, w: float) -> float:
     return float(abs(complex(w * hole_area_mm2, distance_area_mm2)))
 
 
+MAP_LINK_MM = 0.5  # the maps compare a point with the nearest point of another view within this distance
+Pairs = tuple[NDArray[np.integer], NDArray[np.integer]]
+# the pairs of two views (positions in the maps' view list) within a link distance: the first view's points
+# that have a neighbour in the second, and that neighbour's index, both ascending in the first view's order
+PairsOf = Callable[[int, int, float], Pairs]
+NO_PAIRS: Pairs = (np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp))
+
+
+def nearest_within(points: Array, tree: cKDTree | None, link_mm: float) -> Pairs:
+    """The indices of ``points`` (mm) with a point of ``tree`` within ``link_mm``, and that nearest point's
+    index in the tree; only points in the tree's box grown by the link distance are looked up."""
+    if tree is None or tree.n == 0 or not len(points):
+        return NO_PAIRS
+    inside = np.flatnonzero(
+        np.all((points >= tree.mins - link_mm) & (points <= tree.maxes + link_mm), axis=1)
+    )
+    d, k = tree.query(points[inside], distance_upper_bound=link_mm)
+    near = np.isfinite(d)
+    return inside[near], np.asarray(k)[near]
+
+
+def pairs_at(views: list[MeasuredView]) -> PairsOf:
+    """The maps' pairs found at the views' points as given (a KD-tree of each view's points, built once and
+    used by both maps): what the maps use when the caller has no pairs of its own (:func:`evaluate`)."""
+    trees = view_trees(views)
+    return lambda a, b, link_mm: nearest_within(views[a].points_W, trees[b], link_mm)
+
+
+class PairCache:
+    """The maps' pairs of two views by the views' ids (:func:`nearest_within` of the first view's points in
+    the second's tree, found at the points the views were first given: the inspection's evaluation points at
+    their kinematic poses), kept while views are added: they depend on the two views alone, so a view's
+    decode worker can find them as it arrives and a resumed run finds the same when first asked."""
+
+    def __init__(self) -> None:
+        self._pairs: dict[tuple[int, int, float], Pairs] = {}
+        self._lock = threading.Lock()
+
+    def forget(self, view: int) -> None:
+        """Drop the pairs of view ``view`` (it is measured again: its pairs are found anew)."""
+        with self._lock:
+            self._pairs = {k: v for k, v in self._pairs.items() if view not in k[:2]}
+
+    def pairs(self, a: int, b: int, link_mm: float, points_a: Array, tree_b: cKDTree | None) -> Pairs:
+        """The pairs of view ``a`` (points ``points_a``) in view ``b`` (``tree_b``), found once."""
+        key = (a, b, link_mm)
+        with self._lock:
+            found = self._pairs.get(key)
+        if found is None:
+            src, dst = nearest_within(points_a, tree_b, link_mm)
+            # int32 (the same indices): the pairs of all view pairs are kept
+            small = len(points_a) < 2**31 and (tree_b is None or tree_b.n < 2**31)
+            found = (src.astype(np.int32), dst.astype(np.int32)) if small else (src, dst)
+            with self._lock:
+                self._pairs[key] = found
+        return found
+
+
 def accuracy_map(
     views: list[MeasuredView],
     normals_at: Callable[[Array], Array],
     tol_mm: float,
-    link_mm: float = 0.5,
+    link_mm: float = MAP_LINK_MM,
     first_new: int = 1,
     max_incidence_deg: float = 90.0,
-    trees: list[cKDTree | None] | None = None,
+    pairs: PairsOf | None = None,
 ) -> Array:
     """IA (eq 3.9): points of a view that disagree along the surface normal by more than ``tol_mm`` with the
     nearest point (within ``link_mm``) of an earlier overlapping view. Pairs whose nominal normals differ by
@@ -55,49 +114,49 @@ def accuracy_map(
     still take them: coverage counts what was measured at all, and the merge weighs points by decode quality,
     not incidence.)
 
-    ``trees``: KD-trees of the views' points (None for an empty view) when the caller has them
-    (:func:`view_trees`)."""
+    ``pairs``: which points are each other's nearest (:data:`PairsOf`; default: found at the views' points,
+    :func:`pairs_at`). The inspection pairs its views once, at their kinematic poses, as each view arrives,
+    and compares the pairs at the refined ones (cell.inspection); everything else here (incidence, normals,
+    deviations, the flagged points) is taken at the points as given."""
     min_cos = float(np.cos(np.deg2rad(max_incidence_deg)))  # used below 90 deg only
     out = []
-    trees = view_trees(views[:-1]) if trees is None else trees
-    boxes = [(v.points_W.min(axis=0), v.points_W.max(axis=0)) if len(v.points_W) else None for v in views]
+    pairs = pairs_at(views) if pairs is None else pairs
     for j in range(max(1, first_new), len(views)):
         vj = views[j]
         pj = vj.points_W
         if len(pj) == 0:
             continue
-        for i in range(j):
-            vi, tree, box, box_j = views[i], trees[i], boxes[i], boxes[j]
+        found = [(i, *pairs(j, i, link_mm)) for i in range(j) if len(views[i].points_W)]
+        found = [(i, src, dst) for i, src, dst in found if len(src)]
+        if max_incidence_deg < 90.0 and found:
+            # the nominal normal of each of view j's paired points, once however many views it is paired in
+            used = np.zeros(len(pj), dtype=bool)
+            for _, src, _ in found:
+                used[src] = True
+            at = np.cumsum(used) - 1  # where a paired point's normal is in n_used
+            n_used = normals_at(pj[used])
+        for i, src, dst in found:
+            vi = views[i]
             pi = vi.points_W
-            if tree is None or box is None or box_j is None:
-                continue
-            if not (np.all(box[0] <= box_j[1] + link_mm) and np.all(box_j[0] <= box[1] + link_mm)):
-                continue
-            # only view j's points in view i's box (grown by the link distance) can have a neighbour there
-            inside = np.flatnonzero(np.all((pj >= box[0] - link_mm) & (pj <= box[1] + link_mm), axis=1))
-            d = np.full(len(pj), np.inf)
-            k = np.full(len(pj), len(pi), dtype=np.int64)
-            d[inside], k[inside] = tree.query(pj[inside], distance_upper_bound=link_mm)
-            near = np.isfinite(d)
-            if max_incidence_deg < 90.0 and near.any():
-                n_nom = normals_at(pj[near])
-                seen = (incidence_cos(pj[near], n_nom, vj.T_W_C[:3, 3]) >= min_cos) & (
-                    incidence_cos(pi[k[near]], n_nom, vi.T_W_C[:3, 3]) >= min_cos
+            if max_incidence_deg < 90.0:
+                n_nom = n_used[at[src]]
+                seen = (incidence_cos(pj[src], n_nom, vj.T_W_C[:3, 3]) >= min_cos) & (
+                    incidence_cos(pi[dst], n_nom, vi.T_W_C[:3, 3]) >= min_cos
                 )
-                near[np.flatnonzero(near)[~seen]] = False
-            if not near.any():
+                src, dst = src[seen], dst[seen]
+            if not len(src):
                 continue
             dj, di = vj.deviation_mm, vi.deviation_mm
             if dj is not None and di is not None:
                 # deviations from the nominal: robust on bends and sheet edges, where normals are not
-                gap = np.abs(dj[near] - di[k[near]])
+                gap = np.abs(dj[src] - di[dst])
                 same = np.ones(len(gap), dtype=bool)
             else:
-                nj = vj.normals_W[near] if vj.normals_W is not None else normals_at(pj[near])
-                ni = vi.normals_W[k[near]] if vi.normals_W is not None else normals_at(pi[k[near]])
+                nj = vj.normals_W[src] if vj.normals_W is not None else normals_at(pj[src])
+                ni = vi.normals_W[dst] if vi.normals_W is not None else normals_at(pi[dst])
                 same = np.einsum("ij,ij->i", nj, ni) > np.cos(np.deg2rad(10.0))
-                gap = np.abs(np.einsum("ij,ij->i", pj[near] - pi[k[near]], nj))
-            out.append(_consistent(pj[near][same], gap[same] > tol_mm))
+                gap = np.abs(np.einsum("ij,ij->i", pj[src] - pi[dst], nj))
+            out.append(_consistent(pj[src][same], gap[same] > tol_mm))
     return np.vstack(out) if out else np.zeros((0, 3))
 
 
@@ -110,37 +169,31 @@ def view_trees(views: list[MeasuredView]) -> list[cKDTree | None]:
 def uncertainty_map(
     views: list[MeasuredView],
     u_max_mm: float,
-    link_mm: float = 0.5,
-    trees: list[cKDTree | None] | None = None,
+    link_mm: float = MAP_LINK_MM,
+    pairs: PairsOf | None = None,
 ) -> Array:
     """IU: points where the views together measure with a standard uncertainty above ``u_max_mm`` (the
     accuracy target, U = k u at most a quarter of the tolerance band, over k). Each view's points carry
     their own u (decode and calibration: what more views can average); where several views measured a spot
-    (within ``link_mm``) their u combine as independent measurements, 1/u^2 = sum 1/u_v^2. Only areas count
-    (:func:`_consistent`): a few uncertain points at a sheet edge are no reason for a view. ``trees``: the
-    views' KD-trees (:func:`view_trees`) when the caller has them."""
+    (within ``link_mm``) their u combine as independent measurements, 1/u^2 = sum 1/u_v^2 (summed in view
+    order). Only areas count (:func:`_consistent`): a few uncertain points at a sheet edge are no reason for
+    a view. ``pairs``: which points are each other's nearest, as for :func:`accuracy_map`."""
     carrying = [k for k, v in enumerate(views) if v.uncertainty_mm is not None and len(v.points_W)]
     if not carrying:
         return np.zeros((0, 3))
+    pairs = pairs_at(views) if pairs is None else pairs
     pts = np.vstack([views[c].points_W for c in carrying])
-    ends = np.cumsum([len(views[c].points_W) for c in carrying])
+    starts = np.cumsum([0] + [len(views[c].points_W) for c in carrying])
     info = np.zeros(len(pts))
-    for c, end in zip(carrying, ends, strict=True):
-        v = views[c]
-        tree = trees[c] if trees is not None else None
-        u = np.asarray(v.uncertainty_mm, dtype=np.float64)
-        # each of the view's own points is its own nearest (at 0 mm): not looked up in its tree
-        own = np.arange(end - len(v.points_W), end)
-        # of the others only those in the view's box grown by the link distance can have a neighbour in it
-        lo, hi = v.points_W.min(axis=0) - link_mm, v.points_W.max(axis=0) + link_mm
-        inside = np.flatnonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
-        inside = inside[(inside < own[0]) | (inside >= end)]
-        tree = cKDTree(v.points_W) if tree is None else tree
-        d, k = (np.asarray(a) for a in tree.query(pts[inside], distance_upper_bound=link_mm))
-        near = np.isfinite(d)
-        at = np.concatenate([own, inside[near]])
-        k = np.concatenate([np.arange(len(own)), k[near]])
-        info[at] += 1.0 / np.square(np.where(np.isfinite(u[k]), u[k], np.inf))
+    for c in carrying:
+        u = np.asarray(views[c].uncertainty_mm, dtype=np.float64)
+        w = 1.0 / np.square(np.where(np.isfinite(u), u, np.inf))  # view c's information per point (1/mm^2)
+        for a, start in zip(carrying, starts, strict=False):
+            if a == c:  # each of the view's own points is its own nearest (at 0 mm)
+                info[start : start + len(w)] += w
+                continue
+            src, dst = pairs(a, c, link_mm)
+            info[start + src] += w[dst]
     with np.errstate(divide="ignore"):
         u_all = 1.0 / np.sqrt(info)
     return _consistent(pts, u_all > u_max_mm)
@@ -330,18 +383,20 @@ def evaluate(
     ia_before: Array,
     u_max_mm: float | None = None,
     covered: NDArray[np.bool_] | None = None,
+    pairs: PairsOf | None = None,
 ) -> Evaluation:
     """Coverage, hole area u, accuracy map IA (views from ``first_new`` on against earlier ones, added to
     ``ia_before``) and its area v, given the target ``u_max_mm`` the uncertainty map IU
     (:func:`uncertainty_map`) and its area, and Q = |w u + j v'| against the set point, v' the area of IA and
     IU together. ``covered``: the samples the views' points cover, when the caller counted them already
-    (:func:`covered_by_views`)."""
+    (:func:`covered_by_views`). ``pairs``: which points of two views are each other's nearest (the maps'
+    :data:`PairsOf`; default: found at the views' points, once for both maps)."""
     st, s = fb.st, fb.plan.surface
     if covered is None:
         pts = np.vstack([v.points_W for v in views]) if views else np.zeros((0, 3))
         covered = covered_by_points(s, pts, st.point_density_per_mm2, st.coverage_radius_mm)
     u = float(s.area[s.inspectable & ~covered].sum())
-    trees = view_trees(views)  # for both maps
+    pairs = pairs_at(views) if pairs is None else pairs  # for both maps
     ia = np.vstack(
         [
             ia_before,
@@ -351,11 +406,11 @@ def evaluate(
                 st.accuracy_tol_mm,
                 first_new=first_new,
                 max_incidence_deg=st.theta_camera_deg,
-                trees=trees,
+                pairs=pairs,
             ),
         ]
     )
-    iu = np.zeros((0, 3)) if u_max_mm is None else uncertainty_map(views, u_max_mm, trees=trees)
+    iu = np.zeros((0, 3)) if u_max_mm is None else uncertainty_map(views, u_max_mm, pairs=pairs)
     v_area = float(s.area[fb.samples_near(ia, 1.0)].sum()) if len(ia) else 0.0
     iu_area = float(s.area[fb.samples_near(iu, 1.0)].sum()) if len(iu) else 0.0
     flagged = np.vstack([ia, iu])
