@@ -54,6 +54,7 @@ from cell.errors import (
     StorageError,
     ViewProcessingError,
 )
+from cell.memory import map_large_arrays, release_free_heap
 from cell.planning.motion import Move
 from cell.run_data import Checkpoint, Evaluation, Phase, View
 from cell.runs import RunFolder
@@ -403,6 +404,7 @@ class Controller:
         """Run until done, paused, faulted or aborted; returns the final state. Devices are made safe on
         exit."""
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="decode")
+        map_large_arrays()  # whole images in mappings of their own, not in the heaps (cell.memory)
         in_main = threading.current_thread() is threading.main_thread()
         previous = {}
         if in_main:  # Ctrl-C and SIGTERM (systemd, docker stop, kill) both pause safely, mid-move too
@@ -628,6 +630,9 @@ class Controller:
                     code = exc.errno or errno.ENOSPC
                     raise OSError(code, os.strerror(code), str(self.run.view_dir(index))) from exc
                 raise
+        # the view's images and whole-image temporaries are freed now: give their pages back, or the heap's
+        # free gaps grow view by view (cell.memory)
+        release_free_heap()
         return summary
 
     def _collect(self, *, block: bool) -> None:
@@ -714,6 +719,7 @@ class Controller:
 
     def _do_replanning(self) -> None:
         self._drop_ahead()  # more views: the registration is made again when they are measured
+        release_free_heap()  # the dropped registration's arrays, before the next views' scan
         cp = self.checkpoint
         assert cp.evaluation is not None  # saved with the replanning phase
         room = self.settings.view_budget - len(cp.views)

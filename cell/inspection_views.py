@@ -43,12 +43,16 @@ from cell.view_files import (
 PLANES_FILE = "planes.npz"  # the evaluation subset's local planes (float64 centroids and normals, bool ok)
 REGIONS_FILE = "defects.npz"  # the hole regions (format 2: 0.1 um steps; format 1: float64)
 REGIONS_FORMAT = 2
-# the views' full point sets kept in memory at most (33 bytes a point: a 1024x768 view ~10 MB, a 5 MP view
-# ~75 MB); beyond it the oldest views' points are dropped and read from their folders when needed (by the
+# the views' full point sets kept in memory at most (33 bytes a point: a 1024x768 view ~15 MB, a 5 MP view
+# 73-89 MB); beyond it the oldest views' points are dropped and read from their folders when needed (by the
 # registration, one view at a time). A fixed figure, not one that grows with the camera: the 1024x768 cell's
-# dozen views (0.12 GB) stay held, a 5 MP camera's dozen (0.9 GB) would sit beside the registration's own
-# ~2 GB at its peak (docs/benchmarks.md, "Peak memory of a whole inspection"), so only its last ~3 stay
+# dozen views (0.19 GB) stay held, a 5 MP camera's dozen (0.9 GB) would sit beside the registration's own
+# ~2 GB at its peak (docs/benchmarks.md, "Peak memory of a whole inspection")
 POINTS_IN_MEMORY_BYTES = 256_000_000
+# and a view's points only while they are at most this big (the newest view's stay until the next one comes):
+# a 5 MP view's would save the registration one read of its folder (~0.5 s CPU) for up to 90 MB held through
+# the scan and beside the registration's peak; the 1024x768 cell's are all kept
+POINTS_HELD_VIEW_MAX_BYTES = 32_000_000
 
 
 @dataclass
@@ -207,11 +211,16 @@ class ViewStore:
     """The completed views of the run a job works on, each read once: :meth:`add` from the decode worker
     (the view as it is being written), :meth:`get` reads a view not added (a run resumed by a new process)."""
 
-    def __init__(self, points_budget_bytes: int = POINTS_IN_MEMORY_BYTES) -> None:
+    def __init__(
+        self,
+        points_budget_bytes: int = POINTS_IN_MEMORY_BYTES,
+        held_view_max_bytes: int = POINTS_HELD_VIEW_MAX_BYTES,
+    ) -> None:
         self._views: dict[int, ViewResult] = {}
         self._run: Path | None = None
         self._lock = threading.Lock()
         self.points_budget_bytes = points_budget_bytes
+        self.held_view_max_bytes = held_view_max_bytes
 
     def _for(self, run: RunFolder) -> None:
         """Forget the views of another run folder: a job works on one run (the first one it is asked about
@@ -239,12 +248,13 @@ class ViewStore:
         return found
 
     def _within_budget(self, keep: int) -> None:
-        """Drop the full points of the views added first until the held ones fit the budget (the newest view
-        stays, whatever its size)."""
+        """Drop the full points of views bigger than ``held_view_max_bytes``, and of the views added first
+        until the held ones fit the budget (the newest view stays, whatever its size)."""
         held = sum(v.held_bytes for v in self._views.values())
         for index, view in self._views.items():
-            if held <= self.points_budget_bytes:
-                break
+            big = view.held_bytes > self.held_view_max_bytes
+            if held <= self.points_budget_bytes and not big:
+                continue
             if index != keep and view.held is not None and view.folder is not None:
                 held -= view.held_bytes
                 view.held = None

@@ -1,5 +1,6 @@
 """The inspection's views in memory (cell/inspection_views.py): each read once, the full points held within a
-byte budget (the oldest dropped and read again from the folder, identical), the local planes as stored."""
+byte budget (the oldest dropped and read again from the folder, identical; big views' dropped once the next
+comes), the local planes as stored."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from cell.inspection_views import (
     ViewResult,
     ViewStore,
     load_regions,
+    load_view_result,
     remove_planes,
     save_planes,
     save_regions,
@@ -74,6 +76,14 @@ def test_the_store_holds_full_points_within_its_budget_and_reads_the_rest(tmp_pa
         assert np.array_equal(again.planes.ok, made[i].planes.ok)
     d, _ = again.eval_tree.query(again.eval_W[:5])
     assert np.all(d == 0)
+    # views bigger than the store's limit for one view: only the newest one's points are held, whatever room
+    fresh = [load_view_result(run.view_dir(i), i) for i in range(3)]
+    big = ViewStore(points_budget_bytes=10 * one, held_view_max_bytes=one - 1)
+    for view in fresh:
+        assert view.held is not None
+        big.add(view)
+    assert [v.held is None for v in fresh] == [True, True, False]
+    assert np.array_equal(big.get(run, 0).points().points_W, made[0].points().points_W)  # from its folder
 
 
 def test_the_hole_regions_are_stored_in_steps_and_old_files_still_read(tmp_path: Path) -> None:
