@@ -32,3 +32,59 @@ def test_release_free_heap_is_a_no_op_without_glibc(monkeypatch: pytest.MonkeyPa
     for _ in range(2):
         assert memory.release_free_heap() is False
         assert memory.map_large_arrays() is False
+
+
+# run in a fresh interpreter: the calls change the whole process's allocator (the threshold stays fixed)
+_EFFECT = r"""
+import ctypes, sys
+from cell import memory
+
+class Mallinfo2(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+                 "fordblks", "keepcost")]
+
+libc = ctypes.CDLL(None)
+libc.mallinfo2.restype = Mallinfo2
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+MiB = 1 << 20
+
+def mapped(): return libc.mallinfo2().hblkhd
+def rss(): return int(open("/proc/self/statm").read().split()[1]) * 4096
+
+if sys.argv[1] == "map":
+    if sys.argv[2] == "set":
+        memory.map_large_arrays()
+    libc.free(libc.malloc(20 * MiB))  # glibc's own rule raises its threshold past 20 MiB on this free
+    before = mapped()
+    block = libc.malloc(16 * MiB)
+    print(mapped() - before)
+else:
+    blocks = [libc.malloc(64 * 1024) for _ in range(1600)]  # 100 MiB of heap blocks (under the threshold)
+    for b in blocks:
+        ctypes.memset(b, 1, 64 * 1024)
+    for b in blocks[:-1]:  # the last one pins the heap's top: only a trim gives the pages below it back
+        libc.free(b)
+    before = rss()
+    if sys.argv[2] == "set":
+        memory.release_free_heap()
+    print(before - rss())
+"""
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's allocator only")
+def test_the_calls_change_what_glibc_does() -> None:
+    """Without map_large_arrays a 16 MiB block comes from the heap once glibc raised its threshold; with it,
+    it gets its own mapping. Without release_free_heap the freed pages below a held block stay resident;
+    with it, they are given back."""
+    import subprocess
+    import sys
+
+    def run(*args: str) -> int:
+        cmd = [sys.executable, "-c", _EFFECT, *args]
+        return int(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout)
+
+    mib = 1 << 20
+    assert run("map", "unset") == 0 and run("map", "set") >= 16 * mib
+    assert run("trim", "unset") < 5 * mib and run("trim", "set") > 80 * mib
