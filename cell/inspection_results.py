@@ -89,10 +89,6 @@ class MergeBins:
                     break
                 held -= self._bins.pop(k).nbytes
 
-    def get(self, index: int) -> ViewBins | None:
-        with self._lock:
-            return self._bins.get(index)
-
     def view(
         self, index: int, make: Callable[[], tuple[NDArray[np.int64], ViewBins, int]]
     ) -> tuple[NDArray[np.int32], ViewBins]:

@@ -26,10 +26,15 @@ def _since(text: str | None) -> datetime | None:
     return t if t.tzinfo else t.astimezone()
 
 
+def results_db_label(runs: Path, cell: Path | None) -> str:
+    """Which results database a query command reads, said before it is opened: the cell config's (named by
+    the config file, which is not read yet) or the runs root's results.sqlite."""
+    return f"the results database of cell {cell}" if cell else f"{runs / 'results.sqlite'}"
+
+
 def _intent(runs: Path, cell: Path | None, *, sync: bool, rebuild: bool, spc: str | None) -> str:
-    """The command's first line: what it is about to do and which database (by its runs root, or the cell
-    config that names it), said before the database is opened."""
-    db = f"the results database of cell {cell}" if cell else f"{runs / 'results.sqlite'}"
+    """The command's first line: what it is about to do and which database (:func:`results_db_label`)."""
+    db = results_db_label(runs, cell)
     if rebuild:
         return f"rebuilding {db} from the run folders in {runs}"
     if sync:

@@ -95,7 +95,9 @@ def history_cmd(
 ) -> None:
     """Every stored interim check, oldest first: PF, PS, SD, F (um) and the verdict."""
     # what it reads, before the database layer's import (SQLAlchemy: 0.2 s of CPU) and the query
-    where = f"the results database of cell {config}" if config else f"{runs / 'results.sqlite'}"
+    from cell.commands.history import results_db_label
+
+    where = results_db_label(runs, config)
     typer.echo(f"interim checks{f' of cell {cell}' if cell else ''} in {where}, oldest first")
     from cell.verification.history import FIGURES, VerificationHistory
 
