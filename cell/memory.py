@@ -21,22 +21,29 @@ from collections.abc import Callable
 __all__ = ["HEAP_ARRAY_LIMIT_BYTES", "map_large_arrays", "release_free_heap"]
 
 
-def _glibc_malloc_trim() -> Callable[[int], int] | None:
-    """glibc's ``malloc_trim`` from the running process, or None where the C library is not glibc."""
+def _glibc() -> ctypes.CDLL | None:
+    """The running process's C library when it is glibc (Linux), else None (musl has no
+    ``gnu_get_libc_version``; other systems are not looked at)."""
     if not sys.platform.startswith("linux"):
         return None
     try:
         libc = ctypes.CDLL(None)
         libc.gnu_get_libc_version  # noqa: B018  # glibc only: musl has no such symbol
-        trim = libc.malloc_trim
     except (OSError, AttributeError):
         return None
-    trim.argtypes = [ctypes.c_size_t]
-    trim.restype = ctypes.c_int
-    return trim
+    return libc
 
 
-_MALLOC_TRIM = _glibc_malloc_trim()
+_LIBC = _glibc()
+_MALLOC_TRIM: Callable[[int], int] | None = None
+_MALLOPT: Callable[[int, int], int] | None = None
+if _LIBC is not None:
+    _MALLOC_TRIM = _LIBC.malloc_trim
+    _MALLOC_TRIM.argtypes = [ctypes.c_size_t]
+    _MALLOC_TRIM.restype = ctypes.c_int
+    _MALLOPT = _LIBC.mallopt
+    _MALLOPT.argtypes = [ctypes.c_int, ctypes.c_int]
+    _MALLOPT.restype = ctypes.c_int
 
 # glibc's mallopt parameter for the mmap threshold (malloc.h), and the value set: blocks of 8 MiB and more (a
 # 5 MP camera's float32 or int16 images, its float64 ones) get mappings of their own, returned to the system
@@ -44,19 +51,6 @@ _MALLOC_TRIM = _glibc_malloc_trim()
 # thresholds cost system time for every fresh page: at 1 MiB a hires run's system CPU tripled (200 -> 673 s).
 _M_MMAP_THRESHOLD = -3
 HEAP_ARRAY_LIMIT_BYTES = 8 * 1024 * 1024
-
-
-def _glibc_mallopt() -> Callable[[int, int], int] | None:
-    if _MALLOC_TRIM is None:
-        return None
-    libc = ctypes.CDLL(None)
-    mallopt = libc.mallopt
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    mallopt.restype = ctypes.c_int
-    return mallopt
-
-
-_MALLOPT = _glibc_mallopt()
 
 
 def map_large_arrays() -> bool:

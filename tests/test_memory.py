@@ -25,10 +25,9 @@ def test_release_free_heap_is_safe_and_repeatable() -> None:
 
 def test_release_free_heap_is_a_no_op_without_glibc(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(memory.sys, "platform", "darwin")
-    assert memory._glibc_malloc_trim() is None
+    assert memory._glibc() is None
     monkeypatch.setattr(memory, "_MALLOC_TRIM", None)
     monkeypatch.setattr(memory, "_MALLOPT", None)
-    assert memory._glibc_mallopt() is None
     for _ in range(2):
         assert memory.release_free_heap() is False
         assert memory.map_large_arrays() is False
