@@ -149,6 +149,7 @@ def main() -> None:
         for name in STEPS:
             timed(inspection, name, "decode (sensing)" if name == "decode" else name)
         timed(job, "_defects")
+        timed(job, "_decode", "_decode (all but the wait for the writes)")
         TIMES.clear()
         took = np.array([once() for _ in range(args.repeat)])
         print(
