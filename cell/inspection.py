@@ -179,6 +179,7 @@ class LambertianInspection(InspectionResults):
         self._merge_bins: MergeBins | None = None  # the views' merge bins, made as they arrive
         self._merge_bins_lock = threading.Lock()
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
+        self._refine_lock = threading.Lock()  # one refinement at a time: a second caller waits for it
         self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
         self._cloud: RegisteredCloud | None = None  # the registration's cloud, judged ahead of the report
         # the controller may register (in its worker) while it evaluates (here): what both use is made once
@@ -384,6 +385,8 @@ class LambertianInspection(InspectionResults):
             if not captured.last:
                 self.bin_arrived_view(run, result)
             self.views.add(result)
+            if captured.last:  # the refinement they both begin with, beside the last of the view's writes
+                threading.Thread(target=self._refine_ahead, args=(run, result), name="refine-ahead").start()
         return summary
 
     def _first_overlaps(self, run: RunFolder, new: ViewResult, pair_maps: bool = True) -> None:
@@ -395,6 +398,10 @@ class LambertianInspection(InspectionResults):
         for them: the plan's last view's)."""
         self._overlaps.forget(new.index)
         self._pairs.forget(new.index)
+        with self._refine_lock:  # a refinement of the view's earlier measurement (one made ahead) is void
+            if self._refinement is not None and new.index in self._refinement[0]:
+                self._refinement = None
+                self._moved.clear()
         self.merge_bins_for(run).forget(new.index)
         views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
         prepare_overlaps(
@@ -433,11 +440,23 @@ class LambertianInspection(InspectionResults):
         their evaluation points and local planes (each view's, computed once by its decode), under the views'
         pose prior (:func:`view_pose_prior`: the kinematic calibration's, else the robot config's);
         recomputed when views were added (deterministic, so a resumed run gets the same)."""
-        with self._lock:
-            return self._refine(run)
+        with self._refine_lock:
+            return self._refine(self.views.completed(run))
 
-    def _refine(self, run: RunFolder) -> tuple[list[int], ViewRefinement]:
-        views = self.views.completed(run)
+    def _refine_ahead(self, run: RunFolder, new: ViewResult) -> None:
+        """Make the refinement of the completed views and ``new``, the plan's last view so far, whose decode
+        is writing its files (its folder not committed yet): the evaluation and the registration after it
+        find the refinement made, or wait for it (the same numbers: a function of the same views, as a
+        resumed run reads them). Run on a thread of its own; whatever fails here is made again, and raised,
+        by the first caller that needs it."""
+        try:
+            with self._refine_lock:
+                views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
+                self._refine(sorted(views, key=lambda v: v.index))
+        except Exception:  # left to refinement(), which makes it again and says why
+            pass
+
+    def _refine(self, views: list[ViewResult]) -> tuple[list[int], ViewRefinement]:
         done = tuple(v.index for v in views)
         if self._refinement is None or self._refinement[0] != done:
             joints = [np.asarray(v.summary["joints_rad"]) for v in views if "joints_rad" in v.summary]
