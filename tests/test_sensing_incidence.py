@@ -114,3 +114,5 @@ def test_normals_in_bands_are_the_whole_image_normals(monkeypatch: pytest.Monkey
     assert np.allclose(banded, whole, rtol=0, atol=1e-12, equal_nan=True)
     assert np.array_equal(np.isnan(banded_angle), np.isnan(whole_angle))
     assert np.allclose(banded_angle, whole_angle, rtol=0, atol=1e-9, equal_nan=True)
+    # the bands on two threads: each band's own numbers, so the same bits as one after the other
+    assert np.array_equal(measured_normals(noisy, valid, workers=2), banded, equal_nan=True)

@@ -369,8 +369,10 @@ def refine_views(
     if n_views < 2:
         return ViewRefinement(T, 0.0, 0.0, [0] * n_views, list(range(n_views)))
     nonempty = [v for v in views if len(v)]
-    centre = np.vstack(nonempty).mean(axis=0) if nonempty else np.zeros(3)
-    lever = max(float(np.linalg.norm(np.vstack(nonempty) - centre, axis=1).max()), 1.0) if nonempty else 1.0
+    every = np.vstack(nonempty) if nonempty else np.zeros((0, 3))  # stacked once: centre and lever arm
+    centre = every.mean(axis=0) if nonempty else np.zeros(3)
+    lever = max(float(np.linalg.norm(every - centre, axis=1).max()), 1.0) if nonempty else 1.0
+    del every
     normals = planes if planes is not None else [estimate_normals(v) for v in views]
     cache = cache if cache is not None else OverlapCache()
     sides = _sides(views, normals, cameras, trees, ids, cache)
@@ -461,10 +463,11 @@ def refine_views(
                     continue
                 si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
                 Wi = Ji * (w * w_row)[:, None]
-                H[si, si] += Wi.T @ Ji
-                H[sj, sj] += Wi.T @ Ji
-                H[si, sj] -= Wi.T @ Ji
-                H[sj, si] -= Wi.T @ Ji
+                WJ = Wi.T @ Ji  # once for the four blocks
+                H[si, si] += WJ
+                H[sj, sj] += WJ
+                H[si, sj] -= WJ
+                H[sj, si] -= WJ
                 g[si] += Wi.T @ r
                 g[sj] -= Wi.T @ r
             rms.append(float(np.sqrt(np.mean(np.concatenate(gaps_all) ** 2))) if gaps_all else 0.0)

@@ -133,16 +133,15 @@ def accuracy_map(
             used = np.zeros(len(pj), dtype=bool)
             for _, src, _ in found:
                 used[src] = True
-            at = np.cumsum(used) - 1  # where a paired point's normal is in n_used
+            at = np.cumsum(used) - 1  # where a paired point's normal (and view j's incidence) is in n_used
             n_used = normals_at(pj[used])
+            seen_j = incidence_cos(pj[used], n_used, vj.T_W_C[:3, 3]) >= min_cos  # once per point too
         for i, src, dst in found:
             vi = views[i]
             pi = vi.points_W
             if max_incidence_deg < 90.0:
                 n_nom = n_used[at[src]]
-                seen = (incidence_cos(pj[src], n_nom, vj.T_W_C[:3, 3]) >= min_cos) & (
-                    incidence_cos(pi[dst], n_nom, vi.T_W_C[:3, 3]) >= min_cos
-                )
+                seen = seen_j[at[src]] & (incidence_cos(pi[dst], n_nom, vi.T_W_C[:3, 3]) >= min_cos)
                 src, dst = src[seen], dst[seen]
             if not len(src):
                 continue

@@ -13,6 +13,7 @@ known to the sensor, and a part may deviate from it), so the filter works the sa
 from __future__ import annotations
 
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -24,7 +25,7 @@ BAND_ROWS = 256  # image rows per band of the normals: ~10 float64 (rows, W, 3) 
 
 
 def measured_normals(
-    points_C: NDArray[np.floating], valid: NDArray[np.bool_], half_window_px: int = 2
+    points_C: NDArray[np.floating], valid: NDArray[np.bool_], half_window_px: int = 2, workers: int = 1
 ) -> NDArray[np.float64]:
     """Unit surface normals (H, W, 3) of an organised cloud (camera frame, mm), facing the camera, NaN where
     the window around a pixel holds too few valid neighbours. The tangents are central differences of the
@@ -37,14 +38,25 @@ def measured_normals(
     normals read (a 5 MP view's normals took ten whole-image float64 temporaries, 1.1 GB, at the peak of the
     hires inspection's decode). A normal reads only its own window, so a band gives the normals the whole
     image gives, but for OpenCV's box sums, which run down the rows from the band's first: they may differ
-    in the last bits (tests/test_sensing_incidence.py bounds it)."""
+    in the last bits (tests/test_sensing_incidence.py bounds it). ``workers``: threads the bands are computed
+    on (NumPy and OpenCV release the GIL; the same numbers, a band's temporaries held by each)."""
     p = np.asarray(points_C)
     if p.ndim != 3 or p.shape[2] != 3 or p.shape[:2] != np.shape(valid):
         raise ConfigError(f"measured_normals: expected (H, W, 3) points and an (H, W) mask, got {p.shape}")
     out = np.empty(p.shape, dtype=np.float64)
-    for start, end, lo, hi in _row_bands(p.shape[0], 2 * half_window_px):
+
+    def one(rows: tuple[int, int, int, int]) -> None:
+        start, end, lo, hi = rows
         band = _band_normals(np.asarray(p[lo:hi], dtype=np.float64), valid[lo:hi], half_window_px)
         out[start:end] = band[start - lo : end - lo]
+
+    bands = list(_row_bands(p.shape[0], 2 * half_window_px))
+    if workers > 1 and len(bands) > 1:
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="normals") as pool:
+            list(pool.map(one, bands))
+    else:
+        for rows in bands:
+            one(rows)
     return out
 
 
