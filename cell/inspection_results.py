@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -339,7 +339,8 @@ class InspectionResults:
             },
         }
         cloud = RegisteredCloud(registration, points_P, error_map, covered, u_mm)
-        cloud.judged = self._judge(run, cloud, link_radius_mm)
+        with ThreadPoolExecutor(1, thread_name_prefix="judge") as pool:  # the u statistics beside the rest
+            cloud.judged = self._judge(run, cloud, link_radius_mm, pool)
         self._cloud = cloud
         return registration
 
@@ -473,14 +474,19 @@ class InspectionResults:
         return self.decision, None, None
 
     def _judge(
-        self, run: RunFolder, cloud: RegisteredCloud, link_radius_mm: float | None = None
+        self,
+        run: RunFolder,
+        cloud: RegisteredCloud,
+        link_radius_mm: float | None = None,
+        pool: Executor | None = None,
     ) -> ReportInput:
-        """The registered cloud judged (:func:`cell.analysis.judge.judge`, its :attr:`ReportInput.figures`
+        """The registered cloud judged (:func:`cell.analysis.judge.judge`, its :meth:`ReportInput.figures`
         computed) without the run's context, which :meth:`_report_input` adds: what depends on the cloud, its
         registration and the recipe alone, so the registration does it beside the evaluation and a report
         rebuilt from cloud.ply does the same. ``link_radius_mm``: the cloud's
-        :func:`cell.analysis.report.default_link_radius` when the caller found it already. Its metadata holds
-        the plan's feedback (what no reachable viewpoint sees) alone."""
+        :func:`cell.analysis.report.default_link_radius` when the caller found it already; ``pool``: threads
+        for the figures (:meth:`ReportInput.figures`). Its metadata holds the plan's feedback (what no
+        reachable viewpoint sees) alone."""
         registration = cloud.registration
         excluded = {
             "unregistered_view_measured_elsewhere_points": int(
@@ -515,5 +521,5 @@ class InspectionResults:
             metadata={"plan": plan.to_json()},
             error_map=cloud.error_map,
         )
-        _ = inp.figures
+        inp.figures(pool)
         return inp

@@ -15,6 +15,7 @@ import json
 import subprocess
 import time
 from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 from pathlib import Path
@@ -99,6 +100,7 @@ class ReportInput:
     uncertainty_mm: NDArray[np.float64] | None = None
     decision: DecisionRule = field(default_factory=DecisionRule)
     uncertainty: dict[str, Any] | None = None  # the uncertainty budget for the report (where u came from)
+    _figures: dict[str, Any] | None = field(default=None, init=False, repr=False)  # :meth:`figures`
 
     @cached_property
     def bands(self) -> PointBands:
@@ -117,14 +119,16 @@ class ReportInput:
         return classify(self.deviation_mm, self.bands, self.guard_mm)
 
     @cached_property
-    def nonconforming_band(self) -> PointBands:
+    def nonconforming_band(self) -> Tolerance | PointBands:
         """The band beyond which a point does not conform: the tolerance, widened by U (guarded rule)."""
         return widened(self.bands, self.guard_mm)
 
-    @cached_property
-    def figures(self) -> dict[str, Any]:
-        """What report.json says of the points themselves (:func:`point_figures`), computed once."""
-        return point_figures(self)
+    def figures(self, pool: Executor | None = None) -> dict[str, Any]:
+        """What report.json says of the points themselves (:func:`point_figures`, with ``pool``), computed
+        once."""
+        if self._figures is None:
+            self._figures = point_figures(self, pool)
+        return self._figures
 
 
 def default_link_radius(points_mm: NDArray) -> float:
@@ -256,7 +260,7 @@ def software() -> dict[str, str | None]:
 def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """The report.json document (see docs/report-schema.md): the points' figures (:func:`point_figures`,
     kept on ``inp``) with the run's context."""
-    f = inp.figures
+    f = inp.figures()
     overall, reasons = f["verdict"], list(inp.incomplete_reasons)
     if f["ambiguous_reason"] is not None:
         reasons.append(f["ambiguous_reason"])
@@ -291,13 +295,14 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
     }
 
 
-def point_figures(inp: ReportInput) -> dict[str, Any]:
+def point_figures(inp: ReportInput, pool: Executor | None = None) -> dict[str, Any]:
     """What report.json says of the judged points themselves, whatever the run's context (its incomplete
     reasons, metadata, calibration): the deviation statistics, the out-of-tolerance and ambiguous regions,
     the user regions' verdicts, the decision's counts, the points' uncertainty and the verdict before the
     incomplete reasons (``ambiguous_reason``: the one the guarded rule's ambiguous points add, or None).
-    Use :attr:`ReportInput.figures` (computed once: an inspection's registration computes them beside the
-    evaluation)."""
+    Use :meth:`ReportInput.figures` (computed once: an inspection's registration computes them beside the
+    evaluation). With a ``pool`` one of its threads computes the uncertainty's statistics meanwhile."""
+    u_summary = None if pool is None else pool.submit(uncertainty_summary, inp)
     d = inp.deviation_mm
     tol = inp.tolerance
     bands = inp.nonconforming_band  # the tolerance itself under the simple rule
@@ -354,7 +359,7 @@ def point_figures(inp: ReportInput) -> dict[str, Any]:
             "counts": class_counts(classes),
             "ambiguous_regions": ambiguous_regions(inp, link_radius_mm=inp.link_radius_mm),
         },
-        "uncertainty": uncertainty_summary(inp),
+        "uncertainty": uncertainty_summary(inp) if u_summary is None else u_summary.result(),
     }
 
 
