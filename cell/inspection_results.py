@@ -381,8 +381,8 @@ class InspectionResults:
         done, found = self.refinement(run)
         A = np.eye(4) if T_P_cloud is None else self.T_W_P @ T_P_cloud @ invert(self.T_W_P)
         views = [(self.views.get(run, i).eval_tree, A @ T) for i, T in zip(done, found.T, strict=True)]
-        covered = covered_by_views(s, views, st.point_density_per_mm2, st.coverage_radius_mm)
-        ins = s.inspectable
+        ins = s.inspectable  # the other samples are left out, not counted
+        covered = covered_by_views(s, views, st.point_density_per_mm2, st.coverage_radius_mm, samples=ins)
         return Coverage(
             fraction=coverage_fraction(s, covered),
             area_mm2=float(s.inspectable_area_mm2),
