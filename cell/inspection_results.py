@@ -132,7 +132,8 @@ class MergeBins:
 @dataclass
 class RegisteredCloud:
     """The registered cloud in {P} (mm) and what judging it needs that the evaluation does not change: its
-    signed deviations from the nominal and the coverage at its alignment (None: computed when judged)."""
+    signed deviations from the nominal and the coverage at its alignment (None: computed when judged), and
+    the cloud judged (None: judged when reported, e.g. a cloud read from cloud.ply)."""
 
     registration: dict[str, Any]
     points_P: NDArray[np.float64]
@@ -220,8 +221,9 @@ class InspectionResults:
         :func:`held_redundant`), then moved by the recipe's alignment (cell.analysis.alignment). An
         alignment the measurement does not allow leaves the kinematic cloud and makes the verdict incomplete
         (``alignment.error``). The registered cloud stays in memory for :meth:`report` with its error map
-        and coverage, computed here (the controller registers while it evaluates, so they are ready when the
-        evaluation is); it is stored as results/cloud.ply with the report's page, and a resumed run
+        and coverage, computed here, and judged (:meth:`_judge`: the controller registers while it
+        evaluates, so they are ready when the evaluation is and the verdict adds only the run's context); it
+        is stored as results/cloud.ply with the report's page, and a resumed run
         registers again, deterministically, to the same points."""
         T_P_W = invert(self.T_W_P)
         done, refined = self.refinement(run)
