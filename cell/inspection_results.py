@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,7 +26,7 @@ from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.judge import judge
 from cell.analysis.merge import MergedCloud, MergeGrid, ViewBins, bin_view, held_redundant, merge_bins
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
-from cell.analysis.report import ReportInput, write_page, write_verdict
+from cell.analysis.report import ReportInput, default_link_radius, write_page, write_verdict
 from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
 from cell.analysis.table_seam import table_seam
 from cell.analysis.uncertainty import MergeShares, registered_cloud_uncertainty
@@ -132,13 +132,16 @@ class MergeBins:
 @dataclass
 class RegisteredCloud:
     """The registered cloud in {P} (mm) and what judging it needs that the evaluation does not change: its
-    signed deviations from the nominal and the coverage at its alignment (None: computed when judged)."""
+    signed deviations from the nominal and the coverage at its alignment (None: computed when judged), and
+    the cloud judged (None: judged when reported, e.g. a cloud read from cloud.ply)."""
 
     registration: dict[str, Any]
     points_P: NDArray[np.float64]
     error_map: ErrorMap | None = None
     coverage: Coverage | None = None
     uncertainty_mm: NDArray[np.float64] | None = None  # each point's u (None: a run from before issue 17)
+    # the cloud judged without the run's context (InspectionResults._judge; None: judged when reported)
+    judged: ReportInput | None = None
 
 
 class InspectionResults:
@@ -218,8 +221,9 @@ class InspectionResults:
         :func:`held_redundant`), then moved by the recipe's alignment (cell.analysis.alignment). An
         alignment the measurement does not allow leaves the kinematic cloud and makes the verdict incomplete
         (``alignment.error``). The registered cloud stays in memory for :meth:`report` with its error map
-        and coverage, computed here (the controller registers while it evaluates, so they are ready when the
-        evaluation is); it is stored as results/cloud.ply with the report's page, and a resumed run
+        and coverage, computed here, and judged (:meth:`_judge`: the controller registers while it
+        evaluates, so they are ready when the evaluation is and the verdict adds only the run's context); it
+        is stored as results/cloud.ply with the report's page, and a resumed run
         registers again, deterministically, to the same points."""
         T_P_W = invert(self.T_W_P)
         done, refined = self.refinement(run)
@@ -275,10 +279,11 @@ class InspectionResults:
         points_P = stored_points(points_P)
         T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
         prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
+        tol = self.recipe.tolerance
         # what follows the alignment, on two threads (numpy, scipy's trees and the kernels release the GIL;
         # each step writes its own results, so they are those of one thread): the coverage beside the error
-        # map, the table seam beside the points' u, whose chunks both threads compute, its statistics beside
-        # the seam's cut
+        # map, the table seam and then the judged points' link radius beside the points' u, whose chunks both
+        # threads compute, its statistics beside the seam's cut; then the cloud judged (:meth:`_judge`)
         with ThreadPoolExecutor(2, thread_name_prefix="register") as pool:
             coverage = pool.submit(self.inspectable_coverage, run, T_align)
             error_map = signed_distance(self.nominal_P, points_P)  # its faces' normals are the u's too
@@ -290,6 +295,16 @@ class InspectionResults:
                 self.nominal_P,
                 deviation_mm=error_map.deviation_mm,
             )
+
+            def judged_points() -> tuple[NDArray[np.bool_], NDArray[np.float64], float | None]:
+                """The points left after the seam's cut (which, and they) and, when one is outside the
+                tolerance, their link radius (what the judge would find: out-of-tolerance regions need it)."""
+                keep = ~seam_cut.result()
+                kept = points_P[keep]
+                out = Tolerance(tol.lower, tol.upper).outside(error_map.deviation_mm[keep]).any()
+                return keep, kept, default_link_radius(kept) if out else None
+
+            judged = pool.submit(judged_points)
             normals_W = transform_vectors(self.T_W_P, self.nominal_P.face_normals)[error_map.face]
             unc = registered_cloud_uncertainty(
                 merged,
@@ -304,9 +319,10 @@ class InspectionResults:
                 pool,
             )
             budget = pool.submit(unc.budget)  # its medians and p95 beside the seam's cut
-            keep = ~seam_cut.result()
-            points_P, u_mm, error_map = points_P[keep], unc.u_mm[keep], error_map.take(keep)
+            keep, points_P, link_radius_mm = judged.result()
+            u_mm, error_map = unc.u_mm[keep], error_map.take(keep)
             covered, unc_budget = coverage.result(), budget.result()
+        del merged, shares, unc, normals_W  # before the judge's arrays are made
         seam = int((~keep).sum())
         registration = {
             "table_seam_points": seam,
@@ -324,7 +340,10 @@ class InspectionResults:
                 "poses": prior.get("prior"),
             },
         }
-        self._cloud = RegisteredCloud(registration, points_P, error_map, covered, u_mm)
+        cloud = RegisteredCloud(registration, points_P, error_map, covered, u_mm)
+        with ThreadPoolExecutor(1, thread_name_prefix="judge") as pool:  # the u statistics beside the rest
+            cloud.judged = self._judge(run, cloud, link_radius_mm, pool)
+        self._cloud = cloud
         return registration
 
     @property
@@ -364,8 +383,8 @@ class InspectionResults:
         done, found = self.refinement(run)
         A = np.eye(4) if T_P_cloud is None else self.T_W_P @ T_P_cloud @ invert(self.T_W_P)
         views = [(self.views.get(run, i).eval_tree, A @ T) for i, T in zip(done, found.T, strict=True)]
-        covered = covered_by_views(s, views, st.point_density_per_mm2, st.coverage_radius_mm)
-        ins = s.inspectable
+        ins = s.inspectable  # the other samples are left out, not counted
+        covered = covered_by_views(s, views, st.point_density_per_mm2, st.coverage_radius_mm, samples=ins)
         return Coverage(
             fraction=coverage_fraction(s, covered),
             area_mm2=float(s.inspectable_area_mm2),
@@ -406,12 +425,71 @@ class InspectionResults:
         return {"files": written}
 
     def _report_input(self, run: RunFolder, registration: dict[str, Any]) -> ReportInput:
-        """The judged registered cloud (:func:`cell.analysis.judge.judge`) with the run's context."""
+        """The judged registered cloud (:meth:`_judge`, done by the registration when this process made it)
+        with the run's context: the calibration, the evaluation and why the verdict is incomplete."""
         cloud = self._registered(run)
-        pts_P = cloud.points_P
-        tol = self.recipe.tolerance
+        inp = cloud.judged if cloud.judged is not None else self._judge(run, cloud)
         checkpoint = Checkpoint.from_json(run.load_checkpoint())
         evaluation = checkpoint.evaluation.to_json() if checkpoint.evaluation is not None else {}
+        alignment = registration.get("alignment") or {"method": "kinematic"}
+        calibration = calibration_state(self.cfg, self.recipe.requires_calibration)
+        reasons = list(calibration["incomplete_reasons"])
+        if "error" in alignment:
+            reasons.append(f"alignment ({alignment['method']}) failed: {alignment['error']}")
+        if evaluation.get("v_mm2", 0.0) > evaluation.get("setpoint", float("inf")):
+            reasons.append(
+                f"overlapping views disagree by more than {self.recipe.plan.accuracy_tol_mm} mm over "
+                f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
+                f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
+            )
+        if (no_u := self._decision(cloud)[2]) is not None:
+            reasons.append(no_u)
+        inp.incomplete_reasons, inp.calibration = reasons, calibration
+        inp.metadata = {
+            "part": self.part_name,
+            "cad": Path(self.recipe.part.cad).name,
+            "views": [
+                {"patch": v.patch, "source": v.source, "iteration": v.iteration} for v in checkpoint.views
+            ],
+            "registration": registration,
+            "evaluation": evaluation,
+            "plan": inp.metadata["plan"],  # predicted coverage, min_coverage, unseen_surfaces, warnings
+            "geometry_source": self.geometry_source,
+            "run": run_record(run, self.cfg.name),
+        }
+        return inp
+
+    def _decision(
+        self, cloud: RegisteredCloud
+    ) -> tuple[DecisionRule, NDArray[np.float64] | None, str | None]:
+        """The rule the cloud is judged by, its points' u (None: not known) and, when the recipe's rule needs
+        the u a cloud registered before points carried it lacks, why the verdict is incomplete."""
+        u = cloud.uncertainty_mm
+        if u is not None and np.isfinite(u).any():
+            return self.decision, u, None
+        if self.decision.rule == "guarded":
+            return (
+                DecisionRule(),
+                None,
+                "the guarded decision rule needs the points' uncertainty; this run has none",
+            )
+        return self.decision, None, None
+
+    def _judge(
+        self,
+        run: RunFolder,
+        cloud: RegisteredCloud,
+        link_radius_mm: float | None = None,
+        pool: Executor | None = None,
+    ) -> ReportInput:
+        """The registered cloud judged (:func:`cell.analysis.judge.judge`, its :meth:`ReportInput.figures`
+        computed) without the run's context, which :meth:`_report_input` adds: what depends on the cloud, its
+        registration and the recipe alone, so the registration does it beside the evaluation and a report
+        rebuilt from cloud.ply does the same. ``link_radius_mm``: the cloud's
+        :func:`cell.analysis.report.default_link_radius` when the caller found it already; ``pool``: threads
+        for the figures (:meth:`ReportInput.figures`). Its metadata holds the plan's feedback (what no
+        reachable viewpoint sees) alone."""
+        registration = cloud.registration
         excluded = {
             "unregistered_view_measured_elsewhere_points": int(
                 registration.get("refinement", {}).get("unregistered_points_dropped", 0)
@@ -423,51 +501,27 @@ class InspectionResults:
                 excluded[f"{reason}_points"] = excluded.get(f"{reason}_points", 0) + int(n)
         alignment = registration.get("alignment") or {"method": "kinematic"}
         T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
-        calibration = calibration_state(self.cfg, self.recipe.requires_calibration)
-        reasons = list(calibration["incomplete_reasons"])
-        if "error" in alignment:
-            reasons.append(f"alignment ({alignment['method']}) failed: {alignment['error']}")
-        if evaluation.get("v_mm2", 0.0) > evaluation.get("setpoint", float("inf")):
-            reasons.append(
-                f"overlapping views disagree by more than {self.recipe.plan.accuracy_tol_mm} mm over "
-                f"{evaluation['v_mm2']:.0f} mm^2 after refinement, more than the set point of Q allows "
-                f"({evaluation['setpoint']:.0f} mm^2): the calibration does not hold (cell calibrate all)"
-            )
-        decision, u = self.decision, cloud.uncertainty_mm
-        if u is None or not np.isfinite(u).any():
-            u = None
-            if decision.rule == "guarded":  # a run registered before points carried their uncertainty
-                reasons.append("the guarded decision rule needs the points' uncertainty; this run has none")
-                decision = DecisionRule()
+        decision, u, _ = self._decision(cloud)
         plan = plan_feedback(self.plan_model, self.recipe)  # what no reachable viewpoint sees, for the reader
-        return judge(
+        tol = self.recipe.tolerance
+        inp = judge(
             self.nominal_P,
-            pts_P,
+            cloud.points_P,
             Tolerance(tol.lower, tol.upper),
-            n_points_input=int(registration.get("n_points_views", len(pts_P))),
+            n_points_input=int(registration.get("n_points_views", len(cloud.points_P))),
             regions=[region_from_config(spec) for spec in self.recipe.regions],
             min_defect_points=self.settings.min_defect_points,
             excluded=excluded,
             coverage=cloud.coverage or self.inspectable_coverage(run, T_align),
             min_coverage=self.recipe.min_coverage,
+            link_radius_mm=link_radius_mm,
             warnings=[*alignment.get("warnings", []), *plan.warnings],
-            incomplete_reasons=reasons,
             alignment=alignment,
-            calibration=calibration,
             uncertainty_mm=u,
             decision=decision,
             uncertainty=registration.get("uncertainty"),
-            metadata={
-                "part": self.part_name,
-                "cad": Path(self.recipe.part.cad).name,
-                "views": [
-                    {"patch": v.patch, "source": v.source, "iteration": v.iteration} for v in checkpoint.views
-                ],
-                "registration": registration,
-                "evaluation": evaluation,
-                "plan": plan.to_json(),  # predicted coverage, min_coverage, unseen_surfaces, warnings
-                "geometry_source": self.geometry_source,
-                "run": run_record(run, self.cfg.name),
-            },
+            metadata={"plan": plan.to_json()},
             error_map=cloud.error_map,
         )
+        inp.figures(pool)
+        return inp

@@ -63,14 +63,20 @@ def _per_point(band: Tolerance | PointBands, n: int) -> tuple[NDArray[np.float64
     return np.asarray(band.lower_mm, np.float64), np.asarray(band.upper_mm, np.float64)
 
 
-def widened(band: Tolerance | PointBands, guard_mm: NDArray[np.floating]) -> PointBands:
-    """The band widened by U on both sides: a deviation beyond it does not conform."""
+def widened(band: Tolerance | PointBands, guard_mm: NDArray[np.floating]) -> Tolerance | PointBands:
+    """The band widened by U on both sides: a deviation beyond it does not conform (``band`` itself when U
+    is 0 everywhere: the simple rule)."""
+    if not np.any(guard_mm):
+        return band
     lo, hi = _per_point(band, len(guard_mm))
     return PointBands(lo - guard_mm, hi + guard_mm)
 
 
-def shrunk(band: Tolerance | PointBands, guard_mm: NDArray[np.floating]) -> PointBands:
-    """The band shrunk by U on both sides (the conformance zone; empty where U exceeds half the band)."""
+def shrunk(band: Tolerance | PointBands, guard_mm: NDArray[np.floating]) -> Tolerance | PointBands:
+    """The band shrunk by U on both sides (the conformance zone; empty where U exceeds half the band;
+    ``band`` itself when U is 0 everywhere: the simple rule)."""
+    if not np.any(guard_mm):
+        return band
     lo, hi = _per_point(band, len(guard_mm))
     return PointBands(lo + guard_mm, hi - guard_mm)
 

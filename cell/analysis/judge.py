@@ -19,7 +19,7 @@ from cell.analysis.decision import DecisionRule, shrunk
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.regions import Coverage, Region, Tolerance, point_bands
 from cell.analysis.report import ReportInput, StoredCloud, default_link_radius, isolated_out_of_tolerance
-from cell.analysis.report_files import encode_uncertainty, stored_uncertainty
+from cell.analysis.report_files import decode_uncertainty, encode_uncertainty
 
 
 def judge(
@@ -68,10 +68,11 @@ def judge(
     counts: dict[str, int] = {**nominal.excluded, **(excluded or {})}
     rule = decision or DecisionRule()
     # as cloud.ply stores it (0.1 um steps, rounded up): a report rebuilt from the file judges the same
-    u = None if uncertainty_mm is None else stored_uncertainty(np.ravel(uncertainty_mm))
     fields = dict(point_fields or {})
-    if u is not None:
-        fields["uncertainty"] = encode_uncertainty(u)
+    u = None
+    if uncertainty_mm is not None:
+        fields["uncertainty"] = encode_uncertainty(np.ravel(uncertainty_mm))  # its codes decode to u
+        u = decode_uncertainty(fields["uncertainty"])
     stored = None
     if min_defect_points > 1 or fields:
         stored = StoredCloud(points, deviation, fields=fields)
@@ -83,9 +84,10 @@ def judge(
         counts["isolated_out_of_tolerance_points"] = int(isolated.sum())
         if stored is not None:
             stored.isolated = isolated
-        kept = ~isolated
-        points, deviation, faces = points[kept], deviation[kept], faces[kept]
-        u = None if u is None else u[kept]
+        if isolated.any():  # else every point is judged: no copies
+            kept = ~isolated
+            points, deviation, faces = points[kept], deviation[kept], faces[kept]
+            u = None if u is None else u[kept]
     return ReportInput(
         points_mm=points,
         deviation_mm=deviation,

@@ -15,6 +15,7 @@ import json
 import subprocess
 import time
 from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 from pathlib import Path
@@ -99,6 +100,7 @@ class ReportInput:
     uncertainty_mm: NDArray[np.float64] | None = None
     decision: DecisionRule = field(default_factory=DecisionRule)
     uncertainty: dict[str, Any] | None = None  # the uncertainty budget for the report (where u came from)
+    _figures: dict[str, Any] | None = field(default=None, init=False, repr=False)  # :meth:`figures`
 
     @cached_property
     def bands(self) -> PointBands:
@@ -117,9 +119,16 @@ class ReportInput:
         return classify(self.deviation_mm, self.bands, self.guard_mm)
 
     @cached_property
-    def nonconforming_band(self) -> PointBands:
+    def nonconforming_band(self) -> Tolerance | PointBands:
         """The band beyond which a point does not conform: the tolerance, widened by U (guarded rule)."""
         return widened(self.bands, self.guard_mm)
+
+    def figures(self, pool: Executor | None = None) -> dict[str, Any]:
+        """What report.json says of the points themselves (:func:`point_figures`, with ``pool``), computed
+        once."""
+        if self._figures is None:
+            self._figures = point_figures(self, pool)
+        return self._figures
 
 
 def default_link_radius(points_mm: NDArray) -> float:
@@ -249,7 +258,51 @@ def software() -> dict[str, str | None]:
 
 
 def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> dict[str, Any]:
-    """The report.json document (see docs/report-schema.md)."""
+    """The report.json document (see docs/report-schema.md): the points' figures (:func:`point_figures`,
+    kept on ``inp``) with the run's context."""
+    f = inp.figures()
+    overall, reasons = f["verdict"], list(inp.incomplete_reasons)
+    if f["ambiguous_reason"] is not None:
+        reasons.append(f["ambiguous_reason"])
+    if overall in ("pass", "fail") and inp.incomplete_reasons:
+        overall = "incomplete"  # a measurement that cannot be trusted neither passes nor fails a part
+    tol = inp.tolerance
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "created_utc": utc_iso(time.time()),
+        "software": software(),
+        "verdict": overall,
+        "incomplete_reasons": reasons,
+        "tolerance": {"lower_mm": tol.lower_mm, "upper_mm": tol.upper_mm},
+        "n_points": f["n_points"],
+        "n_points_input": int(inp.n_points_input),
+        "n_out_of_tolerance": f["n_out_of_tolerance"],
+        "fraction_in_tolerance": f["fraction_in_tolerance"],
+        "coverage": f["coverage"],
+        "coverage_detail": f["coverage_detail"],
+        "min_coverage": inp.min_coverage,
+        "deviation": f["deviation"],
+        "regions": f["regions"],
+        "region_verdicts": f["region_verdicts"],
+        "decision": {**inp.decision.to_json(), **f["decision"]},
+        "uncertainty": f["uncertainty"],
+        "excluded": inp.excluded,
+        "views": views or [],
+        "warnings": list(inp.warnings),
+        "alignment": inp.alignment,
+        "calibration": inp.calibration,
+        "metadata": inp.metadata,
+    }
+
+
+def point_figures(inp: ReportInput, pool: Executor | None = None) -> dict[str, Any]:
+    """What report.json says of the judged points themselves, whatever the run's context (its incomplete
+    reasons, metadata, calibration): the deviation statistics, the out-of-tolerance and ambiguous regions,
+    the user regions' verdicts, the decision's counts, the points' uncertainty and the verdict before the
+    incomplete reasons (``ambiguous_reason``: the one the guarded rule's ambiguous points add, or None).
+    Use :meth:`ReportInput.figures` (computed once: an inspection's registration computes them beside the
+    evaluation). With a ``pool`` one of its threads computes the uncertainty's statistics meanwhile."""
+    u_summary = None if pool is None else pool.submit(uncertainty_summary, inp)
     d = inp.deviation_mm
     tol = inp.tolerance
     bands = inp.nonconforming_band  # the tolerance itself under the simple rule
@@ -284,44 +337,29 @@ def summarise(inp: ReportInput, views: list[dict[str, Any]] | None = None) -> di
         overall = "fail"
     elif overall == "pass" and region_states & {"incomplete", "no_data"}:
         overall = "incomplete"
-    reasons = list(inp.incomplete_reasons)
+    ambiguous_reason = None
     if overall == "pass" and n_ambiguous and policy == "incomplete":
         overall = "incomplete"
-        reasons.append(
+        ambiguous_reason = (
             f"{n_ambiguous} points lie within their expanded uncertainty U of a tolerance limit (ambiguous "
             "under the guarded decision rule): the measurement cannot show them in or out of tolerance"
         )
-    if overall in ("pass", "fail") and inp.incomplete_reasons:
-        overall = "incomplete"  # a measurement that cannot be trusted neither passes nor fails a part
     return {
-        "schema_version": SCHEMA_VERSION,
-        "created_utc": utc_iso(time.time()),
-        "software": software(),
         "verdict": overall,
-        "incomplete_reasons": reasons,
-        "tolerance": {"lower_mm": tol.lower_mm, "upper_mm": tol.upper_mm},
+        "ambiguous_reason": ambiguous_reason,
         "n_points": int(len(d)),
-        "n_points_input": int(inp.n_points_input),
         "n_out_of_tolerance": int((~inside).sum()),
         "fraction_in_tolerance": float(inside.mean()) if len(d) else None,
         "coverage": coverage,
         "coverage_detail": cov.summary() if cov is not None else None,
-        "min_coverage": inp.min_coverage,
         "deviation": stats,
         "regions": regions,
         "region_verdicts": user,
         "decision": {
-            **inp.decision.to_json(),
             "counts": class_counts(classes),
             "ambiguous_regions": ambiguous_regions(inp, link_radius_mm=inp.link_radius_mm),
         },
-        "uncertainty": uncertainty_summary(inp),
-        "excluded": inp.excluded,
-        "views": views or [],
-        "warnings": list(inp.warnings),
-        "alignment": inp.alignment,
-        "calibration": inp.calibration,
-        "metadata": inp.metadata,
+        "uncertainty": uncertainty_summary(inp) if u_summary is None else u_summary.result(),
     }
 
 

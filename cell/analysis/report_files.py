@@ -73,11 +73,6 @@ def decode_uncertainty(codes: NDArray) -> NDArray[np.float64]:
     return u
 
 
-def stored_uncertainty(u_mm: NDArray) -> NDArray[np.float64]:
-    """u (mm) as cloud.ply stores it (:func:`encode_uncertainty`): what a rebuilt report reads back."""
-    return decode_uncertainty(encode_uncertainty(u_mm))
-
-
 def write_ply(
     path: Path,
     points_mm: NDArray,

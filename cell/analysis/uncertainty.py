@@ -171,7 +171,8 @@ class ViewShares:
             assert step == 1, "rows a step apart: index them by an array"
             out = np.zeros((max(stop - start, 0), self.shape[1]))
             for k, (idx, val) in enumerate(zip(self._index, self._value, strict=True)):
-                lo, hi = np.searchsorted(idx, [start, stop])
+                # the bounds in the index's own dtype: searched as int64, the index would be copied as such
+                lo, hi = np.searchsorted(idx, np.array([start, stop], dtype=idx.dtype))
                 out[idx[lo:hi] - start, k] = val[lo:hi]
             return out
         assert np.asarray(rows).dtype.kind in "iu", "rows by index, not by a mask"
@@ -179,7 +180,7 @@ class ViewShares:
         out = np.zeros((len(rows), self.shape[1]))
         for k, (idx, val) in enumerate(zip(self._index, self._value, strict=True)):
             if len(idx):
-                at = np.minimum(np.searchsorted(idx, rows), len(idx) - 1)
+                at = np.minimum(np.searchsorted(idx, rows.astype(idx.dtype, copy=False)), len(idx) - 1)
                 hit = idx[at] == rows
                 out[hit, k] = val[at[hit]]
         return out

@@ -34,21 +34,26 @@ def covered_by_views(
     views: Sequence[tuple[cKDTree | None, Pose]],
     density_per_mm2: float,
     radius_mm: float,
+    samples: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
     """:func:`covered_by_points` of several views' points, each view given as a KD-tree of its points in its
     own frame and the pose ``T`` that moves them into the world: the samples are moved into each view's frame
     (a rigid motion keeps distances) and the points near them counted there, so no tree of the moved points is
-    built. The same counts as the union's."""
+    built. The same answer as the union's counts: a sample is counted until it is covered (a later view's
+    points would not uncover it), so the views after the first that covers a sample do not count it again.
+    ``samples``: which samples to count (e.g. the inspectable ones); the others are given as not covered."""
     need = max(1, int(np.ceil(0.5 * density_per_mm2 * np.pi * radius_mm**2)))
     counts = np.zeros(len(surface.points), dtype=np.int64)
+    # the samples not covered yet
+    open_ = np.arange(len(surface.points)) if samples is None else np.flatnonzero(samples)
     for tree, T in views:
-        if tree is None or tree.n == 0:
+        if tree is None or tree.n == 0 or not len(open_):
             continue
-        local = transform_points(invert(T), surface.points)
-        near = np.flatnonzero(
-            np.all((local >= tree.mins - radius_mm) & (local <= tree.maxes + radius_mm), axis=1)
-        )
-        counts[near] += np.asarray(tree.query_ball_point(local[near], radius_mm, return_length=True))
+        local = transform_points(invert(T), surface.points[open_])
+        near = np.all((local >= tree.mins - radius_mm) & (local <= tree.maxes + radius_mm), axis=1)
+        at = open_[near]
+        counts[at] += np.asarray(tree.query_ball_point(local[near], radius_mm, return_length=True))
+        open_ = open_[counts[open_] < need]
     return counts >= need
 
 
