@@ -249,25 +249,33 @@ def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if not len(p):
         return np.zeros(0, dtype=bool)
-    lo, hi = p.min(0) - radius_mm, p.max(0) + radius_mm  # only points in this box can be that close
-    rest = [np.asarray(o, dtype=np.float64).reshape(-1, 3) for o in others]
-    rest = [o[np.all((o >= lo) & (o <= hi), axis=1)] for o in rest if len(o)]
+    around = _Around(p, radius_mm)
+    rest = [around.select(np.asarray(o, dtype=np.float64).reshape(-1, 3)) for o in others]
     rest = [o for o in rest if len(o)]
     if not rest:
         return np.zeros(len(p), dtype=bool)
-    near = np.vstack(rest)
-    # and only those in the cells of side radius_mm next to a cell of ``points`` (a view of few points spread
-    # over a wide box has far fewer others near it than in its box: the tree is built on those alone)
-    # (the distinct cells first, ~100 times fewer than a view's voxel means at 2 mm, then their neighbours)
-    cells = np.unique(np.floor((p - lo) / radius_mm).astype(np.int64), axis=0)
-    around = np.unique(grid_keys((cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
-    keys = grid_keys(np.floor((near - lo) / radius_mm).astype(np.int64))
-    at = np.minimum(np.searchsorted(around, keys), len(around) - 1)
-    near = near[around[at] == keys]
-    if not len(near):
-        return np.zeros(len(p), dtype=bool)
-    d, _ = cKDTree(near).query(p, distance_upper_bound=radius_mm)
+    d, _ = cKDTree(np.vstack(rest)).query(p, distance_upper_bound=radius_mm)
     return np.isfinite(d)
+
+
+class _Around:
+    """Where points of others can be within ``radius_mm`` of ``points`` ((N, 3) mm, N > 0): in their box grown
+    by the radius, and in the cells of side radius_mm next to a cell of theirs (a view of few points spread
+    over a wide box has far fewer others near it than in its box: the tree is built on those alone)."""
+
+    def __init__(self, points: NDArray[np.float64], radius_mm: float) -> None:
+        self.lo, self.hi = points.min(0) - radius_mm, points.max(0) + radius_mm
+        self.radius_mm = radius_mm
+        # (the distinct cells first, ~100 times fewer than a view's voxel means at 2 mm, then the neighbours)
+        cells = np.unique(np.floor((points - self.lo) / radius_mm).astype(np.int64), axis=0)
+        self.keys = np.unique(grid_keys((cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
+
+    def select(self, others: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The points of ``others`` ((K, 3) mm) in the box and the cells, in their order."""
+        o = others[_in_box(others, self.lo, self.hi)]
+        keys = grid_keys(np.floor((o - self.lo) / self.radius_mm).astype(np.int64))
+        at = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        return o[self.keys[at] == keys]
 
 
 _NEIGHBOURS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -289,25 +297,25 @@ def held_redundant(
     if not held:
         return {}
     mine = {k: moved_means(bins(k), T[k]) for k in held}
-    boxes = {k: (p.min(0) - radius_mm, p.max(0) + radius_mm) for k, p in mine.items() if len(p)}
-    # the registered views' moved voxel means in each held view's box (only points in it can be that close),
-    # each registered view's bins asked for once for all the held views
-    near: dict[int, list[NDArray[np.float64]]] = {k: [] for k in boxes}
+    around = {k: _Around(p, radius_mm) for k, p in mine.items() if len(p)}
+    # the registered views' moved voxel means near each held view (only points in its box and cells can be
+    # that close: :class:`_Around`), each registered view's bins asked for once for all the held views
+    near: dict[int, list[NDArray[np.float64]]] = {k: [] for k in around}
     for m in range(len(T)):
-        if m in mine or not boxes:
+        if m in mine or not around:
             continue
         T_m = np.asarray(T[m], dtype=np.float64)
         mean = bins(m).mean
-        for k, (lo, hi) in boxes.items():
+        for k, a in around.items():
+            lo, hi = a.lo, a.hi
             corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), axis=-1).reshape(-1, 3)
             # the box at the view's kinematic pose holds its part of the refined one: grown by the most the
             # inverse correction moves a corner (a rigid motion moves no point of the box farther)
             grow = float(np.linalg.norm(transform_points(invert(T_m), corners) - corners, axis=1).max())
-            o = transform_points(T_m, mean[_in_box(mean, lo - grow, hi + grow)])
-            near[k].append(o[_in_box(o, lo, hi)])
+            near[k].append(a.select(transform_points(T_m, mean[_in_box(mean, lo - grow, hi + grow)])))
     redundant: dict[int, NDArray[np.bool_]] = {}
     for k in held:
-        if k not in boxes:
+        if k not in around:
             redundant[k] = np.zeros(0, dtype=bool)
             continue
         others = [mine[j][~redundant[j]] for j in held if j in redundant]
