@@ -24,7 +24,7 @@ from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.decision import DecisionRule
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.judge import judge
-from cell.analysis.merge import MergedCloud, ViewBins, bin_view, held_redundant, merge_bins
+from cell.analysis.merge import MergedCloud, ViewBins, bin_view, held_redundant, load_kernels, merge_bins
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, write_page, write_verdict
 from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
@@ -184,7 +184,9 @@ class InspectionResults:
     def bin_arrived_view(self, run: RunFolder, view: ViewResult) -> None:
         """Bin a completed view for the registration's merge (:class:`MergeBins`), in the decode worker while
         the robot moves on: what the merge after the last view would otherwise begin with. A view of more than
-        :data:`ARRIVAL_BINNING_MAX_POINTS` is left to the merge."""
+        :data:`ARRIVAL_BINNING_MAX_POINTS` is left to the merge. The merge's compiled kernels are loaded
+        here too, once a process."""
+        load_kernels()
         if int(view.summary["points"]) > ARRIVAL_BINNING_MAX_POINTS:
             return
         self.merge_bins_for(run).add(view.index, *self._view_bins(view))

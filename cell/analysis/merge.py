@@ -23,6 +23,7 @@ Choose ``voxel_mm`` about the views' point spacing: much coarser voxels also ave
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -232,6 +233,20 @@ def merge_bins(
         if each_view is not None:
             each_view(k, rows, m, w_rows, wu_rows)
     return MergedCloud(sums / wsum[:, None], wsum, count, n_views)
+
+
+@functools.cache
+def load_kernels() -> None:
+    """Load the merge's compiled kernels (cell.analysis._merge_kernel; numba compiles them the first time and
+    caches them), once a process: ~0.25 s CPU, which the first merge would otherwise spend after the last
+    frame (the decode worker loads them as the first view arrives)."""
+    from cell.analysis import _merge_kernel as kernel
+
+    bins = bin_view(np.zeros((1, 3)), np.ones(1), np.zeros(1), 1.0)
+    merge_bins(1.0, lambda k: bins, [np.ones(1, dtype=bool)], [np.eye(4)])
+    kernel.rehash(
+        np.full(2, -1, dtype=np.int64), np.zeros(2, np.int64), np.full(4, -1, np.int64), np.zeros(4, np.int64)
+    )
 
 
 def moved_means(bins: ViewBins, T: NDArray[np.float64]) -> NDArray[np.float64]:
