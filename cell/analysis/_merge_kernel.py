@@ -25,7 +25,10 @@ import numpy as np
 
 KEY_BITS = 21  # bits per axis of a voxel key (cell.analysis.merge.grid_keys)
 _HALF = 1 << (KEY_BITS - 1)
-BRICK = 64  # a brick's voxels (1 x 8 x 8 along x, y, z), their numbers side by side
+# a brick: 1 x 8 x 8 voxels along x, y, z; which are occupied, a bit each (y % 8 * 8 + z % 8 of an int64), and
+# the number of the first occupied voxel of each of its rows (y) in the order of the keys: 40 bytes a brick
+# (~7 occupied voxels a brick on the demo pillar)
+_POP = np.array([bin(i).count("1") for i in range(256)], dtype=np.int64)  # set bits of a byte
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing's multiplier
 OUT_OF_RANGE = -2  # a moved mean beyond the key's +-2^20 voxels (or not finite)
 FULL = -1  # the hash or the bricks need more room
@@ -77,13 +80,12 @@ def _find(keys, brick, shift, mask):
 
 
 @nb.njit(cache=True, nogil=True)
-def insert(keys, bricks, voxels, n_bricks, mean, T, kept, voxel_mm, start):
+def insert(keys, bricks, occupied, n_bricks, mean, T, kept, voxel_mm, start):
     """Mark the voxels of the bins' means ``mean[start:]`` ((N, 3) mm) moved by ``T`` (4x4), those ``kept``,
-    occupied (>= 0 in ``voxels``, the
-    bricks' voxels side by side, -1 empty), their bricks found in the hash ``keys`` (H,: a power of two, -1
-    empty) -> ``bricks`` (their index), or added. Returns the bricks now held and where it stopped:
-    len(mean), or earlier when the hash is 3/4 full or ``voxels`` has no room for another brick (FULL:
-    make room and call again from there) or at a mean out of range (OUT_OF_RANGE)."""
+    occupied (``occupied``: a brick's bits), their bricks found in the hash ``keys`` (H,: a power of two, -1
+    empty) -> ``bricks`` (their index), or added. Returns the bricks now held and where it stopped: len(mean),
+    or earlier when the hash is 3/4 full or ``occupied`` has no room for another brick (FULL: make room and
+    call again from there) or at a mean out of range (OUT_OF_RANGE)."""
     size = len(keys)
     mask = size - 1
     shift = _shift(size)
@@ -98,14 +100,15 @@ def insert(keys, bricks, voxels, n_bricks, mean, T, kept, voxel_mm, start):
         if brick != last:
             h = _find(keys, brick, shift, mask)
             if keys[h] < 0:
-                if 4 * (n_bricks + 1) > 3 * size or (n_bricks + 1) * BRICK > len(voxels):
+                if 4 * (n_bricks + 1) > 3 * size or n_bricks + 1 > len(occupied):
                     return n_bricks, i, FULL
                 keys[h] = brick
                 bricks[h] = n_bricks
+                occupied[n_bricks] = 0
                 n_bricks += 1
             b = bricks[h]
             last = brick
-        voxels[b * BRICK + at] = 0
+        occupied[b] |= np.int64(1) << at
     return n_bricks, len(mean), 0
 
 
@@ -123,10 +126,11 @@ def rehash(keys, bricks, new_keys, new_bricks):
 
 
 @nb.njit(cache=True, nogil=True)
-def number(keys, bricks, voxels, by_key):
+def number(keys, bricks, occupied, row_base, by_key):
     """Number the occupied voxels in the order of their keys (x, then y, then z), given the bricks' hash
     slots ``by_key`` in the order of their keys: those of one x and one y // 8 side by side, whose voxels
-    go row y by row y. Returns how many."""
+    go row y by row y. ``row_base[b, y % 8]``: the number of brick b's first voxel of row y. Returns how
+    many."""
     m = 0
     g0 = 0
     while g0 < len(by_key):
@@ -136,13 +140,18 @@ def number(keys, bricks, voxels, by_key):
             g1 += 1
         for y in range(8):
             for j in range(g0, g1):
-                base = bricks[by_key[j]] * BRICK + y * 8
-                for z in range(8):
-                    if voxels[base + z] >= 0:
-                        voxels[base + z] = m
-                        m += 1
+                b = bricks[by_key[j]]
+                row_base[b, y] = m
+                m += _POP[(occupied[b] >> (8 * y)) & 255]
         g0 = g1
     return m
+
+
+@nb.njit(cache=True, nogil=True)
+def _number(occupied, row_base, b, at):
+    """The number of voxel ``at`` (y % 8 * 8 + z % 8) of brick ``b`` (occupied)."""
+    y, z = at >> 3, at & 7
+    return row_base[b, y] + _POP[(occupied[b] >> (8 * y)) & ((1 << z) - 1)]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -174,7 +183,8 @@ def _pairwise(x, n):
 def add_view(
     keys,
     bricks,
-    voxels,
+    occupied,
+    row_base,
     mean,
     T,
     kept,
@@ -193,10 +203,10 @@ def add_view(
 ):
     """Add one view's bins (means ``mean`` (N, 3) mm moved by ``T``, weight sums ``w``, point counts ``c``,
     weighted u sums ``wu``), those ``kept``, to the merged voxels' sums ``wsum`` (M,), ``sums`` (M, 3) (of w *
-    mean), ``count`` and ``given`` (views a voxel has); the voxels' numbers in the bricks (:func:`number`).
-    ``local`` (M,) all -1, left so; ``first``, ``rest`` (>= N, 5) and ``counts`` (>= N, 3): scratch, reused
-    from view to view (new pages cost more than the sums). Returns the merged points the view has (ascending),
-    its weight sum and weighted u sum at each."""
+    mean), ``count`` and ``given`` (views a voxel has); the voxels' numbers in the bricks (``occupied``,
+    ``row_base``: :func:`number`). ``local`` (M,) all -1, left so; ``first``, ``rest`` (>= N, 5) and
+    ``counts`` (>= N, 3): scratch, reused from view to view (new pages cost more than the sums). Returns the
+    merged points the view has (ascending), its weight sum and weighted u sum at each."""
     size = len(keys)
     mask = size - 1
     shift = _shift(size)
@@ -216,7 +226,7 @@ def add_view(
         if brick != last:
             b = bricks[_find(keys, brick, shift, mask)]
             last = brick
-        r = voxels[b * BRICK + at]
+        r = _number(occupied, row_base, b, at)
         row[i] = r
         lo, hi = min(lo, r), max(hi, r)
         wi = w[i]

@@ -155,16 +155,17 @@ def merge_bins(
     what no other view measured: :func:`held_redundant`).
 
     Each bin's mean, moved by its view's refinement, falls in a voxel of the grid (most in the one it was
-    binned in: the refinement's corrections are tens of um); each occupied voxel's point is
-    sum W_b (R_v m_b + t_v) / sum W_b over the bins in it (m_b a bin's mean at the kinematic pose, W_b its
-    weight sum), summed in view order. That is the weighted mean of the refined points in the voxel, binned at
-    their refined positions as a bin's points go together (a bin of a 0.2 mm grid holds ~1.04 of a 1024x768
-    view's points; merging the bins where they were binned, at the kinematic positions, would leave two views'
-    surfaces, apart by the chain's error, in two layers of voxels averaged apart: on the demo pillar 7 % more
-    points and a noisier cloud). The voxels come in the order of their keys (x, then y, then z): the result
-    depends on the views' bins alone (not on when they were binned). Two passes over the views, compiled
+    binned in: the refinement's corrections are tens of um); each occupied voxel's point is sum W_b (R_v m_b +
+    t_v) / sum W_b over the bins in it (m_b a bin's mean at the kinematic pose, W_b its weight sum), summed in
+    view order. That is the weighted mean of the refined points in the voxel, binned at their refined
+    positions as a bin's points go together (a bin of a 0.2 mm grid holds ~1.04 of a 1024x768 view's points;
+    merging the bins where they were binned, at the kinematic positions, would leave two views' surfaces,
+    apart by the chain's error, in two layers of voxels averaged apart: on the demo pillar 7 % more points and
+    a noisier cloud). The voxels come in the order of their keys (x, then y, then z): the result depends on
+    the views' bins alone (not on when they were binned). Two passes over the views, compiled
     (cell.analysis._merge_kernel): the first finds the voxels the moved bins fall into, the second adds the
-    sums; only those voxels are held (a hash of runs of 8 along z, ~40 bytes a run).
+    sums; only those voxels are held (in bricks of 1 x 8 x 8, 40 bytes a brick, ~7 voxels a brick on the demo
+    pillar).
 
     ``each_view(k, rows, m, weight, wu)``, when given, is called with the merged points view k has (``rows``
     of the ``m``, ascending, int32), its weight sums there and its weighted u sums, e.g. for the views' shares
@@ -175,7 +176,7 @@ def merge_bins(
         raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
     # the bricks of voxels the moved bins fall in: a hash of their keys -> their index, and their voxels
     keys, bricks = np.full(1024, -1, dtype=np.int64), np.zeros(1024, dtype=np.int64)
-    voxels = np.full(256 * kernel.BRICK, -1, dtype=np.int32)  # >= 0: occupied (then: its merged point)
+    occupied = np.zeros(512, dtype=np.int64)  # a bit a voxel of a brick
     n_bricks, n_most = 0, 0
     for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
         b = views(k)
@@ -185,7 +186,7 @@ def merge_bins(
         at, status = 0, kernel.FULL
         while status == kernel.FULL:
             n_bricks, at, status = kernel.insert(
-                keys, bricks, voxels, n_bricks, b.mean, T_k, given, voxel_mm, at
+                keys, bricks, occupied, n_bricks, b.mean, T_k, given, voxel_mm, at
             )
             if status != kernel.FULL:
                 break
@@ -193,12 +194,13 @@ def merge_bins(
                 keys2, bricks2 = np.full(2 * len(keys), -1, dtype=np.int64), np.zeros(2 * len(keys), np.int64)
                 kernel.rehash(keys, bricks, keys2, bricks2)
                 keys, bricks = keys2, bricks2
-            if (n_bricks + 1) * kernel.BRICK > len(voxels):  # room for twice the bricks
-                voxels = np.concatenate([voxels, np.full(len(voxels), -1, dtype=np.int32)])
+            if n_bricks + 1 > len(occupied):  # room for twice the bricks
+                occupied = np.concatenate([occupied, np.zeros(len(occupied), dtype=np.int64)])
         if status == kernel.OUT_OF_RANGE:
             raise ConfigError(f"merge: points beyond +-{_HALF} voxels of the part frame's origin")
     slots = np.flatnonzero(keys >= 0)
-    m = kernel.number(keys, bricks, voxels, slots[np.argsort(keys[slots])])
+    row_base = np.empty((len(occupied), 8), dtype=np.int32)  # a brick's rows' first numbers
+    m = kernel.number(keys, bricks, occupied, row_base, slots[np.argsort(keys[slots])])
     del slots
     if m >= 2**31:
         raise ConfigError("merge: more than 2^31 voxels; use larger voxels")
@@ -213,7 +215,8 @@ def merge_bins(
         rows, w_rows, wu_rows = kernel.add_view(
             keys,
             bricks,
-            voxels,
+            occupied,
+            row_base,
             b.mean,
             np.asarray(T_k, dtype=np.float64),
             np.ones(len(b), dtype=bool) if kept is None else kept,
