@@ -13,6 +13,7 @@ from cell.analysis.merge import (
     ViewBins,
     bin_view,
     held_redundant,
+    load_kernels,
     measured_elsewhere,
     merge_bins,
     voxel_subsample_index,
@@ -247,6 +248,7 @@ def test_the_compiled_merge_is_numpys_group_by_to_the_bit() -> None:
     """Five views (two with held masks) moved by corrections of tens of um and 0.3 deg (many bins change
     voxel), and one whose dozen bins all fall in one voxel (NumPy's pairwise sum of more than 8): the merge's
     points, weights, counts, views per voxel and each view's shares equal NumPy's group-by byte for byte."""
+    load_kernels()  # (as the decode worker loads them: then the merge's first call compiles nothing)
     rng = np.random.default_rng(17)
     voxel = 0.2
     bins, keep, T = [], [], []

@@ -25,13 +25,15 @@ import numpy as np
 
 KEY_BITS = 21  # bits per axis of a voxel key (cell.analysis.merge.grid_keys)
 _HALF = 1 << (KEY_BITS - 1)
-# a brick: 1 x 8 x 8 voxels along x, y, z; which are occupied, a bit each (y % 8 * 8 + z % 8 of an int64), and
-# the number of the first occupied voxel of each of its rows (y) in the order of the keys: 40 bytes a brick
+# a brick: 1 x 8 x 8 voxels along x, y, z, one entry (a row of 8 int64, 64 bytes: one cache line) of the hash:
+# its key (-1: an empty entry), which of its voxels are occupied (a bit each, y % 8 * 8 + z % 8), and the
+# number of the first occupied voxel of each of its rows (y) in the order of the keys, two int32 a word
 # (~7 occupied voxels a brick on the demo pillar)
+_KEY, _OCCUPIED, _ROWS = 0, 1, 2
 _POP = np.array([bin(i).count("1") for i in range(256)], dtype=np.int64)  # set bits of a byte
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing's multiplier
 OUT_OF_RANGE = -2  # a moved mean beyond the key's +-2^20 voxels (or not finite)
-FULL = -1  # the hash or the bricks need more room
+FULL = -1  # the hash needs more room
 
 
 @nb.njit(cache=True, nogil=True)
@@ -71,25 +73,24 @@ def _cell(px, py, pz, voxel_mm):
 
 
 @nb.njit(cache=True, nogil=True)
-def _find(keys, brick, shift, mask):
-    """The hash slot of ``brick``: its own, or the empty one where it would go."""
+def _find(table, brick, shift, mask):
+    """The hash entry of ``brick``: its own, or the empty one where it would go."""
     h = np.int64((np.uint64(brick) * _GOLDEN) >> shift)
-    while keys[h] != brick and keys[h] >= 0:
+    while table[h, _KEY] != brick and table[h, _KEY] >= 0:
         h = (h + 1) & mask
     return h
 
 
 @nb.njit(cache=True, nogil=True)
-def insert(keys, bricks, occupied, n_bricks, mean, T, kept, voxel_mm, start):
+def insert(table, n_bricks, mean, T, kept, voxel_mm, start):
     """Mark the voxels of the bins' means ``mean[start:]`` ((N, 3) mm) moved by ``T`` (4x4), those ``kept``,
-    occupied (``occupied``: a brick's bits), their bricks found in the hash ``keys`` (H,: a power of two, -1
-    empty) -> ``bricks`` (their index), or added. Returns the bricks now held and where it stopped: len(mean),
-    or earlier when the hash is 3/4 full or ``occupied`` has no room for another brick (FULL: make room and
-    call again from there) or at a mean out of range (OUT_OF_RANGE)."""
-    size = len(keys)
+    occupied in their bricks' entries of the hash ``table`` (H, 8), H a power of two. Returns the bricks now
+    held and where it stopped: len(mean), or earlier when the hash is 3/4 full (FULL: grow it,
+    :func:`rehash`, and call again from there) or at a mean out of range (OUT_OF_RANGE)."""
+    size = len(table)
     mask = size - 1
     shift = _shift(size)
-    last, b = np.int64(-1), np.int64(-1)
+    last, h = np.int64(-1), np.int64(-1)
     for i in range(start, len(mean)):
         if not kept[i]:
             continue
@@ -98,60 +99,61 @@ def insert(keys, bricks, occupied, n_bricks, mean, T, kept, voxel_mm, start):
         if brick < 0:
             return n_bricks, i, OUT_OF_RANGE
         if brick != last:
-            h = _find(keys, brick, shift, mask)
-            if keys[h] < 0:
-                if 4 * (n_bricks + 1) > 3 * size or n_bricks + 1 > len(occupied):
+            h = _find(table, brick, shift, mask)
+            if table[h, _KEY] < 0:
+                if 4 * (n_bricks + 1) > 3 * size:
                     return n_bricks, i, FULL
-                keys[h] = brick
-                bricks[h] = n_bricks
-                occupied[n_bricks] = 0
+                table[h, _KEY] = brick
+                table[h, _OCCUPIED] = 0
                 n_bricks += 1
-            b = bricks[h]
             last = brick
-        occupied[b] |= np.int64(1) << at
+        table[h, _OCCUPIED] |= np.int64(1) << at
     return n_bricks, len(mean), 0
 
 
 @nb.njit(cache=True, nogil=True)
-def rehash(keys, bricks, new_keys, new_bricks):
-    """Move the hash's bricks into the empty, larger hash ``new_keys``/``new_bricks``."""
-    size = len(new_keys)
+def rehash(table, new_table):
+    """Move the hash's bricks into the empty (keys -1), larger hash ``new_table``."""
+    size = len(new_table)
     mask = size - 1
     shift = _shift(size)
-    for h in range(len(keys)):
-        if keys[h] >= 0:
-            g = _find(new_keys, keys[h], shift, mask)
-            new_keys[g] = keys[h]
-            new_bricks[g] = bricks[h]
+    for h in range(len(table)):
+        if table[h, _KEY] >= 0:
+            g = _find(new_table, table[h, _KEY], shift, mask)
+            new_table[g, :] = table[h, :]
 
 
 @nb.njit(cache=True, nogil=True)
-def number(keys, bricks, occupied, row_base, by_key):
+def number(table, by_key):
     """Number the occupied voxels in the order of their keys (x, then y, then z), given the bricks' hash
-    slots ``by_key`` in the order of their keys: those of one x and one y // 8 side by side, whose voxels
-    go row y by row y. ``row_base[b, y % 8]``: the number of brick b's first voxel of row y. Returns how
-    many."""
+    entries ``by_key`` in the order of their keys: those of one x and one y // 8 side by side, whose voxels
+    go row y by row y. Returns how many."""
     m = 0
     g0 = 0
     while g0 < len(by_key):
         g1 = g0 + 1
-        row = keys[by_key[g0]] >> 18
-        while g1 < len(by_key) and keys[by_key[g1]] >> 18 == row:
+        row = table[by_key[g0], _KEY] >> 18
+        while g1 < len(by_key) and table[by_key[g1], _KEY] >> 18 == row:
             g1 += 1
         for y in range(8):
             for j in range(g0, g1):
-                b = bricks[by_key[j]]
-                row_base[b, y] = m
-                m += _POP[(occupied[b] >> (8 * y)) & 255]
+                h = by_key[j]
+                word = _ROWS + (y >> 1)
+                if y & 1:
+                    table[h, word] |= np.int64(m) << 32
+                else:
+                    table[h, word] = np.int64(m)
+                m += _POP[(table[h, _OCCUPIED] >> (8 * y)) & 255]
         g0 = g1
     return m
 
 
 @nb.njit(cache=True, nogil=True)
-def _number(occupied, row_base, b, at):
-    """The number of voxel ``at`` (y % 8 * 8 + z % 8) of brick ``b`` (occupied)."""
+def _number(table, h, at):
+    """The number of voxel ``at`` (y % 8 * 8 + z % 8) of the brick in hash entry ``h`` (occupied)."""
     y, z = at >> 3, at & 7
-    return row_base[b, y] + _POP[(occupied[b] >> (8 * y)) & ((1 << z) - 1)]
+    first = (table[h, _ROWS + (y >> 1)] >> (32 * (y & 1))) & 0xFFFFFFFF
+    return first + _POP[(table[h, _OCCUPIED] >> (8 * y)) & ((1 << z) - 1)]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -181,10 +183,7 @@ def _pairwise(x, n):
 
 @nb.njit(cache=True, nogil=True)
 def add_view(
-    keys,
-    bricks,
-    occupied,
-    row_base,
+    table,
     mean,
     T,
     kept,
@@ -207,7 +206,7 @@ def add_view(
     ``row_base``: :func:`number`). ``local`` (M,) all -1, left so; ``first``, ``rest`` (>= N, 5) and
     ``counts`` (>= N, 3): scratch, reused from view to view (new pages cost more than the sums). Returns the
     merged points the view has (ascending), its weight sum and weighted u sum at each."""
-    size = len(keys)
+    size = len(table)
     mask = size - 1
     shift = _shift(size)
     n = len(w)
@@ -216,7 +215,7 @@ def add_view(
     many, csum, row = counts[:, 0], counts[:, 1], counts[:, 2]
     nt = 0
     lo, hi = len(wsum), -1
-    last, b = np.int64(-1), np.int64(-1)
+    last, h = np.int64(-1), np.int64(-1)
     for i in range(n):
         if not kept[i]:
             row[i] = -1
@@ -224,9 +223,9 @@ def add_view(
         px, py, pz = _moved(mean, i, T)
         brick, at = _cell(px, py, pz, voxel_mm)
         if brick != last:
-            b = bricks[_find(keys, brick, shift, mask)]
+            h = _find(table, brick, shift, mask)
             last = brick
-        r = _number(occupied, row_base, b, at)
+        r = _number(table, h, at)
         row[i] = r
         lo, hi = min(lo, r), max(hi, r)
         wi = w[i]

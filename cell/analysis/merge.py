@@ -164,8 +164,8 @@ def merge_bins(
     a noisier cloud). The voxels come in the order of their keys (x, then y, then z): the result depends on
     the views' bins alone (not on when they were binned). Two passes over the views, compiled
     (cell.analysis._merge_kernel): the first finds the voxels the moved bins fall into, the second adds the
-    sums; only those voxels are held (in bricks of 1 x 8 x 8, 40 bytes a brick, ~7 voxels a brick on the demo
-    pillar).
+    sums; only those voxels are held (in bricks of 1 x 8 x 8, 64 bytes a brick in a hash at most 3/4 full, ~7
+    voxels a brick on the demo pillar).
 
     ``each_view(k, rows, m, weight, wu)``, when given, is called with the merged points view k has (``rows``
     of the ``m``, ascending, int32), its weight sums there and its weighted u sums, e.g. for the views' shares
@@ -174,9 +174,8 @@ def merge_bins(
 
     if not voxel_mm > 0:
         raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
-    # the bricks of voxels the moved bins fall in: a hash of their keys -> their index, and their voxels
-    keys, bricks = np.full(1024, -1, dtype=np.int64), np.zeros(1024, dtype=np.int64)
-    occupied = np.zeros(512, dtype=np.int64)  # a bit a voxel of a brick
+    # the bricks of voxels the moved bins fall in: a hash of their keys and occupied voxels (the kernel's)
+    table = np.full((1024, 8), -1, dtype=np.int64)
     n_bricks, n_most = 0, 0
     for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
         b = views(k)
@@ -185,22 +184,15 @@ def merge_bins(
         T_k = np.asarray(T_k, dtype=np.float64)
         at, status = 0, kernel.FULL
         while status == kernel.FULL:
-            n_bricks, at, status = kernel.insert(
-                keys, bricks, occupied, n_bricks, b.mean, T_k, given, voxel_mm, at
-            )
-            if status != kernel.FULL:
-                break
-            if 4 * (n_bricks + 1) > 3 * len(keys):  # the hash twice as large
-                keys2, bricks2 = np.full(2 * len(keys), -1, dtype=np.int64), np.zeros(2 * len(keys), np.int64)
-                kernel.rehash(keys, bricks, keys2, bricks2)
-                keys, bricks = keys2, bricks2
-            if n_bricks + 1 > len(occupied):  # room for twice the bricks
-                occupied = np.concatenate([occupied, np.zeros(len(occupied), dtype=np.int64)])
+            n_bricks, at, status = kernel.insert(table, n_bricks, b.mean, T_k, given, voxel_mm, at)
+            if status == kernel.FULL:  # twice as large
+                larger = np.full((2 * len(table), 8), -1, dtype=np.int64)
+                kernel.rehash(table, larger)
+                table = larger
         if status == kernel.OUT_OF_RANGE:
             raise ConfigError(f"merge: points beyond +-{_HALF} voxels of the part frame's origin")
-    slots = np.flatnonzero(keys >= 0)
-    row_base = np.empty((len(occupied), 8), dtype=np.int32)  # a brick's rows' first numbers
-    m = kernel.number(keys, bricks, occupied, row_base, slots[np.argsort(keys[slots])])
+    slots = np.flatnonzero(table[:, 0] >= 0)
+    m = kernel.number(table, slots[np.argsort(table[slots, 0])])
     del slots
     if m >= 2**31:
         raise ConfigError("merge: more than 2^31 voxels; use larger voxels")
@@ -213,10 +205,7 @@ def merge_bins(
     for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
         b = views(k)
         rows, w_rows, wu_rows = kernel.add_view(
-            keys,
-            bricks,
-            occupied,
-            row_base,
+            table,
             b.mean,
             np.asarray(T_k, dtype=np.float64),
             np.ones(len(b), dtype=bool) if kept is None else kept,
@@ -247,9 +236,7 @@ def load_kernels() -> None:
 
     bins = bin_view(np.zeros((1, 3)), np.ones(1), np.zeros(1), 1.0)
     merge_bins(1.0, lambda k: bins, [np.ones(1, dtype=bool)], [np.eye(4)])
-    kernel.rehash(
-        np.full(2, -1, dtype=np.int64), np.zeros(2, np.int64), np.full(4, -1, np.int64), np.zeros(4, np.int64)
-    )
+    kernel.rehash(np.full((2, 8), -1, dtype=np.int64), np.full((4, 8), -1, dtype=np.int64))
 
 
 def moved_means(bins: ViewBins, T: NDArray[np.float64]) -> NDArray[np.float64]:
