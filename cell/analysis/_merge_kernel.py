@@ -149,8 +149,38 @@ def number(table, by_key):
 
 
 @nb.njit(cache=True, nogil=True)
+def _seek(bricks, brick, j):
+    """The row of ``brick`` (present) in ``bricks`` (the hash's entries in the order of their keys), searched
+    from row ``j`` outwards (galloping, then halving): a view's bins come in the order of their keys, so the
+    next brick is most often a few rows on, and the rows between are in cache."""
+    n = len(bricks)
+    j = min(max(j, 0), n - 1)
+    if bricks[j, _KEY] == brick:
+        return j
+    if bricks[j, _KEY] < brick:
+        lo, step, hi = j, 1, j + 1
+        while hi < n and bricks[hi, _KEY] < brick:
+            lo, step = hi, 2 * step
+            hi = j + step
+        lo, hi = lo + 1, min(hi, n - 1)
+    else:
+        hi, step, lo = j, 1, j - 1
+        while lo >= 0 and bricks[lo, _KEY] > brick:
+            hi, step = lo, 2 * step
+            lo = j - step
+        lo = max(lo, 0)
+    while lo < hi:  # the first row whose key is not below
+        mid = (lo + hi) // 2
+        if bricks[mid, _KEY] < brick:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@nb.njit(cache=True, nogil=True)
 def _number(table, h, at):
-    """The number of voxel ``at`` (y % 8 * 8 + z % 8) of the brick in hash entry ``h`` (occupied)."""
+    """The number of voxel ``at`` (y % 8 * 8 + z % 8, occupied) of the brick in entry ``h`` of ``table``."""
     y, z = at >> 3, at & 7
     first = (table[h, _ROWS + (y >> 1)] >> (32 * (y & 1))) & 0xFFFFFFFF
     return first + _POP[(table[h, _OCCUPIED] >> (8 * y)) & ((1 << z) - 1)]
@@ -183,7 +213,7 @@ def _pairwise(x, n):
 
 @nb.njit(cache=True, nogil=True)
 def add_view(
-    table,
+    bricks,
     mean,
     T,
     kept,
@@ -206,16 +236,13 @@ def add_view(
     ``row_base``: :func:`number`). ``local`` (M,) all -1, left so; ``first``, ``rest`` (>= N, 5) and
     ``counts`` (>= N, 3): scratch, reused from view to view (new pages cost more than the sums). Returns the
     merged points the view has (ascending), its weight sum and weighted u sum at each."""
-    size = len(table)
-    mask = size - 1
-    shift = _shift(size)
     n = len(w)
     # per merged point t of the view: its first bin's w, w x, w y, w z, wu (``first``), NumPy's pairwise sum
     # of the others' (``rest``: while fewer than 8), its bins and their points; each bin's merged point
     many, csum, row = counts[:, 0], counts[:, 1], counts[:, 2]
     nt = 0
     lo, hi = len(wsum), -1
-    last, h = np.int64(-1), np.int64(-1)
+    last, h = np.int64(-1), np.int64(0)
     for i in range(n):
         if not kept[i]:
             row[i] = -1
@@ -223,9 +250,9 @@ def add_view(
         px, py, pz = _moved(mean, i, T)
         brick, at = _cell(px, py, pz, voxel_mm)
         if brick != last:
-            h = _find(table, brick, shift, mask)
+            h = _seek(bricks, brick, h)
             last = brick
-        r = _number(table, h, at)
+        r = _number(bricks, h, at)
         row[i] = r
         lo, hi = min(lo, r), max(hi, r)
         wi = w[i]

@@ -192,8 +192,10 @@ def merge_bins(
         if status == kernel.OUT_OF_RANGE:
             raise ConfigError(f"merge: points beyond +-{_HALF} voxels of the part frame's origin")
     slots = np.flatnonzero(table[:, 0] >= 0)
-    m = kernel.number(table, slots[np.argsort(table[slots, 0])])
-    del slots
+    by_key = slots[np.argsort(table[slots, 0])]
+    m = kernel.number(table, by_key)
+    bricks = table[by_key]  # the second pass finds its bricks in the order of their keys
+    del slots, by_key, table
     if m >= 2**31:
         raise ConfigError("merge: more than 2^31 voxels; use larger voxels")
     if not m:
@@ -205,7 +207,7 @@ def merge_bins(
     for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
         b = views(k)
         rows, w_rows, wu_rows = kernel.add_view(
-            table,
+            bricks,
             b.mean,
             np.asarray(T_k, dtype=np.float64),
             np.ones(len(b), dtype=bool) if kept is None else kept,
