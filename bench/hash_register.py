@@ -47,10 +47,11 @@ def main() -> None:
         refinement.get("unregistered_points_dropped"),
     )
     state = job.merge_bins_for(run)
-    per_bin = [state.n_points[i] / len(state.numbers[i]) for i in done if len(state.numbers[i])]
-    points, bins = sum(state.n_points[i] for i in done), sum(len(state.numbers[i]) for i in done)
+    n_bins = {i: len(job._view_bins(job.views.get(run, i))[0]) for i in done}  # (binned again: not timed)
+    per_bin = [state.n_points[i] / n_bins[i] for i in done if n_bins[i]]
+    points, bins = sum(state.n_points[i] for i in done), sum(n_bins.values())
     print(
-        f"points per bin (of {state.grid.voxel_mm} mm): {points / bins:.3f} over the views,"
+        f"points per bin (of {state.voxel_mm} mm): {points / bins:.3f} over the views,"
         f" {min(per_bin):.3f}-{max(per_bin):.3f} per view"
     )
     cloud = job._cloud

@@ -24,7 +24,7 @@ from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.decision import DecisionRule
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.judge import judge
-from cell.analysis.merge import MergedCloud, MergeGrid, ViewBins, bin_view, held_redundant, merge_bins
+from cell.analysis.merge import MergedCloud, ViewBins, bin_view, held_redundant, load_kernels, merge_bins
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, default_link_radius, write_page, write_verdict
 from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
@@ -53,33 +53,29 @@ if TYPE_CHECKING:
 MERGE_BINS_KEPT_BYTES = 160_000_000
 # views of more measured points than this are not binned as they arrive but when first merged (as a resumed
 # run's): a 1024x768 camera's views (at most 0.79M pixels) are, a 5 MP camera's (1.7M points a pillar view)
-# are not, whose grid, voxel numbers and bins would hold ~0.5 GB through the scan, where its peak memory is
+# are not, whose bins would hold up to the budget above through the scan, where its peak memory was
 # (docs/benchmarks.md, item 5); the merge is the same either way (tests/test_inspect_e2e.py)
 ARRIVAL_BINNING_MAX_POINTS = 1_000_000
 
 
 class MergeBins:
-    """The views' bins on the registration's merge grid (:func:`cell.analysis.merge.bin_view`: at their
-    kinematic positions in {P}), made once a view, as it arrives (the decode worker) or when first merged (a
-    resumed run's views), with their voxel numbers in one :class:`cell.analysis.merge.MergeGrid`. The bins
-    depend on the view alone and the merge neither on the numbers nor on the order the views were binned in,
-    so a resumed run merges what an uninterrupted one does. Thread-safe: the grid, the numbers and the counts
+    """The views' bins for the registration's merge (:func:`cell.analysis.merge.bin_view`: at their kinematic
+    positions in {P}), made once a view, as it arrives (the decode worker) or when first merged (a resumed
+    run's views), and their measured points' counts. The bins depend on the view alone and the merge only on
+    the bins, so a resumed run merges what an uninterrupted one does. Thread-safe: the bins and the counts
     are written and read under one lock (a merge holds it throughout: a view binned meanwhile waits)."""
 
     def __init__(self, voxel_mm: float, run: Path, kept_bytes: int = MERGE_BINS_KEPT_BYTES) -> None:
         self.run = run  # the run folder whose views these are
-        self.grid = MergeGrid(voxel_mm)
+        self.voxel_mm = voxel_mm
         self.kept_bytes = kept_bytes
-        self.numbers: dict[int, NDArray[np.int32]] = {}  # by view index: its voxels' numbers
         self.n_points: dict[int, int] = {}  # by view index: its measured points (not the oblique ones)
         self._bins: dict[int, ViewBins] = {}  # by view index, the first ones dropped beyond ``kept_bytes``
         self._lock = threading.RLock()  # reentrant: a merge asks for views, which may be binned then
 
-    def add(self, index: int, keys: NDArray[np.int64], bins: ViewBins, n_points: int) -> None:
-        """Number view ``index``'s voxels (``keys``) and keep its ``bins`` (within the budget: the newest
-        stay)."""
+    def add(self, index: int, bins: ViewBins, n_points: int) -> None:
+        """Keep view ``index``'s ``bins`` (within the budget: the newest stay) and its points' count."""
         with self._lock:
-            self.numbers[index] = self.grid.number(keys)
             self.n_points[index] = n_points
             self._bins.pop(index, None)
             self._bins[index] = bins
@@ -89,31 +85,28 @@ class MergeBins:
                     break
                 held -= self._bins.pop(k).nbytes
 
-    def view(
-        self, index: int, make: Callable[[], tuple[NDArray[np.int64], ViewBins, int]]
-    ) -> tuple[NDArray[np.int32], ViewBins]:
-        """View ``index``'s voxel numbers and bins: kept, else made by ``make`` (its keys, bins and count:
-        binned again from its points), and numbered and kept when it has no numbers yet (a resumed run's
-        view, numbered when first asked for)."""
+    def view(self, index: int, make: Callable[[], tuple[ViewBins, int]]) -> ViewBins:
+        """View ``index``'s bins: kept, else made by ``make`` (its bins and points' count: binned again from
+        its points), and kept when it was not binned before (a resumed run's view, when first asked for)."""
         with self._lock:
-            numbers, bins = self.numbers.get(index), self._bins.get(index)
-            if numbers is not None and bins is not None:
-                return numbers, bins
-            keys, bins, n = make()
-            if numbers is None:
-                self.add(index, keys, bins, n)
-            return self.numbers[index], bins
+            bins = self._bins.get(index)
+            if bins is not None:
+                return bins
+            bins, n = make()
+            if index not in self.n_points:
+                self.add(index, bins, n)
+            return bins
 
     def merge(
         self,
-        views: Callable[[int], tuple[NDArray[np.int32], ViewBins]],
+        views: Callable[[int], ViewBins],
         keep: Sequence[NDArray[np.bool_] | None],
         T: Sequence[NDArray[np.float64]],
         each_view: MergeShares,
     ) -> MergedCloud | None:
-        """:func:`cell.analysis.merge.merge_bins` on this grid, under the lock."""
+        """:func:`cell.analysis.merge.merge_bins` of these bins, under the lock."""
         with self._lock:
-            return merge_bins(self.grid, views, keep, T, each_view)
+            return merge_bins(self.voxel_mm, views, keep, T, each_view)
 
     def points(self, indices: Sequence[int]) -> int:
         """The measured points of the views ``indices`` (all binned)."""
@@ -121,11 +114,9 @@ class MergeBins:
             return int(sum(self.n_points[i] for i in indices))
 
     def forget(self, index: int) -> None:
-        """Drop view ``index``'s bins, numbers and count (it is measured again: binned anew when merged). Its
-        voxels stay numbered in the grid: a voxel no view gives is not merged."""
+        """Drop view ``index``'s bins and count (it is measured again: binned anew when merged)."""
         with self._lock:
             self._bins.pop(index, None)
-            self.numbers.pop(index, None)
             self.n_points.pop(index, None)
 
 
@@ -196,13 +187,15 @@ class InspectionResults:
     def bin_arrived_view(self, run: RunFolder, view: ViewResult) -> None:
         """Bin a completed view for the registration's merge (:class:`MergeBins`), in the decode worker while
         the robot moves on: what the merge after the last view would otherwise begin with. A view of more than
-        :data:`ARRIVAL_BINNING_MAX_POINTS` is left to the merge."""
+        :data:`ARRIVAL_BINNING_MAX_POINTS` is left to the merge. The merge's compiled kernels are loaded
+        here too, once a process."""
+        load_kernels()
         if int(view.summary["points"]) > ARRIVAL_BINNING_MAX_POINTS:
             return
         self.merge_bins_for(run).add(view.index, *self._view_bins(view))
 
-    def _view_bins(self, view: ViewResult) -> tuple[NDArray[np.int64], ViewBins, int]:
-        """A view's voxels' keys, its merge bins and its measured points' count: the sensor's points in {P}
+    def _view_bins(self, view: ViewResult) -> tuple[ViewBins, int]:
+        """A view's merge bins and its measured points' count: the sensor's points in {P}
         at their kinematic pose (T_P_W @ p_W), without those lit too obliquely, weighted by quality^2, with
         their decode u (NaN in run folders from before issue 17)."""
         held = view.points()
@@ -210,7 +203,7 @@ class InspectionResults:
         points = transform_points(invert(self.T_W_P), held.points_W[keep])
         weights = np.square(held.quality[keep]).astype(np.float64) + 1e-6
         u = None if held.uncertainty is None else held.uncertainty[keep].astype(np.float64)
-        return (*bin_view(points, weights, u, self.settings.merge_voxel_mm), len(points))
+        return bin_view(points, weights, u, self.settings.merge_voxel_mm), len(points)
 
     def register(self, run: RunFolder, views: list[View]) -> dict[str, Any]:
         """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
@@ -231,17 +224,16 @@ class InspectionResults:
         state = self.merge_bins_for(run)
         T_P = [T_P_W @ T @ self.T_W_P for T in refined.T]  # the views' refinement in {P}
 
-        def view(k: int) -> tuple[NDArray[np.int32], ViewBins]:
-            """View k's voxel numbers and bins: kept, else binned again from its points (from its folder when
-            the view store no longer holds them); a view no decode worker of this process binned (a resumed
-            run's) is numbered here, when first asked for (in view order)."""
+        def view(k: int) -> ViewBins:
+            """View k's bins: kept, else binned again from its points (from its folder when the view store no
+            longer holds them)."""
             return state.view(done[k], lambda: self._view_bins(stored[k]))
 
         # a held view's voxels near a registered view's (or an earlier held view's kept ones) are cut
         counts: dict[int, NDArray[np.int32]] = {}  # the held views' points per bin, for the count cut
 
         def held_bins(k: int) -> ViewBins:
-            bins = view(k)[1]
+            bins = view(k)
             if k in refined.unregistered:
                 counts[k] = bins.count
             return bins

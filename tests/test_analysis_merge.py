@@ -10,10 +10,10 @@ import pytest
 
 from cell.analysis.merge import (
     MergedCloud,
-    MergeGrid,
     ViewBins,
     bin_view,
     held_redundant,
+    load_kernels,
     measured_elsewhere,
     merge_bins,
     voxel_subsample_index,
@@ -27,20 +27,12 @@ def merge(
     weights: list[np.ndarray] | None = None,
     voxel_mm: float = 0.2,
     T: list[np.ndarray] | None = None,
-    order: list[int] | None = None,
 ) -> MergedCloud | None:
-    """The registration's merge of views given in memory: each binned, numbered in ``order`` (default: view
-    order), moved by ``T`` (default: none)."""
+    """The registration's merge of views given in memory: each binned, moved by ``T`` (default: none)."""
     ws = weights or [np.ones(len(v)) for v in views]
     binned = [bin_view(v, w, None, voxel_mm) for v, w in zip(views, ws, strict=True)]
-    grid = MergeGrid(voxel_mm)
-    numbers: dict[int, np.ndarray] = {}
-    for k in order or range(len(views)):
-        numbers[k] = grid.number(binned[k][0])
-    n, size = len(views), grid.size
-    merged = merge_bins(grid, lambda k: (numbers[k], binned[k][1]), [None] * n, T or [np.eye(4)] * n)
-    assert grid.size == size  # the voxels the moved bins fall into are not kept: merging again adds nothing
-    return merged
+    n = len(views)
+    return merge_bins(voxel_mm, lambda k: binned[k], [None] * n, T or [np.eye(4)] * n)
 
 
 def _plane(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -108,7 +100,7 @@ def test_bad_input() -> None:
     with pytest.raises(ConfigError):
         merge([np.zeros((3, 3))], voxel_mm=0.0)
     with pytest.raises(ConfigError):
-        MergeGrid(-1.0)
+        merge_bins(-1.0, lambda k: bin_view(np.zeros((1, 3)), np.ones(1), None, 0.2), [None], [np.eye(4)])
     with pytest.raises(ConfigError):  # beyond the key's +-2^20 voxels
         merge([np.array([[0.0, 0.0, 3e5]])], voxel_mm=0.2)
 
@@ -136,7 +128,7 @@ def test_two_unregistered_views_over_one_spot_give_it_once() -> None:
     registered = np.column_stack([rng.uniform(-20, 0, (4000, 2)), np.zeros(4000)])
     first = np.column_stack([rng.uniform(10, 30, (4000, 2)), np.zeros(4000)])
     second = np.column_stack([rng.uniform(10, 30, (4000, 2)), np.full(4000, 0.4)])
-    binned = [bin_view(p, np.ones(len(p)), None, 0.2)[1] for p in (registered, first, second)]
+    binned = [bin_view(p, np.ones(len(p)), None, 0.2) for p in (registered, first, second)]
     T = [np.eye(4)] * 3
     cut = held_redundant(lambda k: binned[k], T, [1, 2], radius_mm=2.0)
     assert sorted(cut) == [1, 2] and not cut[1].any()  # nothing registered there: the first stays whole
@@ -215,32 +207,95 @@ def test_the_merge_of_binned_views_is_the_refined_points_merged_bin_by_bin() -> 
     assert len(kinematic.symmetric_difference(cells)) > 1000
 
 
-def test_the_merge_does_not_depend_on_the_order_the_views_were_numbered_in() -> None:
-    """The decode worker numbers the views as they arrive, a resumed run in view order: the merge is the same
-    to the bit (sums in view order, voxels in the order of their cells)."""
-    rng = np.random.default_rng(5)
-    views = [rng.uniform(lo, lo + 6, (300, 3)) for lo in (4.0, -3.0, 9.0, 0.5)]
-    weights = [rng.uniform(0.5, 2.0, 300) for _ in views]
-    T = [np.eye(4)] * 4
-    for k, t in enumerate(T):
-        T[k] = t.copy()
-        T[k][:3, 3] = rng.uniform(-0.2, 0.2, 3)
-    first = merge(views, weights, 1.0, T)
-    again = merge(views, weights, 1.0, T, order=[2, 0, 3, 1])
-    assert first is not None and again is not None
-    for a, b in zip(
-        (first.points_mm, first.weight, first.count, first.n_views),
-        (again.points_mm, again.weight, again.count, again.n_views),
-        strict=True,
-    ):
-        assert a.tobytes() == b.tobytes()
+def _reference_merge(
+    bins: list[ViewBins], keep: list[np.ndarray | None], T: list[np.ndarray], voxel: float
+) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """The merge with NumPy's group-by (the registration's before its compiled kernel): each view's moved
+    means put in the voxels they fall in (all voxels sorted by cell, ``np.unique``), a view's sums per voxel
+    by a stable sort and ``np.add.reduceat``, added to the voxels' in view order."""
+    moved = [
+        transform_points(t, b.mean) if k is None else transform_points(t, b.mean)[k]
+        for b, k, t in zip(bins, keep, T, strict=True)
+    ]
+    cells = [np.floor(p / voxel).astype(np.int64) for p in moved]
+    every, at = np.unique(np.concatenate(cells), axis=0, return_inverse=True)
+    m = len(every)
+    wsum, sums, count, given = np.zeros(m), np.zeros((3, m)), np.zeros(m, np.int64), np.zeros(m, np.int64)
+    views, start = [], 0
+    for b, k, p in zip(bins, keep, moved, strict=True):
+        rows = at.ravel()[start : start + len(p)]
+        start += len(p)
+        w, c, wu = (b.weight, b.count, b.wu) if k is None else (b.weight[k], b.count[k], b.wu[k])
+        order = np.argsort(rows, kind="stable")
+        first = np.r_[True, rows[order][1:] != rows[order][:-1]]
+        starts = np.flatnonzero(first)
+        r = rows[order][starts]
+
+        def per_row(x: np.ndarray) -> np.ndarray:
+            return np.add.reduceat(x[order], starts)  # noqa: B023
+
+        w_rows = per_row(w)
+        wsum[r] += w_rows
+        for j in range(3):
+            sums[j][r] += per_row(w * p[:, j])
+        count[r] += per_row(c.astype(np.float64)).astype(np.int64)
+        given[r] += 1
+        views.append((r, w_rows, per_row(wu.astype(np.float64))))
+    return [(sums / wsum).T.copy(), wsum, count, given], views
+
+
+def test_the_compiled_merge_is_numpys_group_by_to_the_bit() -> None:
+    """Five views (two with held masks) moved by corrections of tens of um and 0.3 deg (many bins change
+    voxel), and one whose dozen bins all fall in one voxel (NumPy's pairwise sum of more than 8): the merge's
+    points, weights, counts, views per voxel and each view's shares equal NumPy's group-by byte for byte."""
+    load_kernels()  # (as the decode worker loads them: then the merge's first call compiles nothing)
+    rng = np.random.default_rng(17)
+    voxel = 0.2
+    bins, keep, T = [], [], []
+    for k in range(5):
+        xy = rng.uniform(0, 4, (1500, 2)) + 0.3 * k
+        p = np.column_stack([xy, 0.4 * xy[:, 1] + rng.normal(0, 0.01, len(xy))])
+        bins.append(bin_view(p, rng.uniform(0.5, 2.0, len(p)), rng.uniform(0.005, 0.02, len(p)), voxel))
+        T_k = np.eye(4)
+        T_k[:3, :3] = _rotation(rng.normal(size=3), np.deg2rad(0.3))
+        T_k[:3, 3] = rng.uniform(-0.06, 0.06, 3)
+        T.append(T_k)
+        keep.append(rng.random(len(bins[-1])) < 0.7 if k in (1, 3) else None)
+        moved_cells = np.floor(transform_points(T_k, bins[-1].mean) / voxel)
+        assert (moved_cells != np.floor(bins[-1].mean / voxel)).any(1).mean() > 0.05  # some change voxel
+    crowd = ViewBins(  # (not from bin_view: a dozen means in one voxel)
+        rng.uniform(1.01, 1.19, (12, 3)),
+        rng.uniform(0.5, 2.0, 12),
+        rng.uniform(0, 0.1, 12).astype(np.float32),
+        np.ones(12, np.int32),
+    )
+    bins.append(crowd)
+    keep.append(None)
+    T.append(np.eye(4))
+    got: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def each_view(k: int, rows: np.ndarray, m: int, w: np.ndarray, wu: np.ndarray) -> None:
+        assert k == len(got)
+        got.append((rows.astype(np.int64), w, wu))
+
+    merged = merge_bins(voxel, lambda k: bins[k], keep, T, each_view)
+    want, want_views = _reference_merge(bins, keep, T, voxel)
+    assert merged is not None and len(merged.points_mm) > 500
+    for a, b in zip((merged.points_mm, merged.weight, merged.count, merged.n_views), want, strict=True):
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    for a_view, b_view in zip(got, want_views, strict=True):
+        for a, b in zip(a_view, b_view, strict=True):
+            assert a.tobytes() == b.tobytes()
+    assert merged.n_views.max() >= 3 and merged.count.sum() == sum(
+        int(b.count.sum() if k is None else b.count[k].sum()) for b, k in zip(bins, keep, strict=True)
+    )
 
 
 def test_view_bins_hold_the_points_weighted_sums() -> None:
     """A view's bins: per voxel the weighted mean, the weight sum, the weighted u sum and the count."""
     p = np.array([[0.05, 0.05, 0.05], [0.15, 0.05, 0.05], [0.25, 0.05, 0.05]])
-    keys, bins = bin_view(p, np.array([1.0, 3.0, 2.0]), np.array([0.01, 0.02, 0.04]), 0.2)
-    assert isinstance(bins, ViewBins) and len(keys) == len(bins) == 2 and keys[0] < keys[1]
+    bins = bin_view(p, np.array([1.0, 3.0, 2.0]), np.array([0.01, 0.02, 0.04]), 0.2)
+    assert isinstance(bins, ViewBins) and len(bins) == 2
     assert np.allclose(bins.mean[0], [0.125, 0.05, 0.05]) and np.allclose(bins.mean[1], p[2])
     assert bins.weight.tolist() == [4.0, 2.0] and bins.count.tolist() == [2, 1]
     assert np.allclose(bins.wu, [0.07, 0.08])

@@ -198,8 +198,8 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
     last = done[-1]
     if bins == "redo":  # the first decode's points 30 mm off (binned as the decode worker bins them)
         last = max(i for i in done if len(job.views.get(run, i).eval_W))
-        _, first, n = job._view_bins(job.views.get(run, last))
-        state.add(last, *bin_view(first.mean + [30.0, 0, 0], first.weight, None, state.grid.voxel_mm), n)
+        first, n = job._view_bins(job.views.get(run, last))
+        state.add(last, bin_view(first.mean + [30.0, 0, 0], first.weight, None, state.voxel_mm), n)
     for i in done:
         view = job.views.get(run, i)
         job._first_overlaps(run, view, pair_maps=i != last)

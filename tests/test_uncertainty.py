@@ -14,7 +14,7 @@ import pytest
 import trimesh
 
 from cell.analysis import uncertainty
-from cell.analysis.merge import MergeGrid, bin_view, merge_bins
+from cell.analysis.merge import bin_view, merge_bins
 from cell.analysis.uncertainty import (
     MergeShares,
     PointRows,
@@ -241,13 +241,11 @@ def test_quantisation_in_bands_is_the_whole_images(
 
 # ------------------------------------------------------------------------------------------ merge and pose
 def _merged_u(views: list[np.ndarray], weights: list[np.ndarray], u: list[np.ndarray]) -> np.ndarray:
-    """The merged decode u of views merged as the registration merges them (binned, numbered, summed)."""
+    """The merged decode u of views merged as the registration merges them (binned, summed)."""
     binned = [bin_view(v, w, x, 0.2) for v, w, x in zip(views, weights, u, strict=True)]
-    grid = MergeGrid(0.2)
-    numbers = [grid.number(keys) for keys, _ in binned]
     acc = MergeShares(len(views))
     n = len(views)
-    merged = merge_bins(grid, lambda k: (numbers[k], binned[k][1]), [None] * n, [np.eye(4)] * n, acc)
+    merged = merge_bins(0.2, lambda k: binned[k], [None] * n, [np.eye(4)] * n, acc)
     assert merged is not None
     return acc.decode(merged)
 

@@ -8,22 +8,22 @@ averaged alone, so nothing outside the overlaps is lost.
 
 The work is split at the views' refinement (issue 16). As a view arrives its points are binned once at their
 kinematic positions (T_P_W @ p_W; :func:`bin_view`: per voxel the view's weight sum W_b and weighted mean
-m_b), and the voxels numbered in one grid that grows with the views (:class:`MergeGrid`). After the last view
-each bin's mean is moved by its view's refinement T_v = [R_v t_v] and merged in the voxel it then falls in
-(:func:`merge_bins`): sum W_b (R_v m_b + t_v) / sum W_b, which is the weighted mean of the refined points, as
-exactly as a bin's points are moved together. Against binning every refined point that changes the model in
-three ways: (a) a bin's points move together (1.04 points a bin of 0.2 mm on the demo pillar's 1024x768 views,
-1.02-1.09 per view, `bench/hash_register.py`; ~4 on a 5 MP camera's, docs/benchmarks.md: the demo pillar
-merges to 1.6 % fewer points, deviations within 2.3 um at p99); (b) a view the refinement could not register
-is cut by whole voxels, judged by their means (:func:`held_redundant`), not point by point; (c) the registered
-cloud's u takes its surface normals from the faces of the aligned cloud's error map (one nearest face a merged
-point; cell.inspection_results).
+m_b). After the last view each bin's mean is moved by its view's refinement T_v = [R_v t_v] and merged in the
+voxel it then falls in (:func:`merge_bins`): sum W_b (R_v m_b + t_v) / sum W_b, which is the weighted mean of
+the refined points, as exactly as a bin's points are moved together. Against binning every refined point that
+changes the model in three ways: (a) a bin's points move together (1.04 points a bin of 0.2 mm on the demo
+pillar's 1024x768 views, 1.02-1.09 per view, `bench/hash_register.py`; ~4 on a 5 MP camera's,
+docs/benchmarks.md: the demo pillar merges to 1.6 % fewer points, deviations within 2.3 um at p99); (b) a view
+the refinement could not register is cut by whole voxels, judged by their means (:func:`held_redundant`), not
+point by point; (c) the registered cloud's u takes its surface normals from the faces of the aligned cloud's
+error map (one nearest face a merged point; cell.inspection_results).
 
 Choose ``voxel_mm`` about the views' point spacing: much coarser voxels also average real surface shape.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -37,9 +37,6 @@ from cell.geometry import invert, transform_points
 
 KEY_BITS = 21  # bits per axis of a voxel key: +-2^20 voxels (+-210 m of 0.2 mm voxels) about the origin
 _HALF = 1 << (KEY_BITS - 1)
-# the merge keeps its views' moved voxel means between its two passes when all fit in this (24 bytes a bin: a
-# 1024x768 camera's dozen views' 90 MB do; a 5 MP camera's 40 views' ~0.5 GB are moved again instead)
-MOVED_KEPT_BYTES = 128_000_000
 
 
 @dataclass(frozen=True)
@@ -110,11 +107,11 @@ class ViewBins:
 
 def bin_view(
     points: NDArray[np.float64], weights: NDArray[np.float64], u: NDArray[np.float64] | None, voxel_mm: float
-) -> tuple[NDArray[np.int64], ViewBins]:
+) -> ViewBins:
     """Bin one view's points ((N, 3) mm in {P}, at the pose the kinematic chain gave them) with their merge
-    weights ((N,) > 0) and decode u ((N,) mm, or None) on the merge grid of edge ``voxel_mm`` (mm): the
-    occupied voxels' keys (:func:`grid_keys`, ascending) and their :class:`ViewBins`. Points with a
-    non-finite position or a weight that is not finite and positive are left out."""
+    weights ((N,) > 0) and decode u ((N,) mm, or None) on the merge grid of edge ``voxel_mm`` (mm): its
+    :class:`ViewBins`, in the order of the voxels' keys (:func:`grid_keys`). Points with a non-finite position
+    or a weight that is not finite and positive are left out."""
     if not voxel_mm > 0:
         raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -141,159 +138,107 @@ def bin_view(
     else:
         wu = np.bincount(at, weights=w * np.asarray(u, dtype=np.float64).ravel()[order], minlength=n)
     count = np.bincount(at, minlength=n).astype(np.int32)
-    return keys[first], ViewBins(mean, wsum, wu.astype(np.float32), count)
-
-
-class MergeGrid:
-    """The merge's voxel numbering, grown as views are binned (:meth:`number`): a voxel's number is given
-    when a view first has it and never changes. Which voxel gets which number depends on the order the views
-    were numbered in; the merge does not (:func:`merge_bins` sums the views in view order and gives the
-    voxels in the order of their keys). Memory: 20 bytes a voxel. Not thread-safe: the caller locks."""
-
-    def __init__(self, voxel_mm: float) -> None:
-        if not voxel_mm > 0:
-            raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
-        self.voxel_mm = voxel_mm
-        self.keys = np.zeros(0, dtype=np.int64)  # (M,) the voxels' keys, ascending
-        self.ids = np.zeros(0, dtype=np.int32)  # (M,) the number of each of them
-        self.key_of = np.zeros(0, dtype=np.int64)  # (M,) the key of each number
-
-    @property
-    def size(self) -> int:
-        return len(self.keys)
-
-    def number(self, keys: NDArray[np.int64]) -> NDArray[np.int32]:
-        """The numbers of the voxels ``keys`` (ascending, distinct: :func:`bin_view`'s), new ones numbered on
-        from the last, in the order of their keys."""
-        at = np.searchsorted(self.keys, keys)
-        known = at < len(self.keys)
-        known[known] = self.keys[at[known]] == keys[known]
-        out = np.empty(len(keys), dtype=np.int32)
-        out[known] = self.ids[at[known]]
-        new = ~known
-        if len(self.keys) + int(new.sum()) >= 2**31:
-            raise ConfigError("merge: more than 2^31 voxels; use larger voxels")
-        out[new] = np.arange(len(self.keys), len(self.keys) + int(new.sum()), dtype=np.int32)
-        self.keys = np.insert(self.keys, at[new], keys[new])
-        self.ids = np.insert(self.ids, at[new], out[new])
-        self.key_of = np.concatenate([self.key_of, keys[new]])
-        return out
+    return ViewBins(mean, wsum, wu.astype(np.float32), count)
 
 
 def merge_bins(
-    grid: MergeGrid,
-    views: Callable[[int], tuple[NDArray[np.int32], ViewBins]],
+    voxel_mm: float,
+    views: Callable[[int], ViewBins],
     keep: Sequence[NDArray[np.bool_] | None],
     T: Sequence[NDArray[np.float64]],
-    each_view: Callable[[int, NDArray[np.int64], int, NDArray[np.float64], NDArray[np.float64]], None]
+    each_view: Callable[[int, NDArray[Any], int, NDArray[np.float64], NDArray[np.float64]], None]
     | None = None,
 ) -> MergedCloud | None:
-    """Merge binned views: ``views(k)`` gives view k's voxels' numbers in ``grid`` (:meth:`MergeGrid.number`)
-    and its bins (:func:`bin_view`; asked for twice, in view order: the first time, a view not numbered yet
-    may be numbered then); ``T[k]`` is its refinement (4x4, {P} to {P}) and ``keep[k]`` which of its bins it
-    gives (None: all; a view the refinement could not register gives only what no other view measured:
-    :func:`held_redundant`).
+    """Merge binned views: ``views(k)`` gives view k's bins (:func:`bin_view` on the grid of edge
+    ``voxel_mm``, mm; asked for twice, in view order); ``T[k]`` is its refinement (4x4, {P} to {P}) and
+    ``keep[k]`` which of its bins it gives (None: all; a view the refinement could not register gives only
+    what no other view measured: :func:`held_redundant`).
 
     Each bin's mean, moved by its view's refinement, falls in a voxel of the grid (most in the one it was
-    binned in: the refinement's corrections are tens of um; the others are looked up, and numbered for this
-    merge alone when the grid does not have them: it grows by the views' own voxels only);
-    each occupied voxel's point is sum W_b (R_v m_b + t_v) / sum W_b over the bins in it (m_b a bin's mean at
-    the kinematic pose, W_b its weight sum), summed in view order. That is the weighted mean of the refined
-    points in the voxel, binned at their refined positions as a bin's points go together (a bin of a 0.2 mm
-    grid holds ~1.04 of a 1024x768 view's points; merging the bins where they were binned, at the kinematic
-    positions, would leave two views' surfaces, apart by the chain's error, in two layers of voxels averaged
-    apart: on the demo pillar 7 % more points and a noisier cloud). The voxels come in the order of their
-    keys (x, then y, then z), so the result depends neither on the numbers nor on the order the views were
-    numbered in.
+    binned in: the refinement's corrections are tens of um); each occupied voxel's point is sum W_b (R_v m_b +
+    t_v) / sum W_b over the bins in it (m_b a bin's mean at the kinematic pose, W_b its weight sum), summed in
+    view order. That is the weighted mean of the refined points in the voxel, binned at their refined
+    positions as a bin's points go together (a bin of a 0.2 mm grid holds ~1.04 of a 1024x768 view's points;
+    merging the bins where they were binned, at the kinematic positions, would leave two views' surfaces,
+    apart by the chain's error, in two layers of voxels averaged apart: on the demo pillar 7 % more points and
+    a noisier cloud). The voxels come in the order of their keys (x, then y, then z): the result depends on
+    the views' bins alone (not on when they were binned). Two passes over the views, compiled
+    (cell.analysis._merge_kernel): the first finds the voxels the moved bins fall into, the second adds the
+    sums; only those voxels are held (in bricks of 1 x 8 x 8, 64 bytes a brick in a hash at most 3/4 full, ~7
+    voxels a brick on the demo pillar).
 
     ``each_view(k, rows, m, weight, wu)``, when given, is called with the merged points view k has (``rows``
-    of the ``m``, ascending), its weight sums there and its weighted u sums, e.g. for the views' shares
+    of the ``m``, ascending, int32), its weight sums there and its weighted u sums, e.g. for the views' shares
     (:class:`cell.analysis.uncertainty.MergeShares`). None when no view gives a voxel."""
-    placed: list[NDArray[np.int32]] = []  # each given bin's voxel: its number, or -1 - index into ``found``
-    found: list[NDArray[np.int64]] = []  # the keys of the voxels the bins moved into
-    moved_kept: dict[int, NDArray[np.float64]] = {}  # the moved means for the sums: all, or none
-    room: int | None = MOVED_KEPT_BYTES  # None: they did not fit
+    from cell.analysis import _merge_kernel as kernel
+
+    if not voxel_mm > 0:
+        raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
+    # the bricks of voxels the moved bins fall in: a hash of their keys and occupied voxels (the kernel's)
+    table = np.full((1024, 8), -1, dtype=np.int64)
+    n_bricks, n_most = 0, 0
     for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
-        view_ids, b = views(k)
-        moved = moved_means(b, T_k) if kept is None else moved_means(b, T_k)[kept]
-        at = (view_ids if kept is None else view_ids[kept]).astype(np.int32)  # a copy: the numbers stay
-        keys = grid_keys(np.floor(moved / grid.voxel_mm).astype(np.int64))
-        out = keys != grid.key_of[at]
-        at[out] = -1 - (sum(len(f) for f in found) + np.arange(int(out.sum())))
-        found.append(keys[out])
-        placed.append(at)
-        if room is not None and moved.nbytes <= room:
-            moved_kept[k], room = moved, room - moved.nbytes
-        else:
-            moved_kept, room = {}, None
-    moved_keys = np.concatenate([np.zeros(0, np.int64), *found])
-    del found  # (each of these arrays: ~50 MB for a 5 MP camera's 40 views)
-    new, back = np.unique(moved_keys, return_inverse=True)
-    del moved_keys
-    # the voxels the bins moved into: the grid's numbers, or (voxels it does not have) numbers after its last
-    # for this merge alone, so that the grid does not grow with every registration
-    pos = np.searchsorted(grid.keys, new)
-    known = pos < grid.size
-    known[known] = grid.keys[pos[known]] == new[known]
-    number = np.empty(len(new), dtype=np.int32)
-    number[known] = grid.ids[pos[known]]
-    unknown = ~known
-    # the kinematic voxels and those bins moved into: 4.7 a merged point (5 MP, uncalibrated)
-    n = grid.size + int(unknown.sum())
-    if n >= 2**31:
+        b = views(k)
+        n_most = max(n_most, len(b))
+        given = np.ones(len(b), dtype=bool) if kept is None else kept
+        T_k = np.asarray(T_k, dtype=np.float64)
+        at, status = 0, kernel.FULL
+        while status == kernel.FULL:
+            n_bricks, at, status = kernel.insert(table, n_bricks, b.mean, T_k, given, voxel_mm, at)
+            if status == kernel.FULL:  # twice as large
+                larger = np.full((2 * len(table), 8), -1, dtype=np.int64)
+                kernel.rehash(table, larger)
+                table = larger
+        if status == kernel.OUT_OF_RANGE:
+            raise ConfigError(f"merge: points beyond +-{_HALF} voxels of the part frame's origin")
+    slots = np.flatnonzero(table[:, 0] >= 0)
+    by_key = slots[np.argsort(table[slots, 0])]
+    m = kernel.number(table, by_key)
+    bricks = table[by_key]  # the second pass finds its bricks in the order of their keys
+    del slots, by_key, table
+    if m >= 2**31:
         raise ConfigError("merge: more than 2^31 voxels; use larger voxels")
-    number[unknown] = np.arange(grid.size, n, dtype=np.int32)
-    ids_by_key = np.insert(grid.ids, pos[unknown], number[unknown])  # all n voxels' numbers, by key
-    del new, pos, known, unknown
-    number = number[back]
-    del back
-    for at in placed:
-        out = at < 0
-        at[out] = number[-1 - at[out]]
-    del number
-    given = np.zeros(n, dtype=np.int32)
-    for at in placed:
-        given[at] += 1  # once per view, whatever its bins there
-    in_key_order = ids_by_key[given[ids_by_key] > 0]  # the merged voxels' numbers, by key
-    del ids_by_key
-    m = len(in_key_order)
     if not m:
         return None
-    row = np.full(n, -1, dtype=np.int32)
-    row[in_key_order] = np.arange(m, dtype=np.int32)
-    wsum, sums, count = np.zeros(m), np.zeros((3, m)), np.zeros(m, dtype=np.int64)
-    for k, (placed_k, kept, T_k) in enumerate(zip(placed, keep, T, strict=True)):
-        b = views(k)[1]
-        w, c, wu = b.weight, b.count, b.wu.astype(np.float64)
-        if kept is not None:
-            w, c, wu = w[kept], c[kept], wu[kept]
-        if k in moved_kept:
-            moved = moved_kept.pop(k)
-        else:
-            moved = moved_means(b, T_k) if kept is None else moved_means(b, T_k)[kept]
-        merged_at = row[placed_k].astype(np.int64)
-        order = np.argsort(merged_at, kind="stable")  # the view's bins by merged point (some out of order)
-        merged_at = merged_at[order]
-        first = np.empty(len(merged_at), dtype=bool)
-        first[:1] = True
-        np.not_equal(merged_at[1:], merged_at[:-1], out=first[1:])
-        starts = np.flatnonzero(first)
-        rows = merged_at[starts]
-
-        w_rows = _per_row(w, order, starts)
-        wsum[rows] += w_rows  # distinct rows: fancy-index addition adds each once
-        for j in range(3):
-            column = sums[j]
-            column[rows] += _per_row(w * moved[:, j], order, starts)
-        count[rows] += _per_row(c.astype(np.float64), order, starts).astype(np.int64)
+    wsum, sums = np.zeros(m), np.zeros((m, 3))
+    count, n_views = np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.int64)
+    local = np.full(m, -1, dtype=np.int32)  # the kernel's scratch: a merged point's place among a view's
+    first, rest, counts = np.empty((n_most, 5)), np.empty((n_most, 5)), np.empty((n_most, 3), dtype=np.int64)
+    for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
+        b = views(k)
+        rows, w_rows, wu_rows = kernel.add_view(
+            bricks,
+            b.mean,
+            np.asarray(T_k, dtype=np.float64),
+            np.ones(len(b), dtype=bool) if kept is None else kept,
+            voxel_mm,
+            b.weight,
+            b.count,
+            b.wu,
+            wsum,
+            sums,
+            count,
+            n_views,
+            local,
+            first,
+            rest,
+            counts,
+        )
         if each_view is not None:
-            each_view(k, rows, m, w_rows, _per_row(wu, order, starts))
-    return MergedCloud((sums / wsum).T.copy(), wsum, count, given[in_key_order].astype(np.int64))
+            each_view(k, rows, m, w_rows, wu_rows)
+    return MergedCloud(sums / wsum[:, None], wsum, count, n_views)
 
 
-def _per_row(x: NDArray[np.float64], order: NDArray[Any], starts: NDArray[Any]) -> NDArray[np.float64]:
-    """``x`` of a view's bins summed per merged point (the bins by merged point: ``order``; ``starts``)."""
-    return x[order] if len(starts) == len(x) else np.add.reduceat(x[order], starts)
+@functools.cache
+def load_kernels() -> None:
+    """Load the merge's compiled kernels (cell.analysis._merge_kernel; numba compiles them the first time and
+    caches them), once a process: ~0.25 s CPU, which the first merge would otherwise spend after the last
+    frame (the decode worker loads them as the first view arrives)."""
+    from cell.analysis import _merge_kernel as kernel
+
+    bins = bin_view(np.zeros((1, 3)), np.ones(1), np.zeros(1), 1.0)
+    merge_bins(1.0, lambda k: bins, [np.ones(1, dtype=bool)], [np.eye(4)])
+    kernel.rehash(np.full((2, 8), -1, dtype=np.int64), np.full((4, 8), -1, dtype=np.int64))
 
 
 def moved_means(bins: ViewBins, T: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -311,25 +256,33 @@ def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if not len(p):
         return np.zeros(0, dtype=bool)
-    lo, hi = p.min(0) - radius_mm, p.max(0) + radius_mm  # only points in this box can be that close
-    rest = [np.asarray(o, dtype=np.float64).reshape(-1, 3) for o in others]
-    rest = [o[np.all((o >= lo) & (o <= hi), axis=1)] for o in rest if len(o)]
+    around = _Around(p, radius_mm)
+    rest = [around.select(np.asarray(o, dtype=np.float64).reshape(-1, 3)) for o in others]
     rest = [o for o in rest if len(o)]
     if not rest:
         return np.zeros(len(p), dtype=bool)
-    near = np.vstack(rest)
-    # and only those in the cells of side radius_mm next to a cell of ``points`` (a view of few points spread
-    # over a wide box has far fewer others near it than in its box: the tree is built on those alone)
-    # (the distinct cells first, ~100 times fewer than a view's voxel means at 2 mm, then their neighbours)
-    cells = np.unique(np.floor((p - lo) / radius_mm).astype(np.int64), axis=0)
-    around = np.unique(grid_keys((cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
-    keys = grid_keys(np.floor((near - lo) / radius_mm).astype(np.int64))
-    at = np.minimum(np.searchsorted(around, keys), len(around) - 1)
-    near = near[around[at] == keys]
-    if not len(near):
-        return np.zeros(len(p), dtype=bool)
-    d, _ = cKDTree(near).query(p, distance_upper_bound=radius_mm)
+    d, _ = cKDTree(np.vstack(rest)).query(p, distance_upper_bound=radius_mm)
     return np.isfinite(d)
+
+
+class _Around:
+    """Where points of others can be within ``radius_mm`` of ``points`` ((N, 3) mm, N > 0): in their box grown
+    by the radius, and in the cells of side radius_mm next to a cell of theirs (a view of few points spread
+    over a wide box has far fewer others near it than in its box: the tree is built on those alone)."""
+
+    def __init__(self, points: NDArray[np.float64], radius_mm: float) -> None:
+        self.lo, self.hi = points.min(0) - radius_mm, points.max(0) + radius_mm
+        self.radius_mm = radius_mm
+        # (the distinct cells first, ~100 times fewer than a view's voxel means at 2 mm, then the neighbours)
+        cells = np.unique(np.floor((points - self.lo) / radius_mm).astype(np.int64), axis=0)
+        self.keys = np.unique(grid_keys((cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
+
+    def select(self, others: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The points of ``others`` ((K, 3) mm) in the box and the cells, in their order."""
+        o = others[_in_box(others, self.lo, self.hi)]
+        keys = grid_keys(np.floor((o - self.lo) / self.radius_mm).astype(np.int64))
+        at = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        return o[self.keys[at] == keys]
 
 
 _NEIGHBOURS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -351,25 +304,25 @@ def held_redundant(
     if not held:
         return {}
     mine = {k: moved_means(bins(k), T[k]) for k in held}
-    boxes = {k: (p.min(0) - radius_mm, p.max(0) + radius_mm) for k, p in mine.items() if len(p)}
-    # the registered views' moved voxel means in each held view's box (only points in it can be that close),
-    # each registered view's bins asked for once for all the held views
-    near: dict[int, list[NDArray[np.float64]]] = {k: [] for k in boxes}
+    around = {k: _Around(p, radius_mm) for k, p in mine.items() if len(p)}
+    # the registered views' moved voxel means near each held view (only points in its box and cells can be
+    # that close: :class:`_Around`), each registered view's bins asked for once for all the held views
+    near: dict[int, list[NDArray[np.float64]]] = {k: [] for k in around}
     for m in range(len(T)):
-        if m in mine or not boxes:
+        if m in mine or not around:
             continue
         T_m = np.asarray(T[m], dtype=np.float64)
         mean = bins(m).mean
-        for k, (lo, hi) in boxes.items():
+        for k, a in around.items():
+            lo, hi = a.lo, a.hi
             corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), axis=-1).reshape(-1, 3)
             # the box at the view's kinematic pose holds its part of the refined one: grown by the most the
             # inverse correction moves a corner (a rigid motion moves no point of the box farther)
             grow = float(np.linalg.norm(transform_points(invert(T_m), corners) - corners, axis=1).max())
-            o = transform_points(T_m, mean[_in_box(mean, lo - grow, hi + grow)])
-            near[k].append(o[_in_box(o, lo, hi)])
+            near[k].append(a.select(transform_points(T_m, mean[_in_box(mean, lo - grow, hi + grow)])))
     redundant: dict[int, NDArray[np.bool_]] = {}
     for k in held:
-        if k not in boxes:
+        if k not in around:
             redundant[k] = np.zeros(0, dtype=bool)
             continue
         others = [mine[j][~redundant[j]] for j in held if j in redundant]

@@ -1,0 +1,322 @@
+"""Compiled kernels of the registration's merge (cell.analysis.merge.merge_bins): the voxels the views'
+moved bins fall into, found in a hash of their keys, numbered in the order of their keys, and the bins'
+weighted sums added up per voxel, view after view.
+
+Written by hand because no library does a weighted voxel merge keyed this way at this speed. The NumPy
+formulation (main before issue 16's item 2: a grid numbering every view's kinematic voxels, then per view the
+moved means' keys looked up, ``np.unique`` of the keys that moved, a stable argsort of the view's bins by
+merged point and ``np.add.reduceat`` per sum) took 1.10 s on the demo pillar's 12 views and held the
+numbering of every kinematic voxel through the registration (12.6M at 5 MP); ``np.unique(...,
+return_inverse=True)`` of all the bins' keys alone (the sort any group-by, NumPy's, pandas' or SciPy's, makes)
+costs about a third of that. Here a first pass over each view's bins marks the voxels they move into (a hash
+of bricks of 1 x 8 x 8 voxels: a view's bins come in the order of their keys, x, then y, then z, so along a
+slice x = const of its surface, and the next bin is most often in the last one's brick), one sort of the
+occupied bricks' keys numbers the voxels, and a second pass adds each view's sums (its bins' bricks sought in
+the entries sorted by key, from the previous bin's: fewer cache misses than the hash's).
+
+The sums are NumPy's to the bit (the registration is compared bit for bit across versions and resumes): a
+view's bins in one voxel add as ``np.add.reduceat`` adds a segment (its first value, plus NumPy's pairwise
+sum of the rest, which starts from -0.0), and each view's sum is added to the voxel's in view order.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+KEY_BITS = 21  # bits per axis of a voxel key (cell.analysis.merge.grid_keys)
+_HALF = 1 << (KEY_BITS - 1)
+# a brick: 1 x 8 x 8 voxels along x, y, z, one entry (a row of 8 int64, 64 bytes: one cache line) of the hash:
+# its key (-1: an empty entry), which of its voxels are occupied (a bit each, y % 8 * 8 + z % 8), and the
+# number of the first occupied voxel of each of its rows (y) in the order of the keys, two int32 a word
+# (~7 occupied voxels a brick on the demo pillar)
+_KEY, _OCCUPIED, _ROWS = 0, 1, 2
+_POP = np.array([bin(i).count("1") for i in range(256)], dtype=np.int64)  # set bits of a byte
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing's multiplier
+OUT_OF_RANGE = -2  # a moved mean beyond the key's +-2^20 voxels (or not finite)
+FULL = -1  # the hash needs more room
+
+
+@nb.njit(cache=True, nogil=True)
+def _shift(size):
+    """64 - log2(size): Fibonacci hashing's shift for a hash of ``size`` (a power of two) slots."""
+    bits = 0
+    while (1 << bits) < size:
+        bits += 1
+    return np.uint64(64 - bits)
+
+
+@nb.njit(cache=True, nogil=True)
+def _moved(mean, i, T):
+    """Bin ``i``'s mean (mm) moved by ``T`` (4x4), summed as cell.geometry.transform_points's einsum sums
+    (x and z first: the same points to the bit, checked on the demo pillar's 3.8M bins; the merge needs
+    only that each bin moves the same way in both passes and every time)."""
+    x, y, z = mean[i, 0], mean[i, 1], mean[i, 2]
+    return (
+        (x * T[0, 0] + z * T[0, 2]) + y * T[0, 1] + T[0, 3],
+        (x * T[1, 0] + z * T[1, 2]) + y * T[1, 1] + T[1, 3],
+        (x * T[2, 0] + z * T[2, 2]) + y * T[2, 1] + T[2, 3],
+    )
+
+
+@nb.njit(cache=True, nogil=True)
+def _cell(px, py, pz, voxel_mm):
+    """The voxel of a point (mm; floor(p / voxel_mm) + 2^20 per axis: NumPy's voxels to the bit, as
+    cell.analysis.merge.grid_keys has them): its brick's key (x, y // 8, z // 8) and its place in the brick;
+    a key of -1 when out of range or not finite."""
+    x, y, z = px / voxel_mm, py / voxel_mm, pz / voxel_mm
+    if not (-_HALF <= x < _HALF and -_HALF <= y < _HALF and -_HALF <= z < _HALF):
+        return np.int64(-1), np.int64(0)
+    cx = np.int64(np.floor(x)) + _HALF
+    cy = np.int64(np.floor(y)) + _HALF
+    cz = np.int64(np.floor(z)) + _HALF
+    return (cx << 36) | ((cy >> 3) << 18) | (cz >> 3), ((cy & 7) << 3) | (cz & 7)
+
+
+@nb.njit(cache=True, nogil=True)
+def _find(table, brick, shift, mask):
+    """The hash entry of ``brick``: its own, or the empty one where it would go."""
+    h = np.int64((np.uint64(brick) * _GOLDEN) >> shift)
+    while table[h, _KEY] != brick and table[h, _KEY] >= 0:
+        h = (h + 1) & mask
+    return h
+
+
+@nb.njit(cache=True, nogil=True)
+def insert(table, n_bricks, mean, T, kept, voxel_mm, start):
+    """Mark the voxels of the bins' means ``mean[start:]`` ((N, 3) mm) moved by ``T`` (4x4), those ``kept``,
+    occupied in their bricks' entries of the hash ``table`` (H, 8), H a power of two. Returns the bricks now
+    held and where it stopped: len(mean), or earlier when the hash is 3/4 full (FULL: grow it,
+    :func:`rehash`, and call again from there) or at a mean out of range (OUT_OF_RANGE)."""
+    size = len(table)
+    mask = size - 1
+    shift = _shift(size)
+    last, h = np.int64(-1), np.int64(-1)
+    for i in range(start, len(mean)):
+        if not kept[i]:
+            continue
+        px, py, pz = _moved(mean, i, T)
+        brick, at = _cell(px, py, pz, voxel_mm)
+        if brick < 0:
+            return n_bricks, i, OUT_OF_RANGE
+        if brick != last:
+            h = _find(table, brick, shift, mask)
+            if table[h, _KEY] < 0:
+                if 4 * (n_bricks + 1) > 3 * size:
+                    return n_bricks, i, FULL
+                table[h, _KEY] = brick
+                table[h, _OCCUPIED] = 0
+                n_bricks += 1
+            last = brick
+        table[h, _OCCUPIED] |= np.int64(1) << at
+    return n_bricks, len(mean), 0
+
+
+@nb.njit(cache=True, nogil=True)
+def rehash(table, new_table):
+    """Move the hash's bricks into the empty (keys -1), larger hash ``new_table``."""
+    size = len(new_table)
+    mask = size - 1
+    shift = _shift(size)
+    for h in range(len(table)):
+        if table[h, _KEY] >= 0:
+            g = _find(new_table, table[h, _KEY], shift, mask)
+            new_table[g, :] = table[h, :]
+
+
+@nb.njit(cache=True, nogil=True)
+def number(table, by_key):
+    """Number the occupied voxels in the order of their keys (x, then y, then z), given the bricks' hash
+    entries ``by_key`` in the order of their keys: those of one x and one y // 8 side by side, whose voxels
+    go row y by row y. Returns how many."""
+    m = 0
+    g0 = 0
+    while g0 < len(by_key):
+        g1 = g0 + 1
+        row = table[by_key[g0], _KEY] >> 18
+        while g1 < len(by_key) and table[by_key[g1], _KEY] >> 18 == row:
+            g1 += 1
+        for y in range(8):
+            for j in range(g0, g1):
+                h = by_key[j]
+                word = _ROWS + (y >> 1)
+                if y & 1:
+                    table[h, word] |= np.int64(m) << 32
+                else:
+                    table[h, word] = np.int64(m)
+                m += _POP[(table[h, _OCCUPIED] >> (8 * y)) & 255]
+        g0 = g1
+    return m
+
+
+@nb.njit(cache=True, nogil=True)
+def _seek(bricks, brick, j):
+    """The row of ``brick`` (present) in ``bricks`` (the hash's entries in the order of their keys), searched
+    from row ``j`` outwards (galloping, then halving): a view's bins come in the order of their keys, so the
+    next brick is most often a few rows on, and the rows between are in cache."""
+    n = len(bricks)
+    j = min(max(j, 0), n - 1)
+    if bricks[j, _KEY] == brick:
+        return j
+    if bricks[j, _KEY] < brick:
+        lo, step, hi = j, 1, j + 1
+        while hi < n and bricks[hi, _KEY] < brick:
+            lo, step = hi, 2 * step
+            hi = j + step
+        lo, hi = lo + 1, min(hi, n - 1)
+    else:
+        hi, step, lo = j, 1, j - 1
+        while lo >= 0 and bricks[lo, _KEY] > brick:
+            hi, step = lo, 2 * step
+            lo = j - step
+        lo = max(lo, 0)
+    while lo < hi:  # the first row whose key is not below
+        mid = (lo + hi) // 2
+        if bricks[mid, _KEY] < brick:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@nb.njit(cache=True, nogil=True)
+def _number(table, h, at):
+    """The number of voxel ``at`` (y % 8 * 8 + z % 8, occupied) of the brick in entry ``h`` of ``table``."""
+    y, z = at >> 3, at & 7
+    first = (table[h, _ROWS + (y >> 1)] >> (32 * (y & 1))) & 0xFFFFFFFF
+    return first + _POP[(table[h, _OCCUPIED] >> (8 * y)) & ((1 << z) - 1)]
+
+
+@nb.njit(cache=True, nogil=True)
+def _pairwise(x, n):
+    """NumPy's pairwise sum of ``x[:n]`` (numpy/_core/src/umath/loops_utils.h.src) for n <= 128, which is
+    all a voxel can get of one view: its bins are distinct voxels of the same size, at most 27 of which a
+    rigidly moved voxel meets."""
+    if n < 8:
+        res = -0.0
+        for i in range(n):
+            res += x[i]
+        return res
+    if n > 128:
+        raise ValueError("merge: more than 128 bins of one view in one voxel")
+    r = x[:8].copy()
+    i = 8
+    while i < n - (n % 8):
+        for j in range(8):
+            r[j] += x[i + j]
+        i += 8
+    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    while i < n:
+        res += x[i]
+        i += 1
+    return res
+
+
+@nb.njit(cache=True, nogil=True)
+def add_view(
+    bricks,
+    mean,
+    T,
+    kept,
+    voxel_mm,
+    w,
+    c,
+    wu,
+    wsum,
+    sums,
+    count,
+    given,
+    local,
+    first,
+    rest,
+    counts,
+):
+    """Add one view's bins (means ``mean`` (N, 3) mm moved by ``T``, weight sums ``w``, point counts ``c``,
+    weighted u sums ``wu``), those ``kept``, to the merged voxels' sums ``wsum`` (M,), ``sums`` (M, 3) (of w *
+    mean), ``count`` and ``given`` (views a voxel has); the voxels' numbers in the bricks (``occupied``,
+    ``row_base``: :func:`number`). ``local`` (M,) all -1, left so; ``first``, ``rest`` (>= N, 5) and
+    ``counts`` (>= N, 3): scratch, reused from view to view (new pages cost more than the sums). Returns the
+    merged points the view has (ascending), its weight sum and weighted u sum at each."""
+    n = len(w)
+    # per merged point t of the view: its first bin's w, w x, w y, w z, wu (``first``), NumPy's pairwise sum
+    # of the others' (``rest``: while fewer than 8), its bins and their points; each bin's merged point
+    many, csum, row = counts[:, 0], counts[:, 1], counts[:, 2]
+    nt = 0
+    lo, hi = len(wsum), -1
+    last, h = np.int64(-1), np.int64(0)
+    for i in range(n):
+        if not kept[i]:
+            row[i] = -1
+            continue
+        px, py, pz = _moved(mean, i, T)
+        brick, at = _cell(px, py, pz, voxel_mm)
+        if brick != last:
+            h = _seek(bricks, brick, h)
+            last = brick
+        r = _number(bricks, h, at)
+        row[i] = r
+        lo, hi = min(lo, r), max(hi, r)
+        wi = w[i]
+        t = local[r]
+        if t < 0:
+            t = nt
+            local[r] = t
+            nt += 1
+            many[t], csum[t] = 1, c[i]
+            first[t, 0], first[t, 1], first[t, 2] = wi, wi * px, wi * py
+            first[t, 3], first[t, 4] = wi * pz, np.float64(wu[i])
+            continue
+        many[t] += 1
+        csum[t] += c[i]
+        if many[t] == 2:  # (-0.0 + x is x, to the bit)
+            rest[t, 0], rest[t, 1], rest[t, 2] = wi, wi * px, wi * py
+            rest[t, 3], rest[t, 4] = wi * pz, np.float64(wu[i])
+        else:
+            rest[t, 0] += wi
+            rest[t, 1] += wi * px
+            rest[t, 2] += wi * py
+            rest[t, 3] += wi * pz
+            rest[t, 4] += np.float64(wu[i])
+    # a merged point with more than 8 of the view's bins: NumPy sums the others pairwise (never on the
+    # demo pillar, whose refinements are tens of um); summed again so, from its bins in order
+    for t in range(nt):
+        if many[t] > 8:
+            idx = np.empty(many[t], np.int64)
+            k = 0
+            for i in range(n):
+                if row[i] >= 0 and local[row[i]] == t:
+                    idx[k] = i
+                    k += 1
+            vals = np.empty(many[t] - 1)
+            for q in range(5):
+                for j in range(1, many[t]):
+                    i = idx[j]
+                    wi = w[i]
+                    p = _moved(mean, i, T)
+                    vals[j - 1] = wi if q == 0 else (np.float64(wu[i]) if q == 4 else wi * p[q - 1])
+                rest[t, q] = _pairwise(vals, many[t] - 1)
+    rows = np.empty(nt, np.int32)
+    w_rows = np.empty(nt)
+    wu_rows = np.empty(nt)
+    k = 0
+    for r in range(lo, hi + 1):  # the view's merged points in order
+        t = local[r]
+        if t < 0:
+            continue
+        local[r] = -1
+        if many[t] == 1:
+            s0, s4 = first[t, 0], first[t, 4]
+            sums[r, 0] += first[t, 1]
+            sums[r, 1] += first[t, 2]
+            sums[r, 2] += first[t, 3]
+        else:
+            s0, s4 = first[t, 0] + rest[t, 0], first[t, 4] + rest[t, 4]
+            sums[r, 0] += first[t, 1] + rest[t, 1]
+            sums[r, 1] += first[t, 2] + rest[t, 2]
+            sums[r, 2] += first[t, 3] + rest[t, 3]
+        wsum[r] += s0
+        count[r] += csum[t]
+        given[r] += 1
+        rows[k], w_rows[k], wu_rows[k] = r, s0, s4
+        k += 1
+    return rows, w_rows, wu_rows
