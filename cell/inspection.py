@@ -413,7 +413,13 @@ class LambertianInspection(InspectionResults):
             [v.index for v in views],
             new=len(views) - 1,
         )
-        for other in views[:-1] if pair_maps else []:
+        if pair_maps:
+            self._pair_maps(new, views[:-1])
+
+    def _pair_maps(self, new: ViewResult, others: Sequence[ViewResult]) -> None:
+        """The feedback maps' pairs of view ``new`` with each of ``others``, both ways (:meth:`_map_pairs`),
+        found now and kept (:class:`cell.planning.feedback.PairCache`)."""
+        for other in others:
             for a, b in ((new, other), (other, new)):
                 self._pairs.pairs(
                     a.index, b.index, MAP_LINK_MM, a.eval_W, b.eval_tree if len(b.eval_W) else None
@@ -572,7 +578,11 @@ class LambertianInspection(InspectionResults):
 
     def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:
         """Coverage, the accuracy map and Q of the views measured so far (the feedback round is kept in the
-        result for :meth:`replan`)."""
+        result for :meth:`replan`). The newest view's maps' pairs (left by its decode: the plan's last view's)
+        are found first, at the kinematic poses, while the refinement, made ahead, may still be running."""
+        completed = self.views.completed(run)
+        if completed:
+            self._pair_maps(completed[-1], completed[:-1])
         loop = self._feedback_round(run)
         ev, measured = loop.evaluation, loop.measured
         _, found = self.refinement(run)

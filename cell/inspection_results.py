@@ -108,6 +108,11 @@ class MergeBins:
         with self._lock:
             return merge_bins(self.voxel_mm, views, keep, T, each_view)
 
+    def has(self, index: int) -> bool:
+        """Whether view ``index`` was binned (its bins may have been dropped since, beyond the budget)."""
+        with self._lock:
+            return index in self.n_points
+
     def points(self, indices: Sequence[int]) -> int:
         """The measured points of the views ``indices`` (all binned)."""
         with self._lock:
@@ -219,9 +224,14 @@ class InspectionResults:
         is stored as results/cloud.ply with the report's page, and a resumed run
         registers again, deterministically, to the same points."""
         T_P_W = invert(self.T_W_P)
+        state = self.merge_bins_for(run)
+        # the newest view (the plan's last, which its decode left unbinned) is binned first, while the
+        # refinement, made ahead (cell.inspection), may still be running
+        for newest in self.views.completed(run)[-1:]:
+            if not state.has(newest.index):
+                self.bin_arrived_view(run, newest)
         done, refined = self.refinement(run)
         stored = [self.views.get(run, i) for i in done]
-        state = self.merge_bins_for(run)
         T_P = [T_P_W @ T @ self.T_W_P for T in refined.T]  # the views' refinement in {P}
 
         def view(k: int) -> ViewBins:
