@@ -34,7 +34,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from cell.view_files import load_raw_stack  # noqa: E402
+from cell.view_files import PNG_PARAMS, load_raw_stack  # noqa: E402
 
 
 def kind(rel: Path) -> str:
@@ -84,6 +84,9 @@ def candidates(bit_depth: int) -> dict[str, Callable[[np.ndarray], int]]:
     out = {
         f"PNG (OpenCV), zlib level {k}": _cv2(".png", cv2.IMWRITE_PNG_COMPRESSION, k) for k in (1, 3, 6, 9)
     }
+    out["PNG (OpenCV), zlib level 1, SUB filter, Huffman only (cell.view_files.PNG_PARAMS)"] = _cv2(
+        ".png", *PNG_PARAMS
+    )
     if bit_depth == 8:
         out["WebP lossless (OpenCV, 8-bit only)"] = _cv2(".webp", cv2.IMWRITE_WEBP_QUALITY, 101)
     out["TIFF multi-page, deflate (OpenCV)"] = _tiff

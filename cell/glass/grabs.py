@@ -22,9 +22,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.view_files import PNG_PARAMS
+
 MANIFEST = "grabs.json"
 FORMAT = 1
-PNG_LEVEL = 1  # zlib level, as the inspection's raw images (cell.view_files, docs/storage.md)
 
 
 def _mean(total: NDArray[Any], frames: int) -> NDArray[np.float32]:
@@ -40,7 +41,7 @@ def save_grab(views_dir: Path, name: str, mean: NDArray[np.float32], frames: int
     exact = exact and np.array_equal(_mean(total, frames), mean)  # bit for bit what was measured
     if exact:
         path = views_dir / f"{name}.png"
-        ok, png = cv2.imencode(".png", total.astype(np.uint16), [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL])
+        ok, png = cv2.imencode(".png", total.astype(np.uint16), PNG_PARAMS)  # as the raw view images
         if not ok:
             raise OSError(f"OpenCV could not encode the grab of camera '{name}' as PNG")
         path.write_bytes(png.tobytes())
