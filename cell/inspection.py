@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import threading
 from collections.abc import Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -113,6 +113,25 @@ class InspectionSettings:
     lift_mm: float = 80.0  # retract height between views
     min_defect_points: int = 10  # out-of-tolerance clusters smaller than this are isolated outliers
     pictures: bool = True
+
+
+# a camera of more pixels than this decodes a view's steps one after the other: side by side, a 5 MP view's
+# whole-image temporaries (its uncertainty's beside the filters', two bands of normals at once: ~0.3 GB, as
+# estimated, not measured) would add to the decode's share of the hires run's peak memory (docs/benchmarks.md,
+# item 5)
+SIDE_BY_SIDE_MAX_PIXELS = 2_000_000
+
+
+class _InOrder(Executor):
+    """Runs each call as it is submitted, in the caller's thread (the decode's steps one after the other)."""
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Future[Any]:
+        done: Future[Any] = Future()
+        try:
+            done.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # raised by result(), where a side thread's would be
+            done.set_exception(exc)
+        return done
 
 
 @dataclass
@@ -283,8 +302,10 @@ class LambertianInspection(InspectionResults):
         files: ThreadPoolExecutor,
         writes: list[Future[Any]],
     ) -> dict[str, Any]:
+        if stack.shape[-1] * stack.shape[-2] > SIDE_BY_SIDE_MAX_PIXELS:
+            return self._decode_steps(captured, stack, out_dir, files, writes, _InOrder(), workers=1)
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="view-side") as side:
-            return self._decode_steps(captured, stack, out_dir, files, writes, side)
+            return self._decode_steps(captured, stack, out_dir, files, writes, side, workers=2)
 
     def _decode_steps(
         self,
@@ -293,11 +314,13 @@ class LambertianInspection(InspectionResults):
         out_dir: Path,
         files: ThreadPoolExecutor,
         writes: list[Future[Any]],
-        side: ThreadPoolExecutor,
+        side: Executor,
+        workers: int,
     ) -> dict[str, Any]:
         """:meth:`_decode`'s steps; those that only the view's results need, not the steps after them (its
         defect regions' ray casts, its points' uncertainty), run on ``side`` beside the rest (NumPy, OpenCV,
-        SciPy and Embree release the GIL): the same numbers, in less time on two cores."""
+        SciPy and Embree release the GIL), the measured normals' bands on ``workers`` threads: the same
+        numbers, in less time on two cores."""
         cam = self.cfg.sensor.camera
         decoded = decode(stack, self.patterns, cam.bit_depth)
         cloud = self.triangulator.triangulate(decoded)
@@ -310,7 +333,7 @@ class LambertianInspection(InspectionResults):
         # the measured normals once, for the projector-incidence filter and the points' uncertainty; a code
         # without a decode uncertainty leaves the filter its own banded normals (no (H, W, 3) float64 image)
         normals = (
-            measured_normals(cloud.points_C, valid, workers=2)
+            measured_normals(cloud.points_C, valid, workers=workers)
             if has_view_uncertainty(self.patterns)
             else None
         )

@@ -40,10 +40,18 @@ def kept_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return folder / "run"
 
 
-def test_the_raw_images_decode_again_to_the_stored_points(kept_run: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("in_order", [False, True], ids=["side_by_side", "in_order"])
+def test_the_raw_images_decode_again_to_the_stored_points(
+    kept_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, in_order: bool
+) -> None:
     """Lossless, and enough: each view's raw stack, decoded again by the job with the run's own inputs,
-    gives exactly the points, flags and evaluation subset the run stored."""
+    gives exactly the points, flags, u and evaluation subset the run stored; also when the decode runs its
+    steps one after the other, as a camera of more than SIDE_BY_SIDE_MAX_PIXELS does."""
+    import cell.inspection
     from cell.runs import RunFolder
+
+    if in_order:
+        monkeypatch.setattr(cell.inspection, "SIDE_BY_SIDE_MAX_PIXELS", 0)
 
     run = RunFolder.open(kept_run)
     recipe, cfg, _ = load_run_inputs(run)
@@ -63,6 +71,8 @@ def test_the_raw_images_decode_again_to_the_stored_points(kept_run: Path, tmp_pa
         a, b = load_view_points(run.view_dir(i)), load_view_points(again)
         assert np.array_equal(a.points_W, b.points_W) and np.array_equal(a.quality, b.quality)
         assert np.array_equal(a.oblique, b.oblique)
+        assert (a.uncertainty is None) == (b.uncertainty is None)
+        assert a.uncertainty is None or np.array_equal(a.uncertainty, b.uncertainty)
         assert np.array_equal(load_eval_points(run.view_dir(i)), load_eval_points(again))
 
 
