@@ -199,6 +199,7 @@ class LambertianInspection(InspectionResults):
         self._merge_bins_lock = threading.Lock()
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._refine_lock = threading.Lock()  # one refinement at a time: a second caller waits for it
+        self._refining_ahead: Future[None] | None = None  # the refinement started by the last view's decode
         self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
         self._cloud: RegisteredCloud | None = None  # the registration's cloud, judged ahead of the report
         # the controller may register (in its worker) while it evaluates (here): what both use is made once
@@ -408,8 +409,10 @@ class LambertianInspection(InspectionResults):
             if not captured.last:
                 self.bin_arrived_view(run, result)
             self.views.add(result)
-            if captured.last:  # the refinement they both begin with, beside the last of the view's writes
-                threading.Thread(target=self._refine_ahead, args=(run, result), name="refine-ahead").start()
+            # the refinement the evaluation and the registration begin with, beside the last of the view's
+            # writes (not on a camera decoded in order: its stack is still held then, at its peak memory)
+            if captured.last and stack.shape[-1] * stack.shape[-2] <= SIDE_BY_SIDE_MAX_PIXELS:
+                self._start_refine_ahead(run, result)
         return summary
 
     def _first_overlaps(self, run: RunFolder, new: ViewResult, pair_maps: bool = True) -> None:
@@ -468,22 +471,37 @@ class LambertianInspection(InspectionResults):
         """The completed views' pose corrections against each other (cell.analysis.view_refinement), from
         their evaluation points and local planes (each view's, computed once by its decode), under the views'
         pose prior (:func:`view_pose_prior`: the kinematic calibration's, else the robot config's);
-        recomputed when views were added (deterministic, so a resumed run gets the same)."""
+        recomputed when views were added (deterministic, so a resumed run gets the same). A refinement the
+        last view's decode started (:meth:`_start_refine_ahead`) is waited for, and what failed in it raised
+        here."""
+        ahead = self._refining_ahead
+        if ahead is not None:
+            ahead.result()
         with self._refine_lock:
             return self._refine(self.views.completed(run))
 
-    def _refine_ahead(self, run: RunFolder, new: ViewResult) -> None:
+    def _start_refine_ahead(self, run: RunFolder, new: ViewResult) -> None:
         """Make the refinement of the completed views and ``new``, the plan's last view so far, whose decode
-        is writing its files (its folder not committed yet): the evaluation and the registration after it
-        find the refinement made, or wait for it (the same numbers: a function of the same views, as a
-        resumed run reads them). Run on a thread of its own; whatever fails here is made again, and raised,
-        by the first caller that needs it."""
-        try:
-            with self._refine_lock:
-                views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
-                self._refine(sorted(views, key=lambda v: v.index))
-        except Exception:  # left to refinement(), which makes it again and says why
-            pass
+        is writing its files (its folder not committed yet), on a thread of its own: the evaluation and the
+        registration after it find it made, or wait for it (the same numbers: a function of the same views,
+        as a resumed run reads them). A view measured again meanwhile voids it (:meth:`_first_overlaps`; not
+        made when ``new`` is no longer the view the store holds). A daemon thread: a paused or aborted run's
+        process does not wait for it (it writes nothing)."""
+        done: Future[None] = Future()
+
+        def refine() -> None:
+            try:
+                with self._refine_lock:
+                    if self.views.holds(new):
+                        views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
+                        self._refine(sorted(views, key=lambda v: v.index))
+            except BaseException as exc:  # raised by refinement(), to the evaluation or the registration
+                done.set_exception(exc)
+            else:
+                done.set_result(None)
+
+        self._refining_ahead = done
+        threading.Thread(target=refine, name="refine-ahead", daemon=True).start()
 
     def _refine(self, views: list[ViewResult]) -> tuple[list[int], ViewRefinement]:
         done = tuple(v.index for v in views)
