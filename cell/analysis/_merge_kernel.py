@@ -220,7 +220,9 @@ def _pairwise(x, n):
 
 
 @nb.njit(cache=True, nogil=True)
-def add_view(bricks, mean, T, kept, voxel_mm, w, c, wu, wsum, sums, count, given, local, seen, many, first, rest):
+def add_view(
+    bricks, mean, T, kept, voxel_mm, w, c, wu, wsum, sums, count, given, local, seen, many, first, rest
+):
     """Add one view's bins (means ``mean`` (N, 3) mm moved by ``T``, weight sums ``w``, point counts ``c``,
     weighted u sums ``wu``), those ``kept`` (all when empty), to the merged voxels' sums ``wsum`` (M,),
     ``sums`` (M, 3) (of w * mean), ``count`` and ``given`` (views a voxel has); the voxels' numbers in
@@ -282,7 +284,7 @@ def add_view(bricks, mean, T, kept, voxel_mm, w, c, wu, wsum, sums, count, given
         bits = seen[word]
         seen[word] = 0
         while bits:
-            r = (word << 6) + np.int64(trailing_zeros(bits))
+            r = (word << 6) + np.int64(trailing_zeros(bits))  # type: ignore[call-arg]  # (an intrinsic: cttz)
             bits &= bits - np.uint64(1)
             t = local[r]
             local[r] = -1
