@@ -23,7 +23,11 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from llvmlite import ir  # type: ignore[import-untyped]
+from numba import types
+from numba.core import cgutils
 from numba.cpython.unsafe.numbers import trailing_zeros
+from numba.extending import intrinsic
 
 KEY_BITS = 21  # bits per axis of a voxel key (cell.analysis.merge.grid_keys)
 _HALF = 1 << (KEY_BITS - 1)
@@ -38,6 +42,28 @@ _POP = np.array([bin(i).count("1") for i in range(256)], dtype=np.int64)  # set 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing's multiplier
 OUT_OF_RANGE = -2  # a moved mean beyond the key's +-2^20 voxels (or not finite)
 FULL = -1  # the hash needs more room
+_AHEAD = 16  # bins ahead whose hash entry the first pass asks the CPU for
+
+
+@intrinsic
+def _prefetch(typingctx, table, h):
+    """Ask the CPU for the cache line of ``table[h, 0]`` (a 2-D C array) without waiting for it: LLVM's
+    prefetch, which numba does not offer. The first pass's bins meet their bricks' hash entries in no order
+    the CPU can foresee (a view's bins share a brick ~3.3 at a time, and the entries are spread over 8 MB on
+    the demo pillar); asked for 16 bins ahead, the pass took 0.07 s instead of 0.095 s on the demo's bins."""
+
+    def codegen(context, builder, sig, args):
+        aryty = sig.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        zero = context.get_constant(types.intp, 0)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], zero], wraparound=False)
+        i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = builder.module.declare_intrinsic("llvm.prefetch", [i8p], fnty)
+        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])  # a read, kept in all caches
+        return context.get_dummy_value()
+
+    return types.void(table, h), codegen
 
 
 @nb.njit(cache=True, nogil=True)
@@ -95,8 +121,14 @@ def insert(table, n_bricks, mean, T, kept, voxel_mm, start):
     mask = size - 1
     shift = _shift(size)
     every = len(kept) == 0
+    n = len(mean)
     last, h = np.int64(-1), np.int64(-1)
-    for i in range(start, len(mean)):
+    for i in range(start, n):
+        if i + _AHEAD < n:  # (a bin's brick found twice: cheaper than waiting for its entry)
+            ax, ay, az = _moved(mean, i + _AHEAD, T)
+            ahead, _ = _cell(ax, ay, az, voxel_mm)
+            if ahead >= 0:
+                _prefetch(table, np.int64((np.uint64(ahead) * _GOLDEN) >> shift))  # type: ignore[call-arg]
         if not every and not kept[i]:
             continue
         px, py, pz = _moved(mean, i, T)
@@ -113,7 +145,7 @@ def insert(table, n_bricks, mean, T, kept, voxel_mm, start):
                 n_bricks += 1
             last = brick
         table[h, _OCCUPIED] |= np.int64(1) << at
-    return n_bricks, len(mean), 0
+    return n_bricks, n, 0
 
 
 @nb.njit(cache=True, nogil=True)

@@ -242,7 +242,6 @@ def load_kernels() -> None:
 
     bins = bin_view(np.zeros((1, 3)), np.ones(1), np.zeros(1), 1.0)
     merge_bins(1.0, lambda k: bins, [np.ones(1, dtype=bool)], [np.eye(4)])
-    merge_bins(1.0, lambda k: bins, [None], [np.eye(4)])
     kernel.rehash(np.full((2, 2), -1, dtype=np.int64), np.full((4, 2), -1, dtype=np.int64))
     kernel.add_squares(np.zeros(1), np.zeros(1, dtype=np.int32), np.zeros(1))
 
