@@ -164,8 +164,8 @@ def merge_bins(
     a noisier cloud). The voxels come in the order of their keys (x, then y, then z): the result depends on
     the views' bins alone (not on when they were binned). Two passes over the views, compiled
     (cell.analysis._merge_kernel): the first finds the voxels the moved bins fall into, the second adds the
-    sums; only those voxels are held (in bricks of 1 x 8 x 8, 64 bytes a brick in a hash at most 3/4 full, ~7
-    voxels a brick on the demo pillar).
+    sums; only those voxels are held (in bricks of 1 x 8 x 8, ~7 voxels a brick on the demo pillar: 16 bytes a
+    brick in a hash at most 3/4 full, then 48 bytes a brick in the order of their keys).
 
     ``each_view(k, rows, m, weight, wu)``, when given, is called with the merged points view k has (``rows``
     of the ``m``, ascending, int32), its weight sums there and its weighted u sums, e.g. for the views' shares
@@ -175,26 +175,27 @@ def merge_bins(
     if not voxel_mm > 0:
         raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
     # the bricks of voxels the moved bins fall in: a hash of their keys and occupied voxels (the kernel's)
-    table = np.full((1024, 8), -1, dtype=np.int64)
+    every = np.zeros(0, dtype=bool)  # (the kernels' "all kept")
+    table = np.full((1024, 2), -1, dtype=np.int64)
     n_bricks, n_most = 0, 0
     for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
         b = views(k)
         n_most = max(n_most, len(b))
-        given = np.ones(len(b), dtype=bool) if kept is None else kept
+        given = every if kept is None else kept
         T_k = np.asarray(T_k, dtype=np.float64)
         at, status = 0, kernel.FULL
         while status == kernel.FULL:
             n_bricks, at, status = kernel.insert(table, n_bricks, b.mean, T_k, given, voxel_mm, at)
             if status == kernel.FULL:  # twice as large
-                larger = np.full((2 * len(table), 8), -1, dtype=np.int64)
+                larger = np.full((2 * len(table), 2), -1, dtype=np.int64)
                 kernel.rehash(table, larger)
                 table = larger
         if status == kernel.OUT_OF_RANGE:
             raise ConfigError(f"merge: points beyond +-{_HALF} voxels of the part frame's origin")
     slots = np.flatnonzero(table[:, 0] >= 0)
     by_key = slots[np.argsort(table[slots, 0])]
-    m = kernel.number(table, by_key)
-    bricks = table[by_key]  # the second pass finds its bricks in the order of their keys
+    bricks = np.empty((len(by_key), kernel.BRICK_WORDS), dtype=np.int64)  # the second pass's, by key
+    m = kernel.number(table, by_key, bricks)
     del slots, by_key, table
     if m >= 2**31:
         raise ConfigError("merge: more than 2^31 voxels; use larger voxels")
@@ -202,15 +203,16 @@ def merge_bins(
         return None
     wsum, sums = np.zeros(m), np.zeros((m, 3))
     count, n_views = np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.int64)
-    local = np.full(m, -1, dtype=np.int32)  # the kernel's scratch: a merged point's place among a view's
-    first, rest, counts = np.empty((n_most, 5)), np.empty((n_most, 5)), np.empty((n_most, 3), dtype=np.int64)
+    # the kernel's scratch: a merged point's place among a view's, which the view has, its bins and sums
+    local, seen = np.full(m, -1, dtype=np.int32), np.zeros((m + 63) // 64, dtype=np.uint64)
+    many, first, rest = np.empty(n_most, dtype=np.int32), np.empty((n_most, 5)), np.empty((n_most, 5))
     for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
         b = views(k)
         rows, w_rows, wu_rows = kernel.add_view(
             bricks,
             b.mean,
             np.asarray(T_k, dtype=np.float64),
-            np.ones(len(b), dtype=bool) if kept is None else kept,
+            every if kept is None else kept,
             voxel_mm,
             b.weight,
             b.count,
@@ -220,13 +222,15 @@ def merge_bins(
             count,
             n_views,
             local,
+            seen,
+            many,
             first,
             rest,
-            counts,
         )
         if each_view is not None:
             each_view(k, rows, m, w_rows, wu_rows)
-    return MergedCloud(sums / wsum[:, None], wsum, count, n_views)
+    del local, seen, many, first, rest
+    return MergedCloud(np.divide(sums, wsum[:, None], out=sums), wsum, count, n_views)
 
 
 @functools.cache
@@ -238,7 +242,8 @@ def load_kernels() -> None:
 
     bins = bin_view(np.zeros((1, 3)), np.ones(1), np.zeros(1), 1.0)
     merge_bins(1.0, lambda k: bins, [np.ones(1, dtype=bool)], [np.eye(4)])
-    kernel.rehash(np.full((2, 8), -1, dtype=np.int64), np.full((4, 8), -1, dtype=np.int64))
+    kernel.rehash(np.full((2, 2), -1, dtype=np.int64), np.full((4, 2), -1, dtype=np.int64))
+    kernel.add_squares(np.zeros(1), np.zeros(1, dtype=np.int32), np.zeros(1))
 
 
 def moved_means(bins: ViewBins, T: NDArray[np.float64]) -> NDArray[np.float64]:
