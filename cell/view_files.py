@@ -46,8 +46,9 @@ STEP_MM = 1e-4  # storage step of a coordinate: 0.1 um
 _LIMIT = 2**30  # |coordinate| / STEP_MM: 107 m, so that differences of two stay within int32
 # how the raw frames are encoded (lossless PNG, docs/storage.md): zlib level 1, every row filtered by its
 # left neighbour's difference (SUB) and Huffman-coded alone (no string matching, which finds little in noisy
-# images): 25 % smaller than zlib level 1 with libpng's adaptive filters, for half the CPU (0.25 against
-# 0.53 s a 1024x768 view of 38 frames); the same pixels
+# images): 2.5-26 % smaller than zlib level 1 with libpng's adaptive filters (the ideal and the honest world's
+# demo), for half the CPU; the same pixels. The order counts: OpenCV resets the strategy when the compression
+# level follows it. Needs OpenCV >= 4.12 (IMWRITE_PNG_FILTER)
 PNG_PARAMS = [
     cv2.IMWRITE_PNG_COMPRESSION,
     1,

@@ -103,6 +103,15 @@ def test_bad_input() -> None:
         merge_bins(-1.0, lambda k: bin_view(np.zeros((1, 3)), np.ones(1), None, 0.2), [None], [np.eye(4)])
     with pytest.raises(ConfigError):  # beyond the key's +-2^20 voxels
         merge([np.array([[0.0, 0.0, 3e5]])], voxel_mm=0.2)
+    # binned within range, then moved beyond it, or by a pose that is not finite: found by the kernel
+    bins = bin_view(np.zeros((2, 3)), np.ones(2), None, 0.2)
+    far, nan = np.eye(4), np.full((4, 4), np.nan)
+    far[2, 3] = 3e5
+    for T in (far, nan):
+        with pytest.raises(ConfigError, match="not finite or beyond"):
+            merge_bins(0.2, lambda k: bins, [None], [T])
+    with pytest.raises(ValueError, match="mask has 3 entries for its 1 bins"):
+        merge_bins(0.2, lambda k: bins, [np.ones(3, dtype=bool)], [np.eye(4)])
 
 
 def test_an_unregistered_view_gives_only_what_no_registered_view_measured() -> None:

@@ -181,6 +181,8 @@ def merge_bins(
     for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
         b = views(k)
         n_most = max(n_most, len(b))
+        if kept is not None and len(kept) != len(b):  # (the kernels do not check their indices)
+            raise ValueError(f"merge: view {k}'s mask has {len(kept)} entries for its {len(b)} bins")
         given = every if kept is None else kept
         T_k = np.asarray(T_k, dtype=np.float64)
         at, status = 0, kernel.FULL
@@ -191,7 +193,10 @@ def merge_bins(
                 kernel.rehash(table, larger)
                 table = larger
         if status == kernel.OUT_OF_RANGE:
-            raise ConfigError(f"merge: points beyond +-{_HALF} voxels of the part frame's origin")
+            raise ConfigError(
+                f"merge: view {k}'s refined points are not finite or beyond +-{_HALF} voxels of the part "
+                "frame's origin"
+            )
     slots = np.flatnonzero(table[:, 0] >= 0)
     by_key = slots[np.argsort(table[slots, 0])]
     bricks = np.empty((len(by_key), kernel.BRICK_WORDS), dtype=np.int64)  # the second pass's, by key
