@@ -226,6 +226,17 @@ def _number(table, h, at):
     return first + _POP[(table[h, _OCCUPIED] >> (8 * y)) & ((1 << z) - 1)]
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _merged_row(bricks, mean, T, voxel_mm, i, last, h):
+    """Bin ``i``'s merged point (its voxel's number in ``bricks``), its moved mean (mm), and its brick's key
+    and row, sought from the previous bin's (``last``, ``h``): the second pass's lookup of every bin."""
+    px, py, pz = _moved(mean, i, T)
+    brick, at = _cell(px, py, pz, voxel_mm)
+    if brick != last:
+        h = _seek(bricks, brick, h)
+    return _number(bricks, h, at), px, py, pz, brick, h
+
+
 @nb.njit(cache=True, nogil=True)
 def _pairwise(x, n):
     """NumPy's pairwise sum of ``x[:n]`` (numpy/_core/src/umath/loops_utils.h.src) for n <= 128, which is
@@ -274,12 +285,7 @@ def add_view(
     for i in range(n):
         if not every and not kept[i]:
             continue
-        px, py, pz = _moved(mean, i, T)
-        brick, at = _cell(px, py, pz, voxel_mm)
-        if brick != last:
-            h = _seek(bricks, brick, h)
-            last = brick
-        r = _number(bricks, h, at)
+        r, px, py, pz, last, h = _merged_row(bricks, mean, T, voxel_mm, i, last, h)
         wi = w[i]
         count[r] += c[i]  # (integers: in any order)
         t = local[r]
@@ -347,12 +353,8 @@ def _sum_pairwise(bricks, mean, T, kept, voxel_mm, w, wu, local, rest, t, many):
     for i in range(len(w)):
         if not every and not kept[i]:
             continue
-        px, py, pz = _moved(mean, i, T)
-        brick, at = _cell(px, py, pz, voxel_mm)
-        if brick != last:
-            h = _seek(bricks, brick, h)
-            last = brick
-        if local[_number(bricks, h, at)] == t:
+        r, _, _, _, last, h = _merged_row(bricks, mean, T, voxel_mm, i, last, h)
+        if local[r] == t:
             idx[k] = i
             k += 1
     vals = np.empty(many - 1)
