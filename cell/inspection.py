@@ -289,7 +289,9 @@ class LambertianInspection(InspectionResults):
                 proj = self.cfg.sensor.projector
                 raw = (out_dir, stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
                 writes.append(files.submit(save_raw_stack, *raw))
-            summary = self._decode(captured, stack, out_dir, files, writes)
+            in_order = stack.shape[-1] * stack.shape[-2] > SIDE_BY_SIDE_MAX_PIXELS
+            with _InOrder() if in_order else ThreadPoolExecutor(1, thread_name_prefix="view-side") as side:
+                summary = self._decode(captured, stack, out_dir, files, writes, side, 1 if in_order else 2)
             for written in writes:
                 written.result()  # a write that failed fails the view
         write_json_atomic(out_dir / "view.json", summary)  # last: the folder is whole once it is there
@@ -302,26 +304,13 @@ class LambertianInspection(InspectionResults):
         out_dir: Path,
         files: ThreadPoolExecutor,
         writes: list[Future[Any]],
-    ) -> dict[str, Any]:
-        if stack.shape[-1] * stack.shape[-2] > SIDE_BY_SIDE_MAX_PIXELS:
-            return self._decode_steps(captured, stack, out_dir, files, writes, _InOrder(), workers=1)
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="view-side") as side:
-            return self._decode_steps(captured, stack, out_dir, files, writes, side, workers=2)
-
-    def _decode_steps(
-        self,
-        captured: Captured,
-        stack: NDArray[Any],
-        out_dir: Path,
-        files: ThreadPoolExecutor,
-        writes: list[Future[Any]],
         side: Executor,
         workers: int,
     ) -> dict[str, Any]:
-        """:meth:`_decode`'s steps; those that only the view's results need, not the steps after them (its
-        defect regions' ray casts, its points' uncertainty), run on ``side`` beside the rest (NumPy, OpenCV,
-        SciPy and Embree release the GIL), the measured normals' bands on ``workers`` threads: the same
-        numbers, in less time on two cores."""
+        """The view's steps (:meth:`decode`); those that only the view's results need, not the steps after
+        them (its defect regions' ray casts, its points' uncertainty), run on ``side`` beside the rest (NumPy,
+        OpenCV, SciPy and Embree release the GIL), the measured normals' bands on ``workers`` threads: the
+        same numbers, in less time on two cores."""
         cam = self.cfg.sensor.camera
         decoded = decode(stack, self.patterns, cam.bit_depth)
         cloud = self.triangulator.triangulate(decoded)
