@@ -1,0 +1,90 @@
+"""Where the time after the last frame goes: a `cell` command run in-process (e.g. `demo`) with timers on the
+tail's steps, then a per-thread timeline of every timed call that ended after the last capture (seconds from
+its end; wall and the thread's own CPU). Each step is timed where the pipeline calls it, so the threads that
+run side by side (the decode worker, the refinement made ahead, the evaluation, the registration's pool) show
+as they overlap. The timers cost a little: the verdict comes ~0.1-0.3 s later than in `bench_cycle_time.py`.
+
+    .venv/bin/python bench/trace_tail.py demo
+"""
+
+from __future__ import annotations
+
+import atexit
+import functools
+import importlib
+import sys
+import threading
+import time
+from typing import Any
+
+EVENTS: list[tuple[str, str, float, float, float]] = []  # thread, step, start, end (perf_counter), thread CPU
+STEPS = [  # (module, attribute as the caller looks it up, label)
+    ("cell.inspection", "LambertianInspection.capture", "capture"),
+    ("cell.inspection", "LambertianInspection.decode", "decode"),
+    ("cell.inspection", "LambertianInspection._first_overlaps", "first overlaps"),
+    ("cell.inspection", "refine_views", "refine_views"),
+    ("cell.inspection", "LambertianInspection.evaluate", "evaluate"),
+    ("cell.inspection", "LambertianInspection._evaluation_alignment", "evaluate: alignment"),
+    ("cell.inspection", "LambertianInspection._measured", "evaluate: deviations"),
+    ("cell.inspection", "LambertianInspection._covered", "evaluate: coverage"),
+    ("cell.planning.feedback", "accuracy_map", "evaluate: accuracy map"),
+    ("cell.planning.feedback", "uncertainty_map", "evaluate: uncertainty map"),
+    ("cell.view_files", "save_raw_stack", "raw images"),
+    ("cell.inspection", "save_raw_stack", "raw images"),
+    ("cell.inspection_results", "InspectionResults.register", "register"),
+    ("cell.inspection_results", "held_redundant", "register: held-view cut"),
+    ("cell.inspection_results", "merge_bins", "register: merge"),
+    ("cell.inspection_results", "signed_distance", "register: error map"),
+    ("cell.inspection_results", "InspectionResults.inspectable_coverage", "register: coverage"),
+    ("cell.inspection_results", "registered_cloud_uncertainty", "register: u"),
+    ("cell.inspection_results", "default_link_radius", "register: link radius"),
+    ("cell.inspection_results", "InspectionResults._judge", "register: judge"),
+    ("cell.inspection_results", "InspectionResults.report", "report (the verdict)"),
+]
+
+
+def timed(module: str, attribute: str, label: str) -> None:
+    """Wrap ``module.attribute`` (a function or Class.method) so that each call adds to EVENTS."""
+    owner: Any = importlib.import_module(module)
+    *path, name = attribute.split(".")
+    for part in path:
+        owner = getattr(owner, part)
+    f = getattr(owner, name)
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        start, cpu = time.perf_counter(), time.thread_time()
+        try:
+            return f(*args, **kwargs)
+        finally:
+            end = time.perf_counter()
+            EVENTS.append((threading.current_thread().name, label, start, end, time.thread_time() - cpu))
+
+    setattr(owner, name, wrapper)
+
+
+def timeline() -> None:
+    """Print the calls that ended after the last capture ended, by start."""
+    captures = [e for e in EVENTS if e[1] == "capture"]
+    if not captures:
+        print("no capture was timed")
+        return
+    last = max(e[3] for e in captures)
+    print("after the last frame (s from its end)    thread              start ->    end   wall    cpu")
+    for thread, label, start, end, cpu in sorted(EVENTS, key=lambda e: e[2]):
+        if end >= last and label != "capture":
+            span = f"{start - last:6.2f} -> {end - last:6.2f}"
+            print(f"  {label:38s} {thread:18s} {span}  {end - start:5.2f}  {cpu:5.2f}")
+
+
+def main() -> None:
+    for spec in STEPS:
+        timed(*spec)
+    from cell.cli import main as cell_main
+
+    atexit.register(timeline)
+    cell_main(sys.argv[1:])
+
+
+if __name__ == "__main__":
+    main()
