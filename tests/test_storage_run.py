@@ -16,7 +16,7 @@ from cell.mesh import load_mesh
 from cell.retention import RetentionConfig, prune
 from cell.run_data import Checkpoint
 from cell.view_files import load_eval_points, load_raw_stack, load_view_points
-from tests.box_part import small_cell, write_box_recipe
+from tests.box_part import small_cell, write_box_recipe, write_dented_box_recipe
 
 
 def _cell_file(folder: Path, retention: dict | None) -> Path:
@@ -106,3 +106,22 @@ def test_a_passed_run_under_the_default_retention_drops_its_raw_images_at_the_en
     assert len(prunes) == 1 and prunes[0]["freed_bytes"] > 0
     assert any("raw view images removed" in s for s in said)
     assert not (tmp_path / "run" / "run.lock").exists()  # released by the run, not by the prune
+
+
+def test_a_failed_run_rebuilt_from_its_cloud_gives_the_same_report(tmp_path: Path) -> None:
+    """The run judges its cloud in the registration, with the cloud in memory; `cell report` judges
+    results/cloud.ply again (cell.inspection_results): the same report.json but for when and by what it was
+    written, on a run with points outside the tolerance, whose link radius and defect regions a passing run
+    never computes."""
+    recipe = write_dented_box_recipe(tmp_path)
+    outcome = inspect(recipe, _cell_file(tmp_path, None), tmp_path / "run", say=lambda _: None)
+    assert outcome.state == "done" and outcome.summary["verdict"] == "fail"
+    path = tmp_path / "run" / "results" / "report.json"
+    before = json.loads(path.read_text())
+    assert before["regions"], "the dent is a defect region"
+    rebuild_report(tmp_path / "run")
+    after = json.loads(path.read_text())
+    for doc in (before, after):  # when and by what it was written
+        for key in ("created_utc", "software"):
+            doc.pop(key, None)
+    assert after == before
