@@ -239,14 +239,9 @@ def _merged_row(bricks, mean, T, voxel_mm, i, last, h):
 
 @nb.njit(cache=True, nogil=True)
 def _pairwise(x, n):
-    """NumPy's pairwise sum of ``x[:n]`` (numpy/_core/src/umath/loops_utils.h.src) for n <= 128, which is
-    all a voxel can get of one view: its bins are distinct voxels of the same size, at most 27 of which a
-    rigidly moved voxel meets."""
-    if n < 8:
-        res = -0.0
-        for i in range(n):
-            res += x[i]
-        return res
+    """NumPy's pairwise sum of ``x[:n]`` (numpy/_core/src/umath/loops_utils.h.src) for 8 <= n <= 128 (its
+    unrolled branch; fewer are summed in order where they are met), which is all a voxel can get of one view:
+    its bins are distinct voxels of the same size, at most 27 of which a rigidly moved voxel meets."""
     if n > 128:
         raise ValueError("merge: more than 128 bins of one view in one voxel")
     r = x[:8].copy()
