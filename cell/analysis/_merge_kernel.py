@@ -29,8 +29,11 @@ from numba.core import cgutils
 from numba.cpython.unsafe.numbers import trailing_zeros
 from numba.extending import intrinsic
 
-KEY_BITS = 21  # bits per axis of a voxel key (cell.analysis.merge.grid_keys)
-_HALF = 1 << (KEY_BITS - 1)
+# a voxel's cell per axis + _HALF, as cell.analysis.merge.grid_keys keys it, in KEY_BITS bits
+from cell.analysis.merge import _HALF, KEY_BITS
+
+# a brick's key: x, y // 8, z // 8 (y // 8 and z // 8 below 2^(KEY_BITS - 3)), x the most significant
+_BRICK_Y_BITS = KEY_BITS - 3
 # a brick: 1 x 8 x 8 voxels along x, y, z. In the first pass's hash an entry is its key (-1: an empty entry)
 # and which of its voxels are occupied (a bit each, y % 8 * 8 + z % 8): 16 bytes, so the hash of the demo
 # pillar's 281k bricks (8 MB) stays in the last-level cache. The second pass's bricks, in the order of their
@@ -99,7 +102,8 @@ def _cell(px, py, pz, voxel_mm):
     cx = np.int64(np.floor(x)) + _HALF
     cy = np.int64(np.floor(y)) + _HALF
     cz = np.int64(np.floor(z)) + _HALF
-    return (cx << 36) | ((cy >> 3) << 18) | (cz >> 3), ((cy & 7) << 3) | (cz & 7)
+    brick = (cx << (2 * _BRICK_Y_BITS)) | ((cy >> 3) << _BRICK_Y_BITS) | (cz >> 3)
+    return brick, ((cy & 7) << 3) | (cz & 7)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -173,8 +177,8 @@ def number(table, by_key, bricks):
     g0 = 0
     while g0 < len(bricks):
         g1 = g0 + 1
-        row = bricks[g0, _KEY] >> 18
-        while g1 < len(bricks) and bricks[g1, _KEY] >> 18 == row:
+        row = bricks[g0, _KEY] >> _BRICK_Y_BITS
+        while g1 < len(bricks) and bricks[g1, _KEY] >> _BRICK_Y_BITS == row:
             g1 += 1
         for y in range(8):
             for j in range(g0, g1):
