@@ -291,7 +291,7 @@ class LambertianInspection(InspectionResults):
                 writes.append(files.submit(save_raw_stack, *raw))
             in_order = stack.shape[-1] * stack.shape[-2] > SIDE_BY_SIDE_MAX_PIXELS
             with _InOrder() if in_order else ThreadPoolExecutor(1, thread_name_prefix="view-side") as side:
-                summary = self._decode(captured, stack, out_dir, files, writes, side, 1 if in_order else 2)
+                summary = self._decode(captured, stack, out_dir, files, writes, side, in_order)
             for written in writes:
                 written.result()  # a write that failed fails the view
         write_json_atomic(out_dir / "view.json", summary)  # last: the folder is whole once it is there
@@ -305,12 +305,14 @@ class LambertianInspection(InspectionResults):
         files: ThreadPoolExecutor,
         writes: list[Future[Any]],
         side: Executor,
-        workers: int,
+        in_order: bool,
     ) -> dict[str, Any]:
         """The view's steps (:meth:`decode`); those that only the view's results need, not the steps after
         them (its defect regions' ray casts, its points' uncertainty), run on ``side`` beside the rest (NumPy,
-        OpenCV, SciPy and Embree release the GIL), the measured normals' bands on ``workers`` threads: the
-        same numbers, in less time on two cores."""
+        OpenCV, SciPy and Embree release the GIL), the measured normals' bands on two threads, and the
+        refinement after the plan's last view is started ahead: the same numbers, in less time on two cores.
+        ``in_order`` (a camera of more than SIDE_BY_SIDE_MAX_PIXELS, ``side`` then runs each step as it is
+        given): one step at a time, for memory."""
         cam = self.cfg.sensor.camera
         decoded = decode(stack, self.patterns, cam.bit_depth)
         cloud = self.triangulator.triangulate(decoded)
@@ -323,7 +325,7 @@ class LambertianInspection(InspectionResults):
         # the measured normals once, for the projector-incidence filter and the points' uncertainty; a code
         # without a decode uncertainty leaves the filter its own banded normals (no (H, W, 3) float64 image)
         normals = (
-            measured_normals(cloud.points_C, valid, workers=workers)
+            measured_normals(cloud.points_C, valid, workers=1 if in_order else 2)
             if has_view_uncertainty(self.patterns)
             else None
         )
@@ -400,7 +402,7 @@ class LambertianInspection(InspectionResults):
             self.views.add(result)
             # the refinement the evaluation and the registration begin with, beside the last of the view's
             # writes (not on a camera decoded in order: its stack is still held then, at its peak memory)
-            if captured.last and stack.shape[-1] * stack.shape[-2] <= SIDE_BY_SIDE_MAX_PIXELS:
+            if captured.last and not in_order:
                 self._start_refine_ahead(run, result)
         return summary
 
