@@ -17,7 +17,8 @@ import threading
 import time
 from typing import Any
 
-EVENTS: list[tuple[str, str, float, float, float]] = []  # thread, step, start, end (perf_counter), thread CPU
+# thread, step, start, end (perf_counter), thread CPU, the process's CPU at the start and at the end
+EVENTS: list[tuple[str, str, float, float, float, float, float]] = []
 STEPS = [  # (module, attribute as the caller looks it up, label)
     ("cell.inspection", "LambertianInspection.capture", "capture"),
     ("cell.inspection", "LambertianInspection.decode", "decode"),
@@ -53,28 +54,39 @@ def timed(module: str, attribute: str, label: str) -> None:
 
     @functools.wraps(f)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
-        start, cpu = time.perf_counter(), time.thread_time()
+        start, cpu, process = time.perf_counter(), time.thread_time(), time.process_time()
         try:
             return f(*args, **kwargs)
         finally:
             end = time.perf_counter()
-            EVENTS.append((threading.current_thread().name, label, start, end, time.thread_time() - cpu))
+            thread = threading.current_thread().name
+            EVENTS.append((thread, label, start, end, time.thread_time() - cpu, process, time.process_time()))
 
     setattr(owner, name, wrapper)
 
 
 def timeline() -> None:
-    """Print the calls that ended after the last capture ended, by start."""
+    """Print the calls that ended after the last capture ended, by start, and the CPU the whole process
+    spent (all threads) from the last frame to the verdict: on two cores the tail cannot be shorter than
+    half of it."""
     captures = [e for e in EVENTS if e[1] == "capture"]
     if not captures:
         print("no capture was timed")
         return
-    last = max(e[3] for e in captures)
+    last_capture = max(captures, key=lambda e: e[3])
+    last = last_capture[3]
     print("after the last frame (s from its end)    thread              start ->    end   wall    cpu")
-    for thread, label, start, end, cpu in sorted(EVENTS, key=lambda e: e[2]):
+    for thread, label, start, end, cpu, _, _ in sorted(EVENTS, key=lambda e: e[2]):
         if end >= last and label != "capture":
             span = f"{start - last:6.2f} -> {end - last:6.2f}"
             print(f"  {label:38s} {thread:18s} {span}  {end - start:5.2f}  {cpu:5.2f}")
+    verdicts = [e for e in EVENTS if e[1] == "report (the verdict)" and e[2] >= last]
+    if verdicts:
+        verdict = verdicts[0]
+        cpu = verdict[5] - last_capture[6]
+        wall = verdict[2] - last
+        print(f"process CPU from the last frame to the verdict: {cpu:.2f} s in {wall:.2f} s", end="")
+        print(f" ({cpu / wall:.2f} cores)")
 
 
 def main() -> None:
