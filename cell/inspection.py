@@ -543,14 +543,24 @@ class LambertianInspection(InspectionResults):
             return {}
         moved = self._moved_eval(run, T_W_align)
         points = [moved[i] for i in done]
-        deviation = signed_distance(self.nominal, np.vstack(points)).deviation_mm  # one call: all cores
-        ends = np.cumsum([len(p) for p in points])
+        error_map = signed_distance(self.nominal, np.vstack(points))  # one call: all cores
+        # the nominal's normal at each point, its closest triangle's (the accuracy map's incidence check):
+        # found with the deviation, not looked up again among the plan's surface samples
+        normals = self.nominal.face_normals[error_map.face]
+        ends = np.cumsum([len(p) for p in points])[:-1]
         out = {}
-        for i, T_fix, dev in zip(done, found.T, np.split(deviation, ends[:-1]), strict=True):
+        for i, T_fix, dev, n in zip(
+            done, found.T, np.split(error_map.deviation_mm, ends), np.split(normals, ends), strict=True
+        ):
             view = self.views.get(run, i)
             T = T_fix if T_W_align is None else T_W_align @ T_fix
             out[i] = MeasuredView(
-                T @ view.T_W_C, moved[i], view.regions, deviation_mm=dev, uncertainty_mm=view.eval_u
+                T @ view.T_W_C,
+                moved[i],
+                view.regions,
+                deviation_mm=dev,
+                uncertainty_mm=view.eval_u,
+                nominal_normals_W=n,
             )
         return out
 

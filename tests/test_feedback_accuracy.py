@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
+from cell.analysis.errormap import NominalMesh, signed_distance
 from cell.geometry import make_pose, transform_points
 from cell.planning.feedback import PairCache, PairsOf, accuracy_map, uncertainty_map
 from cell.planning.measured import MeasuredView
@@ -232,3 +234,47 @@ def test_a_view_measured_again_is_paired_anew() -> None:
     src, dst = cache.pairs(1, 0, LINK, again, tree)
     truth = brute_pairs(again, kinematic[0])
     assert np.array_equal(src, truth[0]) and np.array_equal(dst, truth[1]) and len(src) < len(first[0])
+
+
+# ---------------------------------------------------------------- the incidence check's nominal normals
+def test_the_incidence_check_takes_the_normal_of_the_points_nominal_triangle() -> None:
+    """Two views of a 40 x 40 x 10 mm box's top face, 0.2 mm apart, in the 1.5 mm strip along its +x edge,
+    both seen straight from above (0 deg incidence on the top face, 90 deg on the side face): the whole strip
+    is compared and flagged. The nominal normal of each point as the inspection carries it (its closest
+    triangle's, found with its deviation) is the top face's, the truth, but at the edge itself; the nearest
+    of the plan's surface samples (1 per mm^2, as the feedback planner's lookup finds them) lies on the side
+    face for part of the strip, whose pairs then look grazing and are not compared."""
+    box = trimesh.creation.box((40.0, 40.0, 10.0))
+    nominal = NominalMesh.from_trimesh(box)
+    rng = np.random.default_rng(3)
+    views = []
+    for v, offset in enumerate((0.0, 0.2)):
+        xy = rng.uniform([18.5, -10.0], [20.0, 10.0], (3000, 2))
+        points = np.column_stack([xy, 5.0 + offset + rng.normal(0.0, 0.005, len(xy))])
+        error_map = signed_distance(nominal, points)
+        views.append(
+            MeasuredView(
+                make_pose(np.eye(3), [0.0, 0.0, 400.0 + v]),
+                points,
+                deviation_mm=error_map.deviation_mm,
+                nominal_normals_W=nominal.face_normals[error_map.face],
+            )
+        )
+    samples, face = trimesh.sample.sample_surface(box, int(box.area), seed=0)
+    sample_normals, tree = box.face_normals[face], cKDTree(samples)
+
+    def nearest_sample_normal(points: np.ndarray) -> np.ndarray:
+        return sample_normals[tree.query(points)[1]]
+
+    points = np.vstack([v.points_W for v in views])
+    top = np.all(np.vstack([v.nominal_normals_W for v in views]) == UP, axis=1)
+    # the others: points just inside the material (the noise) nearer to the side face than to the top
+    assert top.mean() > 0.99 and np.all(points[~top, 0] > 19.98)
+    assert np.mean(np.any(nearest_sample_normal(points) != UP, axis=1)) > 0.05
+
+    flagged = accuracy_map(views, nearest_sample_normal, 0.1, max_incidence_deg=60.0)
+    assert len(flagged) > 0.9 * len(views[1].points_W)
+    from_samples = [MeasuredView(v.T_W_C, v.points_W, deviation_mm=v.deviation_mm) for v in views]
+    assert len(accuracy_map(from_samples, nearest_sample_normal, 0.1, max_incidence_deg=60.0)) < 0.9 * len(
+        flagged
+    )

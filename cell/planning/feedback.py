@@ -112,7 +112,9 @@ def accuracy_map(
     normal (the task constraint theta_th2 of eq 3.5): a view measures more than it was planned for, and its
     points beyond the constraint are the grazing ones the sensor is not qualified for. (Coverage and the merge
     still take them: coverage counts what was measured at all, and the merge weighs points by decode quality,
-    not incidence.)
+    not incidence.) The nominal normal is the one of the later view's point: its closest nominal triangle's
+    when the view carries them (``MeasuredView.nominal_normals_W``, found with its deviations), else
+    ``normals_at`` the point.
 
     ``pairs``: which points are each other's nearest (:data:`PairsOf`; default: found at the views' points,
     :func:`pairs_at`). The inspection pairs its views once, at their kinematic poses, as each view arrives,
@@ -134,14 +136,16 @@ def accuracy_map(
             for _, src, _ in found:
                 used[src] = True
             at = np.cumsum(used) - 1  # where a paired point's normal (and view j's incidence) is in n_used
-            n_used = normals_at(pj[used])
+            n_used = normals_at(pj[used]) if vj.nominal_normals_W is None else vj.nominal_normals_W[used]
             seen_j = incidence_cos(pj[used], n_used, vj.T_W_C[:3, 3]) >= min_cos  # once per point too
         for i, src, dst in found:
             vi = views[i]
             pi = vi.points_W
             if max_incidence_deg < 90.0:
-                n_nom = n_used[at[src]]
-                seen = seen_j[at[src]] & (incidence_cos(pi[dst], n_nom, vi.T_W_C[:3, 3]) >= min_cos)
+                k = at[src]
+                ahead = seen_j[k]  # view j's incidence first: view i's is found for the pairs it leaves
+                src, dst, k = src[ahead], dst[ahead], k[ahead]
+                seen = incidence_cos(pi[dst], n_used[k], vi.T_W_C[:3, 3]) >= min_cos
                 src, dst = src[seen], dst[seen]
             if not len(src):
                 continue
@@ -149,13 +153,15 @@ def accuracy_map(
             if dj is not None and di is not None:
                 # deviations from the nominal: robust on bends and sheet edges, where normals are not
                 gap = np.abs(dj[src] - di[dst])
-                same = np.ones(len(gap), dtype=bool)
             else:
                 nj = vj.normals_W[src] if vj.normals_W is not None else normals_at(pj[src])
                 ni = vi.normals_W[dst] if vi.normals_W is not None else normals_at(pi[dst])
                 same = np.einsum("ij,ij->i", nj, ni) > np.cos(np.deg2rad(10.0))
                 gap = np.abs(np.einsum("ij,ij->i", pj[src] - pi[dst], nj))
-            out.append(_consistent(pj[src][same], gap[same] > tol_mm))
+                src, gap = src[same], gap[same]
+            flagged = gap > tol_mm
+            if flagged.any():  # where the views agree (most pairs) there is nothing to check
+                out.append(_consistent(pj[src], flagged))
     return np.vstack(out) if out else np.zeros((0, 3))
 
 
@@ -206,7 +212,12 @@ def _consistent(
     if not flagged.any():
         return np.zeros((0, 3))
     candidates = points[flagged]
-    n_all = cKDTree(points).query_ball_point(candidates, radius_mm, return_length=True)
+    # the points that can be within the radius of a candidate: those in the candidates' box grown by it (and
+    # a micrometre, so rounding cannot drop one); the counts are the same as in a tree of all the points
+    reach = radius_mm + 1e-6
+    lo, hi = candidates.min(axis=0) - reach, candidates.max(axis=0) + reach
+    near = points[np.all((points >= lo) & (points <= hi), axis=1)]
+    n_all = cKDTree(near).query_ball_point(candidates, radius_mm, return_length=True)
     n_flag = cKDTree(candidates).query_ball_point(candidates, radius_mm, return_length=True)
     return candidates[(n_flag >= min_points) & (n_flag >= share * n_all)]
 

@@ -36,8 +36,9 @@ class DefectRegion:
 class MeasuredView:
     """A measured view: camera pose, measured points (world mm), their unit normals when the producer knows
     them (else None), its defect regions, each point's signed deviation from the nominal (mm) when known:
-    two views that measure the same spot must agree on it, whatever the surface's curvature; and each
-    point's standard uncertainty (mm, cell.analysis.uncertainty) when known."""
+    two views that measure the same spot must agree on it, whatever the surface's curvature; each point's
+    standard uncertainty (mm, cell.analysis.uncertainty) when known; and, with the deviations, the nominal's
+    unit normal at each point (its closest nominal triangle's, {W}) when the producer found it."""
 
     T_W_C: Pose
     points_W: Array
@@ -45,6 +46,7 @@ class MeasuredView:
     normals_W: Array | None = None
     deviation_mm: NDArray[np.float64] | None = None
     uncertainty_mm: NDArray[np.floating] | None = None
+    nominal_normals_W: Array | None = None
 
 
 def defect_regions(
