@@ -4,12 +4,18 @@ eqs."""
 from __future__ import annotations
 
 import itertools
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
+from scipy.spatial.transform import Rotation
 
 from cell.config import DEFAULT_CELL, load_cell_config
+from cell.geometry import make_pose, transform_points
+from cell.planning.coverage import covered_by_views
 from cell.planning.feedback import cost_q, rotate_about
 from cell.planning.patches import cluster_patches
 from cell.planning.sensor_model import SensorModel
@@ -84,3 +90,32 @@ def test_rotate_about_keeps_the_pivot():
     p = np.array([10.0, 0, 0])
     R = rotate_about(T, p, np.array([0, 1.0, 0]), 0.3)
     assert np.linalg.norm(R[:3, 3] - p) == pytest.approx(np.linalg.norm(T[:3, 3] - p))
+
+
+def test_coverage_by_views_counts_as_a_brute_force_count_of_all_their_points():
+    """covered_by_views (each view's points in its own frame and KD-tree, at most the needed number counted
+    per view) against the definition: a sample is covered when the points of all views, moved into the world,
+    within the radius (a closed disc: points exactly at it count) number at least half of the density's."""
+    rng = np.random.default_rng(5)
+    samples = rng.uniform(0.0, 20.0, (400, 3)) * [1.0, 1.0, 0.0]
+    samples[0] = 0.0
+    density, radius = 0.5, 2.0  # need = ceil(0.5 * 0.5 * pi * 4) = 4 points
+    views, world = [], []
+    for v in range(3):
+        turn = Rotation.from_rotvec([0.0, 0.0, 0.7 * v]).as_matrix()
+        T = np.eye(4) if v == 0 else make_pose(turn, [10.0, 10.0 * v - 5.0, 0.0])
+        local = rng.uniform(-12.0, 12.0, (60 + 30 * v, 3)) * [1.0, 1.0, 0.02] + [10.0 * (v == 0), 0.0, 0.0]
+        local = local[np.linalg.norm(transform_points(T, local)[:, :2], axis=1) > 2.5]  # none near sample 0
+        if v == 0:  # but four exactly at the radius (in the world as in the view's frame: T = 1)
+            local = np.vstack([local, [[2.0, 0.0, 0.0], [-2.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, -2.0, 0.0]]])
+        views.append((cKDTree(local), T))
+        world.append(transform_points(T, local))
+    surface = SimpleNamespace(points=samples)
+    d = cdist(samples, np.vstack(world))
+    truth = (d <= radius).sum(axis=1) >= 4
+    assert truth[0] and 0.2 < truth.mean() < 0.8, truth.mean()
+    assert np.array_equal(covered_by_views(surface, views, density, radius), truth)
+    inspectable = rng.uniform(size=len(samples)) < 0.5
+    assert np.array_equal(
+        covered_by_views(surface, views, density, radius, samples=inspectable), truth & inspectable
+    )

@@ -40,19 +40,24 @@ def covered_by_views(
     own frame and the pose ``T`` that moves them into the world: the samples are moved into each view's frame
     (a rigid motion keeps distances) and the points near them counted there, so no tree of the moved points is
     built. The same answer as the union's counts: a sample is counted until it is covered (a later view's
-    points would not uncover it), so the views after the first that covers a sample do not count it again.
+    points would not uncover it), so the views after the first that covers a sample do not count it again;
+    and a view counts at most the ``need`` points a sample asks for (its nearest within the radius: a
+    k-nearest query, half the CPU of counting every point in the disc), which decides the same.
     ``samples``: which samples to count (e.g. the inspectable ones); the others are given as not covered."""
     need = max(1, int(np.ceil(0.5 * density_per_mm2 * np.pi * radius_mm**2)))
     counts = np.zeros(len(surface.points), dtype=np.int64)
     # the samples not covered yet
     open_ = np.arange(len(surface.points)) if samples is None else np.flatnonzero(samples)
+    # the k-nearest query's bound is strict, the disc's closed: the next float up takes a point at the radius
+    bound = float(np.nextafter(radius_mm, np.inf))
     for tree, T in views:
         if tree is None or tree.n == 0 or not len(open_):
             continue
         local = transform_points(invert(T), surface.points[open_])
         near = np.all((local >= tree.mins - radius_mm) & (local <= tree.maxes + radius_mm), axis=1)
         at = open_[near]
-        counts[at] += np.asarray(tree.query_ball_point(local[near], radius_mm, return_length=True))
+        d, _ = tree.query(local[near], k=need, distance_upper_bound=bound)
+        counts[at] += np.isfinite(np.asarray(d).reshape(len(at), need)).sum(axis=1)
         open_ = open_[counts[open_] < need]
     return counts >= need
 
