@@ -187,9 +187,8 @@ def uncertainty_map(
     if not carrying:
         return np.zeros((0, 3))
     pairs = pairs_at(views) if pairs is None else pairs
-    pts = np.vstack([views[c].points_W for c in carrying])
     starts = np.cumsum([0] + [len(views[c].points_W) for c in carrying])
-    info = np.zeros(len(pts))
+    info = np.zeros(starts[-1])
     for c in carrying:
         u = np.asarray(views[c].uncertainty_mm, dtype=np.float64)
         w = 1.0 / np.square(np.where(np.isfinite(u), u, np.inf))  # view c's information per point (1/mm^2)
@@ -200,8 +199,10 @@ def uncertainty_map(
             src, dst = pairs(a, c, link_mm)
             info[start + src] += w[dst]
     with np.errstate(divide="ignore"):
-        u_all = 1.0 / np.sqrt(info)
-    return _consistent(pts, u_all > u_max_mm)
+        flagged = 1.0 / np.sqrt(info) > u_max_mm
+    if not flagged.any():  # the views' points stacked only for points to check
+        return np.zeros((0, 3))
+    return _consistent(np.vstack([views[c].points_W for c in carrying]), flagged)
 
 
 def _consistent(
