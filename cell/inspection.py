@@ -537,7 +537,7 @@ class LambertianInspection(InspectionResults):
     ) -> dict[int, MeasuredView]:
         """The measured views by view index (skipped or unmeasured views are absent), each moved by its
         refinement (and by ``T_W_align``, the alignment's correction in {W}, when given), with its deviations
-        from the nominal measured there."""
+        from the nominal measured there and the nominal's normal at each point (its closest triangle's)."""
         done, found = self.refinement(run)
         if not done:
             return {}
