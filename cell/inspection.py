@@ -78,7 +78,7 @@ from cell.planning.motion import MotionPlanner
 from cell.planning.planner import Plan, plan_initial
 from cell.planning.viewpoints import Viewpoint
 from cell.raycast import RayCaster
-from cell.run_data import Evaluation, View
+from cell.run_data import Checkpoint, Evaluation, View
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
 from cell.sensing.incidence import measured_normals
@@ -200,6 +200,7 @@ class LambertianInspection(InspectionResults):
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._refine_lock = threading.Lock()  # one refinement at a time: a second caller waits for it
         self._refining_ahead: Future[None] | None = None  # the refinement started by the last view's decode
+        self._raw_later: tuple[int, tuple[Any, ...]] | None = None  # a raw stack written after the verdict
         self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
         self._cloud: RegisteredCloud | None = None  # the registration's cloud, judged ahead of the report
         # the controller may register (in its worker) while it evaluates (here): what both use is made once
@@ -273,7 +274,10 @@ class LambertianInspection(InspectionResults):
     def decode(self, view: View, captured: Captured, out_dir: Path) -> dict[str, Any]:
         """Decode, triangulate and filter one view and write its folder ``out_dir`` (points, planes, holes,
         raw images while the retention keeps them); the files are written by a thread beside the compute
-        (zlib and PNG encoding release the GIL), all before this returns."""
+        (zlib and PNG encoding release the GIL), all before this returns. The raw images of the plan's last
+        view (so far) are not needed for the verdict: they are kept in memory and written into its committed
+        folder after the verdict (:meth:`render`), or beside the next view's decode when the feedback loop
+        asks for more views (:meth:`_write_raw_later`); not on a camera decoded in order (memory)."""
         cam = self.cfg.sensor.camera
         stack = check_stack(
             captured.images,
@@ -283,19 +287,51 @@ class LambertianInspection(InspectionResults):
             source=f"camera '{captured.camera}'",
         )
         captured.images = []  # the frames live on in ``stack`` only (0.4 GB for a 5 MP stack)
+        in_order = stack.shape[-1] * stack.shape[-2] > SIDE_BY_SIDE_MAX_PIXELS
+        later = None
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="view-files") as files:
             writes = []
+            if self._raw_later is not None:  # the view before was the plan's last: more were asked for
+                writes.append(files.submit(self._write_raw_later, out_dir.parent.parent))
             if self.cfg.retention.writes_raw_images:
                 proj = self.cfg.sensor.projector
-                raw = (out_dir, stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
-                writes.append(files.submit(save_raw_stack, *raw))
-            in_order = stack.shape[-1] * stack.shape[-2] > SIDE_BY_SIDE_MAX_PIXELS
+                raw = (stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
+                if captured.last and not in_order and captured.index is not None:
+                    later = (captured.index, raw)
+                else:
+                    writes.append(files.submit(save_raw_stack, out_dir, *raw))
             with _InOrder() if in_order else ThreadPoolExecutor(1, thread_name_prefix="view-side") as side:
                 summary = self._decode(captured, stack, out_dir, files, writes, side, in_order)
             for written in writes:
                 written.result()  # a write that failed fails the view
         write_json_atomic(out_dir / "view.json", summary)  # last: the folder is whole once it is there
+        self._raw_later = later
         return summary
+
+    def _write_raw_later(self, run_path: Path, verdict: str | None = None) -> int:
+        """Write the raw stack :meth:`decode` kept back into its view's committed folder (and forget it);
+        the bytes written. Not when the view's folder is not committed (its decode or commit failed: it is
+        measured again), nor when the retention keeps no raw images of a run of ``verdict`` past its end (they
+        would be removed when it ends: cell.retention.apply_at_finish). A run paused, stopped or killed
+        before this keeps that view whole, without ``raw/`` (as a view whose raw images were pruned)."""
+        later, self._raw_later = self._raw_later, None
+        if later is None:
+            return 0
+        index, raw = later
+        folder = RunFolder(run_path).view_dir(index)
+        if not (folder / "view.json").is_file():
+            return 0
+        if verdict is not None and self.cfg.retention.keep_days(verdict) == 0:
+            return 0
+        return save_raw_stack(folder, *raw, durable=True)
+
+    def render(self, run: RunFolder) -> dict[str, Any]:
+        """The report's page after its verdict (:meth:`InspectionResults.render`), then the raw images of the
+        plan's last view, kept back by its decode (:meth:`_write_raw_later`)."""
+        written = super().render(run)
+        summary = Checkpoint.from_json(run.load_checkpoint()).summary or {}
+        raw_bytes = self._write_raw_later(run.path, summary.get("verdict"))
+        return written | ({"raw_images_bytes": raw_bytes} if raw_bytes else {})
 
     def _decode(
         self,
@@ -447,6 +483,7 @@ class LambertianInspection(InspectionResults):
         CAD."""
         masks = {name: (reasons & np.uint8(bit)) > 0 for name, bit in DEFECT_REASONS.items()}
         holes = np.logical_or.reduce(list(masks.values()))
+        masks = {name: mask for name, mask in masks.items() if mask.any()}  # a reason no pixel has: no region
         nominal = np.full(reasons.shape + (3,), np.nan)
         if holes.any():
             cam = self.sensor.camera
