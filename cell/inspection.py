@@ -134,6 +134,10 @@ class _InOrder(Executor):
         return done
 
 
+# a view's raw stack as save_raw_stack takes it after the folder: frames, patterns, bit depth, projector size
+RawStack = tuple[NDArray[Any], PatternSet, int, tuple[int, int]]
+
+
 @dataclass
 class Captured:
     """One view's pattern stack and where the robot was when it was grabbed (capture -> decode)."""
@@ -200,7 +204,8 @@ class LambertianInspection(InspectionResults):
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._refine_lock = threading.Lock()  # one refinement at a time: a second caller waits for it
         self._refining_ahead: Future[None] | None = None  # the refinement started by the last view's decode
-        self._raw_later: tuple[int, tuple[Any, ...]] | None = None  # a raw stack written after the verdict
+        self._ahead_of: ViewResult | None = None  # the view it was started for (a later start voids it)
+        self._raw_later: tuple[int, RawStack] | None = None  # a raw stack written after the verdict
         self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
         self._cloud: RegisteredCloud | None = None  # the registration's cloud, judged ahead of the report
         # the controller may register (in its worker) while it evaluates (here): what both use is made once
@@ -402,6 +407,19 @@ class LambertianInspection(InspectionResults):
         # the side thread finishes the points' uncertainty)
         eval_W = stored[sub]
         planes = estimate_normals(eval_W)
+        result, run, ahead = None, RunFolder(out_dir.parent.parent), captured.last and not in_order
+        if captured.index is not None:
+            # the view as the job keeps it, made now with what the refinement reads (its evaluation points and
+            # their planes, its pose and joints: final here) and completed below, before the store holds it
+            arrived = {"T_W_C": T_W_C.tolist(), "joints_rad": captured.joints.tolist()}
+            folder = run.view_dir(captured.index)  # where out_dir is renamed to
+            result = ViewResult(captured.index, None, eval_W, planes, [], arrived, folder)
+            if ahead:
+                # the refinement the evaluation and the registration begin with, started now, beside the
+                # rest of the view's steps and writes (not on a camera decoded in order: its stack is still
+                # held then, at its peak memory); it makes the view's first overlaps itself
+                self._forget(run, captured.index)
+                self._start_refine_ahead(run, result)
         u = uncertainty.result()
         u_points = None if u is None else u.u_mm[keep][part]
         writes.append(files.submit(save_view_points, out_dir, points_W, quality, oblique_kept, sub, u_points))
@@ -423,23 +441,18 @@ class LambertianInspection(InspectionResults):
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
             "uncertainty": None if u is None else u.to_json(),
         }
-        if captured.index is not None:  # kept as the folder holds it: a resumed run reads the same numbers
-            meta = json.loads(json.dumps(summary))
-            folder = RunFolder(out_dir.parent.parent).view_dir(captured.index)  # where out_dir is renamed to
-            points = ViewPoints(stored, quality, oblique_kept, u_stored)
-            eval_u = None if u_stored is None else u_stored[sub]
-            result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder, eval_u)
-            run = RunFolder(out_dir.parent.parent)
+        if result is not None:  # kept as the folder holds it: a resumed run reads the same numbers
+            result.summary = json.loads(json.dumps(summary))
+            result.held = ViewPoints(stored, quality, oblique_kept, u_stored)
+            result.regions = regions
+            result.eval_u = None if u_stored is None else u_stored[sub]
             # the plan's last view leaves its maps' pairs and its bins to the evaluation and the registration
             # (which run side by side after it): the decode both wait for is shorter
-            self._first_overlaps(run, result, pair_maps=not captured.last)
+            if not ahead:
+                self._first_overlaps(run, result, pair_maps=not captured.last)
             if not captured.last:
                 self.bin_arrived_view(run, result)
             self.views.add(result)
-            # the refinement the evaluation and the registration begin with, beside the last of the view's
-            # writes (not on a camera decoded in order: its stack is still held then, at its peak memory)
-            if captured.last and not in_order:
-                self._start_refine_ahead(run, result)
         return summary
 
     def _first_overlaps(self, run: RunFolder, new: ViewResult, pair_maps: bool = True) -> None:
@@ -449,13 +462,7 @@ class LambertianInspection(InspectionResults):
         caches held of a view of this index before (a decode that failed after this and is redone) is dropped
         first, and its merge bins (made again by :meth:`bin_arrived_view`, or when the registration first asks
         for them: the plan's last view's)."""
-        self._overlaps.forget(new.index)
-        self._pairs.forget(new.index)
-        with self._refine_lock:  # a refinement of the view's earlier measurement (one made ahead) is void
-            if self._refinement is not None and new.index in self._refinement[0]:
-                self._refinement = None
-                self._moved.clear()
-        self.merge_bins_for(run).forget(new.index)
+        self._forget(run, new.index)
         views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
         prepare_overlaps(
             self._overlaps,
@@ -468,6 +475,18 @@ class LambertianInspection(InspectionResults):
         )
         if pair_maps:
             self._pair_maps(new, views[:-1])
+
+    def _forget(self, run: RunFolder, index: int) -> None:
+        """Drop what the caches hold of view ``index`` (it is measured again): its overlaps, maps' pairs and
+        merge bins, and a refinement that holds it (one made ahead: after it is made, as the lock orders, so
+        that none of its overlaps of the earlier measurement stays in the cache)."""
+        with self._refine_lock:
+            self._overlaps.forget(index)
+            self._pairs.forget(index)
+            if self._refinement is not None and index in self._refinement[0]:
+                self._refinement = None
+                self._moved.clear()
+        self.merge_bins_for(run).forget(index)
 
     def _pair_maps(self, new: ViewResult, others: Sequence[ViewResult]) -> None:
         """The feedback maps' pairs of view ``new`` with each of ``others``, both ways (:meth:`_map_pairs`),
@@ -510,17 +529,19 @@ class LambertianInspection(InspectionResults):
 
     def _start_refine_ahead(self, run: RunFolder, new: ViewResult) -> None:
         """Make the refinement of the completed views and ``new``, the plan's last view so far, whose decode
-        is writing its files (its folder not committed yet), on a thread of its own: the evaluation and the
-        registration after it find it made, or wait for it (the same numbers: a function of the same views,
-        as a resumed run reads them). A view measured again meanwhile voids it (:meth:`_first_overlaps`; not
-        made when ``new`` is no longer the view the store holds). A daemon thread: a paused or aborted run's
+        has its evaluation points and their planes (the rest of its steps and its files still to come, its
+        folder not committed yet), on a thread of its own: the evaluation and the registration after it find
+        it made, or wait for it (the same numbers: a function of the same views, as a resumed run reads them;
+        the new view's first overlaps made in it). A view measured again meanwhile voids it
+        (:meth:`_forget`; not made when a later start replaced it). A daemon thread: a paused or aborted run's
         process does not wait for it (it writes nothing)."""
         done: Future[None] = Future()
+        self._ahead_of = new
 
         def refine() -> None:
             try:
                 with self._refine_lock:
-                    if self.views.holds(new):
+                    if self._ahead_of is new:
                         views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
                         self._refine(sorted(views, key=lambda v: v.index))
             except BaseException as exc:  # raised by refinement(), to the evaluation or the registration
