@@ -78,7 +78,7 @@ from cell.planning.motion import MotionPlanner
 from cell.planning.planner import Plan, plan_initial
 from cell.planning.viewpoints import Viewpoint
 from cell.raycast import RayCaster
-from cell.run_data import Evaluation, View
+from cell.run_data import Checkpoint, Evaluation, View
 from cell.runs import RunFolder, write_json_atomic
 from cell.sensing.decode import Reason, decode
 from cell.sensing.incidence import measured_normals
@@ -132,6 +132,10 @@ class _InOrder(Executor):
         except BaseException as exc:  # raised by result(), where a side thread's would be
             done.set_exception(exc)
         return done
+
+
+# a view's raw stack as save_raw_stack takes it after the folder: frames, patterns, bit depth, projector size
+RawStack = tuple[NDArray[Any], PatternSet, int, tuple[int, int]]
 
 
 @dataclass
@@ -200,6 +204,8 @@ class LambertianInspection(InspectionResults):
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
         self._refine_lock = threading.Lock()  # one refinement at a time: a second caller waits for it
         self._refining_ahead: Future[None] | None = None  # the refinement started by the last view's decode
+        self._ahead_of: ViewResult | None = None  # the view it was started for (a later start voids it)
+        self._raw_later: tuple[int, RawStack] | None = None  # a raw stack written after the verdict
         self._moved: dict[bytes, dict[int, NDArray[np.float64]]] = {}  # moved eval points, by alignment
         self._cloud: RegisteredCloud | None = None  # the registration's cloud, judged ahead of the report
         # the controller may register (in its worker) while it evaluates (here): what both use is made once
@@ -273,7 +279,10 @@ class LambertianInspection(InspectionResults):
     def decode(self, view: View, captured: Captured, out_dir: Path) -> dict[str, Any]:
         """Decode, triangulate and filter one view and write its folder ``out_dir`` (points, planes, holes,
         raw images while the retention keeps them); the files are written by a thread beside the compute
-        (zlib and PNG encoding release the GIL), all before this returns."""
+        (zlib and PNG encoding release the GIL), all before this returns. The raw images of the plan's last
+        view (so far) are not needed for the verdict: they are kept in memory and written into its committed
+        folder after the verdict (:meth:`render`), or beside the next view's decode when the feedback loop
+        asks for more views (:meth:`_write_raw_later`); not on a camera decoded in order (memory)."""
         cam = self.cfg.sensor.camera
         stack = check_stack(
             captured.images,
@@ -283,19 +292,51 @@ class LambertianInspection(InspectionResults):
             source=f"camera '{captured.camera}'",
         )
         captured.images = []  # the frames live on in ``stack`` only (0.4 GB for a 5 MP stack)
+        in_order = stack.shape[-1] * stack.shape[-2] > SIDE_BY_SIDE_MAX_PIXELS
+        later = None
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="view-files") as files:
             writes = []
+            if self._raw_later is not None:  # the view before was the plan's last: more were asked for
+                writes.append(files.submit(self._write_raw_later, out_dir.parent.parent))
             if self.cfg.retention.writes_raw_images:
                 proj = self.cfg.sensor.projector
-                raw = (out_dir, stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
-                writes.append(files.submit(save_raw_stack, *raw))
-            in_order = stack.shape[-1] * stack.shape[-2] > SIDE_BY_SIDE_MAX_PIXELS
+                raw = (stack, self.patterns, cam.bit_depth, (proj.width_px, proj.height_px))
+                if captured.last and not in_order and captured.index is not None:
+                    later = (captured.index, raw)
+                else:
+                    writes.append(files.submit(save_raw_stack, out_dir, *raw))
             with _InOrder() if in_order else ThreadPoolExecutor(1, thread_name_prefix="view-side") as side:
                 summary = self._decode(captured, stack, out_dir, files, writes, side, in_order)
             for written in writes:
                 written.result()  # a write that failed fails the view
         write_json_atomic(out_dir / "view.json", summary)  # last: the folder is whole once it is there
+        self._raw_later = later
         return summary
+
+    def _write_raw_later(self, run_path: Path, verdict: str | None = None) -> int:
+        """Write the raw stack :meth:`decode` kept back into its view's committed folder (and forget it);
+        the bytes written. Not when the view's folder is not committed (its decode or commit failed: it is
+        measured again), nor when the retention keeps no raw images of a run of ``verdict`` past its end (they
+        would be removed when it ends: cell.retention.apply_at_finish). A run paused, stopped or killed
+        before this keeps that view whole, without ``raw/`` (as a view whose raw images were pruned)."""
+        later, self._raw_later = self._raw_later, None
+        if later is None:
+            return 0
+        index, raw = later
+        folder = RunFolder(run_path).view_dir(index)
+        if not (folder / "view.json").is_file():
+            return 0
+        if verdict is not None and self.cfg.retention.keep_days(verdict) == 0:
+            return 0
+        return save_raw_stack(folder, *raw, durable=True)
+
+    def render(self, run: RunFolder) -> dict[str, Any]:
+        """The report's page after its verdict (:meth:`InspectionResults.render`), then the raw images of the
+        plan's last view, kept back by its decode (:meth:`_write_raw_later`)."""
+        written = super().render(run)
+        summary = Checkpoint.from_json(run.load_checkpoint()).summary or {}
+        raw_bytes = self._write_raw_later(run.path, summary.get("verdict"))
+        return written | ({"raw_images_bytes": raw_bytes} if raw_bytes else {})
 
     def _decode(
         self,
@@ -366,6 +407,19 @@ class LambertianInspection(InspectionResults):
         # the side thread finishes the points' uncertainty)
         eval_W = stored[sub]
         planes = estimate_normals(eval_W)
+        result, run, ahead = None, RunFolder(out_dir.parent.parent), captured.last and not in_order
+        if captured.index is not None:
+            # the view as the job keeps it, made now with what the refinement reads (its evaluation points and
+            # their planes, its pose and joints: final here) and completed below, before the store holds it
+            arrived = {"T_W_C": T_W_C.tolist(), "joints_rad": captured.joints.tolist()}
+            folder = run.view_dir(captured.index)  # where out_dir is renamed to
+            result = ViewResult(captured.index, None, eval_W, planes, [], arrived, folder)
+            if ahead:
+                # the refinement the evaluation and the registration begin with, started now, beside the
+                # rest of the view's steps and writes (not on a camera decoded in order: its stack is still
+                # held then, at its peak memory); it makes the view's first overlaps itself
+                self._forget(run, captured.index)
+                self._start_refine_ahead(run, result)
         u = uncertainty.result()
         u_points = None if u is None else u.u_mm[keep][part]
         writes.append(files.submit(save_view_points, out_dir, points_W, quality, oblique_kept, sub, u_points))
@@ -387,23 +441,18 @@ class LambertianInspection(InspectionResults):
             "defects": {r: sum(d.reason == r for d in regions) for r in DEFECT_REASONS},
             "uncertainty": None if u is None else u.to_json(),
         }
-        if captured.index is not None:  # kept as the folder holds it: a resumed run reads the same numbers
-            meta = json.loads(json.dumps(summary))
-            folder = RunFolder(out_dir.parent.parent).view_dir(captured.index)  # where out_dir is renamed to
-            points = ViewPoints(stored, quality, oblique_kept, u_stored)
-            eval_u = None if u_stored is None else u_stored[sub]
-            result = ViewResult(captured.index, points, eval_W, planes, regions, meta, folder, eval_u)
-            run = RunFolder(out_dir.parent.parent)
+        if result is not None:  # kept as the folder holds it: a resumed run reads the same numbers
+            result.summary = json.loads(json.dumps(summary))
+            result.held = ViewPoints(stored, quality, oblique_kept, u_stored)
+            result.regions = regions
+            result.eval_u = None if u_stored is None else u_stored[sub]
             # the plan's last view leaves its maps' pairs and its bins to the evaluation and the registration
             # (which run side by side after it): the decode both wait for is shorter
-            self._first_overlaps(run, result, pair_maps=not captured.last)
+            if not ahead:
+                self._first_overlaps(run, result, pair_maps=not captured.last)
             if not captured.last:
                 self.bin_arrived_view(run, result)
             self.views.add(result)
-            # the refinement the evaluation and the registration begin with, beside the last of the view's
-            # writes (not on a camera decoded in order: its stack is still held then, at its peak memory)
-            if captured.last and not in_order:
-                self._start_refine_ahead(run, result)
         return summary
 
     def _first_overlaps(self, run: RunFolder, new: ViewResult, pair_maps: bool = True) -> None:
@@ -413,13 +462,7 @@ class LambertianInspection(InspectionResults):
         caches held of a view of this index before (a decode that failed after this and is redone) is dropped
         first, and its merge bins (made again by :meth:`bin_arrived_view`, or when the registration first asks
         for them: the plan's last view's)."""
-        self._overlaps.forget(new.index)
-        self._pairs.forget(new.index)
-        with self._refine_lock:  # a refinement of the view's earlier measurement (one made ahead) is void
-            if self._refinement is not None and new.index in self._refinement[0]:
-                self._refinement = None
-                self._moved.clear()
-        self.merge_bins_for(run).forget(new.index)
+        self._forget(run, new.index)
         views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
         prepare_overlaps(
             self._overlaps,
@@ -432,6 +475,18 @@ class LambertianInspection(InspectionResults):
         )
         if pair_maps:
             self._pair_maps(new, views[:-1])
+
+    def _forget(self, run: RunFolder, index: int) -> None:
+        """Drop what the caches hold of view ``index`` (it is measured again): its overlaps, maps' pairs and
+        merge bins, and a refinement that holds it (one made ahead: after it is made, as the lock orders, so
+        that none of its overlaps of the earlier measurement stays in the cache)."""
+        with self._refine_lock:
+            self._overlaps.forget(index)
+            self._pairs.forget(index)
+            if self._refinement is not None and index in self._refinement[0]:
+                self._refinement = None
+                self._moved.clear()
+        self.merge_bins_for(run).forget(index)
 
     def _pair_maps(self, new: ViewResult, others: Sequence[ViewResult]) -> None:
         """The feedback maps' pairs of view ``new`` with each of ``others``, both ways (:meth:`_map_pairs`),
@@ -447,6 +502,7 @@ class LambertianInspection(InspectionResults):
         CAD."""
         masks = {name: (reasons & np.uint8(bit)) > 0 for name, bit in DEFECT_REASONS.items()}
         holes = np.logical_or.reduce(list(masks.values()))
+        masks = {name: mask for name, mask in masks.items() if mask.any()}  # a reason no pixel has: no region
         nominal = np.full(reasons.shape + (3,), np.nan)
         if holes.any():
             cam = self.sensor.camera
@@ -473,17 +529,19 @@ class LambertianInspection(InspectionResults):
 
     def _start_refine_ahead(self, run: RunFolder, new: ViewResult) -> None:
         """Make the refinement of the completed views and ``new``, the plan's last view so far, whose decode
-        is writing its files (its folder not committed yet), on a thread of its own: the evaluation and the
-        registration after it find it made, or wait for it (the same numbers: a function of the same views,
-        as a resumed run reads them). A view measured again meanwhile voids it (:meth:`_first_overlaps`; not
-        made when ``new`` is no longer the view the store holds). A daemon thread: a paused or aborted run's
+        has its evaluation points and their planes (the rest of its steps and its files still to come, its
+        folder not committed yet), on a thread of its own: the evaluation and the registration after it find
+        it made, or wait for it (the same numbers: a function of the same views, as a resumed run reads them;
+        the new view's first overlaps made in it). A view measured again meanwhile voids it
+        (:meth:`_forget`; not made when a later start replaced it). A daemon thread: a paused or aborted run's
         process does not wait for it (it writes nothing)."""
         done: Future[None] = Future()
+        self._ahead_of = new
 
         def refine() -> None:
             try:
                 with self._refine_lock:
-                    if self.views.holds(new):
+                    if self._ahead_of is new:
                         views = [v for v in self.views.completed(run) if v.index != new.index] + [new]
                         self._refine(sorted(views, key=lambda v: v.index))
             except BaseException as exc:  # raised by refinement(), to the evaluation or the registration

@@ -29,6 +29,7 @@ unread ``deviation_eval.npy``. :func:`load_view_points` and :func:`load_eval_poi
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -206,14 +207,21 @@ def save_raw_stack(
     patterns: Any,
     bit_depth: int,
     projector_size: tuple[int, int],
+    durable: bool = False,
 ) -> int:
     """Write the checked pattern stack ``stack`` ((N, H, W) uint8 or uint16, in the order of ``patterns``, a
     :class:`cell.sensing.patterns.PatternSet`) losslessly as a capture folder ``view_dir/raw/``; returns the
     bytes written. The manifest names the code by its parameters and the frames by name, so the capture-folder
-    reader puts them back in the code's order."""
+    reader puts them back in the code's order. The manifest is written last: a folder whose write was cut
+    short has none and reads as no raw stack (:func:`load_raw_stack`, :func:`raw_frame`). ``durable``: into
+    a view folder committed already (no commit flushes it): a ``raw/`` left by a write cut short is replaced,
+    and the frames are flushed to disk before the manifest, the manifest and the folders after it."""
     from cell.calibration.capture_folder import code_spec
+    from cell.storage import fsync_path
 
     root = view_dir / RAW_IMAGES
+    if durable and root.exists():
+        shutil.rmtree(root)
     (root / FRAMES).mkdir(parents=True)
     n = len(patterns.names)
     width = len(str(n - 1))
@@ -222,7 +230,10 @@ def save_raw_stack(
         ok, png = cv2.imencode(".png", frame, PNG_PARAMS)
         if not ok:
             raise OSError(f"OpenCV could not encode frame '{name}' as PNG")
-        (root / FRAMES / f"{k:0{width}d}_{name}.png").write_bytes(png.tobytes())
+        frame_path = root / FRAMES / f"{k:0{width}d}_{name}.png"
+        frame_path.write_bytes(png.tobytes())
+        if durable:
+            fsync_path(frame_path)
         written += len(png)
     manifest = {
         "version": 1,
@@ -234,7 +245,12 @@ def save_raw_stack(
         "poses": [{"dir": FRAMES}],
     }
     text = yaml.safe_dump(manifest, sort_keys=False).encode()
+    if durable:
+        fsync_path(root / FRAMES)
     (root / "capture.yaml").write_bytes(text)
+    if durable:
+        for path in (root / "capture.yaml", root, view_dir):
+            fsync_path(path)
     return written + len(text)
 
 

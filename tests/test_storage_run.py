@@ -37,6 +37,11 @@ def kept_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     outcome = inspect(recipe, cell, folder / "run", say=lambda _: None)
     assert outcome.state == "done" and outcome.summary["verdict"] == "pass"
     assert not list((folder / "run").glob("views/*/planes.npz"))  # the resume's cache, dropped when done
+    # the last view's raw images are written after the verdict, with the report's page
+    journal = [e for e in outcome.run.journal() if e["event"] in ("verdict", "report_written")]
+    assert [e["event"] for e in journal] == ["verdict", "report_written"]
+    raw = outcome.run.view_dir(outcome.run.completed_views()[-1]) / "raw"
+    assert journal[1]["raw_images_bytes"] == sum(f.stat().st_size for f in raw.rglob("*") if f.is_file())
     return folder / "run"
 
 
@@ -104,6 +109,9 @@ def test_a_passed_run_under_the_default_retention_drops_its_raw_images_at_the_en
     assert not list((tmp_path / "run").glob("views/*/raw")) and (tmp_path / "run" / "views" / "000").is_dir()
     prunes = [e for e in outcome.run.journal() if e["event"] == "prune"]
     assert len(prunes) == 1 and prunes[0]["freed_bytes"] > 0
+    # the last view's, kept back by its decode, were not written at all: the verdict keeps none
+    written = [e for e in outcome.run.journal() if e["event"] == "report_written"]
+    assert len(written) == 1 and "raw_images_bytes" not in written[0]
     assert any("raw view images removed" in s for s in said)
     assert not (tmp_path / "run" / "run.lock").exists()  # released by the run, not by the prune
 

@@ -280,8 +280,9 @@ def _match(
     nj = np.concatenate(ns)[:MAX_PAIRS_PER_OVERLAP]
     q = transform_points(T_b, b.planes.centroid[k])
     r = np.einsum("ij,ij->i", p - q, nj)
-    scale = 1.4826 * np.median(np.abs(r - np.median(r)))
-    inlier = np.abs(r - np.median(r)) <= max(3 * scale, 2 * noise_mm)
+    spread = np.abs(r - np.median(r))  # the median once
+    scale = 1.4826 * np.median(spread)
+    inlier = spread <= max(3 * scale, 2 * noise_mm)
     p, q, nj, r = p[inlier], q[inlier], nj[inlier], r[inlier]
     w_row = np.ones(len(r))
     if a.camera is not None and b.camera is not None:

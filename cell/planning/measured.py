@@ -56,19 +56,21 @@ def defect_regions(
     point is known; the boundary is the region minus its 3x3 erosion."""
     m = (mask & np.isfinite(nominal_W).all(axis=-1)).astype(np.uint8)
     n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
-    edge = m & ~cv2.erode(m, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(
-        bool
-    )
+    eroded = cv2.erode(m, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    edge = m.astype(bool) & ~eroded.astype(bool)
     out = []
     for k in range(1, n):
         if stats[k, cv2.CC_STAT_AREA] < min_pixels:
             continue
-        inside = lab == k
-        pts = nominal_W[inside]
+        # within the region's bounding box (row-major there is row-major in the image: the same points in
+        # the same order), not over the whole image once per region (a view has tens of regions)
+        x, y, w, h = (int(v) for v in stats[k, :4])
+        box = np.s_[y : y + h, x : x + w]
+        inside = lab[box] == k
+        nominal = nominal_W[box]
+        pts = nominal[inside]
         stride = max(1, len(pts) // MAX_REGION_POINTS)
-        out.append(
-            DefectRegion(reason, nominal_W[inside & edge.astype(bool)], pts[::stride], int(inside.sum()))
-        )
+        out.append(DefectRegion(reason, nominal[inside & edge[box]], pts[::stride], int(inside.sum())))
     return out
 
 
