@@ -8,6 +8,7 @@ A part of :class:`cell.inspection.LambertianInspection` (its base class): the co
 
 from __future__ import annotations
 
+import copy
 import json
 import threading
 from collections.abc import Callable, Sequence
@@ -461,7 +462,9 @@ class InspectionResults:
         """The judged registered cloud (:meth:`_judge`, done by the registration when this process made it)
         with the run's context: the calibration, the evaluation and why the verdict is incomplete."""
         cloud = self._registered(run)
-        inp = cloud.judged if cloud.judged is not None else self._judge(run, cloud)
+        # the judged cloud's copy (its judged arrays and figures shared, not recomputed): the context is set
+        # on it, the cloud's own stays as the judge made it
+        inp = copy.copy(cloud.judged if cloud.judged is not None else self._judge(run, cloud))
         checkpoint = Checkpoint.from_json(run.load_checkpoint())
         evaluation = checkpoint.evaluation.to_json() if checkpoint.evaluation is not None else {}
         alignment = registration.get("alignment") or {"method": "kinematic"}
