@@ -279,8 +279,9 @@ def pose_uncertainty_of_points(
     :func:`posterior_covariance`): the point is the ``shares``-weighted mean of its views' points, each moved
     by its view's error, less what the alignment takes out (``alignment_map`` B: x_align = B x; None:
     kinematic alignment, nothing). ``rows`` (M, 6): :func:`_rows` of the merged points (or a
-    :class:`PointRows`). With a ``pool`` its threads compute the chunks side by side (the kernel releases the
-    GIL; each chunk writes its own points: the same values as one thread's)."""
+    :class:`PointRows`). With a ``pool`` two of its threads compute the chunks beside this one, each taking
+    the next chunk when free (the kernel releases the GIL; each chunk writes its own points: the same values
+    as one thread's), so this thread works on while the pool's are busy with something else."""
     from cell.analysis._pose_kernel import pose_sigma  # compiled: only the views a point has enter it
 
     out = np.empty(len(rows), dtype=np.float64)
@@ -289,9 +290,16 @@ def pose_uncertainty_of_points(
         s, r = shares[a : a + POINTS_PER_CHUNK], rows[a : a + POINTS_PER_CHUNK]
         out[a : a + len(r)] = pose_sigma(s, r, covariance, alignment_map)
 
-    starts = range(0, len(rows), POINTS_PER_CHUNK)
-    for _ in map(chunk, starts) if pool is None else pool.map(chunk, starts):
-        pass
+    starts = iter(range(0, len(rows), POINTS_PER_CHUNK))
+
+    def work() -> None:
+        for a in starts:  # (a range's iterator hands each start out once, to one thread)
+            chunk(a)
+
+    helpers = [] if pool is None else [pool.submit(work) for _ in range(2)]
+    work()
+    for helper in helpers:
+        helper.result()
     return out
 
 
