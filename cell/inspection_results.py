@@ -302,7 +302,8 @@ class InspectionResults:
             found = self.aligner.align(points_mm)
         except AlignmentError as exc:
             return stored_points(points_mm), {"method": self.recipe.alignment.method, "error": str(exc)}, None
-        return stored_points(transform_points(found.T, points_mm)), found.to_json(), found.datum_near
+        moved = stored_points(transform_points(found.T, points_mm), in_place=True)  # (a new array)
+        return moved, found.to_json(), found.datum_near
 
     def _aligned_cloud(
         self,
