@@ -317,10 +317,9 @@ class InspectionResults:
         """The merged cloud aligned (:meth:`_aligned`), without the table its seam cuts, with its error map,
         coverage and points' u, and the judged points' link radius when the judge needs it; its
         registration record: the seam's and the points' counts, ``merging`` (how the views were merged),
-        the alignment and the u budget. On ``pool``'s two
-        threads beside this one: the coverage beside the error map, the table seam and then the judged
-        points' link radius beside the points' u (whose chunks both threads compute), the u budget's
-        statistics side by side."""
+        the alignment and the u budget. On ``pool``'s two threads beside this one: the coverage beside the
+        error map, the table seam and then the judged points' link radius beside the points' u (whose chunks
+        every free thread computes), the u budget's three statistics side by side."""
         points_P, alignment, datum_near = self._aligned(merged.points_mm)
         T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
         prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
