@@ -298,8 +298,9 @@ def pose_uncertainty_of_points(
 
     helpers = [] if pool is None else [pool.submit(work) for _ in range(2)]
     work()
-    for helper in helpers:
-        helper.result()
+    for helper in helpers:  # one that has not started (its thread busy elsewhere) has nothing left to do
+        if not helper.cancel():
+            helper.result()
     return out
 
 
