@@ -2,8 +2,9 @@
 
 Loads a run folder as bench_tail_steps.py does, bins the views as the decode worker does (``--bins eager``,
 all but the last), on first ask (``lazy``, a resumed run) or keeps none (``none``: a budget of 0 bytes), then
-registers and prints the SHA-256 of the cloud's points, deviations and u (and their counts), the held views'
-points cut and the views' measured points per merge bin.
+registers and prints the SHA-256 of the cloud's points, deviations and u (and their counts), of the judged
+cloud's figures and of the registration's record (as JSON), the held views' points cut and the views'
+measured points per merge bin.
 
     .venv/bin/python bench/hash_register.py RUN [--bins eager|lazy|none]
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import sys
 from pathlib import Path
 
@@ -60,6 +62,10 @@ def main() -> None:
     print("points_P", digest(cloud.points_P))
     print("deviation_mm", digest(cloud.error_map.deviation_mm))
     print("uncertainty_mm", digest(cloud.uncertainty_mm))
+    # what the verdict says of the points (its figures) and the registration's record, as report.json has them
+    assert cloud.judged is not None
+    for name, doc in (("figures", cloud.judged.figures()), ("registration", registration)):
+        print(name, hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16])
 
 
 if __name__ == "__main__":

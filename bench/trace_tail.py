@@ -35,22 +35,32 @@ STEPS = [  # (module, attribute as the caller looks it up, label)
     ("cell.inspection_results", "InspectionResults.register", "register"),
     ("cell.inspection_results", "held_redundant", "register: held-view cut"),
     ("cell.inspection_results", "merge_bins", "register: merge"),
+    ("cell.analysis.view_refinement", "ViewRefinement.to_json", "register: refinement's record"),
+    ("cell.inspection_results", "InspectionResults._aligned", "register: alignment + stored points"),
+    ("cell.analysis.alignment", "Aligner.align", "alignment (Aligner.align)"),
+    ("cell.inspection_results", "stored_points", "register: stored points"),
     ("cell.inspection_results", "signed_distance", "register: error map"),
     ("cell.inspection_results", "InspectionResults.inspectable_coverage", "register: coverage"),
+    ("cell.inspection_results", "table_seam", "register: table seam"),
     ("cell.inspection_results", "registered_cloud_uncertainty", "register: u"),
     ("cell.inspection_results", "default_link_radius", "register: link radius"),
+    ("cell.analysis.uncertainty", "CloudUncertainty.budget", "register: u budget"),
     ("cell.inspection_results", "InspectionResults._judge", "register: judge"),
+    ("cell.analysis.report", "point_figures", "register: judge: figures"),
     ("cell.inspection_results", "InspectionResults.report", "report (the verdict)"),
 ]
 
 
 def timed(module: str, attribute: str, label: str) -> None:
-    """Wrap ``module.attribute`` (a function or Class.method) so that each call adds to EVENTS."""
+    """Wrap ``module.attribute`` (a function or Class.method) so that each call adds to EVENTS (nothing when
+    the code timed has no such attribute: the same steps time an older version)."""
     owner: Any = importlib.import_module(module)
     *path, name = attribute.split(".")
     for part in path:
         owner = getattr(owner, part)
-    f = getattr(owner, name)
+    f = getattr(owner, name, None)
+    if f is None:
+        return
 
     @functools.wraps(f)
     def wrapper(*args: Any, **kwargs: Any) -> Any:

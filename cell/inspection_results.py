@@ -8,6 +8,7 @@ A part of :class:`cell.inspection.LambertianInspection` (its base class): the co
 
 from __future__ import annotations
 
+import copy
 import json
 import threading
 from collections.abc import Callable, Sequence
@@ -250,103 +251,134 @@ class InspectionResults:
 
         redundant = held_redundant(held_bins, T_P, refined.unregistered, self.recipe.plan.coverage_radius_mm)
         shares = MergeShares(len(stored))
-        merged = state.merge(
-            view,
-            [None if (cut := redundant.get(k)) is None else ~cut for k in range(len(stored))],
-            T_P,
-            shares,
-        )
-        n_points_views = state.points(done)
-        if merged is None and not n_points_views:
-            return {"n_points": 0, "views": len(stored)}
-        if merged is None:
-            raise ConfigError("registration merge: no finite points with a positive weight in any view")
-        refinement = {
-            **refined.to_json([v.eval_W for v in stored]),
-            "unregistered_views": [done[k] for k in refined.unregistered],
-            **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
-        }
-        refinement["unregistered_points_dropped"] = int(
-            sum(int(counts[k][cut].sum()) for k, cut in redundant.items())
-        )
-        n_views = len(stored)
-        method = self.recipe.alignment.method
+        # numpy, scipy's trees and the kernels release the GIL: two threads for what follows, each step
+        # writing its own results (those of one thread); the refinement's record beside the merge
+        pool = ThreadPoolExecutor(2, thread_name_prefix="register")
         try:
-            found = self.aligner.align(merged.points_mm)
-            points_P = transform_points(found.T, merged.points_mm)
-            alignment = found.to_json()
+            record = pool.submit(refined.to_json, [v.eval_W for v in stored])
+            merged = state.merge(
+                view,
+                [None if (cut := redundant.get(k)) is None else ~cut for k in range(len(stored))],
+                T_P,
+                shares,
+            )
+            n_points_views = state.points(done)
+            if merged is None and not n_points_views:
+                return {"n_points": 0, "views": len(stored)}
+            if merged is None:
+                raise ConfigError("registration merge: no finite points with a positive weight in any view")
+            refinement = {
+                **record.result(),
+                "unregistered_views": [done[k] for k in refined.unregistered],
+                **(self._refinement[2] if self._refinement else {}),  # the prior it was found under
+            }
+            refinement["unregistered_points_dropped"] = int(
+                sum(int(counts[k][cut].sum()) for k, cut in redundant.items())
+            )
+            merging = {
+                "n_points_views": n_points_views,
+                "views": len(stored),
+                "merge_voxel_mm": self.settings.merge_voxel_mm,
+                "method": "kinematic chain (robot pose, hand-eye, part placement); views refined against "
+                f"each other; weighted voxel merge; alignment: {self.recipe.alignment.method}",
+                "refinement": refinement,
+            }
+            cloud, link_radius_mm = self._aligned_cloud(run, merged, shares, refined, merging, pool)
+            del merged, shares  # before the judge's arrays are made
+            cloud.judged = self._judge(run, cloud, link_radius_mm, pool)
+        finally:
+            pool.shutdown()
+        self._cloud = cloud
+        return cloud.registration
+
+    def _aligned(
+        self, points_mm: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], dict[str, Any], NDArray[np.int64] | None]:
+        """The merged cloud ``points_mm`` ({P} by the kinematic chain) moved by the recipe's alignment and
+        rounded as cloud.ply stores them (float32, so a rebuilt report gives the same figures), the
+        alignment's record (``error``: the measurement does not allow it, the cloud left where the chain put
+        it) and the points near its datums (:attr:`cell.analysis.alignment.Alignment.datum_near`)."""
+        try:
+            found = self.aligner.align(points_mm)
         except AlignmentError as exc:
-            points_P, alignment = merged.points_mm, {"method": method, "error": str(exc)}
-        # judged as cloud.ply stores them (float32), so a rebuilt report gives the same figures
-        points_P = stored_points(points_P)
+            return stored_points(points_mm), {"method": self.recipe.alignment.method, "error": str(exc)}, None
+        moved = stored_points(transform_points(found.T, points_mm), in_place=True)  # (a new array)
+        return moved, found.to_json(), found.datum_near
+
+    def _aligned_cloud(
+        self,
+        run: RunFolder,
+        merged: MergedCloud,
+        shares: MergeShares,
+        refined: ViewRefinement,
+        merging: dict[str, Any],
+        pool: Executor,
+    ) -> tuple[RegisteredCloud, float | None]:
+        """The merged cloud aligned (:meth:`_aligned`), without the table its seam cuts, with its error map,
+        coverage and points' u, and the judged points' link radius when the judge needs it; its
+        registration record: the seam's and the points' counts, ``merging`` (how the views were merged),
+        the alignment and the u budget. On ``pool``'s two threads beside this one: the coverage beside the
+        error map, the table seam and then the judged points' link radius beside the points' u (whose chunks
+        every free thread computes), the u budget's three statistics side by side."""
+        points_P, alignment, datum_near = self._aligned(merged.points_mm)
         T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
         prior = pose_uncertainty_prior(self.cfg, self._refinement[2] if self._refinement else {})
-        tol = self.recipe.tolerance
-        # what follows the alignment, on two threads (numpy, scipy's trees and the kernels release the GIL;
-        # each step writes its own results, so they are those of one thread): the coverage beside the error
-        # map, the table seam and then the judged points' link radius beside the points' u, whose chunks both
-        # threads compute, its statistics beside the seam's cut; then the cloud judged (:meth:`_judge`)
-        with ThreadPoolExecutor(2, thread_name_prefix="register") as pool:
-            coverage = pool.submit(self.inspectable_coverage, run, T_align)
-            error_map = signed_distance(self.nominal_P, points_P)  # its faces' normals are the u's too
-            seam_cut = pool.submit(
-                table_seam,
-                points_P,
-                self.T_W_P,
-                self.settings.table_margin_mm,
-                self.nominal_P,
-                deviation_mm=error_map.deviation_mm,
-            )
+        tolerance = self._tolerance()
+        coverage = pool.submit(self.inspectable_coverage, run, T_align)
+        error_map = signed_distance(self.nominal_P, points_P)  # its faces' normals are the u's too
+        seam_cut = pool.submit(
+            table_seam,
+            points_P,
+            self.T_W_P,
+            self.settings.table_margin_mm,
+            self.nominal_P,
+            deviation_mm=error_map.deviation_mm,
+        )
 
-            def judged_points() -> tuple[NDArray[np.bool_], NDArray[np.float64], float | None]:
-                """The points left after the seam's cut (which, and they) and, when one is outside the
-                tolerance, their link radius (what the judge would find: out-of-tolerance regions need it)."""
-                keep = ~seam_cut.result()
-                kept = points_P[keep]
-                out = Tolerance(tol.lower, tol.upper).outside(error_map.deviation_mm[keep]).any()
-                return keep, kept, default_link_radius(kept) if out else None
+        def judged_points() -> tuple[NDArray[np.bool_] | None, NDArray[np.float64], float | None]:
+            """Which points the seam leaves (None: all of them, not copied), they, and, when one is outside
+            the tolerance, their link radius (what the judge would find: out-of-tolerance regions need it)."""
+            cut = seam_cut.result()
+            keep = ~cut if cut.any() else None
+            kept = points_P if keep is None else np.take(points_P, np.flatnonzero(keep), axis=0)
+            deviation = error_map.deviation_mm if keep is None else error_map.deviation_mm[keep]
+            return keep, kept, default_link_radius(kept) if tolerance.outside(deviation).any() else None
 
-            judged = pool.submit(judged_points)
-            normals_W = transform_vectors(self.T_W_P, self.nominal_P.face_normals)[error_map.face]
-            unc = registered_cloud_uncertainty(
-                merged,
-                shares.shares(merged),
-                shares.decode(merged),
-                refined,
-                prior,
-                normals_W,
-                self.T_W_P,
-                alignment,
-                self.aligner.datums,
-                pool,
-            )
-            budget = pool.submit(unc.budget)  # its medians and p95 beside the seam's cut
-            keep, points_P, link_radius_mm = judged.result()
-            u_mm, error_map = unc.u_mm[keep], error_map.take(keep)
-            covered, unc_budget = coverage.result(), budget.result()
-        del merged, shares, unc, normals_W  # before the judge's arrays are made
-        seam = int((~keep).sum())
+        judged = pool.submit(judged_points)
+        unc = registered_cloud_uncertainty(
+            merged,
+            shares.shares(merged),
+            shares.decode(merged),
+            refined,
+            prior,
+            transform_vectors(self.T_W_P, self.nominal_P.face_normals),
+            error_map.face,
+            self.T_W_P,
+            alignment,
+            self.aligner.datums,
+            pool,
+            datum_near,
+        )
+        budget = unc.budget(pool)  # its statistics side by side
+        keep, points_P, link_radius_mm = judged.result()
+        u_mm = unc.u_mm if keep is None else unc.u_mm[keep]
+        error_map = error_map if keep is None else error_map.take(keep)
         registration = {
-            "table_seam_points": seam,
+            "table_seam_points": 0 if keep is None else int((~keep).sum()),
             "n_points": int(len(points_P)),
-            "n_points_views": n_points_views,
-            "views": n_views,
-            "merge_voxel_mm": self.settings.merge_voxel_mm,
-            "method": "kinematic chain (robot pose, hand-eye, part placement); views refined against each "
-            f"other; weighted voxel merge; alignment: {method}",
-            "refinement": refinement,
+            **merging,
             "alignment": alignment,
             "uncertainty": {
-                **unc_budget,
+                **budget,
                 "calibration": self.calibration_residual,
                 "poses": prior.get("prior"),
             },
         }
-        cloud = RegisteredCloud(registration, points_P, error_map, covered, u_mm)
-        with ThreadPoolExecutor(1, thread_name_prefix="judge") as pool:  # the u statistics beside the rest
-            cloud.judged = self._judge(run, cloud, link_radius_mm, pool)
-        self._cloud = cloud
-        return registration
+        return RegisteredCloud(registration, points_P, error_map, coverage.result(), u_mm), link_radius_mm
+
+    def _tolerance(self) -> Tolerance:
+        """The recipe's tolerance band (mm)."""
+        return Tolerance(self.recipe.tolerance.lower, self.recipe.tolerance.upper)
 
     @property
     def nominal_P(self) -> NominalMesh:
@@ -430,7 +462,9 @@ class InspectionResults:
         """The judged registered cloud (:meth:`_judge`, done by the registration when this process made it)
         with the run's context: the calibration, the evaluation and why the verdict is incomplete."""
         cloud = self._registered(run)
-        inp = cloud.judged if cloud.judged is not None else self._judge(run, cloud)
+        # the judged cloud's copy (its judged arrays and figures shared, not recomputed): the context is set
+        # on it, the cloud's own stays as the judge made it
+        inp = copy.copy(cloud.judged if cloud.judged is not None else self._judge(run, cloud))
         checkpoint = Checkpoint.from_json(run.load_checkpoint())
         evaluation = checkpoint.evaluation.to_json() if checkpoint.evaluation is not None else {}
         alignment = registration.get("alignment") or {"method": "kinematic"}
@@ -505,11 +539,10 @@ class InspectionResults:
         T_align = np.asarray(alignment["T_P_cloud"]) if "T_P_cloud" in alignment else None
         decision, u, _ = self._decision(cloud)
         plan = plan_feedback(self.plan_model, self.recipe)  # what no reachable viewpoint sees, for the reader
-        tol = self.recipe.tolerance
         inp = judge(
             self.nominal_P,
             cloud.points_P,
-            Tolerance(tol.lower, tol.upper),
+            self._tolerance(),
             n_points_input=int(registration.get("n_points_views", len(cloud.points_P))),
             regions=[region_from_config(spec) for spec in self.recipe.regions],
             min_defect_points=self.settings.min_defect_points,

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from cell.geometry import (
+    bounding_box,
     invert,
     look_at,
     pose_from_xyz_rotvec,
@@ -41,3 +42,12 @@ def test_look_at_points_z_at_target_with_image_up() -> None:
     np.testing.assert_allclose(T[:3, 1], [0, -1, 0], atol=1e-12)  # image down (+y) is world -y
     assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
     assert rotation_angle_between(T, T) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_bounding_box_is_the_min_and_max() -> None:
+    """bounding_box: the corners numpy's min and max over axis 0 give, NaN propagated alike."""
+    p = np.random.default_rng(2).normal(size=(1001, 3)) * 100
+    lo, hi = bounding_box(p)
+    assert np.array_equal(lo, p.min(0)) and np.array_equal(hi, p.max(0))
+    p[5, 1] = np.nan
+    assert np.array_equal(bounding_box(p)[0], p.min(0), equal_nan=True)

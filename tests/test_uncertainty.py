@@ -12,17 +12,20 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from cell.analysis import uncertainty
 from cell.analysis.merge import bin_view, merge_bins
 from cell.analysis.uncertainty import (
     MergeShares,
     PointRows,
+    combine,
     datum_alignment_map,
     pose_uncertainty_of_points,
     posterior_covariance,
+    stats,
 )
-from cell.geometry import look_at
+from cell.geometry import invert, look_at, make_pose, transform_points
 from cell.sensing import noise
 from cell.sensing.decode import decode
 from cell.sensing.error_model import TABLES, error_table, normal_error_per_pixel, one_pixel_error
@@ -278,6 +281,16 @@ def test_pose_u_in_chunks_is_each_points_own(monkeypatch: pytest.MonkeyPatch) ->
     made = PointRows(points, normals, centre, lever)  # the rows made a chunk at a time
     want = np.column_stack([np.cross(points - centre, normals) / lever, normals])
     assert made[2:9] == pytest.approx(want[2:9])
+    # the points given in another frame and the normals per face: the same rows, bit for bit
+    T, face = (
+        make_pose(Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), [5.0, -7.0, 2.0]),
+        rng.permutation(m),
+    )
+    moved = PointRows(transform_points(invert(T), points), normals[np.argsort(face)], centre, lever, T, face)
+    assert np.allclose(moved[2:9], made[2:9], rtol=0, atol=1e-12)
+    assert np.array_equal(
+        moved[2:9], PointRows(transform_points(T, moved.points), normals, centre, lever)[2:9]
+    )
     with ThreadPoolExecutor(2) as pool:  # the chunks on two threads: each point's own value, as on one
         for Bm in (None, B):
             got = pose_uncertainty_of_points(shares, rows, C, Bm)
@@ -318,3 +331,23 @@ def test_pose_error_after_a_datum_alignment() -> None:
     info[5, 11] = info[11, 5] = -1e6
     C = posterior_covariance(info, 2, [sigma, sigma], [1e-3, 1e-3], 1.0)
     assert C[5, 5] + C[11, 11] - 2 * C[5, 11] < 1e-5 and C[5, 5] == pytest.approx(sigma**2 / 2, rel=1e-3)
+
+
+def test_stats_and_combine_are_numpys_own() -> None:
+    """stats: numpy's median, 95th percentile (linear) and max of the finite values, rounded to 5 decimals,
+    for odd and even counts and ties; combine: the root of the squares summed in the terms' order, bit for
+    bit (a scalar term broadcast)."""
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 10, 11, 1000, 1001):
+        x = np.round(rng.gamma(2.0, 0.01, size=n), 4)
+        x[rng.random(n) < 0.1] = np.nan
+        f = x[np.isfinite(x)]
+        want = {"median": None, "p95": None, "max": None}
+        if len(f):
+            want = {
+                k: round(float(v), 5)
+                for k, v in (("median", np.median(f)), ("p95", np.percentile(f, 95)), ("max", f.max()))
+            }
+        assert stats(x) == want
+    a, b = rng.random(7), rng.random(7)
+    assert np.array_equal(combine(a, b, 0.25), np.sqrt(a**2 + b**2 + 0.25**2))

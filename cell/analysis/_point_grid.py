@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.analysis import kernels
+from cell.geometry import bounding_box
 
 _MAX_CELLS = 4_000_000
 
@@ -43,7 +44,7 @@ def point_grid(points_mm: NDArray, h_min: float = 0.0, per_cell: float = 4.0) ->
     """Bin ``points_mm`` (N, 3) into cells of about ``per_cell`` points on a surface, at least ``h_min``
     wide, at most 8 N and :data:`_MAX_CELLS` cells."""
     p = np.ascontiguousarray(points_mm, dtype=np.float64).reshape(-1, 3)
-    lo, hi = p.min(0), p.max(0)
+    lo, hi = bounding_box(p)
     span = np.maximum(hi - lo, 1e-9)
     # a cloud of a surface: N points over an area of about the box's largest face
     area = float(np.sort(span)[1:].prod())

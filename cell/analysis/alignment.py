@@ -78,6 +78,10 @@ class Alignment:
     correction_mm: float = 0.0
     warnings: list[str] = field(default_factory=list)
     estimates: dict[str, Any] = field(default_factory=dict)
+    # the aligned cloud's points (indices, ascending) within reach of a datum (:class:`_DatumIndex`): where
+    # every datum's region lies at any correction the recipe allows, for who looks the regions up again
+    # (cell.analysis.uncertainty); None when no datum was looked up. Not in the record.
+    datum_near: NDArray[np.int64] | None = field(default=None, repr=False)
 
     def to_json(self) -> dict[str, Any]:
         rot = float(np.degrees(np.linalg.norm(Rotation.from_matrix(self.T[:3, :3]).as_rotvec())))
@@ -176,12 +180,17 @@ class _DatumIndex:
     tree). A look-up whose datum an alignment step moved farther than ``reach_mm`` builds the whole cloud's
     tree instead, so the answer never depends on the shortcut. Indices (ascending) are into the cloud."""
 
-    def __init__(self, points: NDArray, datums: list[Datum], reach_mm: float) -> None:
+    def __init__(
+        self, points: NDArray, datums: list[Datum], reach_mm: float, index: NDArray[np.int64] | None = None
+    ) -> None:
+        """``index``: the points within reach of a datum when an index of these points found them already."""
         self.points, self.datums, self.reach_mm = points, datums, reach_mm
-        near = np.zeros(len(points), dtype=bool)
-        for d in datums:
-            near[points_within(points, d.point, d.radius_mm + reach_mm)] = True
-        self.index = np.flatnonzero(near)
+        if index is None:
+            near = np.zeros(len(points), dtype=bool)
+            for d in datums:
+                near[points_within(points, d.point, d.radius_mm + reach_mm)] = True
+            index = np.flatnonzero(near)
+        self.index = index
         self.tree = cKDTree(points[self.index])
         self.whole: cKDTree | None = None
         self._lock = threading.Lock()  # datums are looked up side by side (:meth:`Aligner._datum_offsets`)
@@ -209,9 +218,10 @@ class Aligner:
         self.samples = _surface_samples(nominal_mesh_P)
 
     # ------------------------------------------------------------------ per datum
-    def _index(self, points: NDArray) -> _DatumIndex:
-        """The datum regions' look-up for ``points``, for corrections up to the recipe's limit."""
-        return _DatumIndex(points, self.datums, self.config.max_correction_mm + 1.0)
+    def _index(self, points: NDArray, near: NDArray[np.int64] | None = None) -> _DatumIndex:
+        """The datum regions' look-up for ``points``, for corrections up to the recipe's limit (``near``: the
+        points within its reach, an earlier look-up's :attr:`Alignment.datum_near` of the same points)."""
+        return _DatumIndex(points, self.datums, self.config.max_correction_mm + 1.0, near)
 
     def _datum_offsets(self, tree: _DatumIndex, points: NDArray, T: Pose) -> list[tuple[float, float, int]]:
         """(mean deviation, its std, point count) of each datum region with the cloud moved by ``T``: the
@@ -281,7 +291,9 @@ class Aligner:
             )
         if self.datums:
             try:
-                offsets = self._datum_offsets(self._index(points), points, np.eye(4))
+                tree = self._index(points)
+                result.datum_near = tree.index
+                offsets = self._datum_offsets(tree, points, np.eye(4))
                 result.residuals = self._residuals(offsets, offsets)
             except AlignmentError as exc:
                 result.warnings.append(str(exc))
@@ -318,12 +330,13 @@ class Aligner:
             self._residuals(before, offsets),
             rms_mm=float(np.sqrt(np.mean(res**2))),
             uncertainty_mm=_uncertainty(cov, self.samples),
+            datum_near=tree.index,
         )
 
     def datum_icp(self, points: NDArray, start: Alignment | None = None) -> Alignment:
         """Point-to-plane ICP on the points of the datum regions only, from ``start`` (default: datums)."""
         start = start or self.datums_fit(points)
-        tree = self._index(points)
+        tree = self._index(points, start.datum_near)  # the datums' fit looked the same points up
         T_inv = np.linalg.inv(start.T)
         idx = sorted(
             {
@@ -347,6 +360,7 @@ class Aligner:
             rms_mm=icp.rms_mm,
             uncertainty_mm=_uncertainty(cov, self.samples),
             estimates={"icp_points": len(sub), "icp_iterations": icp.iterations},
+            datum_near=tree.index,
         )
 
     def features(self, points: NDArray) -> Alignment:

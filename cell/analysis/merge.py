@@ -33,7 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from cell.errors import ConfigError
-from cell.geometry import invert, transform_points
+from cell.geometry import bounding_box, invert, transform_points
 
 KEY_BITS = 21  # bits per axis of a voxel key: +-2^20 voxels (+-210 m of 0.2 mm voxels) about the origin
 _HALF = 1 << (KEY_BITS - 1)
@@ -257,16 +257,18 @@ def moved_means(bins: ViewBins, T: NDArray[np.float64]) -> NDArray[np.float64]:
     return transform_points(np.asarray(T, dtype=np.float64), bins.mean)
 
 
-def measured_elsewhere(points: ArrayLike, others: Sequence[ArrayLike], radius_mm: float) -> NDArray[np.bool_]:
+def measured_elsewhere(
+    points: ArrayLike, others: Sequence[ArrayLike], radius_mm: float, around: _Around | None = None
+) -> NDArray[np.bool_]:
     """Which of ``points`` ((N, 3) mm) have a point of ``others`` (views in the same frame) within
     ``radius_mm``: where a view that could not be registered against the rest is redundant. Such a view
     keeps its kinematic pose (off by up to the chain's error, tenths of a millimetre); merged where
     registered views measured the same surface, its points would sit beside theirs, a voxel apart, as a
-    false deviation."""
+    false deviation. ``around``: the points' :class:`_Around` when the caller made it already."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if not len(p):
         return np.zeros(0, dtype=bool)
-    around = _Around(p, radius_mm)
+    around = _Around(p, radius_mm) if around is None else around
     rest = [around.select(np.asarray(o, dtype=np.float64).reshape(-1, 3)) for o in others]
     rest = [o for o in rest if len(o)]
     if not rest:
@@ -281,7 +283,8 @@ class _Around:
     over a wide box has far fewer others near it than in its box: the tree is built on those alone)."""
 
     def __init__(self, points: NDArray[np.float64], radius_mm: float) -> None:
-        self.lo, self.hi = points.min(0) - radius_mm, points.max(0) + radius_mm
+        lo, hi = bounding_box(points)
+        self.lo, self.hi = lo - radius_mm, hi + radius_mm
         self.radius_mm = radius_mm
         # (the distinct cells first, ~100 times fewer than a view's voxel means at 2 mm, then the neighbours)
         cells = np.unique(np.floor((points - self.lo) / radius_mm).astype(np.int64), axis=0)
@@ -336,7 +339,7 @@ def held_redundant(
             redundant[k] = np.zeros(0, dtype=bool)
             continue
         others = [mine[j][~redundant[j]] for j in held if j in redundant]
-        redundant[k] = measured_elsewhere(mine[k], others + near.pop(k), radius_mm)
+        redundant[k] = measured_elsewhere(mine[k], others + near.pop(k), radius_mm, around[k])
     return redundant
 
 

@@ -301,25 +301,15 @@ def point_figures(inp: ReportInput, pool: Executor | None = None) -> dict[str, A
     the user regions' verdicts, the decision's counts, the points' uncertainty and the verdict before the
     incomplete reasons (``ambiguous_reason``: the one the guarded rule's ambiguous points add, or None).
     Use :meth:`ReportInput.figures` (computed once: an inspection's registration computes them beside the
-    evaluation). With a ``pool`` one of its threads computes the uncertainty's statistics meanwhile."""
+    evaluation). With a ``pool`` its threads compute the uncertainty's and the deviations' statistics
+    meanwhile."""
     u_summary = None if pool is None else pool.submit(uncertainty_summary, inp)
     d = inp.deviation_mm
+    d_stats = None if pool is None else pool.submit(deviation_stats, d)
     tol = inp.tolerance
     bands = inp.nonconforming_band  # the tolerance itself under the simple rule
     classes = inp.classes
     inside = classes != NONCONFORM
-    stats: dict[str, Any] = {}
-    if len(d):
-        stats = {
-            "mean_mm": float(d.mean()),
-            "std_mm": float(d.std()),
-            "min_mm": float(d.min()),
-            "max_mm": float(d.max()),
-            "rms_mm": float(np.sqrt(np.mean(d * d))),
-            "percentiles_mm": {
-                f"p{q}": float(v) for q, v in zip(PERCENTILES, np.percentile(d, PERCENTILES), strict=True)
-            },
-        }
     cov = inp.coverage
     coverage = cov.fraction if cov is not None else None
     regions = out_of_tolerance_regions(inp.points_mm, d, bands, link_radius_mm=inp.link_radius_mm)
@@ -352,7 +342,7 @@ def point_figures(inp: ReportInput, pool: Executor | None = None) -> dict[str, A
         "fraction_in_tolerance": float(inside.mean()) if len(d) else None,
         "coverage": coverage,
         "coverage_detail": cov.summary() if cov is not None else None,
-        "deviation": stats,
+        "deviation": deviation_stats(d) if d_stats is None else d_stats.result(),
         "regions": regions,
         "region_verdicts": user,
         "decision": {
@@ -360,6 +350,22 @@ def point_figures(inp: ReportInput, pool: Executor | None = None) -> dict[str, A
             "ambiguous_regions": ambiguous_regions(inp, link_radius_mm=inp.link_radius_mm),
         },
         "uncertainty": uncertainty_summary(inp) if u_summary is None else u_summary.result(),
+    }
+
+
+def deviation_stats(d: NDArray[np.float64]) -> dict[str, Any]:
+    """Mean, std, min, max, rms and :data:`PERCENTILES` of the deviations ``d`` (mm; empty: none)."""
+    if not len(d):
+        return {}
+    return {
+        "mean_mm": float(d.mean()),
+        "std_mm": float(d.std()),
+        "min_mm": float(d.min()),
+        "max_mm": float(d.max()),
+        "rms_mm": float(np.sqrt(np.mean(d * d))),
+        "percentiles_mm": {
+            f"p{q}": float(v) for q, v in zip(PERCENTILES, np.percentile(d, PERCENTILES), strict=True)
+        },
     }
 
 

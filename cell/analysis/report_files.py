@@ -41,8 +41,12 @@ COORDINATE_DTYPE = np.dtype("<f4")  # x, y, z in cloud.ply
 _PLY_TYPES = {"double": "<f8", "float": "<f4", "uchar": "u1", "ushort": "<u2"}
 
 
-def stored_points(points_mm: NDArray) -> NDArray[np.float64]:
-    """The points (N, 3, float64) as :func:`write_ply` stores them: each coordinate rounded to float32."""
+def stored_points(points_mm: NDArray, in_place: bool = False) -> NDArray[np.float64]:
+    """The points (N, 3, float64) as :func:`write_ply` stores them: each coordinate rounded to float32
+    (``in_place``: rounded in ``points_mm`` itself, a float64 array the caller owns: no second array)."""
+    if in_place:
+        points_mm[...] = points_mm.astype(COORDINATE_DTYPE)
+        return points_mm
     return np.asarray(points_mm).astype(COORDINATE_DTYPE).astype(np.float64)
 
 
@@ -56,9 +60,13 @@ def encode_uncertainty(u_mm: NDArray) -> NDArray[np.uint16]:
     conformance zone in any band the cell measures); NaN (not known) as 65535. 2 bytes a point instead of 4:
     PLY has no 16-bit float type that CloudCompare or MeshLab read."""
     u = np.asarray(u_mm, dtype=np.float64)
-    steps = np.ceil(np.nan_to_num(u, nan=0.0) / UNCERTAINTY_STEP_MM - 1e-6)
-    codes = np.clip(steps, 0, _U_UNKNOWN - 1).astype(np.uint16)
-    codes[~np.isfinite(u)] = _U_UNKNOWN
+    steps = np.nan_to_num(u, nan=0.0)  # a copy, then worked on in place (a million points' u: 16 MB an array)
+    np.divide(steps, UNCERTAINTY_STEP_MM, out=steps)
+    np.subtract(steps, 1e-6, out=steps)
+    np.clip(np.ceil(steps, out=steps), 0, _U_UNKNOWN - 1, out=steps)
+    codes = steps.astype(np.uint16)
+    if not (finite := np.isfinite(u)).all():
+        codes[~finite] = _U_UNKNOWN
     return codes
 
 
@@ -68,7 +76,8 @@ def decode_uncertainty(codes: NDArray) -> NDArray[np.float64]:
     c = np.asarray(codes)
     if c.dtype.kind == "f":
         return c.astype(np.float64)
-    u = c.astype(np.float64) * UNCERTAINTY_STEP_MM
+    u = c.astype(np.float64)
+    u *= UNCERTAINTY_STEP_MM
     u[c == _U_UNKNOWN] = np.nan
     return u
 

@@ -241,17 +241,31 @@ def datum_alignment_map(
 
 class PointRows:
     """:func:`_rows` of (M, 3) points and their normals, made a slice at a time when indexed (a chunk of the
-    pose kernel's: cache-sized, not a (M, 6) array of the whole cloud; the same values either way)."""
+    pose kernel's: cache-sized, not a (M, 6) array of the whole cloud; the same values either way). ``T``:
+    the points are given in another frame, which it maps to the normals' (moved a slice at a time: each
+    point alone, the same values as all at once); ``face``: the normals are given per face, the points' are
+    ``normals[face]``."""
 
-    def __init__(self, points: Array, normals: Array, centre_mm: Array, lever_mm: float) -> None:
-        self.points, self.normals = points, normals
+    def __init__(
+        self,
+        points: Array,
+        normals: Array,
+        centre_mm: Array,
+        lever_mm: float,
+        T: Array | None = None,
+        face: NDArray[np.int64] | None = None,
+    ) -> None:
+        self.points, self.normals, self.T, self.face = points, normals, T, face
         self.centre_mm, self.lever_mm = centre_mm, lever_mm
 
     def __len__(self) -> int:
         return len(self.points)
 
     def __getitem__(self, rows: slice) -> Array:
-        return _rows(self.points[rows], self.normals[rows], self.centre_mm, self.lever_mm)
+        points = self.points[rows] if self.T is None else transform_points(self.T, self.points[rows])
+        # (np.take: several times faster than indexing by the faces)
+        normals = self.normals[rows] if self.face is None else np.take(self.normals, self.face[rows], axis=0)
+        return _rows(points, normals, self.centre_mm, self.lever_mm)
 
 
 def pose_uncertainty_of_points(
@@ -265,8 +279,9 @@ def pose_uncertainty_of_points(
     :func:`posterior_covariance`): the point is the ``shares``-weighted mean of its views' points, each moved
     by its view's error, less what the alignment takes out (``alignment_map`` B: x_align = B x; None:
     kinematic alignment, nothing). ``rows`` (M, 6): :func:`_rows` of the merged points (or a
-    :class:`PointRows`). With a ``pool`` its threads compute the chunks side by side (the kernel releases the
-    GIL; each chunk writes its own points: the same values as one thread's)."""
+    :class:`PointRows`). With a ``pool`` two of its threads compute the chunks beside this one, each taking
+    the next chunk when free (the kernel releases the GIL; each chunk writes its own points: the same values
+    as one thread's), so this thread works on while the pool's are busy with something else."""
     from cell.analysis._pose_kernel import pose_sigma  # compiled: only the views a point has enter it
 
     out = np.empty(len(rows), dtype=np.float64)
@@ -275,27 +290,41 @@ def pose_uncertainty_of_points(
         s, r = shares[a : a + POINTS_PER_CHUNK], rows[a : a + POINTS_PER_CHUNK]
         out[a : a + len(r)] = pose_sigma(s, r, covariance, alignment_map)
 
-    starts = range(0, len(rows), POINTS_PER_CHUNK)
-    for _ in map(chunk, starts) if pool is None else pool.map(chunk, starts):
-        pass
+    starts = iter(range(0, len(rows), POINTS_PER_CHUNK))
+
+    def work() -> None:
+        for a in starts:  # (a range's iterator hands each start out once, to one thread)
+            chunk(a)
+
+    helpers = [] if pool is None else [pool.submit(work) for _ in range(2)]
+    work()
+    for helper in helpers:  # one that has not started (its thread busy elsewhere) has nothing left to do
+        if not helper.cancel():
+            helper.result()
     return out
 
 
 def combine(*terms_mm: NDArray[np.floating] | float) -> NDArray[np.float64]:
-    """Independent standard uncertainties added in quadrature (arrays broadcast)."""
-    return np.sqrt(sum(np.square(np.asarray(t, dtype=np.float64)) for t in terms_mm))
+    """Independent standard uncertainties added in quadrature (arrays broadcast), summed in their order into
+    one array (not a new one a term: a million points' u is 16 MB an array)."""
+    total = np.zeros(np.broadcast_shapes(*(np.shape(t) for t in terms_mm)))
+    for t in terms_mm:
+        total += np.square(np.asarray(t, dtype=np.float64))
+    return np.sqrt(total, out=total)
 
 
 def stats(x: NDArray[np.floating]) -> dict[str, float | None]:
     """median, p95 and max (mm, 5 decimals) of the finite values, None without any."""
     x = np.asarray(x, dtype=np.float64)
-    x = x[np.isfinite(x)]
+    x = x[np.isfinite(x)]  # a copy, which numpy's order statistics may reorder: no second copy for each
     if not len(x):
         return {"median": None, "p95": None, "max": None}
+    top = float(x.max())
+    median = float(np.median(x, overwrite_input=True))  # (the same values as of x in its order)
     return {
-        "median": round(float(np.median(x)), 5),
-        "p95": round(float(np.percentile(x, 95)), 5),
-        "max": round(float(x.max()), 5),
+        "median": round(median, 5),
+        "p95": round(float(np.percentile(x, 95, overwrite_input=True)), 5),
+        "max": round(top, 5),
     }
 
 
@@ -310,14 +339,17 @@ class CloudUncertainty:
     pose_mm: NDArray[np.float64]
     alignment_mm: float
 
-    def budget(self) -> dict[str, Any]:
-        """Statistics of u and of each part (mm) for the report."""
-        return {
-            "u_mm": stats(self.u_mm),
-            "decode_mm": stats(self.decode_mm),
-            "pose_mm": stats(self.pose_mm),
-            "alignment_mm": round(self.alignment_mm, 5),
-        }
+    def budget(self, pool: Executor | None = None) -> dict[str, Any]:
+        """Statistics of u and of each part (mm) for the report (``pool``: two of them on its threads beside
+        the third on this one)."""
+        if pool is None:
+            u, decode = stats(self.u_mm), stats(self.decode_mm)
+        else:
+            found = pool.submit(stats, self.u_mm), pool.submit(stats, self.decode_mm)
+        pose = stats(self.pose_mm)
+        if pool is not None:
+            u, decode = (f.result() for f in found)
+        return {"u_mm": u, "decode_mm": decode, "pose_mm": pose, "alignment_mm": round(self.alignment_mm, 5)}
 
 
 def registered_cloud_uncertainty(
@@ -326,39 +358,46 @@ def registered_cloud_uncertainty(
     decode_mm: Array,
     refinement: ViewRefinement,
     prior: dict[str, Any],
-    normals_W: Array,
+    face_normals_W: Array,
+    face: NDArray[np.int64],
     T_W_cloud: Array,
     alignment: dict[str, Any],
     datums: Sequence[Datum] = (),
     pool: Executor | None = None,
+    datum_near: NDArray[np.int64] | None = None,
 ) -> CloudUncertainty:
     """u of every point of an inspection's merged cloud (in the frame ``T_W_cloud`` maps to {W}) from the
     views' ``shares`` (M, n) of its points (:class:`ViewShares`) and its merged decode u ``decode_mm`` (M,)
     (both from :class:`MergeShares` while the views merge); the views' pose errors after the refinement
     (:class:`cell.analysis.view_refinement.ViewRefinement`) under the ``prior`` it ran under (its record:
-    ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal at each point,
-    ``normals_W`` (M, 3, {W}: the normal of the nominal face nearest the point as judged, from its error
-    map), less what the recipe's alignment removes (its record: ``to_json`` of
+    ``prior_sigma_mm`` and ``prior_sigma_deg`` per view) along the nominal normal at each point, that of
+    its ``face`` (M,: the nominal face nearest the point as judged, from its error map) of the nominal's
+    ``face_normals_W`` (F, 3, {W}), less what the recipe's alignment removes (its record: ``to_json`` of
     :class:`cell.analysis.alignment.Alignment`): a datum alignment (the ``datums`` resolved on the nominal, in
     the cloud's frame) the rigid motion its datums see (:func:`datum_alignment_map`), any other measured
     alignment the views' mean motion, kinematic alignment nothing; plus the alignment's own uncertainty.
-    ``pool``: threads for the points' pose u (:func:`pose_uncertainty_of_points`)."""
+    ``pool``: threads for the points' pose u (:func:`pose_uncertainty_of_points`); ``datum_near``: the merged
+    points (indices, ascending) that can lie in a datum's region, when the alignment found them
+    (:attr:`cell.analysis.alignment.Alignment.datum_near`): the regions are looked up among them alone."""
     n = shares.shape[1]
     T = np.asarray(T_W_cloud, dtype=np.float64)
     sigma_mm = prior.get("prior_sigma_mm", [0.0] * n)
     sigma_rad = np.deg2rad(prior.get("prior_sigma_deg", [0.0] * n))
     lever = refinement.lever_mm
     C = posterior_covariance(refinement.information, n, sigma_mm, sigma_rad, lever)
-    points_W = transform_points(T, merged.points_mm)
-    centre = refinement.centre_mm if refinement.centre_mm is not None else points_W.mean(axis=0)
+    centre = refinement.centre_mm
+    if centre is None:
+        centre = transform_points(T, merged.points_mm).mean(axis=0)
     method = alignment.get("method", "kinematic")
     B: Array | None = None
     if "error" in alignment or method == "kinematic":
         B = None
     elif datums and method in ("datums", "datum_icp"):
         d_shares = []
+        search = merged.points_mm if datum_near is None else merged.points_mm[datum_near]
         for d in datums:
-            near = points_within(merged.points_mm, d.point, d.radius_mm)
+            near = points_within(search, d.point, d.radius_mm)  # (each point tested alone: the same points)
+            near = near if datum_near is None else datum_near[near]
             d_shares.append(shares[near].mean(axis=0) if len(near) else np.full(n, 1.0 / n))
         B = datum_alignment_map(
             transform_points(T, np.array([d.point for d in datums])),
@@ -369,7 +408,8 @@ def registered_cloud_uncertainty(
         )
     else:  # best fit, features, weighted: taken as removing the views' mean motion
         B = np.kron(np.full((1, n), 1.0 / n), np.eye(6))
-    pose = pose_uncertainty_of_points(shares, PointRows(points_W, normals_W, centre, lever), C, B, pool)
+    rows = PointRows(merged.points_mm, face_normals_W, centre, lever, T, face)  # in {W}, a chunk at a time
+    pose = pose_uncertainty_of_points(shares, rows, C, B, pool)
     decode = np.asarray(decode_mm, dtype=np.float64)
     common = float((alignment.get("uncertainty_mm") or {}).get("rms") or 0.0)
     return CloudUncertainty(combine(decode, pose, common), decode, pose, common)
