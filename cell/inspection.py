@@ -606,6 +606,9 @@ class LambertianInspection(InspectionResults):
         u_max = self.u_target_mm / self.decision.k
         pairs = self._map_pairs(run, list(measured))
         ev = evaluate(fb, list(measured.values()), 1, np.zeros((0, 3)), u_max, covered=covered, pairs=pairs)
+        # the moved points live on in ``measured`` as far as the replan needs them: not held beside the
+        # registration or through the next views' scan (a hires run's 40 views: 0.1 GB a set)
+        self._moved.clear()
         return FeedbackRound(fb, ev, measured, how)
 
     def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:
@@ -630,6 +633,14 @@ class LambertianInspection(InspectionResults):
             },
         }
         return Evaluation(ev.qualified, round(ev.q, 1), iteration, figures, state=loop)
+
+    def evaluations_done(self) -> None:
+        """No evaluation follows (the controller registers next): the caches the evaluations' refinement and
+        maps kept are dropped, not held beside the registration (the hires pillar's 40 views: their pools,
+        first matchings and maps' pairs with each other). Caches only: whatever asks for them again
+        finds the same (cell.analysis.view_refinement.OverlapCache, cell.planning.feedback.PairCache)."""
+        self._overlaps = OverlapCache()
+        self._pairs = PairCache()
 
     def replan(self, run: RunFolder, views: list[View], evaluation: Evaluation) -> list[View]:
         """The feedback viewpoints g_k from the evaluation's round (computed again after a resume)."""
