@@ -261,6 +261,7 @@ class LambertianInspection(InspectionResults):
         T_B_T = believed_flange(self.cfg, devices.robot)
         joints = np.asarray(devices.robot.joints(), dtype=np.float64)
         frames = capture_stack(devices.camera, devices.projector, self.patterns)
+        devices.end_view()  # a simulated cell's rendering state goes before the stack is copied
         # one array now (the list goes), not a copy of it when decoded; a stack the check will refuse stays
         images = np.stack(frames) if len({(f.shape, f.dtype) for f in frames}) == 1 else frames
         del frames
