@@ -703,6 +703,12 @@ class Controller:
         last = cp.iteration + 1 >= self.settings.max_iterations
         cp.evaluation = evaluation
         if evaluation.qualified or spent or last:
+            # no replan follows: the round's arrays (``state``) and the job's caches for evaluations are
+            # not held beside the registration (cell.memory)
+            evaluation.state = None
+            release = getattr(self.job, "evaluations_done", None)
+            if release is not None:
+                release()
             if not evaluation.qualified:
                 self.run.log(
                     "decision",
@@ -724,6 +730,7 @@ class Controller:
         assert cp.evaluation is not None  # saved with the replanning phase
         room = self.settings.view_budget - len(cp.views)
         new_views = self.job.replan(self.run, cp.views, cp.evaluation)[:room]
+        cp.evaluation.state = None  # used by the replan alone: not held through the next views' scan
         self.run.log("replan", n_new=len(new_views), views=[v.to_json() for v in new_views])
         cp.views = cp.views + new_views
         cp.iteration += 1

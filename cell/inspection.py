@@ -267,6 +267,7 @@ class LambertianInspection(InspectionResults):
         T_B_T = believed_flange(self.cfg, devices.robot)
         joints = np.asarray(devices.robot.joints(), dtype=np.float64)
         frames = capture_stack(devices.camera, devices.projector, self.patterns)
+        devices.end_view()  # a simulated cell's rendering state goes before the stack is copied
         # one array now (the list goes), not a copy of it when decoded; a stack the check will refuse stays
         images = np.stack(frames) if len({(f.shape, f.dtype) for f in frames}) == 1 else frames
         del frames
@@ -674,6 +675,9 @@ class LambertianInspection(InspectionResults):
         u_max = self.u_target_mm / self.decision.k
         pairs = self._map_pairs(run, list(measured))
         ev = evaluate(fb, list(measured.values()), 1, np.zeros((0, 3)), u_max, covered=covered, pairs=pairs)
+        # the moved points live on in ``measured`` as far as the replan needs them: not held beside the
+        # registration or through the next views' scan (a hires run's 40 views: 0.1 GB a set)
+        self._moved.clear()
         return FeedbackRound(fb, ev, measured, how)
 
     def evaluate(self, run: RunFolder, views: list[View], iteration: int) -> Evaluation:
@@ -698,6 +702,14 @@ class LambertianInspection(InspectionResults):
             },
         }
         return Evaluation(ev.qualified, round(ev.q, 1), iteration, figures, state=loop)
+
+    def evaluations_done(self) -> None:
+        """No evaluation follows (the controller registers next): the caches the evaluations' refinement and
+        maps kept are dropped, not held beside the registration (the hires pillar's 40 views: their pools,
+        first matchings and maps' pairs with each other). Caches only: whatever asks for them again
+        finds the same (cell.analysis.view_refinement.OverlapCache, cell.planning.feedback.PairCache)."""
+        self._overlaps = OverlapCache()
+        self._pairs = PairCache()
 
     def replan(self, run: RunFolder, views: list[View], evaluation: Evaluation) -> list[View]:
         """The feedback viewpoints g_k from the evaluation's round (computed again after a resume)."""

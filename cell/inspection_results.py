@@ -72,6 +72,7 @@ class MergeBins:
         self.kept_bytes = kept_bytes
         self.n_points: dict[int, int] = {}  # by view index: its measured points (not the oblique ones)
         self._bins: dict[int, ViewBins] = {}  # by view index, the first ones dropped beyond ``kept_bytes``
+        self._merging: set[int] = set()  # views binned when merged (not as they arrived): kept for it only
         self._lock = threading.RLock()  # reentrant: a merge asks for views, which may be binned then
 
     def add(self, index: int, bins: ViewBins, n_points: int) -> None:
@@ -88,14 +89,14 @@ class MergeBins:
 
     def view(self, index: int, make: Callable[[], tuple[ViewBins, int]]) -> ViewBins:
         """View ``index``'s bins: kept, else made by ``make`` (its bins and points' count: binned again from
-        its points), and kept when it was not binned before (a resumed run's view, when first asked for)."""
+        its points) and kept until the merge's end (:meth:`merge`)."""
         with self._lock:
             bins = self._bins.get(index)
             if bins is not None:
                 return bins
             bins, n = make()
-            if index not in self.n_points:
-                self.add(index, bins, n)
+            self.add(index, bins, n)  # within the budget, for the merge's second pass
+            self._merging.add(index)
             return bins
 
     def merge(
@@ -105,9 +106,16 @@ class MergeBins:
         T: Sequence[NDArray[np.float64]],
         each_view: MergeShares,
     ) -> MergedCloud | None:
-        """:func:`cell.analysis.merge.merge_bins` of these bins, under the lock."""
+        """:func:`cell.analysis.merge.merge_bins` of these bins, under the lock. The bins of views binned when
+        merged (a 5 MP camera's, a resumed run's) are dropped after it: kept, they were held through the
+        next views' scan or beside the rest of the registration (160 MB; issue 16, item 5), and a merge
+        again makes the same."""
         with self._lock:
-            return merge_bins(self.voxel_mm, views, keep, T, each_view)
+            merged = merge_bins(self.voxel_mm, views, keep, T, each_view)
+            for index in self._merging:
+                self._bins.pop(index, None)
+            self._merging.clear()
+            return merged
 
     def has(self, index: int) -> bool:
         """Whether view ``index`` was binned (its bins may have been dropped since, beyond the budget)."""
@@ -124,6 +132,7 @@ class MergeBins:
         with self._lock:
             self._bins.pop(index, None)
             self.n_points.pop(index, None)
+            self._merging.discard(index)
 
 
 @dataclass

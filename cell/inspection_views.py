@@ -49,9 +49,9 @@ REGIONS_FORMAT = 2
 # dozen views (0.19 GB) stay held, a 5 MP camera's dozen (0.9 GB) would sit beside the registration's own
 # ~2 GB at its peak (docs/benchmarks.md, "Peak memory of a whole inspection")
 POINTS_IN_MEMORY_BYTES = 256_000_000
-# and a view's points only while they are at most this big (the newest view's stay until the next one comes):
-# a 5 MP view's would save the registration one read of its folder (~0.5 s CPU) for up to 90 MB held through
-# the scan and beside the registration's peak; the 1024x768 cell's are all kept
+# and a view's points only while they are at most this big, the newest view's too: a 5 MP view's would save
+# the registration one read of its folder (~0.5 s CPU) for up to 90 MB held through the next view's decode
+# and beside the registration's peak (issue 16, item 5); the 1024x768 cell's (~15 MB) are all kept
 POINTS_HELD_VIEW_MAX_BYTES = 32_000_000
 
 
@@ -253,14 +253,15 @@ class ViewStore:
         return found
 
     def _within_budget(self, keep: int) -> None:
-        """Drop the full points of views bigger than ``held_view_max_bytes``, and of the views added first
-        until the held ones fit the budget (the newest view stays, whatever its size)."""
+        """Drop the full points of views bigger than ``held_view_max_bytes`` (the newest one's too: only the
+        registration reads them again, one view at a time, after the last view's folder is committed), and of
+        the views added first until the held ones fit the budget (the newest view stays then)."""
         held = sum(v.held_bytes for v in self._views.values())
         for index, view in self._views.items():
             big = view.held_bytes > self.held_view_max_bytes
             if held <= self.points_budget_bytes and not big:
                 continue
-            if index != keep and view.held is not None and view.folder is not None:
+            if (index != keep or big) and view.held is not None and view.folder is not None:
                 held -= view.held_bytes
                 view.held = None
 

@@ -82,6 +82,11 @@ class SimCell:
         """T_W_C of the camera now (mm): world <- base <- flange <- camera, all true."""
         return self.camera.pose_source()
 
+    def end_view(self) -> None:
+        """A view's frames are all taken: the camera's renderer drops the pose's geometry, which no later view
+        reuses (each is at a pose of its own; a view taken again computes it anew, the same)."""
+        self.camera.renderer.forget_poses()
+
     def reseed(self, *key: int, arrived: tuple[int, ...] | None = None) -> None:
         """Restart the camera noise from (cell seed, *key), and the landing error from (cell seed, *arrived)
         when the arm has moved since the last reseed (``arrived``: the key of the view for which it came to

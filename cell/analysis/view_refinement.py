@@ -158,6 +158,37 @@ class PairMatch:
     w: Array
 
 
+# the candidates of a pool the cache keeps: a matching reads its pool in chunks of MAX_PAIRS_PER_OVERLAP // 2
+# until twice MAX_PAIRS_PER_OVERLAP were looked up inside the target's box (the demo pillar's read at most
+# 6000), while a pool holds all of the source's trusted points in the box (median 31k, up to 114k): the pools
+# of all view pairs are kept, so the rest is drawn again when a matching reads past these
+POOL_KEPT = 4 * MAX_PAIRS_PER_OVERLAP
+
+
+class _Pool:
+    """A pair's candidate pool (indices of the source's trusted ``points`` inside the box ``lo``-``hi``, in
+    the random order seeded by ``seed``) as :class:`OverlapCache` keeps it: its first :data:`POOL_KEPT`
+    indices (int32), the whole pool drawn again, the same, when a slice reaches past them."""
+
+    def __init__(self, points: Array, ok: NDArray[np.bool_], lo: Array, hi: Array, seed: tuple[int, ...]):
+        self._points, self._ok, self._lo, self._hi, self._seed = points, ok, lo, hi, seed
+        whole = self._whole()
+        self._size = len(whole)
+        self._head = whole[:POOL_KEPT].copy()
+
+    def _whole(self) -> NDArray[np.integer]:
+        inside = np.all((self._points >= self._lo) & (self._points <= self._hi), axis=1)
+        found = np.random.default_rng(list(self._seed)).permutation(np.flatnonzero(self._ok & inside))
+        return found.astype(np.int32) if len(self._points) < 2**31 else found
+
+    def __len__(self) -> int:
+        return self._size
+
+    def __getitem__(self, part: slice) -> NDArray[np.integer]:
+        stop = self._size if part.stop is None else part.stop
+        return self._head[part] if stop <= len(self._head) else self._whole()[part]
+
+
 class OverlapCache:
     """What the refinement finds between two views at their kinematic poses (no correction yet): each ordered
     pair's candidate pool (the source's trusted points in the target's box, grown by the first match radius
@@ -166,7 +197,7 @@ class OverlapCache:
     worker can make them as it arrives (:func:`prepare_overlaps`)."""
 
     def __init__(self) -> None:
-        self._pools: dict[tuple[int, int, float, int], NDArray[np.integer]] = {}
+        self._pools: dict[tuple[int, int, float, int], _Pool] = {}
         self._first: dict[tuple[Any, ...], PairMatch | None] = {}
         self._boxes: dict[int, tuple[Array, Array]] = {}
         self._lock = threading.Lock()
@@ -188,16 +219,13 @@ class OverlapCache:
                 self._boxes[view] = found
         return found
 
-    def pool(self, a: _Side, b: _Side, radius_mm: float, seed: int) -> NDArray[np.integer]:
+    def pool(self, a: _Side, b: _Side, radius_mm: float, seed: int) -> _Pool:
         key = (a.id, b.id, radius_mm, seed)
         with self._lock:
             found = self._pools.get(key)
         if found is None:
             lo, hi = b.box[0] - radius_mm - POOL_SLACK_MM, b.box[1] + radius_mm + POOL_SLACK_MM
-            found = np.flatnonzero(a.planes.ok & np.all((a.points >= lo) & (a.points <= hi), axis=1))
-            found = np.random.default_rng([seed, a.id, b.id]).permutation(found)
-            if len(a.points) < 2**31:  # int32 indices, the same ones: the pools of all view pairs are kept
-                found = found.astype(np.int32)
+            found = _Pool(a.points, a.planes.ok, lo, hi, (seed, a.id, b.id))
             with self._lock:
                 self._pools[key] = found
         return found
@@ -239,7 +267,7 @@ def _match(
     T_b: Pose,
     box_b: tuple[Array, Array],
     radius: float,
-    pool: NDArray[np.integer],
+    pool: _Pool,
     noise_mm: float,
 ) -> PairMatch | None:
     """The matched pairs of source ``a`` against target ``b`` with the views moved by ``T_a``, ``T_b``:

@@ -185,6 +185,11 @@ class SceneRenderer:
         self._cache[key] = view
         return view
 
+    def forget_poses(self) -> None:
+        """Drop the cached poses' geometry (a 5 MP pose's ~0.3 GB): the next :meth:`view` computes its pose
+        anew, the same."""
+        self._cache.clear()
+
     def _compute_view(self, T_W_C: NDArray[np.float64]) -> ViewGeometry:
         """The pose's geometry, its rays taken :data:`RAYS_PER_CHUNK` at a time (every per-ray step is the
         ray's own; a 5 MP camera's whole-image float64 temporaries held 2 GB at once)."""
