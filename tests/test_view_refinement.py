@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cell.analysis.view_refinement import estimate_normals, refine_views
+from cell.analysis import view_refinement
+from cell.analysis.view_refinement import POOL_KEPT, _Pool, estimate_normals, refine_views
 from cell.geometry import invert, make_pose, transform_points
 
 
@@ -157,3 +158,29 @@ def test_normals_of_a_plane_are_its_normal() -> None:
     planes = estimate_normals(pts)
     assert planes.ok.all()
     np.testing.assert_allclose(np.abs(planes.normal[:, 2]), 1.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("n_inside", [POOL_KEPT // 2, 3 * POOL_KEPT])
+def test_overlap_pool_kept_head_and_redraw_equal_the_whole_draw(
+    monkeypatch: pytest.MonkeyPatch, n_inside: int
+) -> None:
+    """A pair's pool keeps only its first POOL_KEPT candidates: every slice, within them or past them, equals
+    the whole seeded permutation of the trusted points inside the box, and a pool that holds all of its
+    candidates is never drawn again, even when a slice runs past its end."""
+    rng = np.random.default_rng(3)
+    inside = rng.uniform(-1.0, 1.0, (n_inside, 3))
+    outside = rng.uniform(2.0, 3.0, (500, 3))
+    points = np.vstack([inside, outside])
+    ok = np.ones(len(points), dtype=bool)
+    ok[::7] = False  # untrusted points are never candidates
+    seed = (0, 4, 9)
+    truth = np.random.default_rng(list(seed)).permutation(np.flatnonzero(ok[:n_inside]))
+    pool = _Pool(points, ok, np.full(3, -1.5), np.full(3, 1.5), seed)
+    draws = []
+    whole = _Pool._whole
+    monkeypatch.setattr(view_refinement._Pool, "_whole", lambda self: draws.append(1) or whole(self))
+    assert len(pool) == len(truth)
+    for start in range(0, len(truth) + 1000, 1000):
+        np.testing.assert_array_equal(pool[start : start + 1000], truth[start : start + 1000])
+    np.testing.assert_array_equal(pool[:], truth)
+    assert (len(draws) > 0) == (len(truth) > POOL_KEPT)

@@ -185,7 +185,9 @@ class _Pool:
         return self._size
 
     def __getitem__(self, part: slice) -> NDArray[np.integer]:
-        stop = self._size if part.stop is None else part.stop
+        stop = (
+            self._size if part.stop is None else min(part.stop, self._size)
+        )  # a slice past the end: its end
         return self._head[part] if stop <= len(self._head) else self._whole()[part]
 
 
