@@ -419,7 +419,7 @@ class LambertianInspection(InspectionResults):
                 # the refinement the evaluation and the registration begin with, started now, beside the
                 # rest of the view's steps and writes (not on a camera decoded in order: its stack is still
                 # held then, at its peak memory); it makes the view's first overlaps itself
-                self._forget(run, captured.index)
+                self._forget(run, captured.index, ahead_of=result)
                 self._start_refine_ahead(run, result)
         u = uncertainty.result()
         u_points = None if u is None else u.u_mm[keep][part]
@@ -477,11 +477,14 @@ class LambertianInspection(InspectionResults):
         if pair_maps:
             self._pair_maps(new, views[:-1])
 
-    def _forget(self, run: RunFolder, index: int) -> None:
+    def _forget(self, run: RunFolder, index: int, ahead_of: ViewResult | None = None) -> None:
         """Drop what the caches hold of view ``index`` (it is measured again): its overlaps, maps' pairs and
         merge bins, and a refinement that holds it (one made ahead: after it is made, as the lock orders, so
-        that none of its overlaps of the earlier measurement stays in the cache)."""
+        that none of its overlaps of the earlier measurement stays in the cache). A refinement started ahead
+        and not yet begun is void from here on: under the same lock, the view it is for becomes ``ahead_of``
+        (the one about to be started, else None), so an earlier start never refines a view measured again."""
         with self._refine_lock:
+            self._ahead_of = ahead_of
             self._overlaps.forget(index)
             self._pairs.forget(index)
             if self._refinement is not None and index in self._refinement[0]:
@@ -534,10 +537,10 @@ class LambertianInspection(InspectionResults):
         folder not committed yet), on a thread of its own: the evaluation and the registration after it find
         it made, or wait for it (the same numbers: a function of the same views, as a resumed run reads them;
         the new view's first overlaps made in it). A view measured again meanwhile voids it
-        (:meth:`_forget`; not made when a later start replaced it). A daemon thread: a paused or aborted run's
+        (:meth:`_forget`, called with ``ahead_of=new`` just before this; not made when a later start or a view
+        forgotten since replaced it). A daemon thread: a paused or aborted run's
         process does not wait for it (it writes nothing)."""
         done: Future[None] = Future()
-        self._ahead_of = new
 
         def refine() -> None:
             try:

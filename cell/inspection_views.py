@@ -236,11 +236,6 @@ class ViewStore:
             self._views[view.index] = view
             self._within_budget(keep=view.index)
 
-    def holds(self, view: ViewResult) -> bool:
-        """Whether ``view`` itself is the view kept for its index (not one measured again since)."""
-        with self._lock:
-            return self._views.get(view.index) is view
-
     def get(self, run: RunFolder, index: int) -> ViewResult:
         with self._lock:
             self._for(run)

@@ -42,7 +42,9 @@ def covered_by_views(
     built. The same answer as the union's counts: a sample is counted until it is covered (a later view's
     points would not uncover it), so the views after the first that covers a sample do not count it again;
     and a view counts at most the ``need`` points a sample asks for (its nearest within the radius: a
-    k-nearest query, half the CPU of counting every point in the disc), which decides the same.
+    k-nearest query, half the CPU of counting every point in the disc), which decides the same (but that a
+    point whose squared distance falls between fl(r^2) and fl(nextafter(r)^2) counts: the query's bound
+    is the next float above the radius, so a point at the radius counts, as the closed disc wants).
     ``samples``: which samples to count (e.g. the inspectable ones); the others are given as not covered."""
     need = max(1, int(np.ceil(0.5 * density_per_mm2 * np.pi * radius_mm**2)))
     counts = np.zeros(len(surface.points), dtype=np.int64)
