@@ -310,3 +310,28 @@ def test_recipe_region_with_a_face_the_cad_lacks_is_refused(recipe_path: Path) -
     bad.write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match="repeated: pad"):
         load_recipe(bad)
+
+
+def test_the_first_plans_last_view_keeps_its_raw_images_when_more_views_follow(reference: dict) -> None:
+    """The raw images of the first plan's last view, kept back by its decode (cell.inspection
+    ``_write_raw_later``), are written into its committed folder beside the next view's decode once the
+    feedback loop asks for more views: a whole capture folder (manifest, every frame), as the views decoded
+    before it have, and of a view of its own (not another view's frames); the last plan's last view's are not
+    written at all (the passed run's retention keeps none: raw_images_passed_days 0)."""
+    from cell.run_data import Checkpoint
+    from cell.view_files import load_raw_stack
+
+    run = RunFolder.open(reference["run_dir"])
+    views = Checkpoint.from_json(run.load_checkpoint()).views
+    first = [i for i, v in enumerate(views) if v.iteration == 0]
+    assert reference["result"]["verdict"] == "pass" and len(views) > len(first)  # a feedback round followed
+    assert run.completed_views() == list(range(len(views)))
+    stacks = {i: load_raw_stack(run.view_dir(i)) for i in (first[-2], first[-1], first[-1] + 1)}
+    kept = stacks[first[-1]]
+    assert (run.view_dir(first[-1]) / "raw" / "capture.yaml").is_file() and kept is not None
+    for i, stack in stacks.items():
+        assert stack is not None and stack.shape == kept.shape and stack.dtype == kept.dtype, i
+        assert i == first[-1] or not np.array_equal(stack, kept), i
+    frames = list((run.view_dir(first[-1]) / "raw").rglob("*.png"))
+    assert kept.shape[1:] == (120, 160) and len(frames) == len(kept)
+    assert not (run.view_dir(len(views) - 1) / "raw").exists()

@@ -179,11 +179,15 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
     decode worker makes them (``eager``: all but the plan's last view, as they arrive), when the registration
     first asks for them (``lazy``: a resumed run), with none kept (``none``: a budget of 0 bytes), or
     (``redo``) eagerly, with the last view that has points first binned from other points (a first decode of
-    it), then decoded again as the plan's last view is (its bins left to the registration)."""
+    it), then decoded again as the plan's last view is (its bins left to the registration); ``done``: lazy,
+    with the caches of the evaluations (the refinement's overlaps and the maps' pairs the decodes made)
+    dropped by :meth:`LambertianInspection.evaluations_done` before the registration, as the controller
+    drops them after the last evaluation (the maps' pairs found again equal those dropped)."""
     from cell.analysis.merge import bin_view
     from cell.inspection import LambertianInspection
     from cell.inspection_run import load_run_inputs, open_inspection_run
     from cell.mesh import load_mesh
+    from cell.planning.feedback import MAP_LINK_MM
     from cell.run_data import Checkpoint
 
     run = open_inspection_run(run_path)
@@ -205,6 +209,21 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
         job._first_overlaps(run, view, pair_maps=i != last)
         if bins in ("eager", "redo") and i != last:
             job.bin_arrived_view(run, view)
+    if bins == "done":
+        n = len(done)
+
+        def map_pairs() -> list[np.ndarray]:  # at the maps' link and at 5 mm (the box's views overlap little)
+            pairs = job._map_pairs(run, done)
+            ab = [(a, b) for a in range(n) for b in range(n) if a != b]
+            return [p for a, b in ab for link in (MAP_LINK_MM, 5.0) for p in pairs(a, b, link)]
+
+        held = map_pairs()
+        assert job._overlaps._first  # what the registration's refinement would otherwise begin with
+        job.evaluations_done()
+        assert not job._overlaps._first and not job._pairs._pairs
+        again = map_pairs()
+        assert any(map(len, held))
+        assert all(a.tobytes() == b.tobytes() for a, b in zip(held, again, strict=True))
     job.register(run, Checkpoint.from_json(run.load_checkpoint()).views)
     cloud = job._cloud
     assert cloud is not None and cloud.error_map is not None and cloud.uncertainty_mm is not None
@@ -215,10 +234,12 @@ def test_the_ways_of_making_merge_bins_register_the_same_cloud(
     box_reference: tuple[Path, Path, Path],
 ) -> None:
     """Bins made as the views arrive, on first ask (a resumed run), with none kept, or of the plan's last view
-    decoded again after a first decode had binned it: the same registered cloud, byte for byte."""
+    decoded again after a first decode had binned it: the same registered cloud, byte for byte; also when the
+    evaluations' caches were dropped before the registration (its refinement then makes the views' overlaps
+    anew)."""
     want = _registered(box_reference[2], "lazy")
     assert len(want[0]) > 1000
-    for bins in ("none", "redo"):  # (redo: eager, and the last view's first bins forgotten)
+    for bins in ("none", "redo", "done"):  # (redo: eager, and the last view's first bins forgotten)
         got = _registered(box_reference[2], bins)
         for a, b in zip(got, want, strict=True):
             assert a.tobytes() == b.tobytes(), bins

@@ -42,6 +42,10 @@ def kept_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     assert [e["event"] for e in journal] == ["verdict", "report_written"]
     raw = outcome.run.view_dir(outcome.run.completed_views()[-1]) / "raw"
     assert journal[1]["raw_images_bytes"] == sum(f.stat().st_size for f in raw.rglob("*") if f.is_file())
+    # a feedback round followed the first plan: its last view's raw images, kept back by its decode, were
+    # written beside the next view's decode (cell.inspection, _write_raw_later), and decode again below too
+    iterations = [v.iteration for v in Checkpoint.from_json(outcome.run.load_checkpoint()).views]
+    assert iterations[0] == 0 and 1 in iterations, iterations
     return folder / "run"
 
 

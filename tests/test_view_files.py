@@ -124,6 +124,27 @@ def test_no_raw_images_reads_as_none(tmp_path):
     assert load_raw_stack(tmp_path) is None
 
 
+def test_a_durable_write_replaces_a_raw_folder_cut_short(tmp_path):
+    """A ``raw/`` a cut write left in a committed view folder (frames, one of them truncated, and no manifest)
+    reads as no raw stack, and the durable write (the plan's last view's, after its commit) replaces it whole:
+    the new stack comes back bit for bit and nothing of the cut write stays."""
+    ps = measuring_patterns(load_cell_config(REPO / "recipes" / "cells" / "sim_binned.yaml").sensor.projector)
+    rng = np.random.default_rng(3)
+    stack = rng.integers(0, 40, (len(ps), 48, 64)).astype(np.uint8)
+    stack[ps.index("white")] += 200
+    (tmp_path / "view.json").write_text("{}")  # committed
+    frames = tmp_path / "raw" / "frames"
+    frames.mkdir(parents=True)
+    (frames / "00_black.png").write_bytes(b"\x89PNG\r\n")  # cut mid-file
+    (frames / "99_stale.png").write_bytes(b"stale")  # a name this stack does not write
+    assert load_raw_stack(tmp_path) is None
+    written = save_raw_stack(tmp_path, stack, ps, 8, (ps.width_px, ps.height_px), durable=True)
+    files = [f for f in (tmp_path / "raw").rglob("*") if f.is_file()]
+    assert written == sum(f.stat().st_size for f in files) and len(files) == len(ps) + 1  # frames, manifest
+    back = load_raw_stack(tmp_path)
+    assert back is not None and np.array_equal(back, stack)
+
+
 @pytest.mark.parametrize(
     "patterns",
     [
