@@ -45,6 +45,7 @@ from transitions.extensions import HierarchicalGraphMachine
 from cell.config import RobotConfig
 from cell.devices import DeviceBundle
 from cell.errors import (
+    CalledOff,
     CellError,
     ConfigError,
     DeviceError,
@@ -156,7 +157,9 @@ class Job(Protocol):
 
     The controller moves the robot to each view's ``T_B_T``; the rest of a :class:`View` is the job's. A job
     whose ``register`` may run in the controller's worker beside ``evaluate`` (each locks what they share)
-    says so with ``register_while_evaluating = True``.
+    says so with ``register_while_evaluating = True``; its ``register`` then takes a ``stop`` event
+    (``threading.Event``) and raises :class:`cell.errors.CalledOff` at its next step once it is set (the
+    evaluation asked for more views: the registration would be thrown away, and the replan waits for it).
     """
 
     part_name: str
@@ -292,6 +295,7 @@ class Controller:
         self._executor: ThreadPoolExecutor | None = None
         self._pending: dict[int, Future[dict[str, Any]]] = {}
         self._ahead: Future[dict[str, Any]] | None = None  # the registration, started while evaluating
+        self._ahead_stop = threading.Event()  # set: that registration is called off at its next step
         self._registration: dict[str, Any] | None = None
         self._attempts = 0
         self._storage_failed = False  # the run folder refused a write: the run is pausing for it
@@ -682,15 +686,23 @@ class Controller:
         if not getattr(self.job, "register_while_evaluating", False):
             return
         assert self._executor is not None
-        self._ahead = self._executor.submit(self.job.register, self.run, list(self.checkpoint.views))
+        self._ahead_stop = threading.Event()
+        views = list(self.checkpoint.views)
+        job: Any = self.job  # one that registers while evaluating takes ``stop`` (:class:`Job`)
+        self._ahead = self._executor.submit(job.register, self.run, views, stop=self._ahead_stop)
 
     def _drop_ahead(self) -> None:
-        """Wait for a registration started ahead and forget it (its error too: journalled, not raised)."""
+        """Call off a registration started ahead, wait for it to stop (at its next step: on the hires pillar
+        a whole registration of its first 12 views held the replan ~30 s) and forget it (its error too:
+        journalled, not raised)."""
         ahead, self._ahead = self._ahead, None
         if ahead is None:
             return
+        self._ahead_stop.set()
         try:
             ahead.result()
+        except CalledOff:
+            self._log("registration_called_off", views=len(self.checkpoint.views))
         except Exception as exc:
             self._log("error", kind="registration ahead", error=repr(exc), used=False)
 

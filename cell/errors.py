@@ -99,3 +99,9 @@ class RoutinePaused(CalibrationError):
 
 class PlanningError(CellError):
     """No viewpoint plan satisfies the constraints, or a pose is unreachable."""
+
+
+class CalledOff(Exception):
+    """Work started ahead stopped at its next step because its result is no longer wanted (a registration
+    begun beside an evaluation that then asked for more views, or a run that pauses): not a fault, and nothing
+    of that work is kept."""

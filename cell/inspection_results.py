@@ -34,7 +34,7 @@ from cell.analysis.uncertainty import MergeShares, registered_cloud_uncertainty
 from cell.calibration import pose_uncertainty_prior
 from cell.calibration_state import calibration_state
 from cell.config import CellConfig, Recipe
-from cell.errors import ConfigError
+from cell.errors import CalledOff, ConfigError
 from cell.geometry import invert, transform_points, transform_vectors
 from cell.inspection_views import ViewResult, ViewStore
 from cell.planning.coverage import coverage_fraction, covered_by_views
@@ -220,7 +220,9 @@ class InspectionResults:
         u = None if held.uncertainty is None else held.uncertainty[keep].astype(np.float64)
         return bin_view(points, weights, u, self.settings.merge_voxel_mm), len(points)
 
-    def register(self, run: RunFolder, views: list[View]) -> dict[str, Any]:
+    def register(
+        self, run: RunFolder, views: list[View], stop: threading.Event | None = None
+    ) -> dict[str, Any]:
         """All views into the part frame via the kinematic chain (eqs 4.1-4.4: T_P_W @ p_W, the view points
         already being in {W} through robot pose and hand-eye), refined against each other, merged on a voxel
         grid weighted by quality (cell.analysis.merge: each view binned once at its kinematic positions, as it
@@ -232,7 +234,14 @@ class InspectionResults:
         and coverage, computed here, and judged (:meth:`_judge`: the controller registers while it
         evaluates, so they are ready when the evaluation is and the verdict adds only the run's context); it
         is stored as results/cloud.ply with the report's page, and a resumed run
-        registers again, deterministically, to the same points."""
+        registers again, deterministically, to the same points. ``stop`` (set by the controller when the
+        evaluation beside it asks for more views, or the run pauses): :class:`CalledOff` at the next step
+        (after the refinement, the held-view cut, the merge, the points' u), keeping nothing."""
+
+        def unless_called_off() -> None:
+            if stop is not None and stop.is_set():
+                raise CalledOff("registration called off: more views are coming")
+
         T_P_W = invert(self.T_W_P)
         state = self.merge_bins_for(run)
         # the newest view (the plan's last, which its decode left unbinned) is binned first, while the
@@ -241,6 +250,7 @@ class InspectionResults:
             if not state.has(newest.index):
                 self.bin_arrived_view(run, newest)
         done, refined = self.refinement(run)
+        unless_called_off()
         stored = [self.views.get(run, i) for i in done]
         T_P = [T_P_W @ T @ self.T_W_P for T in refined.T]  # the views' refinement in {P}
 
@@ -259,6 +269,7 @@ class InspectionResults:
             return bins
 
         redundant = held_redundant(held_bins, T_P, refined.unregistered, self.recipe.plan.coverage_radius_mm)
+        unless_called_off()
         shares = MergeShares(len(stored))
         # numpy, scipy's trees and the kernels release the GIL: two threads for what follows, each step
         # writing its own results (those of one thread); the refinement's record beside the merge
@@ -271,6 +282,7 @@ class InspectionResults:
                 T_P,
                 shares,
             )
+            unless_called_off()
             n_points_views = state.points(done)
             if merged is None and not n_points_views:
                 return {"n_points": 0, "views": len(stored)}
@@ -294,6 +306,7 @@ class InspectionResults:
             }
             cloud, link_radius_mm = self._aligned_cloud(run, merged, shares, refined, merging, pool)
             del merged, shares  # before the judge's arrays are made
+            unless_called_off()
             cloud.judged = self._judge(run, cloud, link_radius_mm, pool)
         finally:
             pool.shutdown()

@@ -13,6 +13,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cell.errors import CalledOff
 from cell.exit_codes import ExitCode
 from tests import cli_process
 from tests.same_result import assert_same_result, judged_report
@@ -174,6 +176,18 @@ def test_killed_runs_resume_to_the_same_result(
     assert kills == KILLS
 
 
+class _SetAfter(threading.Event):
+    """A stop event that reads as set from its ``checks + 1``-th look on (a registration called off then)."""
+
+    def __init__(self, checks: int) -> None:
+        super().__init__()
+        self.checks = checks
+
+    def is_set(self) -> bool:
+        self.checks -= 1
+        return self.checks < 0
+
+
 def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The box run's registration (points, deviations, u) in a new job, its views' merge bins made as the
     decode worker makes them (``eager``: all but the plan's last view, as they arrive), when the registration
@@ -182,7 +196,9 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
     it), then decoded again as the plan's last view is (its bins left to the registration); ``done``: lazy,
     with the caches of the evaluations (the refinement's overlaps and the maps' pairs the decodes made)
     dropped by :meth:`LambertianInspection.evaluations_done` before the registration, as the controller
-    drops them after the last evaluation (the maps' pairs found again equal those dropped)."""
+    drops them after the last evaluation (the maps' pairs found again equal those dropped); ``called_off``:
+    eager, with a first registration called off after its merge (:class:`cell.errors.CalledOff`, as the
+    controller calls off one begun beside an evaluation that asks for more views)."""
     from cell.analysis.merge import bin_view
     from cell.inspection import LambertianInspection
     from cell.inspection_run import load_run_inputs, open_inspection_run
@@ -207,7 +223,7 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
     for i in done:
         view = job.views.get(run, i)
         job._first_overlaps(run, view, pair_maps=i != last)
-        if bins in ("eager", "redo") and i != last:
+        if bins in ("eager", "redo", "called_off") and i != last:
             job.bin_arrived_view(run, view)
     if bins == "done":
         n = len(done)
@@ -224,7 +240,13 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
         again = map_pairs()
         assert any(map(len, held))
         assert all(a.tobytes() == b.tobytes() for a, b in zip(held, again, strict=True))
-    job.register(run, Checkpoint.from_json(run.load_checkpoint()).views)
+    views = Checkpoint.from_json(run.load_checkpoint()).views
+    if bins == "called_off":
+        stop = _SetAfter(checks=2)  # passes the refinement's and the held-view cut's checks, not the merge's
+        with pytest.raises(CalledOff):
+            job.register(run, views, stop=stop)
+        assert stop.checks < 0 and job._cloud is None  # stopped where asked, nothing of it kept
+    job.register(run, views)
     cloud = job._cloud
     assert cloud is not None and cloud.error_map is not None and cloud.uncertainty_mm is not None
     return cloud.points_P, cloud.error_map.deviation_mm, cloud.uncertainty_mm
@@ -236,10 +258,10 @@ def test_the_ways_of_making_merge_bins_register_the_same_cloud(
     """Bins made as the views arrive, on first ask (a resumed run), with none kept, or of the plan's last view
     decoded again after a first decode had binned it: the same registered cloud, byte for byte; also when the
     evaluations' caches were dropped before the registration (its refinement then makes the views' overlaps
-    anew)."""
+    anew), and after a registration called off after its merge."""
     want = _registered(box_reference[2], "lazy")
     assert len(want[0]) > 1000
-    for bins in ("none", "redo", "done"):  # (redo: eager, and the last view's first bins forgotten)
+    for bins in ("none", "redo", "done", "called_off"):  # (redo: eager, the last view's first bins forgotten)
         got = _registered(box_reference[2], bins)
         for a, b in zip(got, want, strict=True):
             assert a.tobytes() == b.tobytes(), bins
