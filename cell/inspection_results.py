@@ -111,11 +111,12 @@ class MergeBins:
         next views' scan or beside the rest of the registration (160 MB; issue 16, item 5), and a merge
         again makes the same."""
         with self._lock:
-            merged = merge_bins(self.voxel_mm, views, keep, T, each_view)
-            for index in self._merging:
-                self._bins.pop(index, None)
-            self._merging.clear()
-            return merged
+            try:
+                return merge_bins(self.voxel_mm, views, keep, T, each_view)
+            finally:  # also when the merge stops midway (a registration called off)
+                for index in self._merging:
+                    self._bins.pop(index, None)
+                self._merging.clear()
 
     def has(self, index: int) -> bool:
         """Whether view ``index`` was binned (its bins may have been dropped since, beyond the budget)."""
@@ -236,7 +237,8 @@ class InspectionResults:
         is stored as results/cloud.ply with the report's page, and a resumed run
         registers again, deterministically, to the same points. ``stop`` (set by the controller when the
         evaluation beside it asks for more views, or the run pauses): :class:`CalledOff` at the next step
-        (after the refinement, the held-view cut, the merge, the points' u), keeping nothing."""
+        (after the refinement, before each view's bins, after the merge and the points' u), keeping
+        nothing."""
 
         def unless_called_off() -> None:
             if stop is not None and stop.is_set():
@@ -256,7 +258,9 @@ class InspectionResults:
 
         def view(k: int) -> ViewBins:
             """View k's bins: kept, else binned again from its points (from its folder when the view store no
-            longer holds them)."""
+            longer holds them); asked for view by view, so a registration called off stops between views
+            (a 5 MP view read from its folder and binned takes ~0.5 s)."""
+            unless_called_off()
             return state.view(done[k], lambda: self._view_bins(stored[k]))
 
         # a held view's voxels near a registered view's (or an earlier held view's kept ones) are cut

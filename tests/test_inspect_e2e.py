@@ -197,8 +197,8 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
     with the caches of the evaluations (the refinement's overlaps and the maps' pairs the decodes made)
     dropped by :meth:`LambertianInspection.evaluations_done` before the registration, as the controller
     drops them after the last evaluation (the maps' pairs found again equal those dropped); ``called_off``:
-    eager, with a first registration called off after its merge (:class:`cell.errors.CalledOff`, as the
-    controller calls off one begun beside an evaluation that asks for more views)."""
+    eager, with a first registration called off midway, between views' bins (:class:`cell.errors.CalledOff`,
+    as the controller calls off one begun beside an evaluation that asks for more views)."""
     from cell.analysis.merge import bin_view
     from cell.inspection import LambertianInspection
     from cell.inspection_run import load_run_inputs, open_inspection_run
@@ -242,10 +242,11 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
         assert all(a.tobytes() == b.tobytes() for a, b in zip(held, again, strict=True))
     views = Checkpoint.from_json(run.load_checkpoint()).views
     if bins == "called_off":
-        stop = _SetAfter(checks=2)  # passes the refinement's and the held-view cut's checks, not the merge's
+        stop = _SetAfter(checks=4)  # passes the refinement's check and some views' bins, then stops
         with pytest.raises(CalledOff):
             job.register(run, views, stop=stop)
         assert stop.checks < 0 and job._cloud is None  # stopped where asked, nothing of it kept
+        assert not state._merging  # the bins it made while merging are dropped, as after a whole merge
     job.register(run, views)
     cloud = job._cloud
     assert cloud is not None and cloud.error_map is not None and cloud.uncertainty_mm is not None
@@ -258,7 +259,7 @@ def test_the_ways_of_making_merge_bins_register_the_same_cloud(
     """Bins made as the views arrive, on first ask (a resumed run), with none kept, or of the plan's last view
     decoded again after a first decode had binned it: the same registered cloud, byte for byte; also when the
     evaluations' caches were dropped before the registration (its refinement then makes the views' overlaps
-    anew), and after a registration called off after its merge."""
+    anew), and after a registration called off midway."""
     want = _registered(box_reference[2], "lazy")
     assert len(want[0]) > 1000
     for bins in ("none", "redo", "done", "called_off"):  # (redo: eager, the last view's first bins forgotten)
