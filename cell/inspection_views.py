@@ -101,13 +101,6 @@ class ViewResult:
         """KD-tree of the evaluation subset in this view's own frame (query with points moved into it)."""
         return cKDTree(self.eval_W)
 
-    @cached_property
-    def eval_box(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The evaluation subset's bounding box (min, max) in this view's own frame."""
-        if not len(self.eval_W):
-            return np.zeros(3), np.zeros(3)
-        return self.eval_W.min(0), self.eval_W.max(0)
-
 
 def save_planes(view_dir: Path, planes: LocalPlanes) -> None:
     """Write the local planes of a view's evaluation subset into its (temporary) folder."""

@@ -33,7 +33,15 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from cell.geometry import Pose, incidence_cos, invert, make_pose, transform_points, transform_vectors
+from cell.geometry import (
+    Pose,
+    bounding_box,
+    incidence_cos,
+    invert,
+    make_pose,
+    transform_points,
+    transform_vectors,
+)
 
 Array = NDArray[np.float64]
 SAME_NORMAL_COS = float(np.cos(np.deg2rad(20.0)))  # across an edge or the other skin of a sheet: no match
@@ -216,7 +224,7 @@ class OverlapCache:
         with self._lock:
             found = self._boxes.get(view)
         if found is None:
-            found = (points.min(0), points.max(0)) if len(points) else (np.zeros(3), np.zeros(3))
+            found = bounding_box(points) if len(points) else (np.zeros(3), np.zeros(3))
             with self._lock:
                 self._boxes[view] = found
         return found
