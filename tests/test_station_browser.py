@@ -154,8 +154,9 @@ def test_an_inspection_started_paused_and_resumed_from_the_page(
     page.fill("#serial", "")
     run = _start(page, station, "SN-1001")
     # live: the progress comes by server-sent events as the run goes; read in one go in the page (the events
-    # change it between two reads) and the pause asked at once: the box run's last views and its tail take a
-    # few seconds, so a pause asked later could find the run done (it did, under load)
+    # change it between two reads) and the pause asked at once: the station paces the arm (~1 s a view), and
+    # the box run's last four views and its tail take a few seconds, so a pause asked later could find the
+    # run done (it did, under load)
     seen = page.wait_for_function(
         """() => {
             const text = (id) => document.getElementById(id).textContent;
