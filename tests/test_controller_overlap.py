@@ -1,8 +1,9 @@
 # ruff: noqa: F811  (the fixtures recipe_path and reference come from tests/test_controller.py)
 """The work beside the robot (cell/controller.py's worker) and the verdict before the report's page, on the
 small box cell: a view whose background work fails faults the run naming that view and loses nothing else;
-a run that faults after its last view's decode keeps that view's raw images; the verdict is published (report.json, the journal's verdict line, the checkpoint's summary) before the page
-is written, stands against an abort, and a run paused between the two resumes to the uninterrupted result.
+a run that faults after its last view's decode keeps that view's raw images; the verdict is published
+(report.json, the journal's verdict line, the checkpoint's summary) before the page is written, stands
+against an abort, and a run paused between the two resumes to the uninterrupted result.
 
 Truth: the uninterrupted reference run of tests/test_controller.py and the run folder's own files."""
 
