@@ -28,6 +28,7 @@ it.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import signal
@@ -160,6 +161,14 @@ class Job(Protocol):
     says so with ``register_while_evaluating = True``; its ``register`` then takes a ``stop`` event
     (``threading.Event``) and raises :class:`cell.errors.CalledOff` at its next step once it is set (the
     evaluation asked for more views: the registration would be thrown away, and the replan waits for it).
+
+    Optional steps, looked up by name: ``prepare(devices)`` (while connecting), ``evaluations_done()`` (no
+    replan follows), ``render(run)`` (the report's page after the verdict) and ``on_stop(run, state)``: the
+    run loop ended short of ``done`` (``state``: paused, faulted, aborted, or the state an exception left),
+    the devices are safe and the worker is idle; the job writes what it still holds in memory for the run
+    folder (the inspection: the plan's last view's raw images) and returns what it wrote (``{}``: nothing),
+    journalled as ``written_on_stop``. It is called once, before the process exits; an error there is
+    journalled, never raised.
     """
 
     part_name: str
@@ -429,7 +438,11 @@ class Controller:
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
             self._make_safe()
+            # a registration still running ahead (a fault that skipped the drain) stops at its next step
+            self._ahead_stop.set()
             self._executor.shutdown(wait=True, cancel_futures=False)
+            if self.state != "done":
+                self._job_on_stop()
             self._close_devices()
             self._log("exit", state=self.state, message=self.message)
         return self.state
@@ -473,6 +486,21 @@ class Controller:
             self.pause()  # needs the operator; `cell resume` continues from the last checkpoint
         else:
             self.fault()
+
+    def _job_on_stop(self) -> None:
+        """The job's ``on_stop(run, state)`` (:class:`Job`), if it has one: on every exit short of ``done``,
+        once the worker is idle. Never raises (it runs in the run loop's ``finally``): an error is journalled,
+        and a journal that cannot be written then (a full disk) is left so."""
+        on_stop = getattr(self.job, "on_stop", None)
+        if on_stop is None:
+            return
+        try:
+            written = on_stop(self.run, self.state)
+            if written:
+                self._log("written_on_stop", state=self.state, **written)
+        except Exception as exc:
+            with contextlib.suppress(Exception):  # the run is stopping already; the exit line says how
+                self._log("error", kind="on_stop", error=repr(exc), state=self.state)
 
     def _reconnect(self, name: str) -> None:
         """Close and reopen the device a timeout came from: a lost connection is the commonest cause."""

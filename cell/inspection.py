@@ -318,8 +318,9 @@ class LambertianInspection(InspectionResults):
         """Write the raw stack :meth:`decode` kept back into its view's committed folder (and forget it);
         the bytes written. Not when the view's folder is not committed (its decode or commit failed: it is
         measured again), nor when the retention keeps no raw images of a run of ``verdict`` past its end (they
-        would be removed when it ends: cell.retention.apply_at_finish). A run paused, stopped or killed
-        before this keeps that view whole, without ``raw/`` (as a view whose raw images were pruned)."""
+        would be removed when it ends: cell.retention.apply_at_finish). A run paused, faulted or aborted
+        before this writes them on its way out (:meth:`on_stop`); a killed one keeps that view whole, without
+        ``raw/`` (as a view whose raw images were pruned)."""
         later, self._raw_later = self._raw_later, None
         if later is None:
             return 0
@@ -330,6 +331,20 @@ class LambertianInspection(InspectionResults):
         if verdict is not None and self.cfg.retention.keep_days(verdict) == 0:
             return 0
         return save_raw_stack(folder, *raw, durable=True)
+
+    def on_stop(self, run: RunFolder, state: str) -> dict[str, Any]:
+        """The run stopped short of ``done`` (``state``: paused, faulted, aborted; the controller's
+        :class:`cell.controller.Job` hook, called once its worker is idle): write the raw stack :meth:`decode`
+        kept back for after the verdict into its view's folder now, durably (:meth:`_write_raw_later`), so
+        that a failed run keeps its last view's raw images. Under the published verdict's retention when
+        there is one (a run paused before its page), else written (no verdict yet: the run's end applies its
+        retention). Returns the view and the bytes written, or ``{}``."""
+        if self._raw_later is None:
+            return {}
+        index = self._raw_later[0]
+        verdict = (Checkpoint.from_json(run.load_checkpoint()).summary or {}).get("verdict")
+        written = self._write_raw_later(run.path, verdict)
+        return {"view": index, "raw_images_bytes": written} if written else {}
 
     def render(self, run: RunFolder) -> dict[str, Any]:
         """The report's page after its verdict (:meth:`InspectionResults.render`), then the raw images of the

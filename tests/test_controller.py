@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +24,9 @@ from cell.devices import DeviceBundle, build_devices
 from cell.errors import ConfigError
 from cell.inspection import LambertianInspection, inspection_controller
 from cell.mesh import load_part_W
+from cell.run_data import Phase, View
 from cell.runs import RunFolder
+from cell.view_files import load_raw_stack
 from tests.box_part import small_cell, write_box_recipe
 from tests.same_result import assert_same_result
 from tests.shared_runs import once_per_session
@@ -225,13 +229,41 @@ def _inject_pausing_fault(ctl: Controller, devices: DeviceBundle, fault: str) ->
     devices.camera.trigger = trigger_then_fault
 
 
+def keep_last_stacks(ctl: Controller) -> dict[int, np.ndarray]:
+    """The captured stacks of the views the job's decode keeps back (each plan's last view, ``last``), by
+    view, copied before the decode takes them: the truth for the raw images written later."""
+    decode, kept = ctl.job.decode, {}
+
+    def decode_keeping_last_stacks(view, captured, out_dir):
+        if captured.last:
+            kept[captured.index] = np.array(captured.images, copy=True)
+        return decode(view, captured, out_dir)
+
+    ctl.job.decode = decode_keeping_last_stacks
+    return kept
+
+
+def _pause_after_last_evaluation(ctl: Controller) -> None:
+    """Ask for a pause once the evaluation has qualified the views (no replan follows): after the last view's
+    decode, before the registration is taken and the verdict is out."""
+    done = ctl.job.evaluations_done
+
+    def done_then_pause() -> None:
+        done()
+        ctl.request_pause("test, after the last evaluation")
+
+    ctl.job.evaluations_done = done_then_pause
+
+
 @pytest.fixture(scope="module")
 def paused_and_resumed(recipe_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     """One run paused by each pausing fault in turn: the run pauses (a protective stop on its first move), a
     new controller (a new process, the operator having fixed the cause) resumes it from the run folder, that
-    one pauses (the lamp fails), the next resumes it and is paused by the operator, and the last resumes it
-    to the end. Per fault: the state and message its controller ended in and the journal's length then;
-    and the run's end and result."""
+    one pauses (the lamp fails), the next resumes it and is paused by the operator, the next resumes it and
+    is paused after its last evaluation (its last view decoded, no verdict yet), and the last resumes it to
+    the end. Per fault: the state and message its controller ended in and the journal's length then;
+    the last view's captured stack and its raw images as read back at that last pause; and the run's end and
+    result."""
     run_dir = tmp_path_factory.mktemp("paused") / "run"
     stages = {}
     for i, fault in enumerate(PAUSING):
@@ -240,14 +272,30 @@ def paused_and_resumed(recipe_path: Path, tmp_path_factory: pytest.TempPathFacto
         state = ctl.execute(resume=i > 0)
         stages[fault] = {"state": state, "message": ctl.message, "journal": len(ctl.run.journal())}
     ctl, _ = make_controller(recipe_path, run_dir)
+    kept = keep_last_stacks(ctl)
+    _pause_after_last_evaluation(ctl)
+    state = ctl.execute(resume=True)
+    last = len(ctl.checkpoint.views) - 1
+    at_pause = {
+        "state": state,
+        "message": ctl.message,
+        "journal": len(ctl.run.journal()),
+        "phase": ctl.checkpoint.phase,
+        "last": last,
+        "captured": kept.get(last),
+        "raw": load_raw_stack(ctl.run.view_dir(last)),
+    }
+    ctl, _ = make_controller(recipe_path, run_dir)
     state = ctl.execute(resume=True)
     result = result_of(run_dir) if state == "done" else None
     return {
         "stages": stages,
+        "at_pause": at_pause,
         "state": state,
         "message": ctl.message,
         "journal": len(ctl.run.journal()),
         "result": result,
+        "run_dir": run_dir,
     }
 
 
@@ -258,13 +306,36 @@ def test_pausing_faults_pause_and_the_next_process_resumes(paused_and_resumed: d
     says = {"protective_stop": "protective stop", "lamp_error_mid_run": "lamp", "operator_pause": "test"}
     assert says[fault] in stage["message"], stage["message"]
     # the next process resumed it: nothing of this part was lost, the journal went on
-    later = [s["journal"] for s in paused_and_resumed["stages"].values()] + [paused_and_resumed["journal"]]
+    later = [s["journal"] for s in paused_and_resumed["stages"].values()]
+    later += [paused_and_resumed["at_pause"]["journal"], paused_and_resumed["journal"]]
     assert later[PAUSING.index(fault) + 1] > stage["journal"]
 
 
 def test_pausing_faults_resume_to_identical_results(paused_and_resumed: dict, reference: dict) -> None:
     assert paused_and_resumed["state"] == "done", paused_and_resumed["message"]
-    assert_same_result(paused_and_resumed["result"], reference["result"], "paused three times")
+    assert_same_result(paused_and_resumed["result"], reference["result"], "paused four times")
+
+
+def test_a_run_paused_before_its_verdict_keeps_its_last_views_raw_images(paused_and_resumed: dict) -> None:
+    """The run paused after its last evaluation (the last view decoded, its raw stack held back for after
+    the verdict, no verdict yet) writes that stack into the view's folder on its way out: a whole capture
+    folder that the project's reader gives back equal to the stack the camera captured, journalled once; the
+    resumed run does not write it again and leaves it as it was."""
+    at_pause = paused_and_resumed["at_pause"]
+    assert at_pause["state"] == "paused" and "after the last evaluation" in at_pause["message"]
+    assert at_pause["phase"] is Phase.REGISTERING  # paused before the registration and the verdict
+    captured, raw = at_pause["captured"], at_pause["raw"]
+    assert captured is not None and raw is not None
+    assert raw.dtype == captured.dtype and np.array_equal(raw, captured)
+    run = RunFolder.open(paused_and_resumed["run_dir"])
+    last = at_pause["last"]
+    assert (run.view_dir(last) / "raw" / "capture.yaml").is_file()
+    journal = run.journal()
+    written = [e for e in journal if e["event"] == "written_on_stop"]
+    assert len(written) == 1 and written[0]["view"] == last and written[0]["state"] == "paused"
+    assert written[0]["raw_images_bytes"] > 0
+    assert not [e for e in journal if e["event"] == "error" and e.get("kind") == "on_stop"]
+    assert np.array_equal(load_raw_stack(run.view_dir(last)), captured)  # after the resume to the end
 
 
 def test_recipe_regions_are_judged_with_their_own_bands(
@@ -319,7 +390,6 @@ def test_the_first_plans_last_view_keeps_its_raw_images_when_more_views_follow(r
     before it have, and of a view of its own (not another view's frames); the last plan's last view's are not
     written at all (the passed run's retention keeps none: raw_images_passed_days 0)."""
     from cell.run_data import Checkpoint
-    from cell.view_files import load_raw_stack
 
     run = RunFolder.open(reference["run_dir"])
     views = Checkpoint.from_json(run.load_checkpoint()).views
@@ -335,3 +405,177 @@ def test_the_first_plans_last_view_keeps_its_raw_images_when_more_views_follow(r
     frames = list((run.view_dir(first[-1]) / "raw").rglob("*.png"))
     assert kept.shape[1:] == (120, 160) and len(frames) == len(kept)
     assert not (run.view_dir(len(views) - 1) / "raw").exists()
+
+
+# ---------------------------------------------------------------- the controller alone, with a job of its own
+# A job and devices that do nothing but record what the controller asks of them: the controller's own
+# sequencing (the registration ahead, its call-off, the exit hook) in well under a second.
+
+
+class _StubDevice:
+    """A robot, projector or camera that is always ready and records the moves it is sent."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.moves: list[np.ndarray] = []
+
+    def connect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def switch_on(self) -> None: ...
+
+    def blank(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def ready(self) -> bool:
+        return True
+
+    def state(self):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(normal=True, why_not_normal=None)
+
+    def move_linear(self, target: np.ndarray, speed: float, accel: float) -> None:
+        self.moves.append(np.asarray(target))
+
+
+def _stub_devices() -> DeviceBundle:
+    return DeviceBundle(
+        robot=_StubDevice("robot"), camera=_StubDevice("camera"), projector=_StubDevice("projector")
+    )  # type: ignore[arg-type]
+
+
+class _SlowRegistrationJob:
+    """A job whose registration is slower than its evaluation: ``register`` (started ahead, in the worker,
+    beside ``evaluate``) runs until its ``stop`` event is set, or, once an evaluation has qualified the views,
+    to its end; the first evaluation asks for one more view (after the registration has started, so that
+    there is one to call off). ``pause_in_first_evaluation``: the controller is asked to pause from inside the
+    first evaluation instead. Everything the controller asks is recorded."""
+
+    part_name = "stub"
+    register_while_evaluating = True
+    TIMEOUT_S = 10.0  # a registration that nobody calls off fails the test after this
+
+    def __init__(self) -> None:
+        self.registrations: list[dict] = []  # per register call: views, how it ended, whether stop was set
+        self.registering = threading.Event()  # a registration is running
+        self.qualified = threading.Event()  # an evaluation qualified the views: the registration may end
+        self.evaluations: list[int] = []  # the number of views of each evaluation
+        self.stops: list[str] = []  # the states on_stop was called with
+        self.controller: Controller | None = None
+        self.pause_in_first_evaluation = False
+
+    def plan(self) -> list[View]:
+        return [View(np.eye(4), iteration=0), View(np.eye(4), iteration=0)]
+
+    def capture(self, devices, view, index, views):
+        return index
+
+    def decode(self, view, captured, out_dir: Path) -> dict:
+        (out_dir / "view.json").write_text(json.dumps({"view": captured}))
+        return {"view": captured}
+
+    def evaluate(self, run, views, iteration):
+        from cell.run_data import Evaluation
+
+        assert self.registering.wait(self.TIMEOUT_S), "no registration was started beside the evaluation"
+        self.evaluations.append(len(views))
+        if len(self.evaluations) == 1 and self.pause_in_first_evaluation:
+            assert self.controller is not None
+            self.controller.request_pause("test, while the registration runs ahead")
+        qualified = len(self.evaluations) > 1
+        if qualified:
+            self.qualified.set()
+        return Evaluation(qualified, 0.0 if qualified else 1.0, iteration)
+
+    def replan(self, run, views, evaluation):
+        return [View(np.eye(4), iteration=evaluation.iteration + 1)]
+
+    def register(self, run, views, stop: threading.Event | None = None) -> dict:
+        from cell.errors import CalledOff
+
+        entry = {"views": len(views), "ended": None, "stop_seen": False}
+        self.registrations.append(entry)
+        self.registering.set()
+        deadline = time.monotonic() + self.TIMEOUT_S
+        while not self.qualified.is_set():  # one step of the registration after another
+            if stop is not None and stop.is_set():
+                entry["ended"], entry["stop_seen"] = "called off", True
+                self.registering.clear()
+                raise CalledOff("registration")
+            if time.monotonic() > deadline:
+                entry["ended"] = "timed out"
+                raise TimeoutError("the registration was never called off")
+            time.sleep(0.001)
+        entry["ended"] = "finished"
+        return {"n_points": 10 * len(views)}
+
+    def report(self, run, registration):
+        return {"n_points": registration["n_points"]}
+
+    def on_stop(self, run, state: str) -> dict:
+        self.stops.append(state)
+        return {"held": 1}
+
+
+def _stub_run(tmp_path: Path, job: _SlowRegistrationJob) -> Controller:
+    run = RunFolder.create(tmp_path, "stub", name="run")
+    ctl = Controller(_stub_devices(), job, run, ControllerSettings(retry_delay_s=0.0))  # type: ignore[arg-type]
+    job.controller = ctl
+    return ctl
+
+
+def test_a_registration_slower_than_the_evaluation_is_called_off_by_the_replan(tmp_path: Path) -> None:
+    """The first evaluation asks for more views while the registration started beside it still runs: the
+    replan sets its stop event, the registration stops (journalled ``registration_called_off``), the new
+    view is measured, and the registration of all three views, started beside the second evaluation, runs
+    to its end once and is the one reported; the run ends ``done`` (no exit hook)."""
+    job = _SlowRegistrationJob()
+    ctl = _stub_run(tmp_path, job)
+    assert ctl.execute() == "done", ctl.message
+    assert job.evaluations == [2, 3]
+    assert job.registrations == [
+        {"views": 2, "ended": "called off", "stop_seen": True},
+        {"views": 3, "ended": "finished", "stop_seen": False},
+    ]
+    journal = ctl.run.journal()
+    events = [e["event"] for e in journal]
+    called_off = [e for e in journal if e["event"] == "registration_called_off"]
+    assert len(called_off) == 1 and called_off[0]["views"] == 2
+    assert events.index("registration_called_off") < events.index("replan")  # the replan waited for it
+    assert [e["n_new"] for e in journal if e["event"] == "replan"] == [1]
+    assert [e["n_points"] for e in journal if e["event"] == "registration"] == [30]
+    assert not [e for e in journal if e["event"] == "error"]
+    assert ctl.run.completed_views() == [0, 1, 2] and len(ctl.devices.robot.moves) == 3
+    assert job.stops == [] and "written_on_stop" not in events
+
+
+def test_a_pause_drops_the_registration_running_ahead_and_calls_the_exit_hook(tmp_path: Path) -> None:
+    """A pause asked for while the registration runs ahead of the evaluation: the registration is called
+    off (the run does not wait for it to end), the run pauses, and the job's ``on_stop`` is called once,
+    with ``paused``, what it returned journalled; an ``on_stop`` that raises is journalled, not raised."""
+    job = _SlowRegistrationJob()
+    job.pause_in_first_evaluation = True
+    ctl = _stub_run(tmp_path, job)
+    assert ctl.execute() == "paused", ctl.message
+    assert job.registrations == [{"views": 2, "ended": "called off", "stop_seen": True}]
+    assert job.stops == ["paused"]
+    journal = ctl.run.journal()
+    written = [e for e in journal if e["event"] == "written_on_stop"]
+    assert len(written) == 1 and written[0]["state"] == "paused" and written[0]["held"] == 1
+    assert [e["state"] for e in journal if e["event"] == "exit"] == ["paused"]
+
+    def failing_on_stop(run, state):
+        raise RuntimeError("injected on_stop failure")
+
+    job2 = _SlowRegistrationJob()
+    job2.pause_in_first_evaluation = True
+    job2.on_stop = failing_on_stop  # type: ignore[method-assign]
+    ctl2 = _stub_run(tmp_path / "second", job2)
+    assert ctl2.execute() == "paused", ctl2.message
+    journal = ctl2.run.journal()
+    errors = [e for e in journal if e["event"] == "error" and e["kind"] == "on_stop"]
+    assert len(errors) == 1 and "injected on_stop failure" in errors[0]["error"]
+    assert [e["state"] for e in journal if e["event"] == "exit"] == ["paused"]

@@ -1,8 +1,9 @@
 # ruff: noqa: F811  (the fixtures recipe_path and reference come from tests/test_controller.py)
 """The work beside the robot (cell/controller.py's worker) and the verdict before the report's page, on the
 small box cell: a view whose background work fails faults the run naming that view and loses nothing else;
-the verdict is published (report.json, the journal's verdict line, the checkpoint's summary) before the page
-is written, stands against an abort, and a run paused between the two resumes to the uninterrupted result.
+a run that faults after its last view's decode keeps that view's raw images; the verdict is published
+(report.json, the journal's verdict line, the checkpoint's summary) before the page is written, stands
+against an abort, and a run paused between the two resumes to the uninterrupted result.
 
 Truth: the uninterrupted reference run of tests/test_controller.py and the run folder's own files."""
 
@@ -20,13 +21,25 @@ from cell.errors import ConfigError
 from cell.inspection_views import load_view_result
 from cell.run_data import Phase
 from cell.runs import RunFolder
+from cell.view_files import load_raw_stack
 from tests.same_result import assert_same_result
-from tests.test_controller import make_controller, recipe_path, reference, result_of  # noqa: F401
+from tests.test_controller import (  # noqa: F401
+    keep_last_stacks,
+    make_controller,
+    recipe_path,
+    reference,
+    result_of,
+)
 
 
 def test_a_failing_view_faults_the_run_naming_it_and_a_resume_measures_it(
     recipe_path: Path, tmp_path: Path, reference: dict
 ) -> None:
+    """A bug in view 2's work faults the run naming the view; the resume measures it and the views after
+    it, and faults in ``registering`` (a registration with no points) after its last view's decode: that
+    view's raw stack, held back for after the verdict, is written into its folder on the way out (a whole
+    capture folder, read back equal to the captured stack); the next resume registers, writes nothing again,
+    and ends with the uninterrupted run's result."""
     run_dir = tmp_path / "run"
     ctl, _ = make_controller(recipe_path, run_dir)
     decode = ctl.job.decode
@@ -46,8 +59,22 @@ def test_a_failing_view_faults_the_run_naming_it_and_a_resume_measures_it(
     assert {0, 1} <= done and 2 not in done  # the failed view is not counted as measured
     assert not (run_dir / "results" / "report.json").exists()
     ctl2, _ = make_controller(recipe_path, run_dir)
-    assert ctl2.execute(resume=True) == "done", ctl2.message
+    kept = keep_last_stacks(ctl2)
+    ctl2.job.register = lambda run, views, stop=None: {"n_points": 0}  # no points: the run faults
+    assert ctl2.execute(resume=True) == "faulted", ctl2.message
+    assert ctl2.message == "registration produced no points: nothing to report"
     assert done < set(ctl2.run.completed_views())
+    last = len(ctl2.checkpoint.views) - 1
+    assert ctl2.run.completed_views() == list(range(last + 1)) and last in kept
+    assert (run_dir / "views" / f"{last:03d}" / "raw" / "capture.yaml").is_file()
+    raw = load_raw_stack(ctl2.run.view_dir(last))
+    assert raw is not None and raw.dtype == kept[last].dtype and np.array_equal(raw, kept[last])
+    written = [e for e in ctl2.run.journal() if e["event"] == "written_on_stop"]
+    assert len(written) == 1 and written[0]["view"] == last and written[0]["state"] == "faulted"
+    ctl3, _ = make_controller(recipe_path, run_dir)
+    assert ctl3.execute(resume=True) == "done", ctl3.message
+    assert len([e for e in ctl3.run.journal() if e["event"] == "written_on_stop"]) == 1
+    assert np.array_equal(load_raw_stack(ctl3.run.view_dir(last)), kept[last])
     assert_same_result(result_of(run_dir), reference["result"], "a view failed, then resumed")
 
 
@@ -91,6 +118,11 @@ def test_the_verdict_is_published_before_the_page_and_stands(
     assert not [e for e in journal if e["event"] == "report_written"]
     results = sorted(p.name for p in (run_dir / "results").iterdir())
     assert results == ["report.json"]  # the verdict alone: no page, no cloud yet
+    # the last view's raw stack, held for after the verdict, is not written on the way out: the published
+    # verdict's retention keeps none (a passed part, raw_images_passed_days 0)
+    assert reference["result"]["verdict"] == "pass"
+    assert not (run.view_dir(len(ctl.checkpoint.views) - 1) / "raw").exists()
+    assert not [e for e in journal if e["event"] in ("written_on_stop", "error")]
     checkpoint = run.load_checkpoint()
     assert (
         checkpoint["phase"] == Phase.RENDERING and checkpoint["summary"]["verdict"] == verdict[0]["verdict"]
