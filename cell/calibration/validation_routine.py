@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trimesh
 
 from cell.calibration.active import active_hand_eye, active_measuring_patterns, active_triangulator
 from cell.calibration.handeye import pose_error
@@ -29,6 +28,7 @@ from cell.runs import RunFolder
 from cell.sensing.decode import decode
 from cell.sensing.patterns import PatternSet
 from cell.sensing.triangulate import ReferencePlaneTriangulator
+from cell.verification.artefacts import SPHERE_SUBDIVISIONS, sphere_mesh
 
 
 # --------------------------------------------------------------------------------------------- validation
@@ -77,10 +77,14 @@ class ValidateJob(FlatBoardJob):
         return [flat, sphere, gauge]
 
     def _sphere_stl(self) -> Path:
-        path = Path.home() / ".cache" / "cell" / f"sphere_{self.radius_mm:g}mm.stl"
+        """The sphere's CAD as the verification artefacts' (least-squares radius ``radius_mm``, facets within
+        +-0.6 um), written once to the user's cache (the name says which mesh: an older file held an icosphere
+        whose surface lay 2.3 um inside the radius)."""
+        name = f"sphere_{self.radius_mm:g}mm_lsq_ico{SPHERE_SUBDIVISIONS}.stl"
+        path = Path.home() / ".cache" / "cell" / name
         if not path.exists():
             path.parent.mkdir(parents=True, exist_ok=True)
-            trimesh.creation.icosphere(subdivisions=5, radius=self.radius_mm).export(path)
+            sphere_mesh(2 * self.radius_mm).export(path)
         return path
 
     def patterns(self, view: View) -> PatternSet:
