@@ -5,10 +5,8 @@
 - plane: the measured face is z = 0, centred on the origin, length along x, width along y; the body below.
 
 They are the artefacts' CAD: the simulator renders them (fakes/artefact_stage.py) and make_artefacts.py writes
-them for viewing. A sphere is an icosphere (6 subdivisions) whose least-squares sphere has the certified diameter:
-its vertices stand out by the facets' mean depth, so the flat facets deviate by under +-0.6 um (form, 12.7 mm
-radius) and not all inwards. An icosphere with its vertices on the certified sphere is smaller: the least-squares
-radius of its surface is 0.57 um short at 12.7 mm (6 subdivisions; 2.3 um at 12.5 mm with 5).
+them for viewing. A sphere is an icosphere of 6 subdivisions whose surface's least-squares sphere has the
+certified diameter, its facets within +-0.6 um of it (:func:`cell.calibration.validation.sphere_mesh_lsq`).
 """
 
 from __future__ import annotations
@@ -16,27 +14,15 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from cell.calibration.validation import sphere_mesh_lsq
 from cell.verification.certificate import BallBarArtefact, PlaneArtefact, SphereArtefact
 
 SPHERE_SUBDIVISIONS = 6
 
 
 def sphere_mesh(diameter_mm: float) -> trimesh.Trimesh:
-    """A closed sphere centred on the origin whose surface's least-squares sphere has ``diameter_mm`` (mm):
-    an icosphere of :data:`SPHERE_SUBDIVISIONS` scaled by the inverse of its surface's mean radius."""
-    unit = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=1.0)
-    return unit.apply_scale(diameter_mm / 2 / mean_surface_radius(unit))
-
-
-def mean_surface_radius(mesh: trimesh.Trimesh) -> float:
-    """Area-weighted mean distance (mesh units) of the surface from the origin: the least-squares sphere's
-    radius of a closed mesh symmetric about the origin. Three-point rule on each facet (exact for quadratics;
-    the distance varies by 1e-4 of itself over a facet of an icosphere of 6 subdivisions)."""
-    tri = np.asarray(mesh.triangles, dtype=np.float64)
-    rule = np.full((3, 3), 1 / 6) + np.eye(3) / 2  # barycentric (2/3, 1/6, 1/6) and its permutations
-    dist = np.linalg.norm(np.einsum("qk,fkd->fqd", rule, tri), axis=2).mean(axis=1)
-    area = np.asarray(mesh.area_faces, dtype=np.float64)
-    return float(area @ dist / area.sum())
+    """A closed sphere centred on the origin whose surface's least-squares sphere has ``diameter_mm`` (mm)."""
+    return sphere_mesh_lsq(diameter_mm / 2, SPHERE_SUBDIVISIONS)
 
 
 def sphere_artefact(a: SphereArtefact) -> trimesh.Trimesh:
