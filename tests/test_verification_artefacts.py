@@ -40,8 +40,8 @@ def test_certificate_errors_name_file_and_field(tmp_path) -> None:
 
 
 def test_meshes_have_the_certified_dimensions() -> None:
-    """A sphere's surface (not its vertices: flat facets lie inside the sphere through them) fits the certified
-    diameter, and deviates from it by under a micrometre either way."""
+    """A sphere's surface (not its vertices: flat facets lie inside the sphere through them) fits the
+    certified diameter, and deviates from it by under a micrometre either way."""
     cert = load_certificate()
     s = sphere_artefact(cert.sphere)
     R = cert.sphere.diameter_mm / 2
