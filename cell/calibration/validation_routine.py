@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trimesh
 
 from cell.calibration.active import active_hand_eye, active_measuring_patterns, active_triangulator
 from cell.calibration.handeye import pose_error
@@ -21,7 +20,14 @@ from cell.calibration.procedures import (
 )
 from cell.calibration.sensor_routines import FlatBoardJob
 from cell.calibration.store import load_calibration
-from cell.calibration.validation import fit_plane, flat_test, load_gauge_certificate, slot_test, sphere_test
+from cell.calibration.validation import (
+    fit_plane,
+    flat_test,
+    load_gauge_certificate,
+    slot_test,
+    sphere_mesh_lsq,
+    sphere_test,
+)
 from cell.config import CellConfig
 from cell.geometry import Pose, invert, make_pose, transform_points
 from cell.run_data import View
@@ -77,10 +83,14 @@ class ValidateJob(FlatBoardJob):
         return [flat, sphere, gauge]
 
     def _sphere_stl(self) -> Path:
-        path = Path.home() / ".cache" / "cell" / f"sphere_{self.radius_mm:g}mm.stl"
+        """The sphere's CAD, as the verification artefacts' (least-squares radius ``radius_mm``, facets within
+        +-0.6 um), written once to the user's cache (the name says which mesh: an older file held an icosphere
+        whose surface lay 2.3 um inside the radius)."""
+        name = f"sphere_{self.radius_mm:g}mm_lsq_ico6.stl"
+        path = Path.home() / ".cache" / "cell" / name
         if not path.exists():
             path.parent.mkdir(parents=True, exist_ok=True)
-            trimesh.creation.icosphere(subdivisions=5, radius=self.radius_mm).export(path)
+            sphere_mesh_lsq(self.radius_mm, subdivisions=6).export(path)
         return path
 
     def patterns(self, view: View) -> PatternSet:

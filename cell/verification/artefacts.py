@@ -5,8 +5,8 @@
 - plane: the measured face is z = 0, centred on the origin, length along x, width along y; the body below.
 
 They are the artefacts' CAD: the simulator renders them (fakes/artefact_stage.py) and make_artefacts.py writes
-them for viewing. The icosphere's facets are below 1 um deep on a 25 mm sphere (6 subdivisions), well under
-any figure measured.
+them for viewing. A sphere is an icosphere of 6 subdivisions whose surface's least-squares sphere has the
+certified diameter, its facets within +-0.6 um of it (:func:`cell.calibration.validation.sphere_mesh_lsq`).
 """
 
 from __future__ import annotations
@@ -14,14 +14,15 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from cell.calibration.validation import sphere_mesh_lsq
 from cell.verification.certificate import BallBarArtefact, PlaneArtefact, SphereArtefact
 
 SPHERE_SUBDIVISIONS = 6
 
 
 def sphere_mesh(diameter_mm: float) -> trimesh.Trimesh:
-    """A closed sphere of ``diameter_mm`` centred on the origin."""
-    return trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=diameter_mm / 2)
+    """A closed sphere centred on the origin whose surface's least-squares sphere has ``diameter_mm`` (mm)."""
+    return sphere_mesh_lsq(diameter_mm / 2, SPHERE_SUBDIVISIONS)
 
 
 def sphere_artefact(a: SphereArtefact) -> trimesh.Trimesh:
