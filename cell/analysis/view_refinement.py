@@ -71,6 +71,13 @@ class ViewRefinement:
     information: Array | None = None
     centre_mm: Array | None = None
     lever_mm: float = 1.0
+    # the corrections x_i themselves, (n, 6), as the last solve left them (None when nothing was solved)
+    x: Array | None = None
+    # (n, n) the incidence-weighted pairs of the last matching between each two views (both ways, held views'
+    # too): what decides which views are held (:func:`_held_views`)
+    support: Array | None = None
+    # how many gaps the rms before and after are over (so that a view added later can join them)
+    gaps: tuple[int, int] = (0, 0)
 
     def correction_mm(self, points: list[Array]) -> list[float]:
         """The largest motion of each view's points under its correction (mm)."""
@@ -421,6 +428,8 @@ def refine_views(
     prior_w = np.repeat(np.column_stack([1 / (sigma_r * lever) ** 2, 1 / sigma_t**2]), 3, axis=1).ravel()
     x = np.zeros((n_views, 6))
     rms: list[float] = []
+    counted: list[int] = []  # the gaps each matching found
+    support = np.zeros((n_views, n_views))
     overlaps = [0] * n_views
     last_gaps: list[Array] = []
     held = np.zeros(n_views, dtype=bool)
@@ -470,17 +479,8 @@ def refine_views(
             # The views' pose covariance (cell.analysis.uncertainty.posterior_covariance) leaves them out the
             # same way. Counted until no more views are held: a neighbour that passes MIN_VIEW_PAIRS only with
             # a held view's pairs would be registered on fewer
-            held = np.zeros(n_views, dtype=bool)
-            while True:
-                used = np.zeros(n_views)  # pairs (incidence-weighted) holding each view, as source or target
-                for i, j, match in matches:
-                    if not (held[i] or held[j]):
-                        used[i] += match.w.sum()
-                        used[j] += match.w.sum()
-                now_held = held | (used < MIN_VIEW_PAIRS)  # only grows: at most n_views rounds
-                if (now_held == held).all():
-                    break
-                held = now_held
+            support = _support(n_views, matches)
+            held = _held_views(support)
             H = np.zeros((6 * n_views, 6 * n_views))
             g = np.zeros(6 * n_views)
             gaps_all: list[Array] = []
@@ -510,6 +510,7 @@ def refine_views(
                 g[si] += Wi.T @ r
                 g[sj] -= Wi.T @ r
             rms.append(float(np.sqrt(np.mean(np.concatenate(gaps_all) ** 2))) if gaps_all else 0.0)
+            counted.append(sum(len(r) for r in gaps_all))
             information = H.copy()  # the overlaps' alone, for cell.analysis.uncertainty
             for v in np.flatnonzero(held):
                 H[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] += np.eye(6) * 1e12
@@ -533,7 +534,191 @@ def refine_views(
         information if radii_mm else None,
         centre,
         lever,
+        x.copy() if radii_mm else None,
+        support,
+        (counted[0], sum(len(r) for r in last_gaps)) if counted else (0, 0),
     )
+
+
+def refine_newest(
+    older: ViewRefinement,
+    views: list[Array],
+    sigma_t_mm: float,
+    sigma_r_rad: float,
+    noise_mm: float = 0.05,
+    radii_mm: tuple[float, ...] = (2.0, 1.0, 0.6),
+    seed: int = 0,
+    planes: list[LocalPlanes] | None = None,
+    cameras: list[Array] | None = None,
+    trees: list[cKDTree | None] | None = None,
+    ids: list[int] | None = None,
+    cache: OverlapCache | None = None,
+) -> ViewRefinement | None:
+    """The refinement of ``views`` with the newest (the last of them) refined alone against the others held
+    at ``older``'s corrections, ``older`` being :func:`refine_views` of all but the newest (its arguments as
+    there, ``sigma_t_mm``, ``sigma_r_rad`` the newest view's prior). The same schedule as the joint solve: the
+    first matching at the kinematic poses (its gaps moved by the other views' known corrections, linearised),
+    then one at each later radius with the other views where ``older`` put them; the newest view's correction
+    x_n = (omega * lever, tau) about ``older``'s centre and lever minimises
+
+        sum over the newest view's pairs with the registered others  w (r + J (x_n - x_j))^2  +  prior(x_n)
+
+    and it is held at its kinematic pose when those pairs are fewer than :data:`MIN_VIEW_PAIRS`. The other
+    views keep ``older``'s corrections and held set; the information holds ``older``'s and the newest view's
+    pairs' of its last matching. None when ``older`` solved nothing (fewer than two views) or when the newest
+    view's pairs would change which views the joint solve of all holds (a held view released by them, or the
+    newest view held or not only through one): the caller then solves jointly (:func:`refine_views`)."""
+    if older.x is None or older.centre_mm is None or older.support is None or not radii_mm:
+        return None
+    n_views, new = len(views), len(views) - 1
+    centre, lever = older.centre_mm, older.lever_mm
+    normals = planes if planes is not None else [estimate_normals(v) for v in views]
+    cache = cache if cache is not None else OverlapCache()
+    sides = _sides(views, normals, cameras, trees, ids, cache)
+    known = np.vstack([older.x, np.zeros((1, 6))])  # the corrections: the newest view's solved for here
+    T = [*older.T, np.eye(4)]
+    held_old = np.zeros(n_views, dtype=bool)
+    held_old[older.unregistered] = True
+    prior_w = np.repeat([1 / (sigma_r_rad * lever) ** 2, 1 / sigma_t_mm**2], 3)
+    moved = [_moved_box(Ti, s.points, s.box) for Ti, s in zip(T[:new], sides[:new], strict=True)]
+    before: list[Array] = []
+    last_gaps: list[Array] = []
+    matches: list[tuple[int, int, PairMatch]] = []
+    held_new = False
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="refine") as pool:
+        for it, radius in enumerate(radii_mm):
+            # at the first radius all views at their kinematic poses (the pairs' first matching), later the
+            # others where older put them and the newest where the last step did
+            boxes = (
+                [s.box for s in sides]
+                if it == 0
+                else [*moved, _moved_box(T[new], sides[new].points, sides[new].box)]
+            )
+            ordered = [
+                ij
+                for j in range(new)
+                for ij in ((new, j), (j, new))
+                if len(views[ij[0]])
+                and sides[ij[1]].tree is not None
+                and _boxes_overlap(boxes[ij[0]], boxes[ij[1]], radius)
+            ]
+
+            def matched(
+                ij: tuple[int, int],
+                it: int = it,
+                radius: float = radius,
+                poses: list[Pose] = T,
+                boxes: list[tuple[Array, Array]] = boxes,
+            ) -> PairMatch | None:
+                i, j = ij
+                a, b = sides[i], sides[j]
+                if it == 0:
+                    return _first_match(a, b, radius, noise_mm, seed, cache)
+                return _match(
+                    a, b, poses[i], poses[j], boxes[j], radius, cache.pool(a, b, radii_mm[0], seed), noise_mm
+                )
+
+            matches = [
+                (i, j, m)
+                for (i, j), m in zip(ordered, pool.map(matched, ordered), strict=True)
+                if m is not None
+            ]
+            # the corrections since the poses the pairs were matched at (all of them at the first matching)
+            since = known if it == 0 else np.zeros_like(known)
+            used = sum(m.w.sum() for i, j, m in matches if not held_old[j if i == new else i])
+            held_new = bool(used < MIN_VIEW_PAIRS)
+            H = np.zeros((6, 6))
+            g = np.zeros(6)
+            pairs: list[tuple[float, Array, Array]] = []
+            for i, j, match in matches:
+                p, q, nj, r, w_row = match.p, match.q, match.n, match.r, match.w
+                if it == 0:
+                    before.append(r)
+                w = 0.5 / (2 * noise_mm**2) * min(1.0, EFFECTIVE_PAIRS / len(r))  # as in refine_views
+                Ji = np.column_stack([np.cross((p + q) / 2 - centre, nj) / lever, nj])
+                Ji = Ji @ _observable(Ji)
+                r = r + Ji @ (since[i] - since[j])  # the gaps at the present corrections (linearised)
+                sign = 1.0 if i == new else -1.0  # d gap / d x_new: +J as the source, -J as the target
+                pairs.append((sign, Ji, r))
+                if held_new or held_old[j if i == new else i]:
+                    continue
+                Wi = Ji * (w * w_row)[:, None]
+                H += Wi.T @ Ji
+                g += sign * (Wi.T @ r)
+            step = -np.linalg.solve(H + np.diag(prior_w), g + prior_w * known[new])
+            if held_new:
+                step = -known[new]
+            known[new] += step
+            last_gaps = [r + sign * (Ji @ step) for sign, Ji, r in pairs]
+            T[new] = _apply(known[new], centre, lever)
+    support = np.zeros((n_views, n_views))
+    support[:new, :new] = older.support
+    support += _support(n_views, matches)
+    joint_held = _held_views(support)
+    if (joint_held != np.append(held_old[:new], held_new)).any():
+        return None
+    information = np.zeros((6 * n_views, 6 * n_views))
+    if older.information is not None:
+        information[: 6 * new, : 6 * new] = older.information
+    if not held_new:
+        sn = slice(6 * new, 6 * new + 6)
+        for i, j, match in matches:
+            other = j if i == new else i
+            if held_old[other]:
+                continue
+            w = 0.5 / (2 * noise_mm**2) * min(1.0, EFFECTIVE_PAIRS / len(match.r))
+            Ji = np.column_stack([np.cross((match.p + match.q) / 2 - centre, match.n) / lever, match.n])
+            Ji = Ji @ _observable(Ji)
+            WJ = (Ji * (w * match.w)[:, None]).T @ Ji
+            so = slice(6 * other, 6 * other + 6)
+            information[sn, sn] += WJ
+            information[so, so] += WJ
+            information[sn, so] -= WJ
+            information[so, sn] -= WJ
+    overlaps = [*older.overlaps, 0]
+    for i, _, _ in matches:
+        overlaps[i] += 1
+    n_before, n_after = older.gaps
+    b2 = older.rms_before_mm**2 * n_before + sum(float(np.sum(r**2)) for r in before)
+    a2 = older.rms_after_mm**2 * n_after + sum(float(np.sum(r**2)) for r in last_gaps)
+    n_before += sum(len(r) for r in before)
+    n_after += sum(len(r) for r in last_gaps)
+    return ViewRefinement(
+        T,
+        float(np.sqrt(b2 / n_before)) if n_before else 0.0,
+        float(np.sqrt(a2 / n_after)) if n_after else 0.0,
+        overlaps,
+        sorted([*older.unregistered, new] if held_new else older.unregistered),
+        information,
+        centre,
+        lever,
+        known,
+        support,
+        (n_before, n_after),
+    )
+
+
+def _support(n_views: int, matches: list[tuple[int, int, PairMatch]]) -> Array:
+    """(n, n) the incidence-weighted pairs of ``matches`` (i, j, match) between each two views, both ways."""
+    support = np.zeros((n_views, n_views))
+    for i, j, match in matches:
+        w = match.w.sum()
+        support[i, j] += w
+        support[j, i] += w
+    return support
+
+
+def _held_views(support: Array) -> NDArray[np.bool_]:
+    """Which views too few good pairs hold (:data:`MIN_VIEW_PAIRS`) given ``support`` (:func:`_support`):
+    counted until no more views are held, a view's pairs with held views not counting (a neighbour that
+    passes MIN_VIEW_PAIRS only with a held view's pairs would be registered on fewer)."""
+    held = np.zeros(len(support), dtype=bool)
+    while True:
+        used = support[:, ~held].sum(axis=1)  # pairs holding each view, as source or target
+        now_held = held | (used < MIN_VIEW_PAIRS)  # only grows: at most n rounds
+        if (now_held == held).all():
+            return held
+        held = now_held
 
 
 def _moved_box(T: Pose, points: Array, box: tuple[Array, Array]) -> tuple[Array, Array]:
