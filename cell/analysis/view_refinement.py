@@ -78,6 +78,11 @@ class ViewRefinement:
     support: Array | None = None
     # how many gaps the rms before and after are over (so that a view added later can join them)
     gaps: tuple[int, int] = (0, 0)
+    # per ordered view pair (i, j) of the last matching, its gaps e after the corrections (linearised) as
+    # sum e^2 (mm^2), J^T e and J^T J of its rows J (d e / d(x_i - x_j)): what they become as views move on
+    moments: list[tuple[int, int, float, Array, Array]] = field(default_factory=list)
+    # the prior's weights on x, (6n,) (1 / sigma^2, the rotation's at the lever arm)
+    prior_w: Array | None = None
 
     def correction_mm(self, points: list[Array]) -> list[float]:
         """The largest motion of each view's points under its correction (mm)."""
@@ -432,6 +437,7 @@ def refine_views(
     support = np.zeros((n_views, n_views))
     overlaps = [0] * n_views
     last_gaps: list[Array] = []
+    last_rows: list[tuple[int, int, Array]] = []
     held = np.zeros(n_views, dtype=bool)
     information: Array | None = None
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="refine") as pool:
@@ -521,6 +527,7 @@ def refine_views(
             step[held] = -x[held]  # back at its kinematic pose, where an earlier (wider) matching moved it
             x += step
             last_gaps = [r + Ji @ (step[i] - step[j]) for i, j, Ji, r in pairs]
+            last_rows = [(i, j, Ji) for i, j, Ji, _ in pairs]
             T = [_apply(xi, centre, lever) for xi in x]
     # the gaps of the last matching moved by the last step (linearised): what the corrections leave
     after = float(np.sqrt(np.mean(np.concatenate(last_gaps) ** 2))) if last_gaps else 0.0
@@ -537,6 +544,11 @@ def refine_views(
         x.copy() if radii_mm else None,
         support,
         (counted[0], sum(len(r) for r in last_gaps)) if counted else (0, 0),
+        [
+            (i, j, float(e @ e), Ji.T @ e, Ji.T @ Ji)
+            for (i, j, Ji), e in zip(last_rows, last_gaps, strict=True)
+        ],
+        prior_w,
     )
 
 
@@ -554,46 +566,63 @@ def refine_newest(
     ids: list[int] | None = None,
     cache: OverlapCache | None = None,
 ) -> ViewRefinement | None:
-    """The refinement of ``views`` with the newest (the last of them) refined alone against the others held
-    at ``older``'s corrections, ``older`` being :func:`refine_views` of all but the newest (its arguments as
-    there, ``sigma_t_mm``, ``sigma_r_rad`` the newest view's prior). The same schedule as the joint solve: the
-    first matching at the kinematic poses (its gaps moved by the other views' known corrections, linearised),
-    then one at each later radius with the other views where ``older`` put them; the newest view's correction
-    x_n = (omega * lever, tau) about ``older``'s centre and lever minimises
+    """The refinement of ``views`` made from ``older``, :func:`refine_views` of all but the newest (the last
+    of them; its arguments as there, ``sigma_t_mm``, ``sigma_r_rad`` the newest view's prior), and the newest
+    view's pairs alone: the others' pairs are not matched again. The same schedule as the joint solve: the
+    newest view's first matching at the kinematic poses (its gaps moved by the others' corrections,
+    linearised), then one at each later radius at the present corrections; each solves, about ``older``'s
+    centre and lever, for the newest view's correction x_n = (omega * lever, tau) and the others' further
+    motion D from ``older``'s x
 
-        sum over the newest view's pairs with the registered others  w (r + J (x_n - x_j))^2  +  prior(x_n)
+        D^T A D  +  sum over the newest view's pairs with the registered others  w (r + J (x_n - x_j))^2
+                 +  prior(x_n)
 
-    and it is held at its kinematic pose when those pairs are fewer than :data:`MIN_VIEW_PAIRS`. The other
-    views keep ``older``'s corrections and held set; the information holds ``older``'s and the newest view's
-    pairs' of its last matching. None when ``older`` solved nothing (fewer than two views) or when the newest
-    view's pairs would change which views the joint solve of all holds (a held view released by them, or the
-    newest view held or not only through one): the caller then solves jointly (:func:`refine_views`)."""
-    if older.x is None or older.centre_mm is None or older.support is None or not radii_mm:
+    where A (``older``'s information and prior) is what the others' pairs and priors say about D: ``older``
+    is their minimum, so their objective grows as D^T A D about it (linearised at its last matching). The
+    newest view is held at its kinematic pose when its pairs with the registered others are fewer than
+    :data:`MIN_VIEW_PAIRS`, and then moves no other view; the others keep ``older``'s held set. The
+    information holds ``older``'s and the newest view's pairs' of its last matching. None when ``older``
+    solved nothing (fewer than two views) or when the newest view's pairs would change which views the joint
+    solve of all holds (a held view released by them, or the newest view held or not only through one): the
+    caller then solves jointly (:func:`refine_views`)."""
+    if older.x is None or older.centre_mm is None or older.prior_w is None or not radii_mm:
         return None
     n_views, new = len(views), len(views) - 1
     centre, lever = older.centre_mm, older.lever_mm
     normals = planes if planes is not None else [estimate_normals(v) for v in views]
     cache = cache if cache is not None else OverlapCache()
     sides = _sides(views, normals, cameras, trees, ids, cache)
-    known = np.vstack([older.x, np.zeros((1, 6))])  # the corrections: the newest view's solved for here
-    T = [*older.T, np.eye(4)]
     held_old = np.zeros(n_views, dtype=bool)
     held_old[older.unregistered] = True
+    # what the others' pairs and priors say about their further motion D (older's last solve, its normal
+    # equations' matrix), the held views pinned
+    A = np.zeros((6 * n_views, 6 * n_views))
+    if older.information is not None:
+        A[: 6 * new, : 6 * new] = older.information
+    A[: 6 * new, : 6 * new] += np.diag(older.prior_w)
+    pinned = np.repeat(held_old, 6)
+    A[pinned, pinned] += 1e12
     prior_w = np.repeat([1 / (sigma_r_rad * lever) ** 2, 1 / sigma_t_mm**2], 3)
-    moved = [_moved_box(Ti, s.points, s.box) for Ti, s in zip(T[:new], sides[:new], strict=True)]
+    x = np.vstack([older.x, np.zeros((1, 6))])  # the corrections: older's, and the newest view's
+    D = np.zeros_like(x)  # the others' motion from older's (the newest view's row unused)
+    T = [*older.T, np.eye(4)]
     before: list[Array] = []
-    last_gaps: list[Array] = []
+    last: list[tuple[int, int, Array, Array]] = []  # the newest view's pairs: i, j, rows J, gaps after
     matches: list[tuple[int, int, PairMatch]] = []
     held_new = False
+    boxes_old = [_moved_box(Ti, s.points, s.box) for Ti, s in zip(T[:new], sides[:new], strict=True)]
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="refine") as pool:
         for it, radius in enumerate(radii_mm):
-            # at the first radius all views at their kinematic poses (the pairs' first matching), later the
-            # others where older put them and the newest where the last step did
-            boxes = (
-                [s.box for s in sides]
-                if it == 0
-                else [*moved, _moved_box(T[new], sides[new].points, sides[new].box)]
-            )
+            # at the first radius all views at their kinematic poses (the pairs' first matching), later at
+            # the present corrections
+            if it == 0:
+                boxes = [s.box for s in sides]
+            else:
+                boxes_old = [
+                    _moved_box(T[k], sides[k].points, sides[k].box) if D[k].any() else boxes_old[k]
+                    for k in range(new)
+                ]
+                boxes = [*boxes_old, _moved_box(T[new], sides[new].points, sides[new].box)]
             ordered = [
                 ij
                 for j in range(new)
@@ -624,12 +653,15 @@ def refine_newest(
                 if m is not None
             ]
             # the corrections since the poses the pairs were matched at (all of them at the first matching)
-            since = known if it == 0 else np.zeros_like(known)
+            since = (x + D) if it == 0 else np.zeros_like(x)
             used = sum(m.w.sum() for i, j, m in matches if not held_old[j if i == new else i])
             held_new = bool(used < MIN_VIEW_PAIRS)
-            H = np.zeros((6, 6))
-            g = np.zeros(6)
-            pairs: list[tuple[float, Array, Array]] = []
+            H = A.copy()
+            g = A @ D.ravel()
+            sn = slice(6 * new, 6 * new + 6)
+            H[sn, sn] += np.diag(prior_w) + (np.eye(6) * 1e12 if held_new else 0.0)
+            g[sn] += prior_w * x[new]
+            pairs: list[tuple[int, int, Array, Array]] = []
             for i, j, match in matches:
                 p, q, nj, r, w_row = match.p, match.q, match.n, match.r, match.w
                 if it == 0:
@@ -638,63 +670,76 @@ def refine_newest(
                 Ji = np.column_stack([np.cross((p + q) / 2 - centre, nj) / lever, nj])
                 Ji = Ji @ _observable(Ji)
                 r = r + Ji @ (since[i] - since[j])  # the gaps at the present corrections (linearised)
-                sign = 1.0 if i == new else -1.0  # d gap / d x_new: +J as the source, -J as the target
-                pairs.append((sign, Ji, r))
+                pairs.append((i, j, Ji, r))
                 if held_new or held_old[j if i == new else i]:
                     continue
+                si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
                 Wi = Ji * (w * w_row)[:, None]
-                H += Wi.T @ Ji
-                g += sign * (Wi.T @ r)
-            step = -np.linalg.solve(H + np.diag(prior_w), g + prior_w * known[new])
+                WJ = Wi.T @ Ji
+                H[si, si] += WJ
+                H[sj, sj] += WJ
+                H[si, sj] -= WJ
+                H[sj, si] -= WJ
+                g[si] += Wi.T @ r
+                g[sj] -= Wi.T @ r
+            step = -np.linalg.solve(H, g).reshape(n_views, 6)
+            step[held_old] = 0.0
             if held_new:
-                step = -known[new]
-            known[new] += step
-            last_gaps = [r + sign * (Ji @ step) for sign, Ji, r in pairs]
-            T[new] = _apply(known[new], centre, lever)
+                step[new] = -x[new]
+            x[new] += step[new]
+            D[:new] += step[:new]
+            last = [(i, j, Ji, r + Ji @ (step[i] - step[j])) for i, j, Ji, r in pairs]
+            T = [
+                *(
+                    older.T[k] if not D[k].any() else _apply(older.x[k] + D[k], centre, lever)
+                    for k in range(new)
+                ),
+                _apply(x[new], centre, lever),
+            ]
     support = np.zeros((n_views, n_views))
     support[:new, :new] = older.support
     support += _support(n_views, matches)
-    joint_held = _held_views(support)
-    if (joint_held != np.append(held_old[:new], held_new)).any():
+    if (_held_views(support) != np.append(held_old[:new], held_new)).any():
         return None
     information = np.zeros((6 * n_views, 6 * n_views))
     if older.information is not None:
         information[: 6 * new, : 6 * new] = older.information
-    if not held_new:
-        sn = slice(6 * new, 6 * new + 6)
-        for i, j, match in matches:
-            other = j if i == new else i
-            if held_old[other]:
-                continue
-            w = 0.5 / (2 * noise_mm**2) * min(1.0, EFFECTIVE_PAIRS / len(match.r))
-            Ji = np.column_stack([np.cross((match.p + match.q) / 2 - centre, match.n) / lever, match.n])
-            Ji = Ji @ _observable(Ji)
-            WJ = (Ji * (w * match.w)[:, None]).T @ Ji
-            so = slice(6 * other, 6 * other + 6)
-            information[sn, sn] += WJ
-            information[so, so] += WJ
-            information[sn, so] -= WJ
-            information[so, sn] -= WJ
+    moments = []
+    for i, j, b0, b1, B2 in older.moments:  # the others' gaps moved on by D
+        d = D[i] - D[j]
+        moments.append((i, j, b0 + 2 * float(b1 @ d) + float(d @ B2 @ d), b1 + B2 @ d, B2))
+    for (i, j, Ji, e), (_, _, match) in zip(last, matches, strict=True):
+        moments.append((i, j, float(e @ e), Ji.T @ e, Ji.T @ Ji))
+        if held_new or held_old[j if i == new else i]:
+            continue
+        w = 0.5 / (2 * noise_mm**2) * min(1.0, EFFECTIVE_PAIRS / len(e))
+        WJ = (Ji * (w * match.w)[:, None]).T @ Ji
+        si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
+        information[si, si] += WJ
+        information[sj, sj] += WJ
+        information[si, sj] -= WJ
+        information[sj, si] -= WJ
     overlaps = [*older.overlaps, 0]
     for i, _, _ in matches:
         overlaps[i] += 1
-    n_before, n_after = older.gaps
-    b2 = older.rms_before_mm**2 * n_before + sum(float(np.sum(r**2)) for r in before)
-    a2 = older.rms_after_mm**2 * n_after + sum(float(np.sum(r**2)) for r in last_gaps)
-    n_before += sum(len(r) for r in before)
-    n_after += sum(len(r) for r in last_gaps)
+    n_before = older.gaps[0] + sum(len(r) for r in before)
+    n_after = older.gaps[1] + sum(len(e) for _, _, _, e in last)
+    b2 = older.rms_before_mm**2 * older.gaps[0] + sum(float(r @ r) for r in before)
+    a2 = sum(m[2] for m in moments)
     return ViewRefinement(
         T,
         float(np.sqrt(b2 / n_before)) if n_before else 0.0,
-        float(np.sqrt(a2 / n_after)) if n_after else 0.0,
+        float(np.sqrt(max(a2, 0.0) / n_after)) if n_after else 0.0,
         overlaps,
         sorted([*older.unregistered, new] if held_new else older.unregistered),
         information,
         centre,
         lever,
-        known,
+        x + D,
         support,
         (n_before, n_after),
+        moments,
+        np.append(older.prior_w, prior_w),
     )
 
 
