@@ -607,7 +607,7 @@ class LambertianInspection(InspectionResults):
                 with self._refine_lock:
                     if self._older_of is views and len(views) >= 2:
                         self._joint(views)
-            except Exception:  # noqa: S110 - made again (and raised) by the refinement after the last view
+            except Exception:  # made again (and raised) by the refinement after the last view
                 pass
 
         threading.Thread(target=refine, name="refine-older-ahead", daemon=True).start()
