@@ -4,10 +4,13 @@ the last view moves the others' refinement.
 Reads a run folder (`cell inspect ... --out RUN`), prepares what the decode worker prepares while the robot
 moves (each view's first overlaps and merge bins, in view order), then times, in one thread, the job's
 ``evaluate`` and ``register`` as the controller calls them after the last view, with each step inside them
-(wall and CPU seconds; the process's numba kernels are loaded first so no compilation is counted). Then it
-refines the views without the last one and prints how far each earlier view's correction moved when the last
-view was added (the largest motion of its evaluation points between the two solutions, um): what an
-incremental registration would have to correct after the last frame.
+(wall and CPU seconds; the process's numba kernels are loaded first so no compilation is counted). The joint
+refinement of the views before the last, which the run makes ahead while the robot moves to the last view, is
+made before the clocks too, so ``refine_newest`` is what the refinement after the last frame costs. Then it
+makes the joint refinement of all the views (what the refinement after the last frame was before it was made
+incremental, timed alone) and prints how far each view's incremental correction is from it (the largest
+motion of its evaluation points between the two, um), and how far the joint refinement of the views before
+the last is from it (how far adding the last view moves the others in the joint solve).
 
     .venv/bin/python bench/bench_tail_steps.py RUN
 """
@@ -72,6 +75,13 @@ def load_finished_run(path: Path) -> tuple[Any, LambertianInspection, Checkpoint
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("run", type=Path)
+    ap.add_argument(
+        "--prefixes",
+        type=int,
+        default=3,
+        help="also compare the incremental and joint refinement of the views up to each of this many views "
+        "before the last (their newest registered, where the last is held)",
+    )
     args = ap.parse_args()
     run, job, checkpoint = load_finished_run(args.run)
     # what the decode worker did view by view (the last view's maps' pairs and bins are left to the tail)
@@ -80,7 +90,10 @@ def main() -> None:
         job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
         if i != done[-1]:
             job.bin_arrived_view(run, job.views.get(run, i))
+    if len(done) >= 3:  # made ahead, while the robot moves to the last view (LambertianInspection._joint)
+        job._joint([job.views.get(run, i) for i in done[:-1]])
     timed(inspection, "refine_views")
+    timed(inspection, "refine_newest")
     timed(job.aligner, "align", "Aligner.align (evaluate, register)")
     timed(inspection, "signed_distance", "evaluate: deviations")
     timed(inspection, "covered_by_views", "evaluate: coverage")
@@ -105,34 +118,95 @@ def main() -> None:
     for name, (wall, cpu, calls) in TIMES.items():
         print(f"  {name:32s} {wall:8.2f} {cpu:8.2f} {int(calls)}")
     moved_by_last(job, run)
+    prefixes(job, run, args.prefixes)
 
 
 def moved_by_last(job: LambertianInspection, run: Any) -> None:
-    """How far each earlier view's refined pose moved when the last view was added (um, largest point)."""
-    done, full = job.refinement(run)
-    if len(done) < 3:
+    """The joint refinement of all views, timed, and how far from it (um, largest point per view) each view's
+    incremental correction is, and each earlier view's correction in the joint refinement without the last
+    view."""
+    done, incremental = job.refinement(run)
+    if len(done) < 3 or job._older is None:
         return
     views = [job.views.get(run, i) for i in done]
-    sigma = np.asarray(job._refinement[2]["prior_sigma_mm"]) if job._refinement else None
-    sigma_deg = np.asarray(job._refinement[2]["prior_sigma_deg"]) if job._refinement else None
-    if sigma is None or sigma_deg is None:
-        return
-    fewer = inspection.refine_views(
-        [v.eval_W for v in views[:-1]],
-        sigma[:-1],
-        np.deg2rad(sigma_deg[:-1]),
-        planes=[v.planes for v in views[:-1]],
-        cameras=[v.camera_W for v in views[:-1]],
-        trees=[v.eval_tree if len(v.eval_W) else None for v in views[:-1]],
-        ids=list(done[:-1]),
+    sigma, _ = job._prior(views)
+    wall, cpu = time.perf_counter(), time.process_time()
+    joint = inspection.refine_views(
+        [v.eval_W for v in views],
+        sigma[:, 0],
+        sigma[:, 1],
+        planes=[v.planes for v in views],
+        cameras=[v.camera_W for v in views],
+        trees=[v.eval_tree if len(v.eval_W) else None for v in views],
+        ids=list(done),
         cache=job._overlaps,
     )
-    um = []
-    for a, b, v in zip(fewer.T, full.T[:-1], views[:-1], strict=True):
-        if len(v.eval_W):
-            gap = transform_points(a, v.eval_W) - transform_points(b, v.eval_W)
-            um.append(1000 * float(np.linalg.norm(gap, axis=1).max()))
-    print(f"adding view {done[-1]} moved the other views' refined poses by (um, per view): {np.round(um, 1)}")
+    print(
+        f"joint refinement of all {len(done)} views (first matchings made): "
+        f"{time.perf_counter() - wall:.2f} s wall, {time.process_time() - cpu:.2f} s CPU"
+    )
+
+    def apart(A: list[Any], B: list[Any]) -> list[float]:
+        return [
+            1000
+            * float(
+                np.linalg.norm(transform_points(a, v.eval_W) - transform_points(b, v.eval_W), axis=1).max()
+            )
+            for a, b, v in zip(A, B, views, strict=False)
+            if len(v.eval_W)
+        ]
+
+    for name, found in (("incremental", incremental), ("joint", joint)):
+        print(
+            f"  {name:12s} rms {found.rms_before_mm:.4f} -> {found.rms_after_mm:.4f} mm, "
+            f"unregistered {[done[k] for k in found.unregistered]}"
+        )
+    print(f"incremental vs joint of all (um, per view): {np.round(apart(incremental.T, joint.T), 1)}")
+    older = job._older[1]
+    print(
+        f"adding view {done[-1]} moved the other views' joint refined poses by (um, per view): "
+        f"{np.round(apart(older.T, joint.T[:-1]), 1)}"
+    )
+
+
+def prefixes(job: LambertianInspection, run: Any, count: int) -> None:
+    """For the views up to each of the ``count`` views before the last: the newest view refined alone against
+    the joint refinement of the ones before it (:func:`refine_newest`) against the joint refinement of them
+    all, the largest difference of a view's points (um, per view) and the newest view's correction (um)."""
+    done = run.completed_views()
+    for m in range(len(done) - 1, max(len(done) - 1 - count, 2), -1):
+        views = [job.views.get(run, i) for i in done[:m]]
+        sigma, _ = job._prior(views)
+
+        def kw(k: int, views: list[Any] = views, m: int = m) -> dict[str, Any]:
+            return {
+                "planes": [v.planes for v in views[:k]],
+                "cameras": [v.camera_W for v in views[:k]],
+                "trees": [v.eval_tree if len(v.eval_W) else None for v in views[:k]],
+                "ids": list(done[:k]),
+                "cache": job._overlaps,
+            }
+
+        points = [v.eval_W for v in views]
+        older = inspection.refine_views(points[:-1], *job._prior(views[:-1])[0].T, **kw(m - 1))
+        cpu = time.process_time()
+        newest = inspection.refine_newest(older, points, sigma[-1, 0], sigma[-1, 1], **kw(m))
+        newest_cpu = time.process_time() - cpu
+        joint = inspection.refine_views(points, sigma[:, 0], sigma[:, 1], **kw(m))
+        if newest is None:
+            print(f"views {done[0]}..{done[m - 1]}: the newest view's pairs change the held views: joint")
+            continue
+        um = [
+            1000 * float(np.linalg.norm(transform_points(a, p) - transform_points(b, p), axis=1).max())
+            for a, b, p in zip(newest.T, joint.T, points, strict=True)
+            if len(p)
+        ]
+        moved = 1000 * newest.correction_mm(points)[-1]
+        print(
+            f"views {done[0]}..{done[m - 1]} (newest {done[m - 1]} corrected by {moved:.1f} um, "
+            f"{newest_cpu:.2f} s CPU; unregistered {[done[k] for k in newest.unregistered]} vs joint "
+            f"{[done[k] for k in joint.unregistered]}): incremental vs joint (um, per view) {np.round(um, 1)}"
+        )
 
 
 if __name__ == "__main__":

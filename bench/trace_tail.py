@@ -24,6 +24,7 @@ STEPS = [  # (module, attribute as the caller looks it up, label)
     ("cell.inspection", "LambertianInspection.decode", "decode"),
     ("cell.inspection", "LambertianInspection._first_overlaps", "first overlaps"),
     ("cell.inspection", "refine_views", "refine_views"),
+    ("cell.inspection", "refine_newest", "refine_newest"),
     ("cell.inspection", "LambertianInspection.evaluate", "evaluate"),
     ("cell.inspection", "LambertianInspection._evaluation_alignment", "evaluate: alignment"),
     ("cell.inspection", "LambertianInspection._measured", "evaluate: deviations"),

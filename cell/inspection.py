@@ -42,6 +42,7 @@ from cell.analysis.view_refinement import (
     ViewRefinement,
     estimate_normals,
     prepare_overlaps,
+    refine_newest,
     refine_views,
 )
 from cell.calibration import (
@@ -150,6 +151,9 @@ class Captured:
     # the plan's last view so far: an evaluation (and the registration beside it) waits for its decode, which
     # leaves the feedback maps' pairs of it to the evaluation (made there beside the registration, not before)
     last: bool = False
+    # the view before the plan's last so far: its decode starts the joint refinement of the views up to it,
+    # which the refinement after the last view begins with (LambertianInspection._start_older_ahead)
+    next_to_last: bool = False
 
 
 @dataclass
@@ -202,6 +206,10 @@ class LambertianInspection(InspectionResults):
         self._merge_bins: MergeBins | None = None  # the views' merge bins, made as they arrive
         self._merge_bins_lock = threading.Lock()
         self._refinement: tuple[tuple[int, ...], ViewRefinement, dict[str, Any]] | None = None
+        # the joint refinement of the views but the newest, that the refinement of them all begins with
+        # (:meth:`_refine`), with the prior it ran under (sigma per view: mm, rad) and its source
+        self._older: tuple[tuple[int, ...], ViewRefinement, NDArray[np.float64], str] | None = None
+        self._older_of: list[ViewResult] | None = None  # the views the one started ahead is for (None: void)
         self._refine_lock = threading.Lock()  # one refinement at a time: a second caller waits for it
         self._refining_ahead: Future[None] | None = None  # the refinement started by the last view's decode
         self._ahead_of: ViewResult | None = None  # the view it was started for (a later start voids it)
@@ -275,7 +283,8 @@ class LambertianInspection(InspectionResults):
             status = devices.projector.status()
             why = ", ".join(status.errors) or str(status)
             raise DeviceFault(devices.projector.name, f"not ready after the pattern stack: {why}")
-        return Captured(images, T_B_T, joints, devices.camera.name, index, index == len(views) - 1)
+        last, next_to_last = index == len(views) - 1, index == len(views) - 2
+        return Captured(images, T_B_T, joints, devices.camera.name, index, last, next_to_last)
 
     def decode(self, view: View, captured: Captured, out_dir: Path) -> dict[str, Any]:
         """Decode, triangulate and filter one view and write its folder ``out_dir`` (points, planes, holes,
@@ -469,6 +478,9 @@ class LambertianInspection(InspectionResults):
             if not captured.last:
                 self.bin_arrived_view(run, result)
             self.views.add(result)
+            if captured.next_to_last:  # while the robot moves to the last view and captures it
+                others = [v for v in self.views.completed(run) if v.index != result.index]
+                self._start_older_ahead(sorted([*others, result], key=lambda v: v.index))
         return summary
 
     def _first_overlaps(self, run: RunFolder, new: ViewResult, pair_maps: bool = True) -> None:
@@ -494,10 +506,13 @@ class LambertianInspection(InspectionResults):
 
     def _forget(self, run: RunFolder, index: int, ahead_of: ViewResult | None = None) -> None:
         """Drop what the caches hold of view ``index`` (it is measured again): its overlaps, maps' pairs and
-        merge bins, and a refinement that holds it (one made ahead: after it is made, as the lock orders, so
-        that none of its overlaps of the earlier measurement stays in the cache). A refinement started ahead
-        and not yet begun is void from here on: under the same lock, the view it is for becomes ``ahead_of``
-        (the one about to be started, else None), so an earlier start never refines a view measured again."""
+        merge bins, and a refinement that holds it, and the joint refinement of the views but the newest if it
+        holds it (one made ahead: after it is made, as the lock orders, so that none of its overlaps of the
+        earlier measurement stays in the cache). A refinement started ahead and not yet begun is void from
+        here on: under the same lock, the view it is for becomes ``ahead_of`` (the one about to be started,
+        else None), so an earlier start never refines a view measured again; a joint refinement of the views
+        but the newest started ahead (:meth:`_start_older_ahead`) and not yet begun is void when it holds
+        ``index``."""
         with self._refine_lock:
             self._ahead_of = ahead_of
             self._overlaps.forget(index)
@@ -505,6 +520,10 @@ class LambertianInspection(InspectionResults):
             if self._refinement is not None and index in self._refinement[0]:
                 self._refinement = None
                 self._moved.clear()
+            if self._older is not None and index in self._older[0]:
+                self._older = None
+            if self._older_of is not None and any(v.index == index for v in self._older_of):
+                self._older_of = None
         self.merge_bins_for(run).forget(index)
 
     def _pair_maps(self, new: ViewResult, others: Sequence[ViewResult]) -> None:
@@ -571,21 +590,81 @@ class LambertianInspection(InspectionResults):
         self._refining_ahead = done
         threading.Thread(target=refine, name="refine-ahead", daemon=True).start()
 
+    def _start_older_ahead(self, views: list[ViewResult]) -> None:
+        """Make the joint refinement of ``views`` (in index order), all the views before the plan's last so
+        far (the decode of the one before the last just done, or a replan that adds one view), on a thread
+        of its own, while the robot moves to the last view and captures it: the refinement after the last
+        view begins with it (:meth:`_refine`), or makes it then when it is not there (the same numbers: a
+        function of the same views). Void when one of its views is measured again before it begins
+        (:meth:`_forget`). What fails in it is left to the refinement after the last view, which makes it
+        again (and raises there). A daemon thread: a paused or aborted run's process does not wait for it (it
+        writes nothing)."""
+        with self._refine_lock:
+            self._older_of = views
+
+        def refine() -> None:
+            try:
+                with self._refine_lock:
+                    if self._older_of is views and len(views) >= 2:
+                        self._joint(views)
+            except Exception:  # made again (and raised) by the refinement after the last view
+                pass
+
+        threading.Thread(target=refine, name="refine-older-ahead", daemon=True).start()
+
+    def _joint(self, views: list[ViewResult]) -> tuple[ViewRefinement, NDArray[np.float64], str]:
+        """The joint refinement of ``views`` (:func:`refine_views`) with the prior it ran under (per view,
+        column 0 mm, column 1 rad) and its source, kept as the one the refinement of these views and a newer
+        one begins with (:attr:`_older`). Called under :attr:`_refine_lock`."""
+        done = tuple(v.index for v in views)
+        if self._older is not None and self._older[0] == done:
+            return self._older[1], self._older[2], self._older[3]
+        sigma, source = self._prior(views)
+        found = refine_views(
+            [v.eval_W for v in views],
+            sigma[:, 0],
+            sigma[:, 1],
+            planes=[v.planes for v in views],
+            cameras=[v.camera_W for v in views],
+            trees=[v.eval_tree if len(v.eval_W) else None for v in views],
+            ids=list(done),
+            cache=self._overlaps,
+        )
+        self._older = (done, found, sigma, source)
+        return found, sigma, source
+
+    def _prior(self, views: list[ViewResult]) -> tuple[NDArray[np.float64], str]:
+        """The views' pose prior (:func:`view_pose_prior`, from their joints when all have them)."""
+        joints = [np.asarray(v.summary["joints_rad"]) for v in views if "joints_rad" in v.summary]
+        return view_pose_prior(self.cfg, joints if len(joints) == len(views) else None)
+
     def _refine(self, views: list[ViewResult]) -> tuple[list[int], ViewRefinement]:
+        """The refinement of ``views`` (in index order; kept while they are the completed views): of three or
+        more, the joint refinement of all but the newest (:meth:`_joint`, made ahead or now) and the newest
+        view refined alone against them (:func:`refine_newest`); of fewer, or where the newest view's pairs
+        would change which views are held, the joint refinement of all (docs/analysis.md, "Multi-view
+        refinement"). Called under :attr:`_refine_lock`."""
         done = tuple(v.index for v in views)
         if self._refinement is None or self._refinement[0] != done:
-            joints = [np.asarray(v.summary["joints_rad"]) for v in views if "joints_rad" in v.summary]
-            sigma, source = view_pose_prior(self.cfg, joints if len(joints) == len(views) else None)
-            found = refine_views(
-                [v.eval_W for v in views],
-                sigma[:, 0],
-                sigma[:, 1],
-                planes=[v.planes for v in views],
-                cameras=[v.camera_W for v in views],
-                trees=[v.eval_tree if len(v.eval_W) else None for v in views],
-                ids=list(done),
-                cache=self._overlaps,
-            )
+            sigma, source = self._prior(views)
+            found = None
+            if len(views) >= 3:
+                older, older_sigma, _ = self._joint(views[:-1])
+                found = refine_newest(
+                    older,
+                    [v.eval_W for v in views],
+                    float(sigma[-1, 0]),
+                    float(sigma[-1, 1]),
+                    planes=[v.planes for v in views],
+                    cameras=[v.camera_W for v in views],
+                    trees=[v.eval_tree if len(v.eval_W) else None for v in views],
+                    ids=list(done),
+                    cache=self._overlaps,
+                )
+                if found is not None:  # the others under their own joint solve's prior, the newest its own
+                    sigma = np.vstack([older_sigma, sigma[-1:]])
+            if found is None:
+                found, sigma, source = self._joint(views)
             prior = {
                 "prior": source,
                 "prior_sigma_mm": np.round(sigma[:, 0], 4).tolist(),
@@ -740,6 +819,9 @@ class LambertianInspection(InspectionResults):
         start = len(fb.log)
         proposed = fb.propose(k, latest, ev.covered, ev.ia, ev.iu)
         new = select_new(fb, proposed, [v.T_W_C for v in views if v.T_W_C is not None])
+        if len(new) == 1:  # the views so far are all the refinement after it begins with (the decode of the
+            # view before the last starts it when more are added)
+            self._start_older_ahead(self.views.completed(run))
         for entry in fb.log[start:]:
             run.log(
                 "decision", **{"kind": entry.get("event"), **{k: v for k, v in entry.items() if k != "event"}}

@@ -71,6 +71,18 @@ class ViewRefinement:
     information: Array | None = None
     centre_mm: Array | None = None
     lever_mm: float = 1.0
+    # the corrections x_i themselves, (n, 6), as the last solve left them (None when nothing was solved)
+    x: Array | None = None
+    # (n, n) the incidence-weighted pairs of the last matching between each two views (both ways, held views'
+    # too): what decides which views are held (:func:`_held_views`)
+    support: Array | None = None
+    # how many gaps the rms before and after are over (so that a view added later can join them)
+    gaps: tuple[int, int] = (0, 0)
+    # per ordered view pair (i, j) of the last matching, its gaps e after the corrections (linearised) as
+    # sum e^2 (mm^2), J^T e and J^T J of its rows J (d e / d(x_i - x_j)): what they become as views move on
+    moments: list[tuple[int, int, float, Array, Array]] = field(default_factory=list)
+    # the prior's weights on x, (6n,) (1 / sigma^2, the rotation's at the lever arm)
+    prior_w: Array | None = None
 
     def correction_mm(self, points: list[Array]) -> list[float]:
         """The largest motion of each view's points under its correction (mm)."""
@@ -421,8 +433,11 @@ def refine_views(
     prior_w = np.repeat(np.column_stack([1 / (sigma_r * lever) ** 2, 1 / sigma_t**2]), 3, axis=1).ravel()
     x = np.zeros((n_views, 6))
     rms: list[float] = []
+    counted: list[int] = []  # the gaps each matching found
+    support = np.zeros((n_views, n_views))
     overlaps = [0] * n_views
     last_gaps: list[Array] = []
+    last_rows: list[tuple[int, int, Array]] = []
     held = np.zeros(n_views, dtype=bool)
     information: Array | None = None
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="refine") as pool:
@@ -470,17 +485,8 @@ def refine_views(
             # The views' pose covariance (cell.analysis.uncertainty.posterior_covariance) leaves them out the
             # same way. Counted until no more views are held: a neighbour that passes MIN_VIEW_PAIRS only with
             # a held view's pairs would be registered on fewer
-            held = np.zeros(n_views, dtype=bool)
-            while True:
-                used = np.zeros(n_views)  # pairs (incidence-weighted) holding each view, as source or target
-                for i, j, match in matches:
-                    if not (held[i] or held[j]):
-                        used[i] += match.w.sum()
-                        used[j] += match.w.sum()
-                now_held = held | (used < MIN_VIEW_PAIRS)  # only grows: at most n_views rounds
-                if (now_held == held).all():
-                    break
-                held = now_held
+            support = _support(n_views, matches)
+            held = _held_views(support)
             H = np.zeros((6 * n_views, 6 * n_views))
             g = np.zeros(6 * n_views)
             gaps_all: list[Array] = []
@@ -510,6 +516,7 @@ def refine_views(
                 g[si] += Wi.T @ r
                 g[sj] -= Wi.T @ r
             rms.append(float(np.sqrt(np.mean(np.concatenate(gaps_all) ** 2))) if gaps_all else 0.0)
+            counted.append(sum(len(r) for r in gaps_all))
             information = H.copy()  # the overlaps' alone, for cell.analysis.uncertainty
             for v in np.flatnonzero(held):
                 H[6 * v : 6 * v + 6, 6 * v : 6 * v + 6] += np.eye(6) * 1e12
@@ -520,6 +527,7 @@ def refine_views(
             step[held] = -x[held]  # back at its kinematic pose, where an earlier (wider) matching moved it
             x += step
             last_gaps = [r + Ji @ (step[i] - step[j]) for i, j, Ji, r in pairs]
+            last_rows = [(i, j, Ji) for i, j, Ji, _ in pairs]
             T = [_apply(xi, centre, lever) for xi in x]
     # the gaps of the last matching moved by the last step (linearised): what the corrections leave
     after = float(np.sqrt(np.mean(np.concatenate(last_gaps) ** 2))) if last_gaps else 0.0
@@ -533,7 +541,229 @@ def refine_views(
         information if radii_mm else None,
         centre,
         lever,
+        x.copy() if radii_mm else None,
+        support,
+        (counted[0], sum(len(r) for r in last_gaps)) if counted else (0, 0),
+        [
+            (i, j, float(e @ e), Ji.T @ e, Ji.T @ Ji)
+            for (i, j, Ji), e in zip(last_rows, last_gaps, strict=True)
+        ],
+        prior_w,
     )
+
+
+def refine_newest(
+    older: ViewRefinement,
+    views: list[Array],
+    sigma_t_mm: float,
+    sigma_r_rad: float,
+    noise_mm: float = 0.05,
+    radii_mm: tuple[float, ...] = (2.0, 1.0, 0.6),
+    seed: int = 0,
+    planes: list[LocalPlanes] | None = None,
+    cameras: list[Array] | None = None,
+    trees: list[cKDTree | None] | None = None,
+    ids: list[int] | None = None,
+    cache: OverlapCache | None = None,
+) -> ViewRefinement | None:
+    """The refinement of ``views`` made from ``older``, :func:`refine_views` of all but the newest (the last
+    of them; its arguments as there, ``sigma_t_mm``, ``sigma_r_rad`` the newest view's prior), and the newest
+    view's pairs alone: the others' pairs are not matched again. The same schedule as the joint solve: the
+    newest view's first matching at the kinematic poses (its gaps moved by the others' corrections,
+    linearised), then one at each later radius at the present corrections; each solves, about ``older``'s
+    centre and lever, for the newest view's correction x_n = (omega * lever, tau) and the others' further
+    motion D from ``older``'s x
+
+        D^T A D  +  sum over the newest view's pairs with the registered others  w (r + J (x_n - x_j))^2
+                 +  prior(x_n)
+
+    where A (``older``'s information and prior) is what the others' pairs and priors say about D: ``older``
+    is their minimum, so their objective grows as D^T A D about it (linearised at its last matching). The
+    newest view is held at its kinematic pose when its pairs with the registered others are fewer than
+    :data:`MIN_VIEW_PAIRS`, and then moves no other view; the others keep ``older``'s held set. The
+    information holds ``older``'s and the newest view's pairs' of its last matching. None when ``older``
+    solved nothing (fewer than two views) or when the newest view's pairs would change which views the joint
+    solve of all holds (a held view released by them, or the newest view held or not only through one): the
+    caller then solves jointly (:func:`refine_views`)."""
+    if older.x is None or older.centre_mm is None or older.prior_w is None or not radii_mm:
+        return None
+    n_views, new = len(views), len(views) - 1
+    centre, lever = older.centre_mm, older.lever_mm
+    normals = planes if planes is not None else [estimate_normals(v) for v in views]
+    cache = cache if cache is not None else OverlapCache()
+    sides = _sides(views, normals, cameras, trees, ids, cache)
+    held_old = np.zeros(n_views, dtype=bool)
+    held_old[older.unregistered] = True
+    # what the others' pairs and priors say about their further motion D (older's last solve, its normal
+    # equations' matrix), the held views pinned
+    A = np.zeros((6 * n_views, 6 * n_views))
+    if older.information is not None:
+        A[: 6 * new, : 6 * new] = older.information
+    A[: 6 * new, : 6 * new] += np.diag(older.prior_w)
+    pinned = np.repeat(held_old, 6)
+    A[pinned, pinned] += 1e12
+    prior_w = np.repeat([1 / (sigma_r_rad * lever) ** 2, 1 / sigma_t_mm**2], 3)
+    x = np.vstack([older.x, np.zeros((1, 6))])  # the corrections: older's, and the newest view's
+    D = np.zeros_like(x)  # the others' motion from older's (the newest view's row unused)
+    T = [*older.T, np.eye(4)]
+    before: list[Array] = []
+    last: list[tuple[int, int, Array, Array]] = []  # the newest view's pairs: i, j, rows J, gaps after
+    matches: list[tuple[int, int, PairMatch]] = []
+    held_new = False
+    boxes_old = [_moved_box(Ti, s.points, s.box) for Ti, s in zip(T[:new], sides[:new], strict=True)]
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="refine") as pool:
+        for it, radius in enumerate(radii_mm):
+            # at the first radius all views at their kinematic poses (the pairs' first matching), later at
+            # the present corrections
+            if it == 0:
+                boxes = [s.box for s in sides]
+            else:
+                boxes_old = [
+                    _moved_box(T[k], sides[k].points, sides[k].box) if D[k].any() else boxes_old[k]
+                    for k in range(new)
+                ]
+                boxes = [*boxes_old, _moved_box(T[new], sides[new].points, sides[new].box)]
+            ordered = [
+                ij
+                for j in range(new)
+                for ij in ((new, j), (j, new))
+                if len(views[ij[0]])
+                and sides[ij[1]].tree is not None
+                and _boxes_overlap(boxes[ij[0]], boxes[ij[1]], radius)
+            ]
+
+            def matched(
+                ij: tuple[int, int],
+                it: int = it,
+                radius: float = radius,
+                poses: list[Pose] = T,
+                boxes: list[tuple[Array, Array]] = boxes,
+            ) -> PairMatch | None:
+                i, j = ij
+                a, b = sides[i], sides[j]
+                if it == 0:
+                    return _first_match(a, b, radius, noise_mm, seed, cache)
+                return _match(
+                    a, b, poses[i], poses[j], boxes[j], radius, cache.pool(a, b, radii_mm[0], seed), noise_mm
+                )
+
+            matches = [
+                (i, j, m)
+                for (i, j), m in zip(ordered, pool.map(matched, ordered), strict=True)
+                if m is not None
+            ]
+            # the corrections since the poses the pairs were matched at (all of them at the first matching)
+            since = (x + D) if it == 0 else np.zeros_like(x)
+            used = sum(m.w.sum() for i, j, m in matches if not held_old[j if i == new else i])
+            held_new = bool(used < MIN_VIEW_PAIRS)
+            H = A.copy()
+            g = A @ D.ravel()
+            sn = slice(6 * new, 6 * new + 6)
+            H[sn, sn] += np.diag(prior_w) + (np.eye(6) * 1e12 if held_new else 0.0)
+            g[sn] += prior_w * x[new]
+            pairs: list[tuple[int, int, Array, Array]] = []
+            for i, j, match in matches:
+                p, q, nj, r, w_row = match.p, match.q, match.n, match.r, match.w
+                if it == 0:
+                    before.append(r)
+                w = 0.5 / (2 * noise_mm**2) * min(1.0, EFFECTIVE_PAIRS / len(r))  # as in refine_views
+                Ji = np.column_stack([np.cross((p + q) / 2 - centre, nj) / lever, nj])
+                Ji = Ji @ _observable(Ji)
+                r = r + Ji @ (since[i] - since[j])  # the gaps at the present corrections (linearised)
+                pairs.append((i, j, Ji, r))
+                if held_new or held_old[j if i == new else i]:
+                    continue
+                si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
+                Wi = Ji * (w * w_row)[:, None]
+                WJ = Wi.T @ Ji
+                H[si, si] += WJ
+                H[sj, sj] += WJ
+                H[si, sj] -= WJ
+                H[sj, si] -= WJ
+                g[si] += Wi.T @ r
+                g[sj] -= Wi.T @ r
+            step = -np.linalg.solve(H, g).reshape(n_views, 6)
+            step[held_old] = 0.0
+            if held_new:
+                step[new] = -x[new]
+            x[new] += step[new]
+            D[:new] += step[:new]
+            last = [(i, j, Ji, r + Ji @ (step[i] - step[j])) for i, j, Ji, r in pairs]
+            T = [
+                *(
+                    older.T[k] if not D[k].any() else _apply(older.x[k] + D[k], centre, lever)
+                    for k in range(new)
+                ),
+                _apply(x[new], centre, lever),
+            ]
+    support = np.zeros((n_views, n_views))
+    support[:new, :new] = older.support
+    support += _support(n_views, matches)
+    if (_held_views(support) != np.append(held_old[:new], held_new)).any():
+        return None
+    information = np.zeros((6 * n_views, 6 * n_views))
+    if older.information is not None:
+        information[: 6 * new, : 6 * new] = older.information
+    moments = []
+    for i, j, b0, b1, B2 in older.moments:  # the others' gaps moved on by D
+        d = D[i] - D[j]
+        moments.append((i, j, b0 + 2 * float(b1 @ d) + float(d @ B2 @ d), b1 + B2 @ d, B2))
+    for (i, j, Ji, e), (_, _, match) in zip(last, matches, strict=True):
+        moments.append((i, j, float(e @ e), Ji.T @ e, Ji.T @ Ji))
+        if held_new or held_old[j if i == new else i]:
+            continue
+        w = 0.5 / (2 * noise_mm**2) * min(1.0, EFFECTIVE_PAIRS / len(e))
+        WJ = (Ji * (w * match.w)[:, None]).T @ Ji
+        si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
+        information[si, si] += WJ
+        information[sj, sj] += WJ
+        information[si, sj] -= WJ
+        information[sj, si] -= WJ
+    overlaps = [*older.overlaps, 0]
+    for i, _, _ in matches:
+        overlaps[i] += 1
+    n_before = older.gaps[0] + sum(len(r) for r in before)
+    n_after = older.gaps[1] + sum(len(e) for _, _, _, e in last)
+    b2 = older.rms_before_mm**2 * older.gaps[0] + sum(float(r @ r) for r in before)
+    a2 = sum(m[2] for m in moments)
+    return ViewRefinement(
+        T,
+        float(np.sqrt(b2 / n_before)) if n_before else 0.0,
+        float(np.sqrt(max(a2, 0.0) / n_after)) if n_after else 0.0,
+        overlaps,
+        sorted([*older.unregistered, new] if held_new else older.unregistered),
+        information,
+        centre,
+        lever,
+        x + D,
+        support,
+        (n_before, n_after),
+        moments,
+        np.append(older.prior_w, prior_w),
+    )
+
+
+def _support(n_views: int, matches: list[tuple[int, int, PairMatch]]) -> Array:
+    """(n, n) the incidence-weighted pairs of ``matches`` (i, j, match) between each two views, both ways."""
+    support = np.zeros((n_views, n_views))
+    for i, j, match in matches:
+        w = match.w.sum()
+        support[i, j] += w
+        support[j, i] += w
+    return support
+
+
+def _held_views(support: Array) -> NDArray[np.bool_]:
+    """Which views too few good pairs hold (:data:`MIN_VIEW_PAIRS`) given ``support`` (:func:`_support`):
+    counted until no more views are held, a view's pairs with held views not counting (a neighbour that
+    passes MIN_VIEW_PAIRS only with a held view's pairs would be registered on fewer)."""
+    held = np.zeros(len(support), dtype=bool)
+    while True:
+        used = support[:, ~held].sum(axis=1)  # pairs holding each view, as source or target
+        now_held = held | (used < MIN_VIEW_PAIRS)  # only grows: at most n rounds
+        if (now_held == held).all():
+            return held
+        held = now_held
 
 
 def _moved_box(T: Pose, points: Array, box: tuple[Array, Array]) -> tuple[Array, Array]:
