@@ -16,6 +16,7 @@ from cell.analysis.merge import (
     load_kernels,
     measured_elsewhere,
     merge_bins,
+    merge_bins_ahead,
     voxel_subsample_index,
 )
 from cell.errors import ConfigError
@@ -298,6 +299,76 @@ def test_the_compiled_merge_is_numpys_group_by_to_the_bit() -> None:
     assert merged.n_views.max() >= 3 and merged.count.sum() == sum(
         int(b.count.sum() if k is None else b.count[k].sum()) for b, k in zip(bins, keep, strict=True)
     )
+
+
+def _refined_views(rng: np.random.Generator, n: int, voxel: float) -> tuple[list, list, list]:
+    """``n`` binned patches of a sloped surface, overlapping, with refinements of tens of um and 0.3 deg and
+    a held mask on every third: the merge's inputs."""
+    bins, keep, T = [], [], []
+    for k in range(n):
+        xy = rng.uniform(0, 3, (900, 2)) + 0.4 * k
+        p = np.column_stack([xy, 0.4 * xy[:, 1] + rng.normal(0, 0.01, len(xy))])
+        bins.append(bin_view(p, rng.uniform(0.5, 2.0, len(p)), rng.uniform(0.005, 0.02, len(p)), voxel))
+        T_k = np.eye(4)
+        T_k[:3, :3] = _rotation(rng.normal(size=3), np.deg2rad(0.3))
+        T_k[:3, 3] = rng.uniform(-0.06, 0.06, 3)
+        T.append(T_k)
+        keep.append(rng.random(len(bins[-1])) < 0.7 if k % 3 == 1 else None)
+    return bins, keep, T
+
+
+def _merged_with_views(merged: MergedCloud | None, calls: list) -> list[bytes]:
+    """Every array of a merge and of its ``each_view`` calls, as bytes (with their dtypes and m)."""
+    if merged is None:
+        return [b"None"] + [repr(c).encode() for c in calls]
+    out = [x.dtype.str.encode() + x.tobytes() for x in (merged.points_mm, merged.weight, merged.count)]
+    out.append(merged.n_views.tobytes())
+    for k, rows, m, w, wu in calls:
+        out += [f"{k} {m} {rows.dtype}".encode(), rows.tobytes(), w.tobytes(), wu.tobytes()]
+    return out
+
+
+@pytest.mark.parametrize("last", ["new voxels", "old voxels", "repeated", "crowd", "nothing", "nothing before"])
+def test_a_merge_made_ahead_and_finished_with_the_last_view_is_the_full_merge_to_the_bit(last: str) -> None:
+    """Four views merged ahead, then the last: a view beside them (its voxels new, all before theirs), one over them (moved by
+    its own refinement: some voxels new, most shared), a copy of an earlier view (no new voxel: the same
+    numbering), a dozen bins in one new voxel (NumPy's pairwise sum), a view whose bins are all held back,
+    and earlier views that give nothing: points, weights, counts, views per voxel and every view's
+    ``each_view`` arguments equal the merge of all five at once, byte for byte."""
+    load_kernels()
+    rng = np.random.default_rng({"new voxels": 1, "old voxels": 2, "repeated": 3}.get(last, 4))
+    voxel = 0.2
+    bins, keep, T = _refined_views(rng, 5, voxel)
+    if last == "new voxels":
+        bins[4] = bin_view(bins[4].mean - [6.0, 0.0, 0.0], bins[4].weight, None, voxel)
+    elif last == "repeated":
+        bins[4], keep[4], T[4] = bins[2], None, T[2]
+    elif last == "crowd":
+        bins[4] = ViewBins(
+            rng.uniform(8.01, 8.19, (12, 3)),
+            rng.uniform(0.5, 2.0, 12),
+            rng.uniform(0, 0.1, 12).astype(np.float32),
+            np.ones(12, np.int32),
+        )
+        keep[4] = None
+    elif last == "nothing":
+        keep[4] = np.zeros(len(bins[4]), dtype=bool)
+    elif last == "nothing before":
+        keep[:4] = [np.zeros(len(b), dtype=bool) for b in bins[:4]]
+    full: list = []
+    merged = merge_bins(voxel, lambda k: bins[k], keep, T, lambda *a: full.append(a))
+    partial = merge_bins_ahead(voxel, lambda k: bins[k], keep[:4], T[:4])
+    assert partial.nbytes > 0
+    two: list = []
+    finished = partial.finish(bins[4], keep[4], T[4], lambda *a: two.append(a))
+    assert merged is not None and len(full) == 5 and [c[0] for c in two] == list(range(5))
+    if last in ("repeated", "nothing"):
+        assert len(merged.weight) == len(partial.wsum)  # (no voxel added: the numbering kept)
+    else:
+        assert len(merged.weight) > len(partial.wsum)
+    assert _merged_with_views(finished, two) == _merged_with_views(merged, full)
+    with pytest.raises(RuntimeError):
+        partial.finish(bins[4], keep[4], T[4])
 
 
 def test_view_bins_hold_the_points_weighted_sums() -> None:

@@ -193,6 +193,28 @@ def number(table, by_key, bricks):
 
 
 @nb.njit(cache=True, nogil=True)
+def renumber(old, new, moved):
+    """``moved[i]``: the number in the bricks ``new`` of voxel i of the bricks ``old`` (:func:`number`'s,
+    both in the order of their keys; every brick of ``old`` is in ``new`` with at least its voxels): where a
+    partial merge's voxels go when a view adds its own (cell.analysis.merge.PartialMerge). Both numberings
+    are in the order of the voxels' keys, so ``moved`` ascends."""
+    j = 0
+    for g in range(len(old)):
+        while new[j, _KEY] != old[g, _KEY]:
+            j += 1
+        occupied = old[g, _OCCUPIED]
+        for y in range(8):
+            byte = (occupied >> (8 * y)) & 255
+            if byte == 0:
+                continue
+            i = (old[g, _ROWS + (y >> 1)] >> (32 * (y & 1))) & 0xFFFFFFFF
+            for z in range(8):
+                if (byte >> z) & 1:
+                    moved[i] = _number(new, j, (y << 3) | z)
+                    i += 1
+
+
+@nb.njit(cache=True, nogil=True)
 def _seek(bricks, brick, j):
     """The row of ``brick`` (present) in ``bricks`` (the hash's entries in the order of their keys), searched
     from row ``j`` outwards (galloping, then halving): a view's bins come in the order of their keys, so the

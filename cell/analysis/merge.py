@@ -146,8 +146,7 @@ def merge_bins(
     views: Callable[[int], ViewBins],
     keep: Sequence[NDArray[np.bool_] | None],
     T: Sequence[NDArray[np.float64]],
-    each_view: Callable[[int, NDArray[Any], int, NDArray[np.float64], NDArray[np.float64]], None]
-    | None = None,
+    each_view: EachView | None = None,
 ) -> MergedCloud | None:
     """Merge binned views: ``views(k)`` gives view k's bins (:func:`bin_view` on the grid of edge
     ``voxel_mm``, mm; asked for twice, in view order); ``T[k]`` is its refinement (4x4, {P} to {P}) and
@@ -169,73 +168,229 @@ def merge_bins(
 
     ``each_view(k, rows, m, weight, wu)``, when given, is called with the merged points view k has (``rows``
     of the ``m``, ascending, int32), its weight sums there and its weighted u sums, e.g. for the views' shares
-    (:class:`cell.analysis.uncertainty.MergeShares`). None when no view gives a voxel."""
-    from cell.analysis import _merge_kernel as kernel
-
+    (:class:`cell.analysis.uncertainty.MergeShares`). None when no view gives a voxel. The same merge can be
+    made in two parts, all views but the last before the last is known (:func:`merge_bins_ahead`, then
+    :meth:`PartialMerge.finish`), to the bit."""
     if not voxel_mm > 0:
         raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
     # the bricks of voxels the moved bins fall in: a hash of their keys and occupied voxels (the kernel's)
-    every = np.zeros(0, dtype=bool)  # (the kernels' "all kept")
     table = np.full((1024, 2), -1, dtype=np.int64)
     n_bricks, n_most = 0, 0
     for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
         b = views(k)
         n_most = max(n_most, len(b))
-        if kept is not None and len(kept) != len(b):  # (the kernels do not check their indices)
-            raise ValueError(f"merge: view {k}'s mask has {len(kept)} entries for its {len(b)} bins")
-        given = every if kept is None else kept
-        T_k = np.asarray(T_k, dtype=np.float64)
-        at, status = 0, kernel.FULL
-        while status == kernel.FULL:
-            n_bricks, at, status = kernel.insert(table, n_bricks, b.mean, T_k, given, voxel_mm, at)
-            if status == kernel.FULL:  # twice as large
-                larger = np.full((2 * len(table), 2), -1, dtype=np.int64)
-                kernel.rehash(table, larger)
-                table = larger
-        if status == kernel.OUT_OF_RANGE:
-            raise ConfigError(
-                f"merge: view {k}'s refined points are not finite or beyond +-{_HALF} voxels of the part "
-                "frame's origin"
-            )
-    slots = np.flatnonzero(table[:, 0] >= 0)
-    by_key = slots[np.argsort(table[slots, 0])]
-    bricks = np.empty((len(by_key), kernel.BRICK_WORDS), dtype=np.int64)  # the second pass's, by key
-    m = kernel.number(table, by_key, bricks)
-    del slots, by_key, table
-    if m >= 2**31:
-        raise ConfigError("merge: more than 2^31 voxels; use larger voxels")
+        table, n_bricks = _mark(table, n_bricks, k, b, kept, T_k, voxel_mm)
+    bricks, m = _numbered(table)
+    del table
     if not m:
         return None
     wsum, sums = np.zeros(m), np.zeros((m, 3))
     count, n_views = np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.int64)
-    # the kernel's scratch: a merged point's place among a view's, which the view has, its bins and sums
-    local, seen = np.full(m, -1, dtype=np.int32), np.zeros((m + 63) // 64, dtype=np.uint64)
-    many, first, rest = np.empty(n_most, dtype=np.int32), np.empty((n_most, 5)), np.empty((n_most, 5))
+    add = _Adder(bricks, voxel_mm, wsum, sums, count, n_views, n_most)
     for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
-        b = views(k)
+        rows, w_rows, wu_rows = add(views(k), kept, T_k)
+        if each_view is not None:
+            each_view(k, rows, m, w_rows, wu_rows)
+    return MergedCloud(np.divide(sums, wsum[:, None], out=sums), wsum, count, n_views)
+
+
+# ``each_view`` of :func:`merge_bins`: (view k, its merged points' rows, how many merged points, its weight
+# sums and weighted u sums there)
+EachView = Callable[[int, NDArray[Any], int, NDArray[np.float64], NDArray[np.float64]], None]
+_EVERY = np.zeros(0, dtype=bool)  # (the kernels' "all kept")
+
+
+def _mark(
+    table: NDArray[np.int64],
+    n_bricks: int,
+    k: int,
+    b: ViewBins,
+    kept: NDArray[np.bool_] | None,
+    T_k: NDArray[np.float64],
+    voxel_mm: float,
+) -> tuple[NDArray[np.int64], int]:
+    """The merge's first pass over view ``k`` (its bins ``b``, those ``kept``, moved by ``T_k``): the voxels
+    they fall in marked in the hash ``table`` of ``n_bricks`` bricks (grown, a new array, when 3/4 full)."""
+    from cell.analysis import _merge_kernel as kernel
+
+    if kept is not None and len(kept) != len(b):  # (the kernels do not check their indices)
+        raise ValueError(f"merge: view {k}'s mask has {len(kept)} entries for its {len(b)} bins")
+    given = _EVERY if kept is None else kept
+    T_k = np.asarray(T_k, dtype=np.float64)
+    at, status = 0, kernel.FULL
+    while status == kernel.FULL:
+        n_bricks, at, status = kernel.insert(table, n_bricks, b.mean, T_k, given, voxel_mm, at)
+        if status == kernel.FULL:  # twice as large
+            larger = np.full((2 * len(table), 2), -1, dtype=np.int64)
+            kernel.rehash(table, larger)
+            table = larger
+    if status == kernel.OUT_OF_RANGE:
+        raise ConfigError(
+            f"merge: view {k}'s refined points are not finite or beyond +-{_HALF} voxels of the part "
+            "frame's origin"
+        )
+    return table, n_bricks
+
+
+def _numbered(table: NDArray[np.int64]) -> tuple[NDArray[np.int64], int]:
+    """The second pass's bricks (in the order of their keys, their voxels numbered so) from the first pass's
+    hash, and how many voxels."""
+    from cell.analysis import _merge_kernel as kernel
+
+    slots = np.flatnonzero(table[:, 0] >= 0)
+    by_key = slots[np.argsort(table[slots, 0])]
+    bricks = np.empty((len(by_key), kernel.BRICK_WORDS), dtype=np.int64)
+    m = kernel.number(table, by_key, bricks)
+    if m >= 2**31:
+        raise ConfigError("merge: more than 2^31 voxels; use larger voxels")
+    return bricks, m
+
+
+class _Adder:
+    """The merge's second pass, a view a call: its bins' sums added to the merged voxels' ``wsum``, ``sums``,
+    ``count`` and ``n_views`` (numbered in ``bricks``), with the kernel's scratch for views of up to ``n_most``
+    bins. Returns the view's merged points (ascending, int32), its weight sums and weighted u sums there."""
+
+    def __init__(
+        self,
+        bricks: NDArray[np.int64],
+        voxel_mm: float,
+        wsum: NDArray[np.float64],
+        sums: NDArray[np.float64],
+        count: NDArray[np.int64],
+        n_views: NDArray[np.int64],
+        n_most: int,
+    ) -> None:
+        m = len(wsum)
+        self.bricks, self.voxel_mm = bricks, voxel_mm
+        self.wsum, self.sums, self.count, self.n_views = wsum, sums, count, n_views
+        # the kernel's scratch: a merged point's place among a view's, which the view has, its bins and sums
+        self.local, self.seen = np.full(m, -1, dtype=np.int32), np.zeros((m + 63) // 64, dtype=np.uint64)
+        self.many = np.empty(n_most, dtype=np.int32)
+        self.first, self.rest = np.empty((n_most, 5)), np.empty((n_most, 5))
+
+    def __call__(
+        self, b: ViewBins, kept: NDArray[np.bool_] | None, T_k: NDArray[np.float64]
+    ) -> tuple[NDArray[np.int32], NDArray[np.float64], NDArray[np.float64]]:
+        from cell.analysis import _merge_kernel as kernel
+
         rows, w_rows, wu_rows = kernel.add_view(
-            bricks,
+            self.bricks,
             b.mean,
             np.asarray(T_k, dtype=np.float64),
-            every if kept is None else kept,
-            voxel_mm,
+            _EVERY if kept is None else kept,
+            self.voxel_mm,
             b.weight,
             b.count,
             b.wu,
-            wsum,
-            sums,
-            count,
-            n_views,
-            local,
-            seen,
-            many,
-            first,
-            rest,
+            self.wsum,
+            self.sums,
+            self.count,
+            self.n_views,
+            self.local,
+            self.seen,
+            self.many,
+            self.first,
+            self.rest,
         )
+        return rows, w_rows, wu_rows
+
+
+@dataclass
+class PartialMerge:
+    """:func:`merge_bins` of all views but the last, to be finished with the last (:meth:`finish`): the first
+    pass's hash of the views' voxels, the sums added so far in the voxels numbered among theirs, and each
+    view's ``each_view`` arguments (in that numbering). Made by :func:`merge_bins_ahead`; used once."""
+
+    voxel_mm: float
+    n_views_before: int  # the views merged (0 .. n_views_before - 1)
+    table: NDArray[np.int64]  # the first pass's hash (grown by the last view's voxels when finished)
+    n_bricks: int
+    bricks: NDArray[np.int64]  # the second pass's bricks of these views' voxels, in the order of their keys
+    wsum: NDArray[np.float64]  # (m,) per voxel, as merge_bins has them after these views
+    sums: NDArray[np.float64]  # (m, 3)
+    count: NDArray[np.int64]
+    n_views: NDArray[np.int64]
+    shares: list[tuple[NDArray[np.int32], NDArray[np.float64], NDArray[np.float64]]]  # each view's rows, ...
+    used: bool = False
+
+    @property
+    def nbytes(self) -> int:
+        """The bytes it holds."""
+        arrays = [self.table, self.bricks, self.wsum, self.sums, self.count, self.n_views]
+        arrays += [x for view in self.shares for x in view]
+        return int(sum(x.nbytes for x in arrays))
+
+    def finish(
+        self,
+        last: ViewBins,
+        kept: NDArray[np.bool_] | None,
+        T_last: NDArray[np.float64],
+        each_view: EachView | None = None,
+    ) -> MergedCloud | None:
+        """:func:`merge_bins` of the views merged ahead and ``last`` (its bins, those ``kept``, moved by
+        ``T_last``) to the bit, with its ``each_view`` calls, all views' in view order. Its first pass marks
+        the last view's voxels in the hash; the voxels are numbered again (in the order of their keys, as
+        before: an earlier voxel's new number is a monotone map of its old one, so the views' rows stay
+        ascending), the sums made ahead are moved to their voxels' new numbers and the last view's are added,
+        last as in the full merge. Takes this partial's arrays (it can be finished once)."""
+        from cell.analysis import _merge_kernel as kernel
+
+        if self.used:
+            raise RuntimeError("merge: a partial merge is finished once")
+        self.used = True
+        k_last = self.n_views_before
+        table, _ = _mark(self.table, self.n_bricks, k_last, last, kept, T_last, self.voxel_mm)
+        bricks, m = _numbered(table)
+        del table
+        if not m:
+            return None
+        m_old = len(self.wsum)
+        if m == m_old:  # no new voxel: the same numbering
+            moved: NDArray[np.int32] | None = None
+            wsum, sums, count, n_views = self.wsum, self.sums, self.count, self.n_views
+        else:
+            moved = np.empty(m_old, dtype=np.int32)  # an earlier voxel's new number
+            kernel.renumber(self.bricks, bricks, moved)
+            wsum, sums = np.zeros(m), np.zeros((m, 3))
+            count, n_views = np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.int64)
+            wsum[moved], sums[moved], count[moved], n_views[moved] = self.wsum, self.sums, self.count, self.n_views
+        add = _Adder(bricks, self.voxel_mm, wsum, sums, count, n_views, len(last))
+        rows, w_rows, wu_rows = add(last, kept, T_last)
+        del add
         if each_view is not None:
-            each_view(k, rows, m, w_rows, wu_rows)
-    del local, seen, many, first, rest
-    return MergedCloud(np.divide(sums, wsum[:, None], out=sums), wsum, count, n_views)
+            for k, (rows_k, w_k, wu_k) in enumerate(self.shares):
+                each_view(k, rows_k if moved is None else moved[rows_k], m, w_k, wu_k)
+            each_view(k_last, rows, m, w_rows, wu_rows)
+        self.shares = []
+        return MergedCloud(np.divide(sums, wsum[:, None], out=sums), wsum, count, n_views)
+
+
+def merge_bins_ahead(
+    voxel_mm: float,
+    views: Callable[[int], ViewBins],
+    keep: Sequence[NDArray[np.bool_] | None],
+    T: Sequence[NDArray[np.float64]],
+) -> PartialMerge:
+    """:func:`merge_bins` of views 0 .. len(T) - 1 (``views``, ``keep``, ``T`` as there), made before the
+    view that follows them is known, to be finished with it (:meth:`PartialMerge.finish`): both passes over
+    these views, their ``each_view`` arguments kept."""
+    if not voxel_mm > 0:
+        raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
+    table = np.full((1024, 2), -1, dtype=np.int64)
+    n_bricks, n_most = 0, 0
+    for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
+        b = views(k)
+        n_most = max(n_most, len(b))
+        table, n_bricks = _mark(table, n_bricks, k, b, kept, T_k, voxel_mm)
+    bricks, m = _numbered(table)
+    wsum, sums = np.zeros(m), np.zeros((m, 3))
+    count, n_views = np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.int64)
+    shares = []
+    add = _Adder(bricks, voxel_mm, wsum, sums, count, n_views, n_most)
+    for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
+        shares.append(add(views(k), kept, T_k))
+    return PartialMerge(voxel_mm, len(T), table, n_bricks, bricks, wsum, sums, count, n_views, shares)
 
 
 @functools.cache
@@ -247,6 +402,10 @@ def load_kernels() -> None:
 
     bins = bin_view(np.zeros((1, 3)), np.ones(1), np.zeros(1), 1.0)
     merge_bins(1.0, lambda k: bins, [np.ones(1, dtype=bool)], [np.eye(4)])
+    # (a merge made ahead, finished with a view of a new voxel: the renumbering's kernel)
+    merge_bins_ahead(1.0, lambda k: bins, [None], [np.eye(4)]).finish(
+        bin_view(np.ones((1, 3)), np.ones(1), None, 1.0), None, np.eye(4)
+    )
     kernel.rehash(np.full((2, 2), -1, dtype=np.int64), np.full((4, 2), -1, dtype=np.int64))
     kernel.add_squares(np.zeros(1), np.zeros(1, dtype=np.int32), np.zeros(1))
 
