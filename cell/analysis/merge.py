@@ -471,35 +471,96 @@ def held_redundant(
     voxel mean of theirs within ``radius_mm`` (:func:`measured_elsewhere`). The voxel means stand for the
     points in them (which lie within a voxel's diagonal, 0.35 mm at 0.2 mm, of their mean): a view's voxel
     is given or cut whole. Of the registered views only the voxels in the unregistered ones' box are moved,
-    and each registered view's bins are asked for once."""
-    held = sorted(set(unregistered))
-    if not held:
-        return {}
-    mine = {k: moved_means(bins(k), T[k]) for k in held}
-    around = {k: _Around(p, radius_mm) for k, p in mine.items() if len(p)}
-    # the registered views' moved voxel means near each held view (only points in its box and cells can be
-    # that close: :class:`_Around`), each registered view's bins asked for once for all the held views
-    near: dict[int, list[NDArray[np.float64]]] = {k: [] for k in around}
-    for m in range(len(T)):
-        if m in mine or not around:
-            continue
-        T_m = np.asarray(T[m], dtype=np.float64)
-        mean = bins(m).mean
-        for k, a in around.items():
-            lo, hi = a.lo, a.hi
-            corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), axis=-1).reshape(-1, 3)
-            # the box at the view's kinematic pose holds its part of the refined one: grown by the most the
-            # inverse correction moves a corner (a rigid motion moves no point of the box farther)
-            grow = float(np.linalg.norm(transform_points(invert(T_m), corners) - corners, axis=1).max())
-            near[k].append(a.select(transform_points(T_m, mean[_in_box(mean, lo - grow, hi + grow)])))
-    redundant: dict[int, NDArray[np.bool_]] = {}
-    for k in held:
-        if k not in around:
-            redundant[k] = np.zeros(0, dtype=bool)
-            continue
-        others = [mine[j][~redundant[j]] for j in held if j in redundant]
-        redundant[k] = measured_elsewhere(mine[k], others + near.pop(k), radius_mm, around[k])
-    return redundant
+    and each registered view's bins are asked for once. The same cut can be made in two parts
+    (:class:`HeldCut`)."""
+    return HeldCut(bins, T, unregistered, radius_mm).redundant
+
+
+class HeldCut:
+    """:func:`held_redundant` of the views ``bins``, ``T``, ``unregistered`` (as there), which can be made
+    before the view that follows them is known and finished with it (:meth:`with_last`): it keeps the held
+    views' moved voxel means and where others can be near them."""
+
+    def __init__(
+        self,
+        bins: Callable[[int], ViewBins],
+        T: Sequence[NDArray[np.float64]],
+        unregistered: Sequence[int],
+        radius_mm: float,
+    ) -> None:
+        self.radius_mm = radius_mm
+        self.T = [np.array(T_k, dtype=np.float64) for T_k in T]
+        self.held = sorted(set(unregistered))
+        self.mine = {k: moved_means(bins(k), T[k]) for k in self.held}
+        self.around = {k: _Around(p, radius_mm) for k, p in self.mine.items() if len(p)}
+        # the registered views' moved voxel means near each held view (only points in its box and cells can
+        # be that close: :class:`_Around`), each registered view's bins asked for once for all the held views
+        near: dict[int, list[NDArray[np.float64]]] = {k: [] for k in self.around}
+        for m in range(len(T)):
+            if m in self.mine or not self.around:
+                continue
+            mean = bins(m).mean
+            for k, a in self.around.items():
+                near[k].append(_near(a, mean, self.T[m]))
+        self.redundant: dict[int, NDArray[np.bool_]] = {}
+        for k in self.held:
+            if k not in self.around:
+                self.redundant[k] = np.zeros(0, dtype=bool)
+                continue
+            others = [self.mine[j][~self.redundant[j]] for j in self.held if j in self.redundant]
+            self.redundant[k] = measured_elsewhere(self.mine[k], others + near.pop(k), radius_mm, self.around[k])
+
+    @property
+    def nbytes(self) -> int:
+        """The bytes of the held views' arrays it keeps (their moved means and cuts)."""
+        return int(sum(p.nbytes for p in self.mine.values()) + sum(r.nbytes for r in self.redundant.values()))
+
+    def with_last(
+        self, bins: Callable[[int], ViewBins], T: Sequence[NDArray[np.float64]], unregistered: Sequence[int]
+    ) -> dict[int, NDArray[np.bool_]]:
+        """:func:`held_redundant` of these views and one more, the last (``bins``, ``T``, ``unregistered`` of
+        all; these views' ``T`` and which of them are unregistered as made): the cut made, to the bit. The
+        held views are cut in the order of their indices, so a held last view leaves the earlier ones' cuts
+        as they are and is cut against them (their kept voxels) and the registered views. A registered last
+        view can cut an earlier held one (and so change what the later held ones are cut against): where it
+        comes near one (within its box and cells, :class:`_Around`) the cut is made again in full;
+        elsewhere each held view is cut against the same points as before, so as before."""
+        last = len(self.T)
+        held = set(unregistered)
+        if (
+            len(T) != last + 1
+            or sorted(k for k in held if k < last) != self.held
+            or any(np.asarray(a).tobytes() != b.tobytes() for a, b in zip(T[:last], self.T, strict=False))
+        ):
+            return held_redundant(bins, T, unregistered, self.radius_mm)
+        redundant = dict(self.redundant)
+        T_last = np.asarray(T[last], dtype=np.float64)
+        if last not in held:
+            if self.around:
+                mean = bins(last).mean
+                if any(len(_near(a, mean, T_last)) for a in self.around.values()):
+                    return held_redundant(bins, T, unregistered, self.radius_mm)
+            return redundant
+        p = moved_means(bins(last), T_last)
+        if not len(p):
+            redundant[last] = np.zeros(0, dtype=bool)
+            return redundant
+        a = _Around(p, self.radius_mm)
+        near = [_near(a, bins(m).mean, self.T[m]) for m in range(last) if m not in held]
+        others = [self.mine[j][~redundant[j]] for j in self.held]
+        redundant[last] = measured_elsewhere(p, others + near, self.radius_mm, a)
+        return redundant
+
+
+def _near(a: _Around, mean: NDArray[np.float64], T_m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A registered view's voxel means ``mean`` (mm, at its kinematic pose) moved by its refinement ``T_m``,
+    those near the held view of ``a`` (:meth:`_Around.select`)."""
+    lo, hi = a.lo, a.hi
+    corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), axis=-1).reshape(-1, 3)
+    # the box at the view's kinematic pose holds its part of the refined one: grown by the most the inverse
+    # correction moves a corner (a rigid motion moves no point of the box farther)
+    grow = float(np.linalg.norm(transform_points(invert(T_m), corners) - corners, axis=1).max())
+    return a.select(transform_points(T_m, mean[_in_box(mean, lo - grow, hi + grow)]))
 
 
 def _in_box(points: NDArray[np.float64], lo: NDArray[Any], hi: NDArray[Any]) -> NDArray[np.int64]:
