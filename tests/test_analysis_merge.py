@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from cell.analysis.merge import (
+    HeldCut,
     MergedCloud,
     ViewBins,
-    HeldCut,
     bin_view,
     held_redundant,
     load_kernels,
@@ -329,13 +329,15 @@ def _merged_with_views(merged: MergedCloud | None, calls: list) -> list[bytes]:
     return out
 
 
-@pytest.mark.parametrize("last", ["new voxels", "old voxels", "repeated", "crowd", "nothing", "nothing before"])
+@pytest.mark.parametrize(
+    "last", ["new voxels", "old voxels", "repeated", "crowd", "nothing", "nothing before"]
+)
 def test_a_merge_made_ahead_and_finished_with_the_last_view_is_the_full_merge_to_the_bit(last: str) -> None:
-    """Four views merged ahead, then the last: a view beside them (its voxels new, all before theirs), one over them (moved by
-    its own refinement: some voxels new, most shared), a copy of an earlier view (no new voxel: the same
-    numbering), a dozen bins in one new voxel (NumPy's pairwise sum), a view whose bins are all held back,
-    and earlier views that give nothing: points, weights, counts, views per voxel and every view's
-    ``each_view`` arguments equal the merge of all five at once, byte for byte."""
+    """Four views merged ahead, then the last: a view beside them (its voxels new, all before theirs), one
+    over them (moved by its own refinement: some voxels new, most shared), a copy of an earlier view (no
+    new voxel: the same numbering), a dozen bins in one new voxel (NumPy's pairwise sum), a view whose bins
+    are all held back, and earlier views that give nothing: points, weights, counts, views per voxel and
+    every view's ``each_view`` arguments equal the merge of all five at once, byte for byte."""
     load_kernels()
     rng = np.random.default_rng({"new voxels": 1, "old voxels": 2, "repeated": 3}.get(last, 4))
     voxel = 0.2

@@ -247,9 +247,10 @@ def _numbered(table: NDArray[np.int64]) -> tuple[NDArray[np.int64], int]:
 
 
 class _Adder:
-    """The merge's second pass, a view a call: its bins' sums added to the merged voxels' ``wsum``, ``sums``,
-    ``count`` and ``n_views`` (numbered in ``bricks``), with the kernel's scratch for views of up to ``n_most``
-    bins. Returns the view's merged points (ascending, int32), its weight sums and weighted u sums there."""
+    """The merge's second pass, a view a call: its bins' sums added to the merged voxels' ``wsum``,
+    ``sums``, ``count`` and ``n_views`` (numbered in ``bricks``), with the kernel's scratch for views of up
+    to ``n_most`` bins. Returns the view's merged points (ascending, int32), its weight sums and weighted u
+    sums there."""
 
     def __init__(
         self,
@@ -311,13 +312,14 @@ class PartialMerge:
     sums: NDArray[np.float64]  # (m, 3)
     count: NDArray[np.int64]
     n_views: NDArray[np.int64]
-    shares: list[tuple[NDArray[np.int32], NDArray[np.float64], NDArray[np.float64]]]  # each view's rows, ...
+    # each view's each_view arguments: its merged points' rows (these views' numbering), weight and wu sums
+    shares: list[tuple[NDArray[np.int32], NDArray[np.float64], NDArray[np.float64]]]
     used: bool = False
 
     @property
     def nbytes(self) -> int:
         """The bytes it holds."""
-        arrays = [self.table, self.bricks, self.wsum, self.sums, self.count, self.n_views]
+        arrays: list[NDArray[Any]] = [self.table, self.bricks, self.wsum, self.sums, self.count, self.n_views]
         arrays += [x for view in self.shares for x in view]
         return int(sum(x.nbytes for x in arrays))
 
@@ -354,7 +356,8 @@ class PartialMerge:
             kernel.renumber(self.bricks, bricks, moved)
             wsum, sums = np.zeros(m), np.zeros((m, 3))
             count, n_views = np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.int64)
-            wsum[moved], sums[moved], count[moved], n_views[moved] = self.wsum, self.sums, self.count, self.n_views
+            wsum[moved], sums[moved] = self.wsum, self.sums
+            count[moved], n_views[moved] = self.count, self.n_views
         add = _Adder(bricks, self.voxel_mm, wsum, sums, count, n_views, len(last))
         rows, w_rows, wu_rows = add(last, kept, T_last)
         del add
@@ -508,7 +511,8 @@ class HeldCut:
                 self.redundant[k] = np.zeros(0, dtype=bool)
                 continue
             others = [self.mine[j][~self.redundant[j]] for j in self.held if j in self.redundant]
-            self.redundant[k] = measured_elsewhere(self.mine[k], others + near.pop(k), radius_mm, self.around[k])
+            near_k = others + near.pop(k)
+            self.redundant[k] = measured_elsewhere(self.mine[k], near_k, radius_mm, self.around[k])
 
     @property
     def nbytes(self) -> int:
