@@ -18,6 +18,7 @@ import argparse
 import hashlib
 import json
 import os
+import statistics
 import sys
 import time
 from collections import defaultdict
@@ -25,10 +26,11 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).parent))
-import cell.inspection_results as results  # noqa: E402
 from bench_tail_steps import load_finished_run  # noqa: E402
-from cell.analysis.merge import HeldCut, load_kernels  # noqa: E402
 from hash_register import digest  # noqa: E402
+
+import cell.inspection_results as results  # noqa: E402
+from cell.analysis.merge import HeldCut, load_kernels  # noqa: E402
 
 TIMES: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0])
 
@@ -110,9 +112,11 @@ def main() -> None:
     print(f"load average {os.getloadavg()}")
     for name, label in (("a", "(a) in full"), ("b", "(b) the earlier views merged ahead")):
         print(f"{label}: register after the last view")
-        for h, wall, cpu, steps in got[name]:
+        for _, wall, cpu, steps in got[name]:
             parts = ", ".join(f"{k} {w:.3f} s wall / {c:.3f} s CPU" for k, (w, c) in steps.items())
             print(f"  {wall:.3f} s wall, {cpu:.3f} s CPU; {parts}")
+        walls, cpus = [r[1] for r in got[name]], [r[2] for r in got[name]]
+        print(f"  median {statistics.median(walls):.3f} s wall, {statistics.median(cpus):.3f} s CPU")
         for key, value in got[name][0][0].items():
             print(f"  {key} {value}")
     same = all(r[0] == got["a"][0][0] for r in got["a"] + got["b"])

@@ -67,10 +67,11 @@ MERGE_BINS_KEPT_BYTES = 160_000_000
 # are not, whose bins would hold up to the budget above through the scan, where its peak memory was
 # (docs/benchmarks.md, item 5); the merge is the same either way (tests/test_inspect_e2e.py)
 ARRIVAL_BINNING_MAX_POINTS = 1_000_000
-# a merge made ahead of the last view (:class:`MergeAhead`) holds about this many bytes a bin of the views it
-# merged (their voxels' sums, each view's shares, the first pass's hash and bricks: XX on the demo pillar),
-# and is not made beyond MERGE_AHEAD_MAX_BYTES: it is held while the last view is measured and decoded
-MERGE_AHEAD_BYTES_A_BIN = 100
+# a merge made ahead of the last view (:class:`MergeAhead`) holds up to about this many bytes a bin of the
+# views it merged (48 a voxel, 20 a view's voxel, 48 a brick of voxels: 48 on the demo pillar, 181 MB for its
+# first 11 views' 3.79M bins, 0.56 voxels a bin), and is not made beyond MERGE_AHEAD_MAX_BYTES: it is held
+# while the last view is measured and decoded (1024x768 views only: ARRIVAL_BINNING_MAX_POINTS)
+MERGE_AHEAD_BYTES_A_BIN = 60
 MERGE_AHEAD_MAX_BYTES = 400_000_000
 
 

@@ -437,19 +437,25 @@ def moved_means(bins: ViewBins, T: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def measured_elsewhere(
-    points: ArrayLike, others: Sequence[ArrayLike], radius_mm: float, around: _Around | None = None
+    points: ArrayLike,
+    others: Sequence[ArrayLike],
+    radius_mm: float,
+    around: _Around | None = None,
+    near: Sequence[NDArray[np.float64]] = (),
 ) -> NDArray[np.bool_]:
     """Which of ``points`` ((N, 3) mm) have a point of ``others`` (views in the same frame) within
     ``radius_mm``: where a view that could not be registered against the rest is redundant. Such a view
     keeps its kinematic pose (off by up to the chain's error, tenths of a millimetre); merged where
     registered views measured the same surface, its points would sit beside theirs, a voxel apart, as a
-    false deviation. ``around``: the points' :class:`_Around` when the caller made it already."""
+    false deviation. ``around``: the points' :class:`_Around` when the caller made it already; ``near``: more
+    others, (K, 3) mm each, selected by it already (:meth:`_Around.select`, which gives the same points
+    again: not done twice), after ``others``."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if not len(p):
         return np.zeros(0, dtype=bool)
     around = _Around(p, radius_mm) if around is None else around
     rest = [around.select(np.asarray(o, dtype=np.float64).reshape(-1, 3)) for o in others]
-    rest = [o for o in rest if len(o)]
+    rest = [o for o in [*rest, *near] if len(o)]
     if not rest:
         return np.zeros(len(p), dtype=bool)
     d, _ = cKDTree(np.vstack(rest)).query(p, distance_upper_bound=radius_mm)
@@ -528,8 +534,8 @@ class HeldCut:
                 self.redundant[k] = np.zeros(0, dtype=bool)
                 continue
             others = [self.mine[j][~self.redundant[j]] for j in self.held if j in self.redundant]
-            near_k = others + near.pop(k)
-            self.redundant[k] = measured_elsewhere(self.mine[k], near_k, radius_mm, self.around[k])
+            mine, around = self.mine[k], self.around[k]
+            self.redundant[k] = measured_elsewhere(mine, others, radius_mm, around, near.pop(k))
 
     @property
     def nbytes(self) -> int:
@@ -569,7 +575,7 @@ class HeldCut:
         a = _Around(p, self.radius_mm)
         near = [_near(a, bins(m).mean, self.T[m]) for m in range(last) if m not in held]
         others = [self.mine[j][~redundant[j]] for j in self.held]
-        redundant[last] = measured_elsewhere(p, others + near, self.radius_mm, a)
+        redundant[last] = measured_elsewhere(p, others, self.radius_mm, a, near)
         return redundant
 
 
