@@ -4,6 +4,7 @@ merge of views binned as they arrive (at their kinematic poses) and moved by the
 from __future__ import annotations
 
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -410,6 +411,47 @@ def test_a_held_cut_made_ahead_and_finished_with_the_last_view_is_the_full_cut(l
         assert set(asked) <= {0, 3, 4, 5}  # the held views' own bins were not needed again
     if last.startswith("held"):
         assert full[5].any() != (last == "held apart")  # cut where it repeats view 2, whole where apart
+
+
+def test_a_merge_made_ahead_is_kept_until_taken_voided_by_a_view_forgotten_and_fits_only_the_same_bits() -> (
+    None
+):
+    """The registration's :class:`MergeBins` keeps a merge made ahead until the registration takes it, not
+    when a view was forgotten while it was made (a view measured again), and none is made of views not
+    binned as they arrived; the registration uses it only for the same views, corrections and held views,
+    to the bit, and the same masks."""
+    from cell.inspection_results import ARRIVAL_BINNING_MAX_POINTS, MergeAhead, MergeBins
+
+    rng = np.random.default_rng(8)
+    bins, keep, T = _refined_views(rng, 3, 0.2)
+    state = MergeBins(0.2, Path("run"))
+    for i, b in zip((2, 5), bins[:2], strict=True):
+        state.add(i, b, int(b.count.sum()))
+    assert state.bins_ahead([2, 5, 7]) is None  # view 7 not binned
+    got = state.bins_ahead([2, 5])
+    assert got is not None and got[0][1] is bins[1]
+    held = HeldCut(lambda k: bins[k], T[:2], [1], 1.0)
+    masks = [None, ~held.redundant[1]]
+    ahead = MergeAhead(
+        (2, 5), T[:2], (1,), held, masks, {}, merge_bins_ahead(0.2, bins.__getitem__, masks, T[:2])
+    )
+    state.forget(9)  # while it was made
+    assert not state.keep_ahead(ahead, got[1]) and state.take_ahead() is None
+    again = state.bins_ahead([2, 5])
+    assert again is not None and state.keep_ahead(ahead, again[1])
+    assert state.take_ahead() is ahead and state.take_ahead() is None  # taken once
+    assert ahead.fits([2, 5, 8], T, [1]) and ahead.fits([2, 5, 8], T, [1, 2])  # the last held or not
+    nudged = T[1].copy()
+    nudged[0, 3] = np.nextafter(nudged[0, 3], 1.0)
+    assert not ahead.fits([2, 5, 8], [T[0], nudged, T[2]], [1])  # a correction one ulp apart
+    assert not ahead.fits([2, 5, 8], T, []) and not ahead.fits([2, 5, 8], T, [0, 1])  # other held views
+    assert not ahead.fits([2, 6, 8], T, [1]) and not ahead.fits([2, 5, 4], T, [1])  # other views, order
+    assert not ahead.fits([2, 5], T[:2], [1])  # no last view
+    assert ahead.keeps([None, masks[1], None]) and not ahead.keeps([None, ~masks[1], None])
+    assert not ahead.keeps([masks[1], masks[1], None])
+    big = ARRIVAL_BINNING_MAX_POINTS + 1
+    state.add(7, bins[2], big)  # a 5 MP camera's view: binned when merged, never merged ahead
+    assert state.bins_ahead([2, 5, 7]) is None
 
 
 def test_view_bins_hold_the_points_weighted_sums() -> None:
