@@ -465,6 +465,7 @@ class InspectionResults:
             cloud.judged = self._judge(run, cloud, link_radius_mm, pool)
         finally:
             pool.shutdown()
+            state.drop_ahead()  # (one made meanwhile is of these views: stale from here on)
         self._cloud = cloud
         return cloud.registration
 
