@@ -91,7 +91,7 @@ class MergeBins:
         self._merging: set[int] = set()  # views binned when merged (not as they arrived): kept for it only
         self._lock = threading.RLock()  # reentrant: a merge asks for views, which may be binned then
         self._ahead: MergeAhead | None = None  # the merge of all views but the last, made ahead
-        self._forgotten = 0  # views forgotten so far (a merge made ahead meanwhile is void)
+        self._forgotten: dict[int, int] = {}  # by view index: times forgotten (voids a merge made ahead)
 
     def add(self, index: int, bins: ViewBins, n_points: int) -> None:
         """Keep view ``index``'s ``bins`` (within the budget: the newest stay) and its points' count."""
@@ -154,30 +154,36 @@ class MergeBins:
 
     def forget(self, index: int) -> None:
         """Drop view ``index``'s bins and count (it is measured again: binned anew when merged), and a merge
-        made ahead (:class:`MergeAhead`; one being made now is not kept)."""
+        made ahead of it (:class:`MergeAhead`; one being made now is not kept). A merge made ahead of other
+        views stays (the plan's last view, forgotten as its decode begins, is not in it)."""
         with self._lock:
             self._bins.pop(index, None)
             self.n_points.pop(index, None)
             self._merging.discard(index)
-            self._ahead = None
-            self._forgotten += 1
+            if self._ahead is not None and index in self._ahead.indices:
+                self._ahead = None
+            self._forgotten[index] = self._forgotten.get(index, 0) + 1
 
-    def bins_ahead(self, indices: Sequence[int]) -> tuple[list[ViewBins], int] | None:
-        """The kept bins of the views ``indices`` and the views forgotten so far (for :meth:`keep_ahead`),
-        or None when a view's are not kept (dropped beyond the budget, or not binned as it arrived: a view of
-        more than :data:`ARRIVAL_BINNING_MAX_POINTS`, a 5 MP camera's): no merge is made ahead of them."""
+    def bins_ahead(self, indices: Sequence[int]) -> tuple[list[ViewBins], tuple[int, ...]] | None:
+        """The kept bins of the views ``indices`` and how often each was forgotten so far (for
+        :meth:`keep_ahead`), or None when a view's are not kept (dropped beyond the budget, or not binned as
+        it arrived: a view of more than :data:`ARRIVAL_BINNING_MAX_POINTS`, a 5 MP camera's): no merge is
+        made ahead of them."""
         with self._lock:
             bins = [self._bins.get(i) for i in indices]
             big = any(self.n_points.get(i, 0) > ARRIVAL_BINNING_MAX_POINTS for i in indices)
             if big or any(b is None for b in bins):
                 return None
-            return [b for b in bins if b is not None], self._forgotten
+            return [b for b in bins if b is not None], self._times_forgotten(indices)
 
-    def keep_ahead(self, ahead: MergeAhead, forgotten: int) -> bool:
-        """Keep ``ahead`` for the registration (in place of one kept before) unless a view was forgotten
-        since its bins were taken (``forgotten``: :meth:`bins_ahead`'s). Whether it was kept."""
+    def _times_forgotten(self, indices: Sequence[int]) -> tuple[int, ...]:
+        return tuple(self._forgotten.get(i, 0) for i in indices)
+
+    def keep_ahead(self, ahead: MergeAhead, forgotten: tuple[int, ...]) -> bool:
+        """Keep ``ahead`` for the registration (in place of one kept before) unless one of its views was
+        forgotten since its bins were taken (``forgotten``: :meth:`bins_ahead`'s). Whether it was kept."""
         with self._lock:
-            if forgotten != self._forgotten:
+            if forgotten != self._times_forgotten(ahead.indices):
                 return False
             self._ahead = ahead
             return True
@@ -329,8 +335,10 @@ class InspectionResults:
         these views the same ``T`` to the bit and the same unregistered ones and the last view cuts no held
         one further (:meth:`MergeAhead.fits`, :meth:`MergeAhead.keeps`); else it merges in full as without
         it. Call it before the refinement made ahead is handed over (the registration waits for that and
-        takes what is kept then). Kept in the run's :class:`MergeBins` until the registration takes it, a
-        view is forgotten or :meth:`MergeBins.drop_ahead`; not made (False) when a view's bins are not kept
+        takes what is kept then; after the earlier views' bins are made, :meth:`bin_arrived_view`). Kept in
+        the run's :class:`MergeBins` until the registration takes it, one of these views is forgotten
+        (measured again; the last view's decode forgets the last view, which leaves it) or
+        :meth:`MergeBins.drop_ahead`; not made (False) when a view's bins are not kept
         (a 5 MP camera's views, over :data:`ARRIVAL_BINNING_MAX_POINTS`, are not binned as they arrive), it
         would hold more than :data:`MERGE_AHEAD_MAX_BYTES`, or the merge fails (the registration's says
         why). Whether it was made and kept."""

@@ -435,11 +435,17 @@ def test_a_merge_made_ahead_is_kept_until_taken_voided_by_a_view_forgotten_and_f
     ahead = MergeAhead(
         (2, 5), T[:2], (1,), held, masks, {}, merge_bins_ahead(0.2, bins.__getitem__, masks, T[:2])
     )
-    state.forget(9)  # while it was made
+    state.forget(9)  # another view (the last, as its decode begins): no matter
+    assert state.keep_ahead(ahead, got[1])
+    state.forget(9)
+    assert state.take_ahead() is ahead and state.take_ahead() is None  # kept, then taken once
+    state.forget(5)  # one of its views measured again while it was made
     assert not state.keep_ahead(ahead, got[1]) and state.take_ahead() is None
+    state.add(5, bins[1], int(bins[1].count.sum()))
     again = state.bins_ahead([2, 5])
     assert again is not None and state.keep_ahead(ahead, again[1])
-    assert state.take_ahead() is ahead and state.take_ahead() is None  # taken once
+    state.forget(2)  # ... or after
+    assert state.take_ahead() is None
     assert ahead.fits([2, 5, 8], T, [1]) and ahead.fits([2, 5, 8], T, [1, 2])  # the last held or not
     nudged = T[1].copy()
     nudged[0, 3] = np.nextafter(nudged[0, 3], 1.0)

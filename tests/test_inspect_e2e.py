@@ -232,9 +232,11 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
         order, refined = job.refinement(run)
         before = [k for k in refined.unregistered if k < len(order) - 1]
         assert job.merge_ahead(run, order[:-1], refined.T[:-1], before)
-        state.forget(10_000)  # a view measured again voids it
+        state.forget(order[0])  # one of its views measured again voids it
         assert state.take_ahead() is None
+        job.bin_arrived_view(run, job.views.get(run, order[0]))
         assert job.merge_ahead(run, order[:-1], refined.T[:-1], before)
+        state.forget(order[-1])  # (as the last view's decode begins)
         made_ahead = state._ahead
         assert made_ahead is not None and made_ahead.nbytes > 0
     if bins == "done":
