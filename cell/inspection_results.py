@@ -380,16 +380,17 @@ class InspectionResults:
         grid weighted by quality (cell.analysis.merge: each view binned once at its kinematic positions, as it
         arrives; here each bin's mean is moved by its view's refinement and merged where it then falls; a
         view the refinement could not register gives only the surface no registered view measured:
-        :func:`held_redundant`), then moved by the recipe's alignment (cell.analysis.alignment). An
-        alignment the measurement does not allow leaves the kinematic cloud and makes the verdict incomplete
-        (``alignment.error``). The registered cloud stays in memory for :meth:`report` with its error map
-        and coverage, computed here, and judged (:meth:`_judge`: the controller registers while it
-        evaluates, so they are ready when the evaluation is and the verdict adds only the run's context); it
-        is stored as results/cloud.ply with the report's page, and a resumed run
-        registers again, deterministically, to the same points. ``stop`` (set by the controller when the
-        evaluation beside it asks for more views, or the run pauses): :class:`CalledOff` at the next step
-        (after the refinement, before each view's bins, after the merge and the points' u), keeping
-        nothing."""
+        :func:`held_redundant`; the cut and merge of all views but the last made ahead, :meth:`merge_ahead`,
+        are finished with the last view when the refinement fits them bit for bit), then moved by the recipe's
+        alignment (cell.analysis.alignment). An alignment the measurement does not allow leaves the
+        kinematic cloud and makes the verdict incomplete (``alignment.error``). The registered cloud stays in
+        memory for :meth:`report` with its error map and coverage, computed here, and judged (:meth:`_judge`:
+        the controller registers while it evaluates, so they are ready when the evaluation is and the
+        verdict adds only the run's context); it is stored as results/cloud.ply with the report's page, and
+        a resumed run registers again, deterministically, to the same points. ``stop`` (set by the
+        controller when the evaluation beside it asks for more views, or the run pauses): :class:`CalledOff`
+        at the next step (after the refinement, before each view's bins, after the merge and the points' u),
+        keeping nothing."""
 
         def unless_called_off() -> None:
             if stop is not None and stop.is_set():
