@@ -25,7 +25,17 @@ from cell.analysis.alignment import Aligner, AlignmentError
 from cell.analysis.decision import DecisionRule
 from cell.analysis.errormap import ErrorMap, NominalMesh, signed_distance
 from cell.analysis.judge import judge
-from cell.analysis.merge import MergedCloud, ViewBins, bin_view, held_redundant, load_kernels, merge_bins
+from cell.analysis.merge import (
+    HeldCut,
+    MergedCloud,
+    PartialMerge,
+    ViewBins,
+    bin_view,
+    held_redundant,
+    load_kernels,
+    merge_bins,
+    merge_bins_ahead,
+)
 from cell.analysis.regions import Coverage, Tolerance, region_from_config
 from cell.analysis.report import ReportInput, default_link_radius, write_page, write_verdict
 from cell.analysis.report_files import decode_uncertainty, read_ply_field, read_ply_points, stored_points
@@ -57,6 +67,12 @@ MERGE_BINS_KEPT_BYTES = 160_000_000
 # are not, whose bins would hold up to the budget above through the scan, where its peak memory was
 # (docs/benchmarks.md, item 5); the merge is the same either way (tests/test_inspect_e2e.py)
 ARRIVAL_BINNING_MAX_POINTS = 1_000_000
+# a merge made ahead of the last view (:class:`MergeAhead`) holds up to about this many bytes a bin of the
+# views it merged (48 a voxel, 20 a view's voxel, 48 a brick of voxels: 48 on the demo pillar, 181 MB for its
+# first 11 views' 3.79M bins, 0.56 voxels a bin), and is not made beyond MERGE_AHEAD_MAX_BYTES: it is held
+# while the last view is measured and decoded (1024x768 views only: ARRIVAL_BINNING_MAX_POINTS)
+MERGE_AHEAD_BYTES_A_BIN = 60
+MERGE_AHEAD_MAX_BYTES = 400_000_000
 
 
 class MergeBins:
@@ -74,6 +90,8 @@ class MergeBins:
         self._bins: dict[int, ViewBins] = {}  # by view index, the first ones dropped beyond ``kept_bytes``
         self._merging: set[int] = set()  # views binned when merged (not as they arrived): kept for it only
         self._lock = threading.RLock()  # reentrant: a merge asks for views, which may be binned then
+        self._ahead: MergeAhead | None = None  # the merge of all views but the last, made ahead
+        self._forgotten: dict[int, int] = {}  # by view index: times forgotten (voids a merge made ahead)
 
     def add(self, index: int, bins: ViewBins, n_points: int) -> None:
         """Keep view ``index``'s ``bins`` (within the budget: the newest stay) and its points' count."""
@@ -105,13 +123,19 @@ class MergeBins:
         keep: Sequence[NDArray[np.bool_] | None],
         T: Sequence[NDArray[np.float64]],
         each_view: MergeShares,
+        ahead: PartialMerge | None = None,
     ) -> MergedCloud | None:
-        """:func:`cell.analysis.merge.merge_bins` of these bins, under the lock. The bins of views binned when
-        merged (a 5 MP camera's, a resumed run's) are dropped after it: kept, they were held through the
-        next views' scan or beside the rest of the registration (160 MB; issue 16, item 5), and a merge
-        again makes the same."""
+        """:func:`cell.analysis.merge.merge_bins` of these bins, under the lock; with ``ahead``, the merge
+        of all views but the last made ahead with the same ``keep`` and ``T`` (:class:`MergeAhead`), only the
+        last view's share (:meth:`cell.analysis.merge.PartialMerge.finish`: the same merge to the bit). The
+        bins of views binned when merged (a 5 MP camera's, a resumed run's) are dropped after it: kept, they
+        were held through the next views' scan or beside the rest of the registration (160 MB; issue 16,
+        item 5), and a merge again makes the same."""
         with self._lock:
             try:
+                if ahead is not None:
+                    last = len(T) - 1
+                    return ahead.finish(views(last), keep[last], T[last], each_view)
                 return merge_bins(self.voxel_mm, views, keep, T, each_view)
             finally:  # also when the merge stops midway (a registration called off)
                 for index in self._merging:
@@ -129,11 +153,94 @@ class MergeBins:
             return int(sum(self.n_points[i] for i in indices))
 
     def forget(self, index: int) -> None:
-        """Drop view ``index``'s bins and count (it is measured again: binned anew when merged)."""
+        """Drop view ``index``'s bins and count (it is measured again: binned anew when merged), and a merge
+        made ahead of it (:class:`MergeAhead`; one being made now is not kept). A merge made ahead of other
+        views stays (the plan's last view, forgotten as its decode begins, is not in it)."""
         with self._lock:
             self._bins.pop(index, None)
             self.n_points.pop(index, None)
             self._merging.discard(index)
+            if self._ahead is not None and index in self._ahead.indices:
+                self._ahead = None
+            self._forgotten[index] = self._forgotten.get(index, 0) + 1
+
+    def bins_ahead(self, indices: Sequence[int]) -> tuple[list[ViewBins], tuple[int, ...]] | None:
+        """The kept bins of the views ``indices`` and how often each was forgotten so far (for
+        :meth:`keep_ahead`), or None when a view's are not kept (dropped beyond the budget, or not binned as
+        it arrived: a view of more than :data:`ARRIVAL_BINNING_MAX_POINTS`, a 5 MP camera's): no merge is
+        made ahead of them."""
+        with self._lock:
+            bins = [self._bins.get(i) for i in indices]
+            big = any(self.n_points.get(i, 0) > ARRIVAL_BINNING_MAX_POINTS for i in indices)
+            if big or any(b is None for b in bins):
+                return None
+            return [b for b in bins if b is not None], self._times_forgotten(indices)
+
+    def _times_forgotten(self, indices: Sequence[int]) -> tuple[int, ...]:
+        return tuple(self._forgotten.get(i, 0) for i in indices)
+
+    def keep_ahead(self, ahead: MergeAhead, forgotten: tuple[int, ...]) -> bool:
+        """Keep ``ahead`` for the registration (in place of one kept before) unless one of its views was
+        forgotten since its bins were taken (``forgotten``: :meth:`bins_ahead`'s). Whether it was kept."""
+        with self._lock:
+            if forgotten != self._times_forgotten(ahead.indices):
+                return False
+            self._ahead = ahead
+            return True
+
+    def take_ahead(self) -> MergeAhead | None:
+        """The merge made ahead, no longer kept here (a registration uses it once, or finds it stale)."""
+        with self._lock:
+            ahead, self._ahead = self._ahead, None
+            return ahead
+
+    def drop_ahead(self) -> None:
+        """Drop the merge made ahead (e.g. the run pauses or more views are planned: it is stale)."""
+        self.take_ahead()
+
+
+@dataclass
+class MergeAhead:
+    """The registration's held-view cut and merge of all views but the last (:meth:`InspectionResults.
+    merge_ahead`), for the views ``indices`` (in their order) refined by ``T`` ({P} to {P}), ``unregistered``
+    of them (their positions) cut by ``held`` to the masks ``keep``: what the registration after the last
+    view uses when its refinement gives these views the same corrections and which are unregistered, bit
+    for bit (:meth:`fits`), and the cut the same masks (:meth:`keeps`)."""
+
+    indices: tuple[int, ...]
+    T: list[NDArray[np.float64]]
+    unregistered: tuple[int, ...]
+    held: HeldCut
+    keep: list[NDArray[np.bool_] | None]
+    counts: dict[int, NDArray[np.int32]]  # the held views' points per bin (for the count of points cut)
+    merge: PartialMerge
+
+    @property
+    def nbytes(self) -> int:
+        """The bytes it holds (besides the views' bins)."""
+        return self.merge.nbytes + self.held.nbytes + sum(k.nbytes for k in self.keep if k is not None)
+
+    def fits(
+        self, done: Sequence[int], T: Sequence[NDArray[np.float64]], unregistered: Sequence[int]
+    ) -> bool:
+        """Whether the views ``done`` (indices, in order) refined by ``T`` with ``unregistered`` (positions)
+        are these views and one after them, these refined and unregistered as here, to the bit."""
+        n = len(self.indices)
+        return (
+            len(done) == n + 1
+            and tuple(done[:n]) == self.indices
+            and (not n or done[n] > self.indices[-1])
+            and len(T) == n + 1
+            and all(np.asarray(a, np.float64).tobytes() == b.tobytes() for a, b in zip(T, self.T))
+            and tuple(sorted(k for k in set(unregistered) if k < n)) == self.unregistered
+        )
+
+    def keeps(self, keep: Sequence[NDArray[np.bool_] | None]) -> bool:
+        """Whether these views' masks in ``keep`` (all views') are those the merge was made with."""
+        return all(
+            (a is None and b is None) or (a is not None and b is not None and a.tobytes() == b.tobytes())
+            for a, b in zip(keep, self.keep, strict=False)
+        )
 
 
 @dataclass
@@ -210,6 +317,50 @@ class InspectionResults:
             return
         self.merge_bins_for(run).add(view.index, *self._view_bins(view))
 
+    def merge_ahead(
+        self,
+        run: RunFolder,
+        done: Sequence[int],
+        T: Sequence[NDArray[np.float64]],
+        unregistered: Sequence[int],
+    ) -> bool:
+        """Make the registration's held-view cut and merge of the views ``done`` (indices, ascending; all
+        of the run's completed views but the plan's last, which comes after them) ahead of the last view,
+        from their refinement: ``T`` (:attr:`cell.analysis.view_refinement.ViewRefinement.T` of these views,
+        {W} to {W}) and ``unregistered`` (positions in ``done``). For the refinement made ahead (issue 16,
+        item 2), which refines these views jointly while the robot moves to and measures the last one and
+        after it refines the last view alone, keeping these corrections exactly: :meth:`register` then does
+        only the last view's share of the cut and the merge (:class:`cell.analysis.merge.HeldCut`,
+        :class:`cell.analysis.merge.PartialMerge`), the same results to the bit, when its refinement gives
+        these views the same ``T`` to the bit and the same unregistered ones and the last view cuts no held
+        one further (:meth:`MergeAhead.fits`, :meth:`MergeAhead.keeps`); else it merges in full as without
+        it. Call it before the refinement made ahead is handed over (the registration waits for that and
+        takes what is kept then; after the earlier views' bins are made, :meth:`bin_arrived_view`). Kept in
+        the run's :class:`MergeBins` until the registration takes it, one of these views is forgotten
+        (measured again; the last view's decode forgets the last view, which leaves it) or
+        :meth:`MergeBins.drop_ahead`; not made (False) when a view's bins are not kept
+        (a 5 MP camera's views, over :data:`ARRIVAL_BINNING_MAX_POINTS`, are not binned as they arrive), it
+        would hold more than :data:`MERGE_AHEAD_MAX_BYTES`, or the merge fails (the registration's says
+        why). Whether it was made and kept."""
+        state = self.merge_bins_for(run)
+        got = state.bins_ahead(done)
+        if got is None or len(T) != len(done):
+            return False
+        bins, forgotten = got
+        if MERGE_AHEAD_BYTES_A_BIN * sum(len(b) for b in bins) > MERGE_AHEAD_MAX_BYTES:
+            return False
+        T_P_W = invert(self.T_W_P)
+        T_P = [T_P_W @ T_k @ self.T_W_P for T_k in T]  # as the registration has them
+        try:
+            held = HeldCut(lambda k: bins[k], T_P, unregistered, self.recipe.plan.coverage_radius_mm)
+            keep = [None if (cut := held.redundant.get(k)) is None else ~cut for k in range(len(bins))]
+            partial = merge_bins_ahead(self.settings.merge_voxel_mm, lambda k: bins[k], keep, T_P)
+        except (ConfigError, ValueError):
+            return False
+        counts = {k: bins[k].count for k in held.held}
+        ahead = MergeAhead(tuple(done), T_P, tuple(held.held), held, keep, counts, partial)
+        return state.keep_ahead(ahead, forgotten)
+
     def _view_bins(self, view: ViewResult) -> tuple[ViewBins, int]:
         """A view's merge bins and its measured points' count: the sensor's points in {P}
         at their kinematic pose (T_P_W @ p_W), without those lit too obliquely, weighted by quality^2, with
@@ -229,16 +380,17 @@ class InspectionResults:
         grid weighted by quality (cell.analysis.merge: each view binned once at its kinematic positions, as it
         arrives; here each bin's mean is moved by its view's refinement and merged where it then falls; a
         view the refinement could not register gives only the surface no registered view measured:
-        :func:`held_redundant`), then moved by the recipe's alignment (cell.analysis.alignment). An
-        alignment the measurement does not allow leaves the kinematic cloud and makes the verdict incomplete
-        (``alignment.error``). The registered cloud stays in memory for :meth:`report` with its error map
-        and coverage, computed here, and judged (:meth:`_judge`: the controller registers while it
-        evaluates, so they are ready when the evaluation is and the verdict adds only the run's context); it
-        is stored as results/cloud.ply with the report's page, and a resumed run
-        registers again, deterministically, to the same points. ``stop`` (set by the controller when the
-        evaluation beside it asks for more views, or the run pauses): :class:`CalledOff` at the next step
-        (after the refinement, before each view's bins, after the merge and the points' u), keeping
-        nothing."""
+        :func:`held_redundant`; the cut and merge of all views but the last made ahead, :meth:`merge_ahead`,
+        are finished with the last view when the refinement fits them bit for bit), then moved by the recipe's
+        alignment (cell.analysis.alignment). An alignment the measurement does not allow leaves the
+        kinematic cloud and makes the verdict incomplete (``alignment.error``). The registered cloud stays in
+        memory for :meth:`report` with its error map and coverage, computed here, and judged (:meth:`_judge`:
+        the controller registers while it evaluates, so they are ready when the evaluation is and the
+        verdict adds only the run's context); it is stored as results/cloud.ply with the report's page, and
+        a resumed run registers again, deterministically, to the same points. ``stop`` (set by the
+        controller when the evaluation beside it asks for more views, or the run pauses): :class:`CalledOff`
+        at the next step (after the refinement, before each view's bins, after the merge and the points' u),
+        keeping nothing."""
 
         def unless_called_off() -> None:
             if stop is not None and stop.is_set():
@@ -252,9 +404,12 @@ class InspectionResults:
             if not state.has(newest.index):
                 self.bin_arrived_view(run, newest)
         done, refined = self.refinement(run)
+        ahead = state.take_ahead()  # the cut and merge of all views but the last made ahead (merge_ahead)
         unless_called_off()
         stored = [self.views.get(run, i) for i in done]
         T_P = [T_P_W @ T @ self.T_W_P for T in refined.T]  # the views' refinement in {P}
+        if ahead is not None and not ahead.fits(done, T_P, refined.unregistered):
+            ahead = None
 
         def view(k: int) -> ViewBins:
             """View k's bins: kept, else binned again from its points (from its folder when the view store no
@@ -272,20 +427,25 @@ class InspectionResults:
                 counts[k] = bins.count
             return bins
 
-        redundant = held_redundant(held_bins, T_P, refined.unregistered, self.recipe.plan.coverage_radius_mm)
+        if ahead is None:
+            radius = self.recipe.plan.coverage_radius_mm
+            redundant = held_redundant(held_bins, T_P, refined.unregistered, radius)
+        else:  # the last view's share of the cut
+            redundant = ahead.held.with_last(held_bins, T_P, refined.unregistered)
+            for k, c in ahead.counts.items():
+                counts.setdefault(k, c)
         unless_called_off()
+        keep = [None if (cut := redundant.get(k)) is None else ~cut for k in range(len(stored))]
+        partial = ahead.merge if ahead is not None and ahead.keeps(keep) else None
+        del ahead
         shares = MergeShares(len(stored))
         # numpy, scipy's trees and the kernels release the GIL: two threads for what follows, each step
         # writing its own results (those of one thread); the refinement's record beside the merge
         pool = ThreadPoolExecutor(2, thread_name_prefix="register")
         try:
             record = pool.submit(refined.to_json, [v.eval_W for v in stored])
-            merged = state.merge(
-                view,
-                [None if (cut := redundant.get(k)) is None else ~cut for k in range(len(stored))],
-                T_P,
-                shares,
-            )
+            merged = state.merge(view, keep, T_P, shares, partial)
+            del partial
             unless_called_off()
             n_points_views = state.points(done)
             if merged is None and not n_points_views:
@@ -314,6 +474,7 @@ class InspectionResults:
             cloud.judged = self._judge(run, cloud, link_radius_mm, pool)
         finally:
             pool.shutdown()
+            state.drop_ahead()  # (one made meanwhile is of these views: stale from here on)
         self._cloud = cloud
         return cloud.registration
 

@@ -4,11 +4,13 @@ merge of views binned as they arrive (at their kinematic poses) and moved by the
 from __future__ import annotations
 
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from cell.analysis.merge import (
+    HeldCut,
     MergedCloud,
     ViewBins,
     bin_view,
@@ -16,6 +18,7 @@ from cell.analysis.merge import (
     load_kernels,
     measured_elsewhere,
     merge_bins,
+    merge_bins_ahead,
     voxel_subsample_index,
 )
 from cell.errors import ConfigError
@@ -298,6 +301,163 @@ def test_the_compiled_merge_is_numpys_group_by_to_the_bit() -> None:
     assert merged.n_views.max() >= 3 and merged.count.sum() == sum(
         int(b.count.sum() if k is None else b.count[k].sum()) for b, k in zip(bins, keep, strict=True)
     )
+
+
+def _refined_views(rng: np.random.Generator, n: int, voxel: float) -> tuple[list, list, list]:
+    """``n`` binned patches of a sloped surface, overlapping, with refinements of tens of um and 0.3 deg and
+    a held mask on every third: the merge's inputs."""
+    bins, keep, T = [], [], []
+    for k in range(n):
+        xy = rng.uniform(0, 3, (900, 2)) + 0.4 * k
+        p = np.column_stack([xy, 0.4 * xy[:, 1] + rng.normal(0, 0.01, len(xy))])
+        bins.append(bin_view(p, rng.uniform(0.5, 2.0, len(p)), rng.uniform(0.005, 0.02, len(p)), voxel))
+        T_k = np.eye(4)
+        T_k[:3, :3] = _rotation(rng.normal(size=3), np.deg2rad(0.3))
+        T_k[:3, 3] = rng.uniform(-0.06, 0.06, 3)
+        T.append(T_k)
+        keep.append(rng.random(len(bins[-1])) < 0.7 if k % 3 == 1 else None)
+    return bins, keep, T
+
+
+def _merged_with_views(merged: MergedCloud | None, calls: list) -> list[bytes]:
+    """Every array of a merge and of its ``each_view`` calls, as bytes (with their dtypes and m)."""
+    if merged is None:
+        return [b"None"] + [repr(c).encode() for c in calls]
+    out = [x.dtype.str.encode() + x.tobytes() for x in (merged.points_mm, merged.weight, merged.count)]
+    out.append(merged.n_views.tobytes())
+    for k, rows, m, w, wu in calls:
+        out += [f"{k} {m} {rows.dtype}".encode(), rows.tobytes(), w.tobytes(), wu.tobytes()]
+    return out
+
+
+@pytest.mark.parametrize(
+    "last", ["new voxels", "old voxels", "repeated", "crowd", "nothing", "nothing before"]
+)
+def test_a_merge_made_ahead_and_finished_with_the_last_view_is_the_full_merge_to_the_bit(last: str) -> None:
+    """Four views merged ahead, then the last: a view beside them (its voxels new, all before theirs), one
+    over them (moved by its own refinement: some voxels new, most shared), a copy of an earlier view (no
+    new voxel: the same numbering), a dozen bins in one new voxel (NumPy's pairwise sum), a view whose bins
+    are all held back, and earlier views that give nothing: points, weights, counts, views per voxel and
+    every view's ``each_view`` arguments equal the merge of all five at once, byte for byte."""
+    load_kernels()
+    rng = np.random.default_rng({"new voxels": 1, "old voxels": 2, "repeated": 3}.get(last, 4))
+    voxel = 0.2
+    bins, keep, T = _refined_views(rng, 5, voxel)
+    if last == "new voxels":
+        bins[4] = bin_view(bins[4].mean - [6.0, 0.0, 0.0], bins[4].weight, None, voxel)
+    elif last == "repeated":
+        bins[4], keep[4], T[4] = bins[2], None, T[2]
+    elif last == "crowd":
+        bins[4] = ViewBins(
+            rng.uniform(8.01, 8.19, (12, 3)),
+            rng.uniform(0.5, 2.0, 12),
+            rng.uniform(0, 0.1, 12).astype(np.float32),
+            np.ones(12, np.int32),
+        )
+        keep[4] = None
+    elif last == "nothing":
+        keep[4] = np.zeros(len(bins[4]), dtype=bool)
+    elif last == "nothing before":
+        keep[:4] = [np.zeros(len(b), dtype=bool) for b in bins[:4]]
+    full: list = []
+    merged = merge_bins(voxel, lambda k: bins[k], keep, T, lambda *a: full.append(a))
+    partial = merge_bins_ahead(voxel, lambda k: bins[k], keep[:4], T[:4])
+    two: list = []
+    finished = partial.finish(bins[4], keep[4], T[4], lambda *a: two.append(a))
+    assert merged is not None and len(full) == 5 and [c[0] for c in two] == list(range(5))
+    if last in ("repeated", "nothing"):
+        assert len(merged.weight) == len(partial.wsum)  # (no voxel added: the numbering kept)
+    else:
+        assert len(merged.weight) > len(partial.wsum)
+    assert _merged_with_views(finished, two) == _merged_with_views(merged, full)
+    with pytest.raises(RuntimeError):
+        partial.finish(bins[4], keep[4], T[4])
+
+
+@pytest.mark.parametrize(
+    "last", ["registered apart", "registered over a held", "held over a held", "held apart", "none held"]
+)
+def test_a_held_cut_made_ahead_and_finished_with_the_last_view_is_the_full_cut(last: str) -> None:
+    """Five patches side by side (x 0-4, 3-7, 6-10, 9-13, 12-16 mm; views 1 and 2 held, overlapping each
+    other and view 0) and a last view, registered or held, beside them (x 30-34) or over held view 2 (x
+    8-12): the cut made ahead of the last and finished with it equals :func:`held_redundant` of all six,
+    byte for byte; a registered last view over a held one cuts it further (the ahead cut made again)."""
+    rng = np.random.default_rng(5)
+    voxel, radius = 0.2, 1.0
+    x0 = [0.0, 3.0, 6.0, 9.0, 12.0, 30.0 if "apart" in last else 8.0]
+    bins, T = [], []
+    for k, x in enumerate(x0):
+        xy = rng.uniform([x, 0.0], [x + 4.0, 4.0], (700, 2))
+        p = np.column_stack([xy, 0.1 * k + rng.normal(0, 0.01, len(xy))])
+        bins.append(bin_view(p, np.ones(len(p)), None, voxel))
+        T_k = np.eye(4)
+        T_k[:3, :3] = _rotation(rng.normal(size=3), np.deg2rad(0.2))
+        T_k[:3, 3] = rng.uniform(-0.05, 0.05, 3)
+        T.append(T_k)
+    held = [] if last == "none held" else [1, 2] + ([5] if last.startswith("held") else [])
+    full = held_redundant(lambda k: bins[k], T, held, radius)
+    ahead = HeldCut(lambda k: bins[k], T[:5], [k for k in held if k < 5], radius)
+    asked: list[int] = []
+
+    def asked_bins(k: int) -> ViewBins:
+        asked.append(k)
+        return bins[k]
+
+    two = ahead.with_last(asked_bins, T, held)
+    assert list(two) == list(full) and all(two[k].tobytes() == full[k].tobytes() for k in full)
+    if last == "registered over a held":
+        assert (full[2] != ahead.redundant[2]).any()  # the last view cut more of view 2: made again
+    elif last != "none held":
+        assert set(asked) <= {0, 3, 4, 5}  # the held views' own bins were not needed again
+    if last.startswith("held"):
+        assert full[5].any() != (last == "held apart")  # cut where it repeats view 2, whole where apart
+
+
+def test_a_merge_made_ahead_is_kept_until_taken_voided_by_a_view_forgotten_and_fits_only_the_same_bits() -> (
+    None
+):
+    """The registration's :class:`MergeBins` keeps a merge made ahead until the registration takes it, not
+    when a view was forgotten while it was made (a view measured again), and none is made of views not
+    binned as they arrived; the registration uses it only for the same views, corrections and held views,
+    to the bit, and the same masks."""
+    from cell.inspection_results import ARRIVAL_BINNING_MAX_POINTS, MergeAhead, MergeBins
+
+    rng = np.random.default_rng(8)
+    bins, keep, T = _refined_views(rng, 3, 0.2)
+    state = MergeBins(0.2, Path("run"))
+    for i, b in zip((2, 5), bins[:2], strict=True):
+        state.add(i, b, int(b.count.sum()))
+    assert state.bins_ahead([2, 5, 7]) is None  # view 7 not binned
+    got = state.bins_ahead([2, 5])
+    assert got is not None and got[0][1] is bins[1]
+    held = HeldCut(lambda k: bins[k], T[:2], [1], 1.0)
+    masks = [None, ~held.redundant[1]]
+    ahead = MergeAhead(
+        (2, 5), T[:2], (1,), held, masks, {}, merge_bins_ahead(0.2, bins.__getitem__, masks, T[:2])
+    )
+    state.forget(9)  # another view (the last, as its decode begins): no matter
+    assert state.keep_ahead(ahead, got[1])
+    state.forget(9)
+    assert state.take_ahead() is ahead and state.take_ahead() is None  # kept, then taken once
+    state.forget(5)  # one of its views measured again while it was made
+    assert not state.keep_ahead(ahead, got[1]) and state.take_ahead() is None
+    state.add(5, bins[1], int(bins[1].count.sum()))
+    again = state.bins_ahead([2, 5])
+    assert again is not None and state.keep_ahead(ahead, again[1])
+    state.forget(2)  # ... or after
+    assert state.take_ahead() is None
+    assert ahead.fits([2, 5, 8], T, [1]) and ahead.fits([2, 5, 8], T, [1, 2])  # the last held or not
+    nudged = T[1].copy()
+    nudged[0, 3] = np.nextafter(nudged[0, 3], 1.0)
+    assert not ahead.fits([2, 5, 8], [T[0], nudged, T[2]], [1])  # a correction one ulp apart
+    assert not ahead.fits([2, 5, 8], T, []) and not ahead.fits([2, 5, 8], T, [0, 1])  # other held views
+    assert not ahead.fits([2, 6, 8], T, [1]) and not ahead.fits([2, 5, 4], T, [1])  # other views, order
+    assert not ahead.fits([2, 5], T[:2], [1])  # no last view
+    assert ahead.keeps([None, masks[1], None]) and not ahead.keeps([None, ~masks[1], None])
+    assert not ahead.keeps([masks[1], masks[1], None])
+    big = ARRIVAL_BINNING_MAX_POINTS + 1
+    state.add(7, bins[2], big)  # a 5 MP camera's view: binned when merged, never merged ahead
+    assert state.bins_ahead([2, 5, 7]) is None
 
 
 def test_view_bins_hold_the_points_weighted_sums() -> None:

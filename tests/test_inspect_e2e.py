@@ -198,7 +198,9 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
     dropped by :meth:`LambertianInspection.evaluations_done` before the registration, as the controller
     drops them after the last evaluation (the maps' pairs found again equal those dropped); ``called_off``:
     eager, with a first registration called off midway, between views' bins (:class:`cell.errors.CalledOff`,
-    as the controller calls off one begun beside an evaluation that asks for more views)."""
+    as the controller calls off one begun beside an evaluation that asks for more views), then all views but
+    the last cut and merged ahead from the refinement's corrections (:meth:`InspectionResults.merge_ahead`;
+    one made first is voided by a view forgotten), which the registration finishes with the last view."""
     from cell.analysis.merge import bin_view
     from cell.inspection import LambertianInspection
     from cell.inspection_run import load_run_inputs, open_inspection_run
@@ -241,13 +243,27 @@ def _registered(run_path: Path, bins: str) -> tuple[np.ndarray, np.ndarray, np.n
         assert any(map(len, held))
         assert all(a.tobytes() == b.tobytes() for a, b in zip(held, again, strict=True))
     views = Checkpoint.from_json(run.load_checkpoint()).views
+    made_ahead = None
     if bins == "called_off":
         stop = _SetAfter(checks=4)  # passes the refinement's check and some views' bins, then stops
         with pytest.raises(CalledOff):
             job.register(run, views, stop=stop)
         assert stop.checks < 0 and job._cloud is None  # stopped where asked, nothing of it kept
         assert not state._merging  # the bins it made while merging are dropped, as after a whole merge
+        # all views but the last cut and merged ahead with their refinement's corrections
+        order, refined = job.refinement(run)
+        before = [k for k in refined.unregistered if k < len(order) - 1]
+        assert job.merge_ahead(run, order[:-1], refined.T[:-1], before)
+        state.forget(order[0])  # one of its views measured again voids it
+        assert state.take_ahead() is None
+        job.bin_arrived_view(run, job.views.get(run, order[0]))
+        assert job.merge_ahead(run, order[:-1], refined.T[:-1], before)
+        state.forget(order[-1])  # (as the last view's decode begins: it stays)
+        made_ahead = state._ahead
+        assert made_ahead is not None and made_ahead.nbytes > 0
     job.register(run, views)
+    if bins == "called_off":  # the registration finished it with the last view, and dropped it
+        assert made_ahead is not None and made_ahead.merge.used and state._ahead is None
     cloud = job._cloud
     assert cloud is not None and cloud.error_map is not None and cloud.uncertainty_mm is not None
     return cloud.points_P, cloud.error_map.deviation_mm, cloud.uncertainty_mm
@@ -259,7 +275,8 @@ def test_the_ways_of_making_merge_bins_register_the_same_cloud(
     """Bins made as the views arrive, on first ask (a resumed run), with none kept, or of the plan's last view
     decoded again after a first decode had binned it: the same registered cloud, byte for byte; also when the
     evaluations' caches were dropped before the registration (its refinement then makes the views' overlaps
-    anew), and after a registration called off midway."""
+    anew), and after a registration called off midway, with the earlier views' cut and merge then made ahead
+    of the last view (InspectionResults.merge_ahead) and finished with it."""
     want = _registered(box_reference[2], "lazy")
     assert len(want[0]) > 1000
     for bins in ("none", "redo", "done", "called_off"):  # (redo: eager, the last view's first bins forgotten)

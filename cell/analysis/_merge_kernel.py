@@ -193,6 +193,78 @@ def number(table, by_key, bricks):
 
 
 @nb.njit(cache=True, nogil=True)
+def united(old, table, by_key, out):
+    """``out`` (>= len(old) + len(by_key), 2): the bricks ``old`` (:func:`number`'s, in the order of their
+    keys) and the hash ``table``'s entries ``by_key`` (in the order of their keys: a view's bricks), in the
+    order of their keys, a brick of both with the voxels of both: a hash's entries for :func:`number`.
+    Returns how many (the bricks of a partial merge and its last view's, without hashing the partial's
+    again or sorting them all)."""
+    i, j, n = 0, 0, 0
+    while i < len(old) or j < len(by_key):
+        if j == len(by_key) or (i < len(old) and old[i, _KEY] < table[by_key[j], _KEY]):
+            out[n, _KEY], out[n, _OCCUPIED] = old[i, _KEY], old[i, _OCCUPIED]
+            i += 1
+        elif i == len(old) or table[by_key[j], _KEY] < old[i, _KEY]:
+            out[n, _KEY], out[n, _OCCUPIED] = table[by_key[j], _KEY], table[by_key[j], _OCCUPIED]
+            j += 1
+        else:
+            out[n, _KEY], out[n, _OCCUPIED] = old[i, _KEY], old[i, _OCCUPIED] | table[by_key[j], _OCCUPIED]
+            i += 1
+            j += 1
+        n += 1
+    return n
+
+
+@nb.njit(cache=True, nogil=True)
+def spread(moved, wsum_old, sums_old, count_old, given_old, wsum, sums, count, given):
+    """A partial merge's voxel sums (``*_old``, (m_old,), ``sums_old`` (m_old, 3)) at their voxels' new
+    numbers ``moved`` (ascending) in ``wsum``, ``sums``, ``count``, ``given`` (m >= m_old, empty), the new
+    voxels' set to 0: the values copied bit for bit, in one pass."""
+    j = 0
+    for i in range(len(moved) + 1):
+        r = moved[i] if i < len(moved) else len(wsum)
+        while j < r:
+            wsum[j] = 0.0
+            sums[j, 0], sums[j, 1], sums[j, 2] = 0.0, 0.0, 0.0
+            count[j], given[j] = 0, 0
+            j += 1
+        if i < len(moved):
+            wsum[r] = wsum_old[i]
+            sums[r, 0], sums[r, 1], sums[r, 2] = sums_old[i, 0], sums_old[i, 1], sums_old[i, 2]
+            count[r], given[r] = count_old[i], given_old[i]
+            j = r + 1
+
+
+@nb.njit(cache=True, nogil=True)
+def remap(moved, rows):
+    """rows[i] = moved[rows[i]], in place: a view's merged points' rows in the new numbering."""
+    for i in range(len(rows)):
+        rows[i] = moved[rows[i]]
+
+
+@nb.njit(cache=True, nogil=True)
+def renumber(old, new, moved):
+    """``moved[i]``: the number in the bricks ``new`` of voxel i of the bricks ``old`` (:func:`number`'s,
+    both in the order of their keys; every brick of ``old`` is in ``new`` with at least its voxels): where a
+    partial merge's voxels go when a view adds its own (cell.analysis.merge.PartialMerge). Both numberings
+    are in the order of the voxels' keys, so ``moved`` ascends."""
+    j = 0
+    for g in range(len(old)):
+        while new[j, _KEY] != old[g, _KEY]:
+            j += 1
+        occupied = old[g, _OCCUPIED]
+        for y in range(8):
+            byte = (occupied >> (8 * y)) & 255
+            if byte == 0:
+                continue
+            i = (old[g, _ROWS + (y >> 1)] >> (32 * (y & 1))) & 0xFFFFFFFF
+            for z in range(8):
+                if (byte >> z) & 1:
+                    moved[i] = _number(new, j, (y << 3) | z)
+                    i += 1
+
+
+@nb.njit(cache=True, nogil=True)
 def _seek(bricks, brick, j):
     """The row of ``brick`` (present) in ``bricks`` (the hash's entries in the order of their keys), searched
     from row ``j`` outwards (galloping, then halving): a view's bins come in the order of their keys, so the
