@@ -480,7 +480,7 @@ class LambertianInspection(InspectionResults):
             self.views.add(result)
             if captured.next_to_last:  # while the robot moves to the last view and captures it
                 others = [v for v in self.views.completed(run) if v.index != result.index]
-                self._start_older_ahead(sorted([*others, result], key=lambda v: v.index))
+                self._start_older_ahead(run, sorted([*others, result], key=lambda v: v.index))
         return summary
 
     def _first_overlaps(self, run: RunFolder, new: ViewResult, pair_maps: bool = True) -> None:
@@ -590,7 +590,7 @@ class LambertianInspection(InspectionResults):
         self._refining_ahead = done
         threading.Thread(target=refine, name="refine-ahead", daemon=True).start()
 
-    def _start_older_ahead(self, views: list[ViewResult]) -> None:
+    def _start_older_ahead(self, run: RunFolder, views: list[ViewResult]) -> None:
         """Make the joint refinement of ``views`` (in index order), all the views before the plan's last so
         far (the decode of the one before the last just done, or a replan that adds one view), on a thread
         of its own, while the robot moves to the last view and captures it: the refinement after the last
@@ -606,7 +606,12 @@ class LambertianInspection(InspectionResults):
             try:
                 with self._refine_lock:
                     if self._older_of is views and len(views) >= 2:
-                        self._joint(views)
+                        found = self._joint(views)[0]
+                        # the registration's cut and merge of these views too, under the lock, so that the
+                        # refinement after the last view (which waits for it) hands them over with its own:
+                        # used when the last view leaves these views' corrections as they are to the bit (it
+                        # is held: the demo pillar's), else the registration merges all views in full
+                        self.merge_ahead(run, [v.index for v in views], found.T, found.unregistered)
             except Exception:  # made again (and raised) by the refinement after the last view
                 pass
 
@@ -810,6 +815,8 @@ class LambertianInspection(InspectionResults):
 
     def replan(self, run: RunFolder, views: list[View], evaluation: Evaluation) -> list[View]:
         """The feedback viewpoints g_k from the evaluation's round (computed again after a resume)."""
+        # a merge made ahead of this round's last view is stale: more views come (not held through their scan)
+        self.merge_bins_for(run).drop_ahead()
         loop = evaluation.state
         if not isinstance(loop, FeedbackRound):
             loop = self._feedback_round(run)
@@ -821,7 +828,7 @@ class LambertianInspection(InspectionResults):
         new = select_new(fb, proposed, [v.T_W_C for v in views if v.T_W_C is not None])
         if len(new) == 1:  # the views so far are all the refinement after it begins with (the decode of the
             # view before the last starts it when more are added)
-            self._start_older_ahead(self.views.completed(run))
+            self._start_older_ahead(run, self.views.completed(run))
         for entry in fb.log[start:]:
             run.log(
                 "decision", **{"kind": entry.get("event"), **{k: v for k, v in entry.items() if k != "event"}}
