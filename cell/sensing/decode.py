@@ -47,6 +47,9 @@ class DecodeParams:
     dark_frac: float = 0.03  # white - black below this: DARK
     min_contrast: float = 0.2  # (white - black) / (white + black) below this: LOW_CONTRAST
     min_edge_frac: float = 0.05  # an edge's |D(n) - D(n+1)| must exceed this * local modulation
+    # GCLS: no pixel is interpolated between two edges further apart than this * the row's mean spacing of
+    # adjacent edges (a depth step between them); see docs/sensing.md
+    max_edge_span: float = 8.0
 
 
 @dataclass
@@ -145,6 +148,7 @@ def _decode_gcls_axis(
         code.shift_px,
         code.offset_px,
         np.float32(p.min_edge_frac * 0.5),
+        p.max_edge_span,
         u,
         reasons,
         sharp,
