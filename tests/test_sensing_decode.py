@@ -147,9 +147,9 @@ def test_bad_stacks_name_the_frame(plate_rig) -> None:
 
 
 def _rows_seeing(ps, u_rows: np.ndarray) -> np.ndarray:
-    """The (N, R, C) uint8 stack of camera rows whose pixel c sees projector column ``u_rows[r, c]`` (projector
-    px, pixel-centre convention; NaN: no projector light, a shadow) over 0.5 projector px, 10 DN black and
-    210 DN white: each pixel the mean of the column pattern at 8 points across its footprint."""
+    """The (N, R, C) uint8 stack of camera rows whose pixel c sees projector column ``u_rows[r, c]``
+    (projector px, pixel-centre convention; NaN: no projector light, a shadow) over 0.5 projector px, 10 DN
+    black and 210 DN white: each pixel the mean of the column pattern at 8 points across its footprint."""
     sub = u_rows[..., None] + np.linspace(-0.25, 0.25, 8)
     k = np.clip(np.floor(np.nan_to_num(sub) + 0.5).astype(int), 0, ps.frames[0].shape[1] - 1)
     lit = np.isfinite(u_rows)

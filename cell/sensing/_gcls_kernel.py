@@ -6,8 +6,10 @@ passes with (H, W) float64 temporaries and gathers, ~10x slower than one fused p
 independent along the coded axis, so rows run in parallel (``prange``); all per-row work stays in L1/L2.
 
 The arithmetic replicates the NumPy version exactly (same dtypes: float32 edge ratios and thresholds, float64
-edge merge), so results are bit-identical to it. Arrays may be transposed views (the rows axis decodes the
-transposed images); the kernels never assume a memory layout.
+edge merge), so results are bit-identical to it, except that since 2026-11-27 no pixel is interpolated
+between two edges that span an unusable pixel or a depth step (docs/sensing.md): such pixels are
+INCONSISTENT, the others keep their bit-identical u. Arrays may be transposed views (the rows axis decodes
+the transposed images); the kernels never assume a memory layout.
 """
 
 from __future__ import annotations
@@ -118,7 +120,7 @@ def gcls_axis(
             est = g[c] * n + (n - 1) / 2.0
             qpix[c] = rr + 2 * n * np.int32(np.rint((est - rr) / (2 * n)))
             usable[c] = base[r, c] == 0 and clear[c] >= n_gray - 1
-        nbad = np.empty(C + 1, np.int32)  # unusable pixels left of pixel c
+        nbad = np.empty(C + 1, np.int32)  # unusable pixels in [0, c): a shadow between two edges shows
         k = np.int32(0)
         for c in range(C):
             nbad[c] = k

@@ -12,7 +12,10 @@ codes of the two pixels beside it: the Gray stripe index unwraps the shift patte
 are the measured points; every camera pixel between two consecutive edges q and q+1 of the same row gets its
 projector coordinate by linear interpolation between them (the surface is smooth at the scale of one code,
 ~1.7 camera px here), so the cloud stays organised (H, W). A pixel whose own code does not lie between two
-found edges is marked INCONSISTENT (Gray code disagrees with the line shifts) and gets no coordinate.
+found edges is marked INCONSISTENT (Gray code disagrees with the line shifts) and gets no coordinate, and so
+is a pixel whose edge pair has an unusable pixel between its edges (a shadow: the edge beyond it lies on
+another surface) or is more than ``max_edge_span`` times the row's mean edge spacing wide (a depth step);
+docs/sensing.md.
 
 GCPS: the same Gray stripes unwrap an N-step phase of period 2*stripe (see patterns.py).
 """
@@ -36,7 +39,9 @@ class Reason(IntFlag):
     DARK = 1  # no projector light: shadow, black or far-tilted surface (white - black too small)
     SATURATED = 2  # white frame at full scale: glare
     LOW_CONTRAST = 4  # lit, but the pattern modulation is too weak against ambient light
-    INCONSISTENT = 8  # Gray code and line-shift/phase code disagree, or no edges bracket the pixel
+    # Gray code and line-shift/phase code disagree, or no edges bracket the pixel, or its edges span a
+    # shadow, an undecoded area or a depth step (GCLS: no interpolation across them)
+    INCONSISTENT = 8
     NO_CODE = 16  # outside the coded projector range
 
 
