@@ -144,3 +144,38 @@ def test_bad_stacks_name_the_frame(plate_rig) -> None:
     dark[k] = dark[GCLS.index("black")]
     with pytest.raises(StackError, match="'col_gray2' .* all dark"):
         check_stack(dark, GCLS, res, 8)
+
+
+def _rows_seeing(ps, u_rows: np.ndarray) -> np.ndarray:
+    """The (N, R, C) uint8 stack of camera rows whose pixel c sees projector column ``u_rows[r, c]``
+    (projector px, pixel-centre convention; NaN: no projector light, a shadow) over 0.5 projector px, 10 DN
+    black and 210 DN white: each pixel the mean of the column pattern at 8 points across its footprint."""
+    sub = u_rows[..., None] + np.linspace(-0.25, 0.25, 8)
+    k = np.clip(np.floor(np.nan_to_num(sub) + 0.5).astype(int), 0, ps.frames[0].shape[1] - 1)
+    lit = np.isfinite(u_rows)
+    out = [np.where(lit, 10 + 200 * (f[0][k] / 255.0).mean(axis=-1), 10.0) for f in ps.frames]
+    return np.rint(out).astype(np.uint8)
+
+
+def test_no_pixel_takes_its_column_from_an_edge_beyond_a_shadow_or_a_depth_step() -> None:
+    """Analytic rows, 2 camera px per projector px. Row 0: a 10 px shadow whose two sides see adjacent
+    projector columns (the projector's ray grazes an edge: the code runs on across the unlit pixels). Row 1:
+    a depth step without unlit pixels, the columns that the near stretch hides seen further along the row.
+    A pixel beside either must not interpolate between an edge on its side and the next one beyond: it gets
+    its true column (within 0.05 px) or none. Before the rule the pixels beside the shadow read 0.25 and
+    0.16 px off, those beside the step 0.28 and 0.19 px, and four beyond it up to 1.6 px (a crossing at the
+    step merged into a far edge of the same code: an edge pair 8 times wider than the row's others)."""
+    ps = gcls_patterns(128, 8, 8, 8)  # 1 projector px per code
+    c = np.arange(120, dtype=np.float64)
+    shadow = np.where(c < 50, 10.3 + 0.5 * c, 10.3 + 0.5 * (c - 10))
+    shadow[50:60] = np.nan
+    step = np.select([c < 50, c < 80], [10.3 + 0.5 * c, 62.3 + 0.5 * (c - 50)], 35.3 + 0.5 * (c - 80))
+    truth = np.stack([shadow, step])
+    ad = decode(_rows_seeing(ps, truth), ps).primary()
+    lit = np.isfinite(truth)
+    err = np.abs(ad.u - truth)
+    assert np.all(err[ad.valid] < 0.05), np.round(np.where(ad.valid, ad.u - truth, 0), 2)
+    assert not np.any(ad.valid & ~lit) and np.all(ad.reasons[~lit] & Reason.DARK)
+    assert np.all(ad.reasons[~ad.valid & lit] == Reason.INCONSISTENT)  # holes, said why
+    # the rest decodes: row 0 all but the pixel beside each side of the shadow and the rows' ends
+    assert ad.valid[0, lit[0]].sum() >= lit[0].sum() - 4 and ad.valid[1].mean() > 0.8

@@ -174,7 +174,10 @@ def test_report_escapes_every_user_string(tmp_path) -> None:
 def test_the_sensor_drops_the_grazing_light_that_made_the_spheres_too_small(tmp_path) -> None:
     """On the full camera, ideal world: the ball bar on space diagonal 2 puts one sphere's terminator toward
     the camera. Points lit there beyond 80 deg from the projector measured up to 0.18 mm inside the sphere;
-    with them PF was 0.23 mm and SD +20 um, without them PF is noise (~0.04 mm) and SD within a few um."""
+    with them PF was 0.23 mm and SD +20 um, without them PF is noise (~0.04 mm) and SD within a few um.
+    Since the decoder stopped interpolating across the unusable pixels by the terminator (docs/sensing.md),
+    most of those points are not decoded at all: without the filter PF 0.127 -> 0.042 mm, SD +12 -> +0.8 um
+    (measured), and the filter drops 502 points, not 1106."""
     cert = load_certificate()
     figures = {}
     for limit in (80.0, 90.0):  # 90: only pixels without a measurable normal are dropped
@@ -190,7 +193,7 @@ def test_the_sensor_drops_the_grazing_light_that_made_the_spheres_too_small(tmp_
     pf_all, sd_all, _ = figures[90.0]
     assert dropped > 200
     assert pf < 0.06 and abs(sd) < 0.006
-    assert pf_all > 0.1 and pf_all > 2 * pf
+    assert pf_all < 0.06 and abs(sd_all) < 0.006
 
 
 def test_ramped_line_shift_edges_bring_the_spheres_pf_down(tmp_path) -> None:

@@ -6,8 +6,10 @@ passes with (H, W) float64 temporaries and gathers, ~10x slower than one fused p
 independent along the coded axis, so rows run in parallel (``prange``); all per-row work stays in L1/L2.
 
 The arithmetic replicates the NumPy version exactly (same dtypes: float32 edge ratios and thresholds, float64
-edge merge), so results are bit-identical to it. Arrays may be transposed views (the rows axis decodes the
-transposed images); the kernels never assume a memory layout.
+edge merge), so results are bit-identical to it, except that since 2026-11-27 no pixel is interpolated
+between two edges that span an unusable pixel or a depth step (docs/sensing.md): such pixels are
+INCONSISTENT, the others keep their bit-identical u. Arrays may be transposed views (the rows axis decodes
+the transposed images); the kernels never assume a memory layout.
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ def gcls_axis(
     shift_px,
     offset_px,
     edge_frac,
+    max_span,
     u,
     reasons,
     sharp,
@@ -71,8 +74,10 @@ def gcls_axis(
     """Decode one coded axis; rows of the (N, R, C) ``stack`` run along the coded axis.
 
     ``gray_idx`` / ``shift_idx`` (k, 2) frame indices of each pattern and its inverse; ``base`` and ``mod``
-    (R, C) from :func:`reference_masks`; ``edge_frac`` float32 (min_edge_frac * 0.5). Writes ``u`` (projector
-    px, NaN where invalid), ``reasons`` and ``sharp`` (R, C) and returns the number of edges found.
+    (R, C) from :func:`reference_masks`; ``edge_frac`` float32 (min_edge_frac * 0.5); ``max_span`` the
+    widest edge pair a pixel is interpolated between, as a multiple of the row's mean spacing of adjacent
+    edges. Writes ``u`` (projector px, NaN where invalid), ``reasons`` and ``sharp`` (R, C) and returns the
+    number of edges found.
     """
     _, R, C = stack.shape
     n_gray = gray_idx.shape[0]
@@ -115,6 +120,12 @@ def gcls_axis(
             est = g[c] * n + (n - 1) / 2.0
             qpix[c] = rr + 2 * n * np.int32(np.rint((est - rr) / (2 * n)))
             usable[c] = base[r, c] == 0 and clear[c] >= n_gray - 1
+        nbad = np.empty(C + 1, np.int32)  # unusable pixels in [0, c): a shadow between two edges shows
+        k = np.int32(0)
+        for c in range(C):
+            nbad[c] = k
+            k += np.int32(not usable[c])
+        nbad[C] = k
         # Edges: sign changes of D_j between pixels c and c+1, at x = c + D(c) / (D(c) - D(c+1)); crossings
         # that land on the same code are merged by a swing-weighted mean.
         wsum = np.zeros(Q + 1)
@@ -147,6 +158,27 @@ def gcls_axis(
         for q in range(Q + 1):
             Xf[q] = np.float32(wx[q] / wsum[q]) if wsum[q] > 0 else np.float32(np.nan)
             Sf[q] = np.float32(wsum[q] / hits[q]) if hits[q] > 0 else np.float32(np.nan)
+        # An edge pair brackets pixels only if no unusable pixel lies between its edges (else the line would
+        # run across a shadow or an undecoded area to an edge on another surface) and it is not much wider
+        # than the row's mean spacing of the adjacent edge pairs that pass the first rule (a depth step).
+        # ``span[q]`` = X[q+1] - X[q] (the interpolation's denominator), NaN for a pair that brackets nothing.
+        span = np.empty(Q, np.float32)
+        span_sum = 0.0
+        n_span = 0
+        for q in range(Q):
+            xl, xr = Xf[q], Xf[q + 1]
+            dx = xr - xl
+            if dx == dx and nbad[np.int64(max(xl, xr)) + 1] != nbad[np.int64(min(xl, xr)) + 1]:
+                dx = np.float32(np.nan)
+            if dx == dx:
+                span_sum += abs(dx)
+                n_span += 1
+            span[q] = dx
+        if n_span > 0:
+            widest = max_span * span_sum / n_span
+            for q in range(Q):
+                if abs(span[q]) > widest:
+                    span[q] = np.float32(np.nan)
         # Every pixel between the edges of its code q and q+1 interpolates its coordinate; a pixel that is not
         # (one flipped bit beside an edge) tries q-1 then q+1; else it is INCONSISTENT.
         for c in range(C):
@@ -158,21 +190,22 @@ def gcls_axis(
             if usable[c]:
                 cf = np.float32(c)
                 q0 = min(max(qpix[c], 0), Q - 1)
-                xl = Xf[q0]
-                t = (cf - xl) / (Xf[q0 + 1] - xl)
+                t = (cf - Xf[q0]) / span[q0]
                 if t >= 0 and t <= 1 and qpix[c] == q0:
                     ul = np.float32(np.float64(q0) + np.float64(t))
                     sp = _min_nan(Sf[q0], Sf[q0 + 1])
-                else:
-                    for dq in (-1, 1):
-                        q = qpix[c] + dq
-                        i = min(max(q, 0), Q - 1)
-                        xl = Xf[i]
-                        tt = (cf - xl) / (Xf[i + 1] - xl)
-                        if q >= 0 and q < Q and tt >= 0 and tt <= 1:
-                            ul = np.float32(np.float64(q) + np.float64(tt))
-                            sp = _min_nan(Sf[i], Sf[i + 1])
-                            break
+                else:  # (rare) outside its own pair, or inside a dropped one: then it gets no coordinate
+                    t = (cf - Xf[q0]) / (Xf[q0 + 1] - Xf[q0])
+                    if not (t >= 0 and t <= 1 and qpix[c] == q0):
+                        for dq in (-1, 1):
+                            q = qpix[c] + dq
+                            i = min(max(q, 0), Q - 1)
+                            tt = (cf - Xf[i]) / (Xf[i + 1] - Xf[i])
+                            if q >= 0 and q < Q and tt >= 0 and tt <= 1:
+                                if span[i] == span[i]:  # not a dropped pair
+                                    ul = np.float32(np.float64(q) + np.float64(tt))
+                                    sp = _min_nan(Sf[i], Sf[i + 1])
+                                break
                 if ul != ul:
                     b |= _INCONSISTENT
             reasons[r, c] = b

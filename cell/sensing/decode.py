@@ -12,7 +12,10 @@ codes of the two pixels beside it: the Gray stripe index unwraps the shift patte
 are the measured points; every camera pixel between two consecutive edges q and q+1 of the same row gets its
 projector coordinate by linear interpolation between them (the surface is smooth at the scale of one code,
 ~1.7 camera px here), so the cloud stays organised (H, W). A pixel whose own code does not lie between two
-found edges is marked INCONSISTENT (Gray code disagrees with the line shifts) and gets no coordinate.
+found edges is marked INCONSISTENT (Gray code disagrees with the line shifts) and gets no coordinate, and so
+is a pixel whose edge pair has an unusable pixel between its edges (a shadow: the edge beyond it lies on
+another surface) or is more than ``max_edge_span`` times the row's mean edge spacing wide (a depth step);
+docs/sensing.md.
 
 GCPS: the same Gray stripes unwrap an N-step phase of period 2*stripe (see patterns.py).
 """
@@ -36,7 +39,9 @@ class Reason(IntFlag):
     DARK = 1  # no projector light: shadow, black or far-tilted surface (white - black too small)
     SATURATED = 2  # white frame at full scale: glare
     LOW_CONTRAST = 4  # lit, but the pattern modulation is too weak against ambient light
-    INCONSISTENT = 8  # Gray code and line-shift/phase code disagree, or no edges bracket the pixel
+    # Gray code and line-shift/phase code disagree, or no edges bracket the pixel, or its edges span a
+    # shadow, an undecoded area or a depth step (GCLS: no interpolation across them)
+    INCONSISTENT = 8
     NO_CODE = 16  # outside the coded projector range
 
 
@@ -47,6 +52,9 @@ class DecodeParams:
     dark_frac: float = 0.03  # white - black below this: DARK
     min_contrast: float = 0.2  # (white - black) / (white + black) below this: LOW_CONTRAST
     min_edge_frac: float = 0.05  # an edge's |D(n) - D(n+1)| must exceed this * local modulation
+    # GCLS: no pixel is interpolated between two edges further apart than this * the row's mean spacing of
+    # adjacent edges (a depth step between them); see docs/sensing.md
+    max_edge_span: float = 8.0
 
 
 @dataclass
@@ -145,6 +153,7 @@ def _decode_gcls_axis(
         code.shift_px,
         code.offset_px,
         np.float32(p.min_edge_frac * 0.5),
+        p.max_edge_span,
         u,
         reasons,
         sharp,
