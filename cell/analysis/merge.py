@@ -171,17 +171,7 @@ def merge_bins(
     (:class:`cell.analysis.uncertainty.MergeShares`). None when no view gives a voxel. The same merge can be
     made in two parts, all views but the last before the last is known (:func:`merge_bins_ahead`, then
     :meth:`PartialMerge.finish`), to the bit."""
-    if not voxel_mm > 0:
-        raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
-    # the bricks of voxels the moved bins fall in: a hash of their keys and occupied voxels (the kernel's)
-    table = np.full((1024, 2), -1, dtype=np.int64)
-    n_bricks, n_most = 0, 0
-    for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
-        b = views(k)
-        n_most = max(n_most, len(b))
-        table, n_bricks = _mark(table, n_bricks, k, b, kept, T_k, voxel_mm)
-    bricks, m = _numbered(table)
-    del table
+    bricks, m, n_most = _first_pass(voxel_mm, views, keep, T)
     if not m:
         return None
     wsum, sums = np.zeros(m), np.zeros((m, 3))
@@ -198,6 +188,27 @@ def merge_bins(
 # sums and weighted u sums there)
 EachView = Callable[[int, NDArray[Any], int, NDArray[np.float64], NDArray[np.float64]], None]
 _EVERY = np.zeros(0, dtype=bool)  # (the kernels' "all kept")
+
+
+def _first_pass(
+    voxel_mm: float,
+    views: Callable[[int], ViewBins],
+    keep: Sequence[NDArray[np.bool_] | None],
+    T: Sequence[NDArray[np.float64]],
+) -> tuple[NDArray[np.int64], int, int]:
+    """The merge's first pass over all the views (:func:`merge_bins`'s arguments): the bricks of the voxels
+    the moved bins fall in (a hash of their keys and occupied voxels, the kernel's), numbered in the order of
+    their keys for the second pass; how many voxels; the most bins of a view (the second pass's scratch)."""
+    if not voxel_mm > 0:
+        raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
+    table = np.full((1024, 2), -1, dtype=np.int64)
+    n_bricks, n_most = 0, 0
+    for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
+        b = views(k)
+        n_most = max(n_most, len(b))
+        table, n_bricks = _mark(table, n_bricks, k, b, kept, T_k, voxel_mm)
+    bricks, m = _numbered(table)
+    return bricks, m, n_most
 
 
 def _mark(
@@ -394,16 +405,7 @@ def merge_bins_ahead(
     """:func:`merge_bins` of views 0 .. len(T) - 1 (``views``, ``keep``, ``T`` as there), made before the
     view that follows them is known, to be finished with it (:meth:`PartialMerge.finish`): both passes over
     these views, their ``each_view`` arguments kept."""
-    if not voxel_mm > 0:
-        raise ConfigError(f"merge: voxel size must be > 0 mm, got {voxel_mm}")
-    table = np.full((1024, 2), -1, dtype=np.int64)
-    n_bricks, n_most = 0, 0
-    for k, (kept, T_k) in enumerate(zip(keep, T, strict=True)):
-        b = views(k)
-        n_most = max(n_most, len(b))
-        table, n_bricks = _mark(table, n_bricks, k, b, kept, T_k, voxel_mm)
-    bricks, m = _numbered(table)
-    del table
+    bricks, m, n_most = _first_pass(voxel_mm, views, keep, T)
     wsum, sums = np.zeros(m), np.zeros((m, 3))
     count, n_views = np.zeros(m, dtype=np.int64), np.zeros(m, dtype=np.int64)
     shares = []

@@ -23,6 +23,7 @@ per view); Open3D's pose graph is not a dependency and does not take a kinematic
 
 from __future__ import annotations
 
+import functools
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -456,20 +457,9 @@ def refine_views(
                 and _boxes_overlap(boxes[i], boxes[j], radius)
             ]
 
-            def matched(
-                ij: tuple[int, int],
-                it: int = it,
-                radius: float = radius,
-                poses: list[Pose] = T,
-                boxes: list[tuple[Array, Array]] = boxes,
-            ) -> PairMatch | None:
-                i, j = ij
-                a, b = sides[i], sides[j]
-                if it == 0:  # at the kinematic poses: the pair's own business, kept between calls
-                    return _first_match(a, b, radius, noise_mm, seed, cache)
-                pool = cache.pool(a, b, radii_mm[0], seed)
-                return _match(a, b, poses[i], poses[j], boxes[j], radius, pool, noise_mm)
-
+            matched = functools.partial(
+                _pair_match, sides, it == 0, radius, T, boxes, cache, radii_mm[0], seed, noise_mm
+            )
             matches = [
                 (i, j, m)
                 for (i, j), m in zip(ordered, pool.map(matched, ordered), strict=True)
@@ -494,27 +484,11 @@ def refine_views(
             for i, j, match in matches:
                 p, q, nj, r, w_row = match.p, match.q, match.n, match.r, match.w
                 gaps_all.append(r)
-                # a gap holds two points' noise; each unordered pair is seen twice (i->j, j->i): half weight.
-                # The pairs of one overlap are not independent (a view's calibration residual is smooth over
-                # it, estimated normals share neighbours): together they count as EFFECTIVE_PAIRS, or the
-                # noise in weakly constrained directions (a slide along a gentle curve) outweighs the prior
-                w = 0.5 / (2 * noise_mm**2) * min(1.0, EFFECTIVE_PAIRS / len(r))
-                # about the pair's midpoint, so that one motion of both views changes no gap (the gauge is
-                # the prior's alone)
-                Ji = np.column_stack([np.cross((p + q) / 2 - centre, nj) / lever, nj])
-                Ji = Ji @ _observable(Ji)
+                Ji = _pair_jacobian(p, q, nj, centre, lever)
                 pairs.append((i, j, Ji, r))  # the gaps after the step, held views' too
                 if held[i] or held[j]:
                     continue
-                si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
-                Wi = Ji * (w * w_row)[:, None]
-                WJ = Wi.T @ Ji  # once for the four blocks
-                H[si, si] += WJ
-                H[sj, sj] += WJ
-                H[si, sj] -= WJ
-                H[sj, si] -= WJ
-                g[si] += Wi.T @ r
-                g[sj] -= Wi.T @ r
+                _add_pair(H, g, i, j, Ji, _pair_weight(len(r), noise_mm) * w_row, r)
             rms.append(float(np.sqrt(np.mean(np.concatenate(gaps_all) ** 2))) if gaps_all else 0.0)
             counted.append(sum(len(r) for r in gaps_all))
             information = H.copy()  # the overlaps' alone, for cell.analysis.uncertainty
@@ -632,21 +606,9 @@ def refine_newest(
                 and _boxes_overlap(boxes[ij[0]], boxes[ij[1]], radius)
             ]
 
-            def matched(
-                ij: tuple[int, int],
-                it: int = it,
-                radius: float = radius,
-                poses: list[Pose] = T,
-                boxes: list[tuple[Array, Array]] = boxes,
-            ) -> PairMatch | None:
-                i, j = ij
-                a, b = sides[i], sides[j]
-                if it == 0:
-                    return _first_match(a, b, radius, noise_mm, seed, cache)
-                return _match(
-                    a, b, poses[i], poses[j], boxes[j], radius, cache.pool(a, b, radii_mm[0], seed), noise_mm
-                )
-
+            matched = functools.partial(
+                _pair_match, sides, it == 0, radius, T, boxes, cache, radii_mm[0], seed, noise_mm
+            )
             matches = [
                 (i, j, m)
                 for (i, j), m in zip(ordered, pool.map(matched, ordered), strict=True)
@@ -666,22 +628,12 @@ def refine_newest(
                 p, q, nj, r, w_row = match.p, match.q, match.n, match.r, match.w
                 if it == 0:
                     before.append(r)
-                w = 0.5 / (2 * noise_mm**2) * min(1.0, EFFECTIVE_PAIRS / len(r))  # as in refine_views
-                Ji = np.column_stack([np.cross((p + q) / 2 - centre, nj) / lever, nj])
-                Ji = Ji @ _observable(Ji)
+                Ji = _pair_jacobian(p, q, nj, centre, lever)
                 r = r + Ji @ (since[i] - since[j])  # the gaps at the present corrections (linearised)
                 pairs.append((i, j, Ji, r))
                 if held_new or held_old[j if i == new else i]:
                     continue
-                si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
-                Wi = Ji * (w * w_row)[:, None]
-                WJ = Wi.T @ Ji
-                H[si, si] += WJ
-                H[sj, sj] += WJ
-                H[si, sj] -= WJ
-                H[sj, si] -= WJ
-                g[si] += Wi.T @ r
-                g[sj] -= Wi.T @ r
+                _add_pair(H, g, i, j, Ji, _pair_weight(len(r), noise_mm) * w_row, r)
             step = -np.linalg.solve(H, g).reshape(n_views, 6)
             step[held_old] = 0.0
             if held_new:
@@ -712,8 +664,7 @@ def refine_newest(
         moments.append((i, j, float(e @ e), Ji.T @ e, Ji.T @ Ji))
         if held_new or held_old[j if i == new else i]:
             continue
-        w = 0.5 / (2 * noise_mm**2) * min(1.0, EFFECTIVE_PAIRS / len(e))
-        WJ = (Ji * (w * match.w)[:, None]).T @ Ji
+        WJ = (Ji * (_pair_weight(len(e), noise_mm) * match.w)[:, None]).T @ Ji
         si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
         information[si, si] += WJ
         information[sj, sj] += WJ
@@ -764,6 +715,59 @@ def _held_views(support: Array) -> NDArray[np.bool_]:
         if (now_held == held).all():
             return held
         held = now_held
+
+
+def _pair_match(
+    sides: list[_Side],
+    first: bool,
+    radius: float,
+    poses: list[Pose],
+    boxes: list[tuple[Array, Array]],
+    cache: OverlapCache,
+    pool_radius: float,
+    seed: int,
+    noise_mm: float,
+    ij: tuple[int, int],
+) -> PairMatch | None:
+    """The ordered pair ``ij``'s matching within ``radius``: ``first``, at the kinematic poses (the pair's own
+    business, kept in ``cache`` between calls), else at the present corrections ``poses`` from the pair's
+    candidate pool (drawn at ``pool_radius``, the first radius)."""
+    i, j = ij
+    a, b = sides[i], sides[j]
+    if first:
+        return _first_match(a, b, radius, noise_mm, seed, cache)
+    return _match(a, b, poses[i], poses[j], boxes[j], radius, cache.pool(a, b, pool_radius, seed), noise_mm)
+
+
+def _pair_weight(n_gaps: int, noise_mm: float) -> float:
+    """The weight of each of a pair's ``n_gaps`` gaps (1/mm^2, before its incidence weight). A gap holds two
+    points' noise; each unordered pair is seen twice (i->j, j->i): half weight. The pairs of one overlap are
+    not independent (a view's calibration residual is smooth over it, estimated normals share neighbours):
+    together they count as EFFECTIVE_PAIRS, or the noise in weakly constrained directions (a slide along a
+    gentle curve) outweighs the prior."""
+    return 0.5 / (2 * noise_mm**2) * min(1.0, EFFECTIVE_PAIRS / n_gaps)
+
+
+def _pair_jacobian(p: Array, q: Array, n: Array, centre: Array, lever: float) -> Array:
+    """The gaps' derivative (K, 6) by a view's correction (omega * lever, tau) about ``centre``: about the
+    pair's midpoints (p + q) / 2, so that one motion of both views changes no gap (the gauge is the prior's
+    alone), along the target's normals ``n``; only its observable directions (:func:`_observable`)."""
+    J = np.column_stack([np.cross((p + q) / 2 - centre, n) / lever, n])
+    return J @ _observable(J)
+
+
+def _add_pair(H: Array, g: Array, i: int, j: int, J: Array, w: Array, r: Array) -> None:
+    """Add the pair (i, j)'s gaps ``r`` (weights ``w``, derivative ``J`` by x_i, -J by x_j) to the normal
+    equations ``H`` dx = -``g`` of the stacked corrections, in place."""
+    si, sj = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
+    Wi = J * w[:, None]
+    WJ = Wi.T @ J  # once for the four blocks
+    H[si, si] += WJ
+    H[sj, sj] += WJ
+    H[si, sj] -= WJ
+    H[sj, si] -= WJ
+    g[si] += Wi.T @ r
+    g[sj] -= Wi.T @ r
 
 
 def _moved_box(T: Pose, points: Array, box: tuple[Array, Array]) -> tuple[Array, Array]:
