@@ -59,7 +59,7 @@ from cell.config import CellConfig, Recipe
 from cell.contracts import CameraSettings, PixelFormat, TriggerMode
 from cell.controller import Controller, ControllerSettings, RobotLimits
 from cell.devices import DeviceBundle
-from cell.errors import DeviceFault
+from cell.errors import ConfigError, DeviceFault
 from cell.geometry import invert, transform_points, transform_vectors
 from cell.inspection_results import InspectionResults, MergeBins, RegisteredCloud
 from cell.inspection_views import (
@@ -209,7 +209,6 @@ class LambertianInspection(InspectionResults):
         # the joint refinement of the views but the newest, that the refinement of them all begins with
         # (:meth:`_refine`), with the prior it ran under (sigma per view: mm, rad) and its source
         self._older: tuple[tuple[int, ...], ViewRefinement, NDArray[np.float64], str] | None = None
-        self._older_of: list[ViewResult] | None = None  # the views the one started ahead is for (None: void)
         self._refine_lock = threading.Lock()  # one refinement at a time: a second caller waits for it
         self._refining_ahead: Future[None] | None = None  # the refinement started by the last view's decode
         self._ahead_of: ViewResult | None = None  # the view it was started for (a later start voids it)
@@ -351,7 +350,10 @@ class LambertianInspection(InspectionResults):
         if self._raw_later is None:
             return {}
         index = self._raw_later[0]
-        verdict = (Checkpoint.from_json(run.load_checkpoint()).summary or {}).get("verdict")
+        try:
+            verdict = (Checkpoint.from_json(run.load_checkpoint()).summary or {}).get("verdict")
+        except (OSError, ValueError, ConfigError):  # unreadable: kept as when no verdict is out yet
+            verdict = None
         written = self._write_raw_later(run.path, verdict)
         return {"view": index, "raw_images_bytes": written} if written else {}
 
@@ -478,8 +480,10 @@ class LambertianInspection(InspectionResults):
             if not captured.last:
                 self.bin_arrived_view(run, result)
             self.views.add(result)
-            if captured.next_to_last:  # while the robot moves to the last view and captures it
-                others = [v for v in self.views.completed(run) if v.index != result.index]
+            others = [v for v in self.views.completed(run) if v.index != result.index]
+            # while the robot moves to the last view and captures it (not when that one is measured already:
+            # this view was measured again after it)
+            if captured.next_to_last and all(v.index != result.index + 1 for v in others):
                 self._start_older_ahead(run, sorted([*others, result], key=lambda v: v.index))
         return summary
 
@@ -510,9 +514,9 @@ class LambertianInspection(InspectionResults):
         holds it (one made ahead: after it is made, as the lock orders, so that none of its overlaps of the
         earlier measurement stays in the cache). A refinement started ahead and not yet begun is void from
         here on: under the same lock, the view it is for becomes ``ahead_of`` (the one about to be started,
-        else None), so an earlier start never refines a view measured again; a joint refinement of the views
-        but the newest started ahead (:meth:`_start_older_ahead`) and not yet begun is void when it holds
-        ``index``."""
+        else None), so an earlier start never refines a view measured again; the joint refinement of the
+        views but the newest started ahead (:meth:`_start_older_ahead`) holds the lock until it is made, and
+        is dropped here after it when it holds ``index`` (its cut and merge with the merge bins)."""
         with self._refine_lock:
             self._ahead_of = ahead_of
             self._overlaps.forget(index)
@@ -522,8 +526,6 @@ class LambertianInspection(InspectionResults):
                 self._moved.clear()
             if self._older is not None and index in self._older[0]:
                 self._older = None
-            if self._older_of is not None and any(v.index == index for v in self._older_of):
-                self._older_of = None
         self.merge_bins_for(run).forget(index)
 
     def _pair_maps(self, new: ViewResult, others: Sequence[ViewResult]) -> None:
@@ -592,30 +594,37 @@ class LambertianInspection(InspectionResults):
 
     def _start_older_ahead(self, run: RunFolder, views: list[ViewResult]) -> None:
         """Make the joint refinement of ``views`` (in index order), all the views before the plan's last so
-        far (the decode of the one before the last just done, or a replan that adds one view), on a thread
-        of its own, while the robot moves to the last view and captures it: the refinement after the last
-        view begins with it (:meth:`_refine`), or makes it then when it is not there (the same numbers: a
-        function of the same views). Void when one of its views is measured again before it begins
-        (:meth:`_forget`). What fails in it is left to the refinement after the last view, which makes it
-        again (and raises there). A daemon thread: a paused or aborted run's process does not wait for it (it
-        writes nothing)."""
-        with self._refine_lock:
-            self._older_of = views
+        far (the decode of the one before the last just done, or a replan that adds one view), and the
+        registration's cut and merge of them (:meth:`merge_ahead`), on a thread of its own, while the robot
+        moves to the last view and captures it: the refinement after the last view begins with it
+        (:meth:`_refine`; the same numbers as made then: a function of the same views). The refinement lock is
+        taken here and handed to the thread, which releases it when done: it comes before any other
+        refinement or forgetting, whatever the threads' timing (a view measured again meanwhile is forgotten
+        after it, and voids it). What fails in the refinement is left to the refinement after the last view,
+        which makes it again (and raises there); a failed cut and merge is journalled. A daemon thread: a
+        paused or aborted run's process does not wait for it (it writes nothing but the journal line)."""
 
         def refine() -> None:
             try:
-                with self._refine_lock:
-                    if self._older_of is views and len(views) >= 2:
-                        found = self._joint(views)[0]
-                        # the registration's cut and merge of these views too, under the lock, so that the
-                        # refinement after the last view (which waits for it) hands them over with its own:
-                        # used when the last view leaves these views' corrections as they are to the bit (it
-                        # is held: the demo pillar's), else the registration merges all views in full
-                        self.merge_ahead(run, [v.index for v in views], found.T, found.unregistered)
+                found = self._joint(views)[0] if len(views) >= 2 else None
             except Exception:  # made again (and raised) by the refinement after the last view
-                pass
+                found = None
+            try:
+                # used when the last view leaves these views' corrections as they are to the bit (it is
+                # held: the demo pillar's), else the registration merges all views in full
+                if found is not None:
+                    self.merge_ahead(run, [v.index for v in views], found.T, found.unregistered)
+            except Exception as exc:  # nothing raises it again: journalled
+                run.log("error", kind="merge ahead", error=repr(exc), used=False)
+            finally:
+                self._refine_lock.release()
 
-        threading.Thread(target=refine, name="refine-older-ahead", daemon=True).start()
+        self._refine_lock.acquire()  # released by the thread (a Lock may be released by any thread)
+        try:
+            threading.Thread(target=refine, name="refine-older-ahead", daemon=True).start()
+        except BaseException:
+            self._refine_lock.release()
+            raise
 
     def _joint(self, views: list[ViewResult]) -> tuple[ViewRefinement, NDArray[np.float64], str]:
         """The joint refinement of ``views`` (:func:`refine_views`) with the prior it ran under (per view,

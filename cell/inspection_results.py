@@ -195,7 +195,7 @@ class MergeBins:
             return ahead
 
     def drop_ahead(self) -> None:
-        """Drop the merge made ahead (e.g. the run pauses or more views are planned: it is stale)."""
+        """Drop the merge made ahead (more views are planned: it is stale; the job's replan)."""
         self.take_ahead()
 
 
@@ -355,7 +355,7 @@ class InspectionResults:
             held = HeldCut(lambda k: bins[k], T_P, unregistered, self.recipe.plan.coverage_radius_mm)
             keep = [None if (cut := held.redundant.get(k)) is None else ~cut for k in range(len(bins))]
             partial = merge_bins_ahead(self.settings.merge_voxel_mm, lambda k: bins[k], keep, T_P)
-        except (ConfigError, ValueError):
+        except ConfigError:  # what the registration's full merge says again (a view beyond the key's range)
             return False
         counts = {k: bins[k].count for k in held.held}
         ahead = MergeAhead(tuple(done), T_P, tuple(held.held), held, keep, counts, partial)
@@ -408,7 +408,9 @@ class InspectionResults:
         unless_called_off()
         stored = [self.views.get(run, i) for i in done]
         T_P = [T_P_W @ T @ self.T_W_P for T in refined.T]  # the views' refinement in {P}
+        made_ahead = None if ahead is None else len(ahead.indices)
         if ahead is not None and not ahead.fits(done, T_P, refined.unregistered):
+            run.log("merge_ahead", views=made_ahead, used=False, why="the earlier views' corrections changed")
             ahead = None
 
         def view(k: int) -> ViewBins:
@@ -437,6 +439,9 @@ class InspectionResults:
         unless_called_off()
         keep = [None if (cut := redundant.get(k)) is None else ~cut for k in range(len(stored))]
         partial = ahead.merge if ahead is not None and ahead.keeps(keep) else None
+        if ahead is not None:  # which path the merge took, for the record (the same results either way)
+            why = None if partial is not None else "the last view cut a held view further"
+            run.log("merge_ahead", views=made_ahead, used=partial is not None, why=why)
         del ahead
         shares = MergeShares(len(stored))
         # numpy, scipy's trees and the kernels release the GIL: two threads for what follows, each step

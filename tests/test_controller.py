@@ -383,6 +383,26 @@ def test_recipe_region_with_a_face_the_cad_lacks_is_refused(recipe_path: Path) -
         load_recipe(bad)
 
 
+def test_the_registration_finishes_a_cut_and_merge_made_ahead_when_the_last_views_refinement_allows(
+    reference: dict,
+) -> None:
+    """Each round's last view: the views before it were refined jointly and cut and merged ahead, while the
+    robot moved to it (the job's decode of the view before it starts that); the registration says which
+    merge it took. It may take the one made ahead only when the last view left the earlier views'
+    corrections as they were to the bit, i.e. when the last view is held at its kinematic pose (a registered
+    one moves the others on: cell.analysis.view_refinement.refine_newest); the cloud is the same either way
+    (tests/test_analysis_merge.py, tests/test_inspect_e2e.py)."""
+    journal = RunFolder.open(reference["run_dir"]).journal()
+    records = [e for e in journal if e["event"] == "merge_ahead"]
+    registration = [e for e in journal if e["event"] == "registration"][-1]
+    assert records, "no cut and merge was made ahead of the last view"
+    last = reference["views"] - 1
+    held_last = last in registration["refinement"]["unregistered_views"]
+    assert records[-1]["views"] == last  # all the views before the last
+    assert records[-1]["used"] == held_last, (records[-1], registration["refinement"])
+    assert not [e for e in journal if e["event"] == "error" and e.get("kind") == "merge ahead"]
+
+
 def test_the_first_plans_last_view_keeps_its_raw_images_when_more_views_follow(reference: dict) -> None:
     """The raw images of the first plan's last view, kept back by its decode (cell.inspection
     ``_write_raw_later``), are written into its committed folder beside the next view's decode once the

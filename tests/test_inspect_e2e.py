@@ -58,6 +58,14 @@ def test_dented_pillar_fails_with_the_dent_located(tmp_path: Path) -> None:
     # nothing else fails: every other out-of-tolerance cluster would be a false alarm
     assert len(doc["regions"]) == 1
     assert "verdict: FAIL" in proc.stdout
+    # the earlier views' cut and merge made ahead of the last view: taken only where the last view left their
+    # corrections as they were (it is held), else the registration merged all views in full
+    journal = [json.loads(line) for line in (tmp_path / "run" / "journal.jsonl").read_text().splitlines()]
+    made = [e for e in journal if e["event"] == "merge_ahead"]
+    registration = [e for e in journal if e["event"] == "registration"][-1]
+    views = registration["views"]
+    assert made and made[-1]["views"] == views - 1
+    assert made[-1]["used"] == (views - 1 in registration["refinement"]["unregistered_views"]), made[-1]
 
 
 @pytest.fixture(scope="module")

@@ -323,7 +323,7 @@ class PartialMerge:
     """:func:`merge_bins` of all views but the last, to be finished with the last (:meth:`finish`): the
     views' voxels (the second pass's bricks, numbered among themselves), the sums added so far and each
     view's ``each_view`` arguments (in that numbering). Made by :func:`merge_bins_ahead`; used once. 48
-    bytes a voxel and 20 a view's voxel, besides 48 a brick (188 MB for the demo pillar's first 11 views:
+    bytes a voxel and 20 a view's voxel, besides 48 a brick (181-188 MB for the demo pillar's first 11 views:
     2.1M voxels of 3.8M bins)."""
 
     voxel_mm: float
@@ -385,7 +385,12 @@ class PartialMerge:
             for rows_k, _, _ in self.shares:
                 kernel.remap(moved, rows_k)
             del moved
-        add = _Adder(bricks, self.voxel_mm, wsum, sums, count, n_views, len(last))
+            # the sums made ahead are in the new arrays now: not held beside them (~100 MB on the demo)
+            self.wsum, self.sums = np.zeros(0), np.zeros((0, 3))
+            self.count, self.n_views = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        self.bricks = bricks  # (the earlier voxels' bricks are not needed past the numbering)
+        del bricks
+        add = _Adder(self.bricks, self.voxel_mm, wsum, sums, count, n_views, len(last))
         rows, w_rows, wu_rows = add(last, kept, T_last)
         del add
         if each_view is not None:
