@@ -2,11 +2,12 @@
 
 Near the projector's terminator (the surface turning away from the projector) the stripes are stretched over
 many camera pixels, their edges blur, and the shading falls across the blurred edge: the decoded edge moves
-and the point lands inside the surface. On the ideal world's 20 mm spheres points lit at 80-90 deg measure
-25-67 um inside on average and down to -180 um, while those lit below 75 deg stay within a few um
-(docs/verification.md). The planner already keeps the surface it counts within ``theta_projector_deg`` of
-eq 3.5; the sensor drops what it lights more obliquely than ``sensor.max_projector_incidence_deg``, as
-commercial area sensors filter by angle. The normal comes from the measured points (the nominal surface is not
+and the point lands inside the surface. On the ideal world's 20 mm spheres the points the filter drops for
+their angle (truly lit at 79-85 deg) read -16 um on average and down to -58 um, the kept ones -2.4 um (since
+the decoder's edge-pair rule; before it, 25-67 um inside on average and down to -180 um: docs/sensing.md).
+The planner already keeps the surface it counts within ``theta_projector_deg`` of eq 3.5; the sensor drops
+what it lights more obliquely than ``sensor.max_projector_incidence_deg``, as commercial area sensors filter
+by angle. The normal comes from the measured points (the nominal surface is not
 known to the sensor, and a part may deviate from it), so the filter works the same for any part.
 """
 
