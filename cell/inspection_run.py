@@ -334,9 +334,19 @@ def abort_run(run_dir: Path, reason: str) -> str:
 
 def rebuild_report(run_dir: Path, *, csv: bool = False, pdf: bool = False) -> RunOutcome:
     """Rebuild the report of a run that reached reporting from its stored views (journalled); with ``csv``
-    also deviations.csv, with ``pdf`` also report.pdf (headless Chromium)."""
+    also deviations.csv, with ``pdf`` also report.pdf (headless Chromium). An aborted run has no report
+    (its verdict was never published) and is refused as such; a paused or faulted one is pointed to `cell
+    resume`."""
+    from cell.controller import stopped_state
+
     run = open_inspection_run(run_dir)
     checkpoint = Checkpoint.from_json(run.load_checkpoint())
+    if stopped_state(run) == "aborted":
+        raise ConfigError(
+            "this run was aborted before its verdict, so it has no report (and cannot be resumed); start a "
+            "new run of the part",
+            path=str(run_dir),
+        )
     if checkpoint.phase not in (Phase.REPORTING, Phase.RENDERING, Phase.DONE):
         raise ConfigError("the run has not reached reporting; `cell resume` it first", path=str(run_dir))
     require_writable(run.results_dir, field=None)  # a read-only or full results folder: refused first
