@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -157,6 +157,47 @@ def _copy_cell_with_calibration(run: RunFolder, cell_path: Path, cfg: CellConfig
     return "cell.yaml"
 
 
+def uncalibrated_warning(
+    cell: Path, cfg: CellConfig, roots: Sequence[Path] = (RUNS_ROOT,), shown: str | Path | None = None
+) -> str | None:
+    """One line when the cell config ``cfg`` (read from the file ``cell``, named ``shown``, default ``cell``)
+    names no calibration file: the run measures with the config's nominal geometry, which on a real cell (or
+    the honest simulated one) usually ends INCOMPLETE; with how to calibrate, or the calibration of this very
+    file that `cell calibrate all` made in a ``calibration-*`` folder under one of ``roots`` (as `cell demo`
+    finds it: :func:`cell.calibration.routines.valid_calibration`). None when a calibration is named, or in
+    an ideal simulated world (``world: ideal``: the config is exact there)."""
+    if any(v is not None for v in cfg.calibration.model_dump().values()) or cfg.world == "ideal":
+        return None
+    from cell.calibration.routines import valid_calibration
+
+    shown = shown or cell
+    folders = sorted({f.resolve() for root in roots for f in Path(root).glob("calibration-*") if f.is_dir()})
+    found = next((c for f in folders if (c := valid_calibration(cell, f)) is not None), None)
+    then = (
+        f"a calibration of this cell is in {found.parent}: inspect with --cell {found}"
+        if found is not None
+        else f"calibrate it with `cell calibrate all --cell {shown} --out DIR`, then inspect with --cell "
+        "DIR/cell.yaml"
+    )
+    return (
+        f"warning: the cell config {shown} names no calibration: this run measures with its nominal "
+        f"geometry, and an uncalibrated cell usually ends INCOMPLETE; {then}"
+    )
+
+
+def _warn_if_uncalibrated(run: RunFolder, say: Say) -> None:
+    """Say :func:`uncalibrated_warning` of the cell config a run was started with (its copy in inputs/, the
+    file as given identifying its calibrations), naming the file as given."""
+    inputs = run.path / "inputs"
+    manifest = json.loads((inputs / "manifest.json").read_text())
+    given = inputs / manifest.get("cell_as_given", manifest["cell"])
+    cfg = load_cell_config(inputs / manifest["cell"])
+    shown = manifest.get("sources", {}).get("cell") or given
+    warning = uncalibrated_warning(given, cfg, (RUNS_ROOT, run.path.parent), shown)
+    if warning:
+        say(warning)
+
+
 def open_inspection_run(run_dir: Path) -> RunFolder:
     """An inspection's run folder; a calibration or verification folder is resumed by its own command."""
     run = RunFolder.open(run_dir)
@@ -294,6 +335,7 @@ def inspect(
     if record is not None:
         require_empty_output(record, field="--record")
     run = start_run(recipe, cell, out, sim_actual, seed=seed, pipelining=pipelining, identity=identity)
+    _warn_if_uncalibrated(run, say)
     return execute_run(run, resume=False, record=record, on_progress=on_progress, say=say)
 
 
@@ -308,6 +350,7 @@ def resume(
         raise ConfigError("this run is already done; `cell report` rebuilds its report", path=str(run_dir))
     if stopped_state(run) == "aborted":
         raise ConfigError("this run was aborted; start a new run of the part", path=str(run_dir))
+    _warn_if_uncalibrated(run, say)
     return execute_run(run, resume=True, on_progress=on_progress, say=say)
 
 
@@ -334,9 +377,19 @@ def abort_run(run_dir: Path, reason: str) -> str:
 
 def rebuild_report(run_dir: Path, *, csv: bool = False, pdf: bool = False) -> RunOutcome:
     """Rebuild the report of a run that reached reporting from its stored views (journalled); with ``csv``
-    also deviations.csv, with ``pdf`` also report.pdf (headless Chromium)."""
+    also deviations.csv, with ``pdf`` also report.pdf (headless Chromium). An aborted run has no report
+    (its verdict was never published) and is refused as such; a paused or faulted one is pointed to `cell
+    resume`."""
+    from cell.controller import stopped_state
+
     run = open_inspection_run(run_dir)
     checkpoint = Checkpoint.from_json(run.load_checkpoint())
+    if stopped_state(run) == "aborted":
+        raise ConfigError(
+            "this run was aborted before its verdict, so it has no report (and cannot be resumed); start a "
+            "new run of the part",
+            path=str(run_dir),
+        )
     if checkpoint.phase not in (Phase.REPORTING, Phase.RENDERING, Phase.DONE):
         raise ConfigError("the run has not reached reporting; `cell resume` it first", path=str(run_dir))
     require_writable(run.results_dir, field=None)  # a read-only or full results folder: refused first

@@ -68,14 +68,20 @@ def known_keys(model: type[BaseModel], where: Sequence[str | int]) -> list[str]:
     return sorted({k for m in models for k in m.model_fields})
 
 
+def meant_key(model: type[BaseModel], loc: Sequence[str | int]) -> str | None:
+    """The known key closest to the unknown key at ``loc`` when one is close (difflib), else None."""
+    key = str(loc[-1]) if loc else ""
+    close = difflib.get_close_matches(key, known_keys(model, loc[:-1]), n=1, cutoff=0.6)
+    return close[0] if close else None
+
+
 def unknown_key_message(model: type[BaseModel], loc: Sequence[str | int]) -> str:
     """The message for the unknown key at ``loc``: the closest known key when one is close, else the known
     keys when they are few."""
-    key = str(loc[-1]) if loc else ""
-    known = known_keys(model, loc[:-1])
-    close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+    close = meant_key(model, loc)
     if close:
-        return f"unknown key (typo?); did you mean '{close[0]}'?"
+        return f"unknown key (typo?); did you mean '{close}'?"
+    known = known_keys(model, loc[:-1])
     if known and len(known) <= MAX_LISTED:
         return f"unknown key (typo?); the keys here are: {', '.join(known)}"
     return "unknown key (typo?); remove it or check the schema in docs/"

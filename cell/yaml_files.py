@@ -12,7 +12,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from cell.errors import ConfigError
-from cell.schema_errors import unknown_key_message, wrong_kind_message
+from cell.schema_errors import meant_key, unknown_key_message, wrong_kind_message
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -39,23 +39,41 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
+def _problems(model: type[BaseModel], errors: list[Any]) -> list[tuple[str, str]]:
+    """(field path, message) of each of pydantic's errors, in its order. A misspelled required key is both
+    an unknown key and a missing one: one problem, the typo (its "did you mean"), not two."""
+    typos = {
+        (*e["loc"][:-1], meant): e["loc"]
+        for e in errors
+        if e["type"] == "extra_forbidden" and (meant := meant_key(model, e["loc"])) is not None
+    }
+    out = []
+    for err in errors:
+        if err["type"] == "missing" and tuple(err["loc"]) in typos:
+            continue
+        if err["type"] == "extra_forbidden":
+            msg = unknown_key_message(model, err["loc"])
+        elif err["type"] == "missing":
+            msg = "required field is missing"
+        else:
+            msg = err["msg"]
+        out.append((_field_path(err["loc"]), msg))
+    return out
+
+
 def validate(model: type[M], data: dict[str, Any], path: str | Path) -> M:
-    """Validate ``data`` against ``model``; the first error becomes a ConfigError naming file and field. A
-    file of another known kind (a recipe where a cell config belongs) is said to be one; an unknown key gets
-    the closest known key ("did you mean")."""
+    """Validate ``data`` against ``model``; a ConfigError naming file and field, or with several problems
+    one naming the file and listing each problem on a line of its own (file and field). A file of another
+    known kind (a recipe where a cell config belongs) is said to be one, alone; an unknown key gets the
+    closest known key ("did you mean")."""
     try:
         return model.model_validate(data)
     except ValidationError as exc:
         wrong_kind = wrong_kind_message(model, data) if isinstance(data, dict) else None
         if wrong_kind:
             raise ConfigError(wrong_kind, path=str(path)) from exc
-        errors = exc.errors()
-        # a misspelled key shows as an unknown key and a missing one: name the typo, its cause
-        err = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
-        msg = err["msg"]
-        if err["type"] == "extra_forbidden":
-            msg = unknown_key_message(model, err["loc"])
-        elif err["type"] == "missing":
-            msg = "required field is missing"
-        more = f" (and {len(exc.errors()) - 1} more problem(s))" if len(exc.errors()) > 1 else ""
-        raise ConfigError(msg + more, path=str(path), field=_field_path(err["loc"])) from exc
+        problems = _problems(model, exc.errors())
+        if len(problems) == 1:
+            raise ConfigError(problems[0][1], path=str(path), field=problems[0][0]) from exc
+        listed = "".join(f"\n  {path}: field '{field}': {msg}" for field, msg in problems)
+        raise ConfigError(f"{len(problems)} problems:{listed}", path=str(path)) from exc

@@ -171,3 +171,125 @@ def test_results_are_never_written_over(tmp_path: Path) -> None:
         r = run("-m", "cell", *args, "--out", str(out))
         assert r.returncode == 2 and "--out holds files already" in r.stderr, (args, r.stderr)
     assert (out / "cloud.ply").read_text() == "a scan's cloud"
+
+
+def _report(verdict: str, **fields: object) -> dict:
+    """A report.json (docs/report-schema.md) with the fields the verdict's reasons read."""
+    return {
+        "verdict": verdict,
+        "tolerance": {"lower_mm": -0.3, "upper_mm": 0.3},
+        "deviation": {"min_mm": -0.1, "max_mm": 0.1},
+        "n_points": 1000,
+        "n_out_of_tolerance": 0,
+        "coverage": 0.9993,
+        "min_coverage": 0.95,
+        "regions": [],
+        "region_verdicts": [],
+        "incomplete_reasons": [],
+        **fields,
+    }
+
+
+def test_an_incomplete_or_failed_verdict_says_why_under_its_line(tmp_path: Path, capsys) -> None:
+    """`cell inspect`/`resume`/`report`/`demo` print the report's reasons under an INCOMPLETE or FAIL verdict
+    (as report.html gives them), nothing under a PASS; and exit with the verdict's code."""
+    import json
+    from types import SimpleNamespace
+
+    from cell.commands.inspect import _finish, verdict_reasons_lines
+    from cell.inspection_run import RunOutcome
+
+    disagree = "overlapping views disagree by more than 0.1 mm over 16248 mm^2: the calibration does not hold"
+    incomplete = _report(
+        "incomplete",
+        incomplete_reasons=[disagree],
+        region_verdicts=[{"name": "seal", "verdict": "no_data", "coverage": None}],
+    )
+    dent = {
+        "name": "out-of-tolerance-1",
+        "verdict": "fail",
+        "kind": "dent",
+        "n_points": 40,
+        "extreme_mm": -0.59,
+        "extreme_at_mm": [21.0, 10.0, 39.0],
+        "limit_mm": -0.3,
+        "beyond_mm": -0.29,
+    }
+    failed = _report("fail", n_out_of_tolerance=40, regions=[dent])
+    said = {}
+    for doc in (incomplete, failed, _report("pass")):
+        results = tmp_path / doc["verdict"] / "results"
+        results.mkdir(parents=True)
+        (results / "report.json").write_text(json.dumps(doc))
+        run = SimpleNamespace(path=results.parent, results_dir=results)
+        summary = {"verdict": doc["verdict"], "n_points": 1000, "coverage": 0.9993}
+        with pytest.raises(SystemExit) as ended:
+            _finish(RunOutcome(run, "done", "", summary))  # type: ignore[arg-type]
+            raise SystemExit(0)
+        said[doc["verdict"]] = (ended.value.code, capsys.readouterr().out.splitlines())
+        assert said[doc["verdict"]][1][1:-1] == verdict_reasons_lines(results / "report.json")
+    code, lines = said["incomplete"]
+    assert code == 5 and lines[0].startswith("verdict: INCOMPLETE") and lines[-1].startswith("report: ")
+    assert lines[1:-1] == [
+        f"  - {disagree}",
+        "  - Region \u201cseal\u201d is not measured: it cannot be judged.",
+    ]
+    code, lines = said["fail"]
+    assert (
+        code == 4
+        and len(lines) == 3
+        and lines[1].startswith("  - 40 points beyond the tolerance in 1 region")
+    )
+    assert "a dent of" in lines[1] and "0.290 mm beyond the limit" in lines[1]
+    code, lines = said["pass"]
+    assert code == 0 and len(lines) == 2  # the verdict and the report's path
+    assert verdict_reasons_lines(tmp_path / "nowhere.json") == []
+
+
+def test_an_uncalibrated_cell_is_warned_of_with_the_way_to_calibrate(tmp_path: Path) -> None:
+    """The warning `cell inspect`/`resume` print when the cell config names no calibration: how to
+    calibrate, or the calibration `cell calibrate all` made of this very file (as `cell demo` finds it);
+    none when a calibration is named or the simulated world is ideal."""
+    import hashlib
+    import json
+    import shutil
+    from types import SimpleNamespace
+
+    from cell.config import load_cell_config
+    from cell.defaults import DEFAULT_CELL
+    from cell.inspection_run import _warn_if_uncalibrated, uncalibrated_warning
+
+    cfg = load_cell_config(DEFAULT_CELL)
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    warning = uncalibrated_warning(DEFAULT_CELL, cfg, [runs], "sim.yaml")
+    assert warning is not None and "\n" not in warning
+    assert "names no calibration" in warning and "usually ends INCOMPLETE" in warning
+    assert "`cell calibrate all --cell sim.yaml --out DIR`, then inspect with --cell DIR/cell.yaml" in warning
+    # a finished `cell calibrate all` of this file (calibration.json names its digest): named
+    calibrated = runs / "calibration-sim"
+    calibrated.mkdir()
+    shutil.copy(DEFAULT_CELL, calibrated / "cell.yaml")
+    digest = hashlib.sha256(DEFAULT_CELL.read_bytes()).hexdigest()
+    (calibrated / "calibration.json").write_text(json.dumps({"source_sha256": digest}))
+    (runs / "calibration-other").mkdir()  # of another file: passed over
+    (runs / "calibration-other" / "calibration.json").write_text(json.dumps({"source_sha256": "0" * 64}))
+    (runs / "calibration-other" / "cell.yaml").write_text("name: other\n")
+    warning = uncalibrated_warning(DEFAULT_CELL, cfg, [runs])
+    assert warning and f"inspect with --cell {calibrated.resolve() / 'cell.yaml'}" in warning
+    # a run folder under runs/: its inputs' copy of the cell, named as given
+    inputs = runs / "run" / "inputs"
+    inputs.mkdir(parents=True)
+    shutil.copy(DEFAULT_CELL, inputs / "cell.original.yaml")
+    shutil.copy(DEFAULT_CELL, inputs / "cell.yaml")
+    manifest = {"cell": "cell.yaml", "cell_as_given": "cell.original.yaml", "sources": {"cell": "given.yaml"}}
+    (inputs / "manifest.json").write_text(json.dumps(manifest))
+    said: list[str] = []
+    _warn_if_uncalibrated(SimpleNamespace(path=inputs.parent), said.append)  # type: ignore[arg-type]
+    assert len(said) == 1 and "the cell config given.yaml names no calibration" in said[0]
+    assert f"--cell {calibrated.resolve() / 'cell.yaml'}" in said[0]
+    # calibrated, or an ideal world: nothing to say
+    cfg.calibration.hand_eye = Path("handeye.yaml")
+    assert uncalibrated_warning(DEFAULT_CELL, cfg, [runs]) is None
+    ideal = REPO / "recipes" / "cells" / "sim_ideal.yaml"
+    assert uncalibrated_warning(ideal, load_cell_config(ideal), [runs]) is None

@@ -217,3 +217,31 @@ def test_a_tolerance_in_metres_is_refused_in_a_region_file_but_a_one_sided_band_
     assert str(path) in message and "field 'regions.0'" in message and "in metres?" in message
     path.write_text("regions: [{name: seal, faces: [0], tolerance_mm: [0, 0.2]}]\n")  # no removal allowed
     assert load_regions(path)[0].tolerance_mm == (0.0, 0.2)
+
+
+def test_every_problem_of_a_file_is_listed_on_a_line_with_file_and_field(tmp_path: Path, capsys) -> None:
+    """Three mistakes in one recipe: the command says all three (one error, exit code 2), each on a line of
+    its own naming the file and the field; a misspelled required key is one problem (the typo), not also a
+    missing key."""
+    from cell.cli import main
+
+    text = (
+        PART
+        + "tolerence: {lower: -0.3, upper: 0.3}\n"  # the typo of a required key
+        + "plan: {view_budgt: 3}\n"
+        + "min_coverage: 2\n"
+    )
+    recipe = _recipe(tmp_path, text)
+    with pytest.raises(SystemExit) as ended:
+        main(["plan", str(recipe), "--out", str(tmp_path / "o")])
+    assert ended.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {recipe}: 3 problems:")
+    lines = err.strip().splitlines()[1:]
+    assert len(lines) == 3 and all(line.startswith(f"  {recipe}: field '") for line in lines)
+    said = "\n".join(lines)
+    assert "field 'tolerence': unknown key (typo?); did you mean 'tolerance'?" in said
+    assert "field 'plan.view_budgt': unknown key (typo?); did you mean 'view_budget'?" in said
+    assert "field 'min_coverage': Input should be less than or equal to 1" in said
+    assert "missing" not in err and "more problem" not in err
+    assert not (tmp_path / "o").exists()

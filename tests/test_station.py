@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from cell.errors import ConfigError
-from cell.inspection_run import abort_run, resume, start_run
+from cell.inspection_run import abort_run, rebuild_report, resume, start_run
 from cell.run_data import RunIdentity
 from cell.runs import RunFolder
 from cell.station.app import create_app
@@ -252,6 +252,8 @@ def started(folders: StationSettings, tmp_path: Path) -> Path:
 def test_abort_goes_through_the_state_machine(started: Path) -> None:
     run = RunFolder.open(started)
     run.log("state", state="paused", message="pause requested: Ctrl-C")
+    with pytest.raises(ConfigError, match="has not reached reporting; `cell resume` it first"):
+        rebuild_report(started)  # paused: resuming it makes its report
     assert abort_run(started, "aborted by olga at the station") == "aborted"
     journal = run.journal()
     assert [e["state"] for e in journal if e["event"] in ("state", "exit")][-2:] == ["aborted", "aborted"]
@@ -260,6 +262,9 @@ def test_abort_goes_through_the_state_machine(started: Path) -> None:
         abort_run(started, "again")
     with pytest.raises(ConfigError, match="was aborted"):
         resume(started)
+    with pytest.raises(ConfigError, match="was aborted before its verdict, so it has no report") as refused:
+        rebuild_report(started)
+    assert "cell resume` it" not in str(refused.value)
     assert not (started / "run.lock").exists()
 
 

@@ -36,6 +36,23 @@ def _progress(ctl: Controller) -> None:
     _say(f"[{elapsed:6.1f} s] {ctl.state}{view}{remaining}")
 
 
+def verdict_reasons_lines(report_json: Path) -> list[str]:
+    """Why an INCOMPLETE or FAIL verdict is what it is, one indented line each: the reasons report.html
+    gives first (:func:`cell.analysis.report_html.verdict_reasons`: the report's ``incomplete_reasons``, the
+    coverage or region that fell short; the worst out-of-tolerance region and the failed user regions). []
+    for a pass, or when the run has no report.json."""
+    import json
+
+    if not report_json.is_file():
+        return []
+    doc = json.loads(report_json.read_text(encoding="utf-8"))
+    if doc.get("verdict") not in ("incomplete", "fail"):
+        return []
+    from cell.analysis.report_html import verdict_reasons
+
+    return [f"  - {reason}" for reason in dict.fromkeys(verdict_reasons(doc))]  # each once
+
+
 def _finish(outcome: RunOutcome) -> None:
     """The verdict and the report's path of a finished run, else why it stopped; exit with the outcome's
     code. Messages are printed as text (click's echo, styled on a terminal), never as markup: they quote file
@@ -46,6 +63,8 @@ def _finish(outcome: RunOutcome) -> None:
         coverage = 100 * (summary.get("coverage") or 0)
         verdict = f"verdict: {str(summary.get('verdict')).upper()}  ({summary.get('n_points')} points"
         typer.secho(f"{verdict}, coverage {coverage:.2f} %)", bold=True)
+        for line in verdict_reasons_lines(run.results_dir / "report.json"):
+            typer.echo(line)
         typer.echo(f"report: {run.results_dir / 'report.html'}")
     elif code is ExitCode.PAUSED:
         typer.secho(f"paused: {outcome.message}", fg="yellow")
