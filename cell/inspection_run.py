@@ -164,9 +164,10 @@ def uncalibrated_warning(
     names no calibration file: the run measures with the config's nominal geometry, which on a real cell (or
     the honest simulated one) usually ends INCOMPLETE; with how to calibrate, or the calibration of this very
     file that `cell calibrate all` made in a ``calibration-*`` folder under one of ``roots`` (as `cell demo`
-    finds it: :func:`cell.calibration.routines.valid_calibration`). None when a calibration is named, or in
-    an ideal simulated world (``world: ideal``: the config is exact there)."""
-    if any(v is not None for v in cfg.calibration.model_dump().values()) or cfg.world == "ideal":
+    finds it: :func:`cell.calibration.routines.valid_calibration`). None when a calibration is named. (Said
+    in an ideal simulated world too: what the simulator renders is not the pipeline's to know,
+    tests/test_world_isolation.py.)"""
+    if any(v is not None for v in cfg.calibration.model_dump().values()):
         return None
     from cell.calibration.routines import valid_calibration
 

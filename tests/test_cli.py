@@ -249,7 +249,7 @@ def test_an_incomplete_or_failed_verdict_says_why_under_its_line(tmp_path: Path,
 def test_an_uncalibrated_cell_is_warned_of_with_the_way_to_calibrate(tmp_path: Path) -> None:
     """The warning `cell inspect`/`resume` print when the cell config names no calibration: how to
     calibrate, or the calibration `cell calibrate all` made of this very file (as `cell demo` finds it);
-    none when a calibration is named or the simulated world is ideal."""
+    none when a calibration is named."""
     import hashlib
     import json
     import shutil
@@ -288,8 +288,6 @@ def test_an_uncalibrated_cell_is_warned_of_with_the_way_to_calibrate(tmp_path: P
     _warn_if_uncalibrated(SimpleNamespace(path=inputs.parent), said.append)  # type: ignore[arg-type]
     assert len(said) == 1 and "the cell config given.yaml names no calibration" in said[0]
     assert f"--cell {calibrated.resolve() / 'cell.yaml'}" in said[0]
-    # calibrated, or an ideal world: nothing to say
+    # calibrated: nothing to say
     cfg.calibration.hand_eye = Path("handeye.yaml")
     assert uncalibrated_warning(DEFAULT_CELL, cfg, [runs]) is None
-    ideal = REPO / "recipes" / "cells" / "sim_ideal.yaml"
-    assert uncalibrated_warning(ideal, load_cell_config(ideal), [runs]) is None
