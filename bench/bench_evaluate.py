@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_tail_steps import load_finished_run  # bench/ is on sys.path when run as a script
+from bench_tail_steps import arrive_as_decoded, load_finished_run  # bench/ on sys.path (a script)
 
 import cell.inspection as inspection
 import cell.planning.feedback as feedback
@@ -48,9 +48,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
     run, job, checkpoint = load_finished_run(args.run)
-    done = run.completed_views()
-    for i in done:
-        job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
+    done = arrive_as_decoded(job, run, bins=False)
     job.refinement(run)
     job_class = inspection.LambertianInspection
     for name, label in (

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_tail_steps import load_finished_run  # noqa: E402
+from bench_tail_steps import arrive_as_decoded, load_finished_run  # noqa: E402
 from hash_register import digest  # noqa: E402
 
 import cell.inspection_results as results  # noqa: E402
@@ -70,11 +70,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2)
     args = ap.parse_args()
     run, job, checkpoint = load_finished_run(args.run)
-    done = run.completed_views()
-    for i in done:
-        job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
-        if i != done[-1]:
-            job.bin_arrived_view(run, job.views.get(run, i))
+    arrive_as_decoded(job, run)
     load_kernels()
     done, refined = job.refinement(run)  # (made once: the registrations below find it made)
     n = len(done)

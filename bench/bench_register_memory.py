@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_tail_steps import load_finished_run  # bench/ is on sys.path when run as a script
+from bench_tail_steps import arrive_as_decoded, load_finished_run  # bench/ on sys.path (a script)
 
 from cell.analysis._pose_kernel import pose_sigma
 
@@ -78,11 +78,7 @@ def main() -> None:
     args = ap.parse_args()
     run, job, checkpoint = load_finished_run(args.run)
     if args.scan:  # as the decode worker does (the last view's maps' pairs and bins are left to the tail)
-        done = run.completed_views()
-        for i in done:
-            job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
-            if i != done[-1]:
-                job.bin_arrived_view(run, job.views.get(run, i))
+        arrive_as_decoded(job, run)
         held = held_bytes(job)
         print(f"held after the scan: {sum(held.values()) / 1e6:.0f} MB: ", end="")
         print(", ".join(f"{k} {v / 1e6:.1f}" for k, v in held.items()))

@@ -72,6 +72,18 @@ def load_finished_run(path: Path) -> tuple[Any, LambertianInspection, Checkpoint
     return run, job, checkpoint
 
 
+def arrive_as_decoded(job: LambertianInspection, run: Any, bins: bool = True) -> list[int]:
+    """What the decode worker did as each of the run's views arrived: its first overlaps and feedback maps'
+    pairs and, with ``bins``, its merge bins; the last view's pairs and bins are left to the tail, as the
+    plan's last view's decode leaves them. The completed views' indices."""
+    done = run.completed_views()
+    for i in done:
+        job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
+        if bins and i != done[-1]:
+            job.bin_arrived_view(run, job.views.get(run, i))
+    return done
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("run", type=Path)
@@ -84,12 +96,7 @@ def main() -> None:
     )
     args = ap.parse_args()
     run, job, checkpoint = load_finished_run(args.run)
-    # what the decode worker did view by view (the last view's maps' pairs and bins are left to the tail)
-    done = run.completed_views()
-    for i in done:
-        job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
-        if i != done[-1]:
-            job.bin_arrived_view(run, job.views.get(run, i))
+    done = arrive_as_decoded(job, run)
     if len(done) >= 3:  # made ahead, while the robot moves to the last view (LambertianInspection._joint)
         job._joint([job.views.get(run, i) for i in done[:-1]])
     timed(inspection, "refine_views")
@@ -132,14 +139,7 @@ def moved_by_last(job: LambertianInspection, run: Any) -> None:
     sigma, _ = job._prior(views)
     wall, cpu = time.perf_counter(), time.process_time()
     joint = inspection.refine_views(
-        [v.eval_W for v in views],
-        sigma[:, 0],
-        sigma[:, 1],
-        planes=[v.planes for v in views],
-        cameras=[v.camera_W for v in views],
-        trees=[v.eval_tree if len(v.eval_W) else None for v in views],
-        ids=list(done),
-        cache=job._overlaps,
+        [v.eval_W for v in views], sigma[:, 0], sigma[:, 1], **job.refine_inputs(views)
     )
     print(
         f"joint refinement of all {len(done)} views (first matchings made): "
@@ -178,21 +178,15 @@ def prefixes(job: LambertianInspection, run: Any, count: int) -> None:
         views = [job.views.get(run, i) for i in done[:m]]
         sigma, _ = job._prior(views)
 
-        def kw(k: int, views: list[Any] = views, m: int = m) -> dict[str, Any]:
-            return {
-                "planes": [v.planes for v in views[:k]],
-                "cameras": [v.camera_W for v in views[:k]],
-                "trees": [v.eval_tree if len(v.eval_W) else None for v in views[:k]],
-                "ids": list(done[:k]),
-                "cache": job._overlaps,
-            }
-
         points = [v.eval_W for v in views]
-        older = inspection.refine_views(points[:-1], *job._prior(views[:-1])[0].T, **kw(m - 1))
+        older = inspection.refine_views(
+            points[:-1], *job._prior(views[:-1])[0].T, **job.refine_inputs(views[:-1])
+        )
         cpu = time.process_time()
-        newest = inspection.refine_newest(older, points, sigma[-1, 0], sigma[-1, 1], **kw(m))
+        inputs = job.refine_inputs(views)
+        newest = inspection.refine_newest(older, points, sigma[-1, 0], sigma[-1, 1], **inputs)
         newest_cpu = time.process_time() - cpu
-        joint = inspection.refine_views(points, sigma[:, 0], sigma[:, 1], **kw(m))
+        joint = inspection.refine_views(points, sigma[:, 0], sigma[:, 1], **inputs)
         if newest is None:
             print(f"views {done[0]}..{done[m - 1]}: the newest view's pairs change the held views: joint")
             continue

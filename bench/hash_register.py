@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_tail_steps import load_finished_run  # noqa: E402
+from bench_tail_steps import arrive_as_decoded, load_finished_run  # noqa: E402
 
 
 def digest(x: np.ndarray | None) -> str:
@@ -35,11 +35,7 @@ def main() -> None:
     run, job, checkpoint = load_finished_run(args.run)
     if args.bins == "none":
         job.merge_bins_for(run).kept_bytes = 0  # each view's bins dropped as the next are added
-    done = run.completed_views()
-    for i in done:
-        job._first_overlaps(run, job.views.get(run, i), pair_maps=i != done[-1])
-        if args.bins == "eager" and i != done[-1]:
-            job.bin_arrived_view(run, job.views.get(run, i))
+    done = arrive_as_decoded(job, run, bins=args.bins == "eager")
     registration = job.register(run, checkpoint.views)
     refinement = registration.get("refinement", {})
     print(

@@ -634,18 +634,21 @@ class LambertianInspection(InspectionResults):
         if self._older is not None and self._older[0] == done:
             return self._older[1], self._older[2], self._older[3]
         sigma, source = self._prior(views)
-        found = refine_views(
-            [v.eval_W for v in views],
-            sigma[:, 0],
-            sigma[:, 1],
-            planes=[v.planes for v in views],
-            cameras=[v.camera_W for v in views],
-            trees=[v.eval_tree if len(v.eval_W) else None for v in views],
-            ids=list(done),
-            cache=self._overlaps,
-        )
+        found = refine_views([v.eval_W for v in views], sigma[:, 0], sigma[:, 1], **self.refine_inputs(views))
         self._older = (done, found, sigma, source)
         return found, sigma, source
+
+    def refine_inputs(self, views: list[ViewResult]) -> dict[str, Any]:
+        """What :func:`refine_views` and :func:`refine_newest` take of ``views`` besides their points and
+        prior: their local planes, camera centres, KD-trees, indices (each pair's sample seed) and the job's
+        overlap cache (the pairs' first matchings made as the views arrived)."""
+        return {
+            "planes": [v.planes for v in views],
+            "cameras": [v.camera_W for v in views],
+            "trees": [v.eval_tree if len(v.eval_W) else None for v in views],
+            "ids": [v.index for v in views],
+            "cache": self._overlaps,
+        }
 
     def _prior(self, views: list[ViewResult]) -> tuple[NDArray[np.float64], str]:
         """The views' pose prior (:func:`view_pose_prior`, from their joints when all have them)."""
@@ -669,11 +672,7 @@ class LambertianInspection(InspectionResults):
                     [v.eval_W for v in views],
                     float(sigma[-1, 0]),
                     float(sigma[-1, 1]),
-                    planes=[v.planes for v in views],
-                    cameras=[v.camera_W for v in views],
-                    trees=[v.eval_tree if len(v.eval_W) else None for v in views],
-                    ids=list(done),
-                    cache=self._overlaps,
+                    **self.refine_inputs(views),
                 )
                 if found is not None:  # the others under their own joint solve's prior, the newest its own
                     sigma = np.vstack([older_sigma, sigma[-1:]])

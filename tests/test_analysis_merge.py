@@ -265,12 +265,8 @@ def test_the_compiled_merge_is_numpys_group_by_to_the_bit() -> None:
     voxel = 0.2
     bins, keep, T = [], [], []
     for k in range(5):
-        xy = rng.uniform(0, 4, (1500, 2)) + 0.3 * k
-        p = np.column_stack([xy, 0.4 * xy[:, 1] + rng.normal(0, 0.01, len(xy))])
-        bins.append(bin_view(p, rng.uniform(0.5, 2.0, len(p)), rng.uniform(0.005, 0.02, len(p)), voxel))
-        T_k = np.eye(4)
-        T_k[:3, :3] = _rotation(rng.normal(size=3), np.deg2rad(0.3))
-        T_k[:3, 3] = rng.uniform(-0.06, 0.06, 3)
+        b, T_k = _refined_view(rng, rng.uniform(0, 4, (1500, 2)) + 0.3 * k, voxel)
+        bins.append(b)
         T.append(T_k)
         keep.append(rng.random(len(bins[-1])) < 0.7 if k in (1, 3) else None)
         moved_cells = np.floor(transform_points(T_k, bins[-1].mean) / voxel)
@@ -308,15 +304,22 @@ def _refined_views(rng: np.random.Generator, n: int, voxel: float) -> tuple[list
     a held mask on every third: the merge's inputs."""
     bins, keep, T = [], [], []
     for k in range(n):
-        xy = rng.uniform(0, 3, (900, 2)) + 0.4 * k
-        p = np.column_stack([xy, 0.4 * xy[:, 1] + rng.normal(0, 0.01, len(xy))])
-        bins.append(bin_view(p, rng.uniform(0.5, 2.0, len(p)), rng.uniform(0.005, 0.02, len(p)), voxel))
-        T_k = np.eye(4)
-        T_k[:3, :3] = _rotation(rng.normal(size=3), np.deg2rad(0.3))
-        T_k[:3, 3] = rng.uniform(-0.06, 0.06, 3)
+        b, T_k = _refined_view(rng, rng.uniform(0, 3, (900, 2)) + 0.4 * k, voxel)
+        bins.append(b)
         T.append(T_k)
         keep.append(rng.random(len(bins[-1])) < 0.7 if k % 3 == 1 else None)
     return bins, keep, T
+
+
+def _refined_view(rng: np.random.Generator, xy: np.ndarray, voxel: float) -> tuple[ViewBins, np.ndarray]:
+    """A patch of the sloped surface z = 0.4 y over ``xy`` (mm) with 10 um of noise, binned with random
+    weights and u, and a refinement of tens of um and 0.3 deg."""
+    p = np.column_stack([xy, 0.4 * xy[:, 1] + rng.normal(0, 0.01, len(xy))])
+    bins = bin_view(p, rng.uniform(0.5, 2.0, len(p)), rng.uniform(0.005, 0.02, len(p)), voxel)
+    T = np.eye(4)
+    T[:3, :3] = _rotation(rng.normal(size=3), np.deg2rad(0.3))
+    T[:3, 3] = rng.uniform(-0.06, 0.06, 3)
+    return bins, T
 
 
 def _merged_with_views(merged: MergedCloud | None, calls: list) -> list[bytes]:
